@@ -1,0 +1,244 @@
+"""Apertures (raster, serpentine), voxel grids, scenes with point reflectors and mirror walls."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _validate as v
+from .physics import speed_of_sound
+
+__all__ = ["Aperture", "raster_aperture", "VoxelGrid", "Wall", "Scene"]
+
+
+@dataclass(frozen=True)
+class Aperture:
+    """Speaker and microphone positions, one bistatic pair per measurement.
+
+    Attributes
+    ----------
+    tx_positions, rx_positions : numpy.ndarray
+        (n_meas, 3) float64, metres.
+    stage_positions : numpy.ndarray
+        (n_meas, 3) carriage positions in the order the stops are visited, metres.
+    """
+
+    tx_positions: np.ndarray
+    rx_positions: np.ndarray
+    stage_positions: np.ndarray
+
+    def __post_init__(self) -> None:
+        tx = v.array("tx_positions", self.tx_positions, shape=(None, 3))
+        rx = v.array("rx_positions", self.rx_positions, shape=(len(tx), 3))
+        st = v.array("stage_positions", self.stage_positions, shape=(len(tx), 3))
+        object.__setattr__(self, "tx_positions", tx)
+        object.__setattr__(self, "rx_positions", rx)
+        object.__setattr__(self, "stage_positions", st)
+
+    def __len__(self) -> int:
+        return len(self.tx_positions)
+
+    @property
+    def n_meas(self) -> int:
+        return len(self.tx_positions)
+
+
+def raster_aperture(
+    nx: int,
+    ny: int,
+    width_m: float,
+    height_m: float,
+    *,
+    center_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+    tx_offset_m: tuple[float, float, float] = (-0.02, 0.0, 0.0),
+    rx_offset_m: tuple[float, float, float] = (0.02, 0.0, 0.0),
+    pattern: str = "serpentine",
+) -> Aperture:
+    """Stops on an ``nx`` x ``ny`` grid in the plane ``z = center_m[2]`` facing +z.
+
+    Parameters
+    ----------
+    nx, ny : int
+        Number of columns (along x) and rows (along y).
+    width_m, height_m : float
+        Extent covered by the stops along x and y (first to last stop).
+    center_m : tuple of float
+        Centre of the scan, metres.
+    tx_offset_m, rx_offset_m : tuple of float
+        Speaker and microphone offsets from the carriage, metres.
+    pattern : {"serpentine", "raster"}
+        Visiting order: serpentine reverses every other row (shorter moves); raster always
+        runs along +x.
+    """
+    nx = v.positive_int("nx", nx)
+    ny = v.positive_int("ny", ny)
+    w = v.non_negative("width_m", width_m)
+    h = v.non_negative("height_m", height_m)
+    v.choice("pattern", pattern, ("serpentine", "raster"))
+    c = v.array("center_m", center_m, shape=(3,))
+    txo = v.array("tx_offset_m", tx_offset_m, shape=(3,))
+    rxo = v.array("rx_offset_m", rx_offset_m, shape=(3,))
+    xs = np.linspace(-w / 2, w / 2, nx) if nx > 1 else np.zeros(1)
+    ys = np.linspace(-h / 2, h / 2, ny) if ny > 1 else np.zeros(1)
+    stops = []
+    for j, y in enumerate(ys):
+        row = xs[::-1] if (pattern == "serpentine" and j % 2) else xs
+        stops += [(x, y, 0.0) for x in row]
+    stage = np.asarray(stops) + c
+    return Aperture(stage + txo, stage + rxo, stage)
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """A regular grid of voxel centres; axes in metres, values indexed ``[ix, iy, iz]``."""
+
+    x_m: np.ndarray
+    y_m: np.ndarray
+    z_m: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("x_m", "y_m", "z_m"):
+            ax = v.array(name, getattr(self, name), ndim=1)
+            if len(ax) > 1:
+                d = np.diff(ax)
+                if np.any(d <= 0):
+                    raise ValueError(f"{name} must be strictly increasing (an inverted grid?)")
+                if not np.allclose(d, d[0], rtol=1e-6, atol=1e-12):
+                    raise ValueError(f"{name} must be evenly spaced")
+            object.__setattr__(self, name, ax)
+
+    @classmethod
+    def from_bounds(
+        cls,
+        x_m: tuple[float, float],
+        y_m: tuple[float, float],
+        z_m: tuple[float, float],
+        spacing_m: float | tuple[float, float, float],
+    ) -> VoxelGrid:
+        """Grid covering ``[lo, hi]`` on each axis with the given spacing.
+
+        An axis with ``lo == hi`` is a single plane: a 2-D grid costs a plane, not a volume.
+        """
+        sp = np.broadcast_to(np.asarray(spacing_m, dtype=float), (3,))
+        axes = []
+        for name, b, d in zip(("x_m", "y_m", "z_m"), (x_m, y_m, z_m), sp, strict=True):
+            lo, hi = v.array(name, b, shape=(2,))
+            d = v.positive("spacing_m", d)
+            if hi < lo:
+                raise ValueError(f"{name} bounds are inverted: ({lo:g}, {hi:g})")
+            n = int(np.floor((hi - lo) / d + 1e-9)) + 1
+            axes.append(lo + d * np.arange(n))
+        return cls(*axes)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return (len(self.x_m), len(self.y_m), len(self.z_m))
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def spacing(self) -> tuple[float, float, float]:
+        """Spacing along each axis (1.0 for a single-plane axis), metres."""
+        return tuple(float(a[1] - a[0]) if len(a) > 1 else 1.0 for a in (self.x_m, self.y_m, self.z_m))
+
+    def bounds(self) -> np.ndarray:
+        """(3, 2) array of the first and last voxel centre on each axis."""
+        return np.array([[a[0], a[-1]] for a in (self.x_m, self.y_m, self.z_m)])
+
+    def points(self) -> np.ndarray:
+        """(size, 3) voxel centres in C order (z fastest)."""
+        X, Y, Z = np.meshgrid(self.x_m, self.y_m, self.z_m, indexing="ij")
+        return np.stack([X.ravel(), Y.ravel(), Z.ravel()], axis=1)
+
+    def index_of(self, point_m: np.ndarray) -> tuple[int, int, int]:
+        """Index of the voxel nearest to ``point_m``."""
+        p = v.array("point_m", point_m, shape=(3,))
+        return tuple(int(np.argmin(np.abs(a - c))) for a, c in zip((self.x_m, self.y_m, self.z_m), p, strict=True))
+
+
+@dataclass(frozen=True)
+class Wall:
+    """An infinite plane that reflects sound specularly.
+
+    ``point_m`` lies on the plane; ``normal`` points into the half-space the rig is in;
+    ``reflectivity`` is the pressure reflection coefficient.
+    """
+
+    point_m: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    reflectivity: float = 0.9
+
+    def __post_init__(self) -> None:
+        p = v.array("point_m", self.point_m, shape=(3,))
+        n = v.array("normal", self.normal, shape=(3,))
+        norm = np.linalg.norm(n)
+        if norm == 0:
+            raise ValueError("normal must be a non-zero vector")
+        r = v.finite("reflectivity", self.reflectivity)
+        if not -1 <= r <= 1:
+            raise ValueError(f"reflectivity must be in [-1, 1], got {r:g}")
+        object.__setattr__(self, "point_m", p)
+        object.__setattr__(self, "normal", n / norm)
+
+    def mirror(self, points_m: np.ndarray) -> np.ndarray:
+        """Mirror image of (n, 3) points across the plane."""
+        d = (np.asarray(points_m) - self.point_m) @ self.normal
+        return points_m - 2 * d[:, None] * self.normal
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Point reflectors, mirror walls and air.
+
+    Attributes
+    ----------
+    points_m : (k, 3) reflector positions, metres.
+    amplitudes : (k,) reflection amplitudes (pressure ratio at 1 m).
+    visible : (k,) whether the rig sees a reflector directly (False: around a corner, heard
+        only through a wall's mirror image).
+    walls : mirror walls; each adds a first-order image of every reflector (both legs by the
+        wall, amplitude times reflectivity squared) and, if ``wall_echo``, the wall's own echo.
+    """
+
+    points_m: np.ndarray
+    amplitudes: np.ndarray | None = None
+    visible: np.ndarray | None = None
+    walls: tuple[Wall, ...] = ()
+    temperature_c: float = 20.0
+    humidity_pct: float = 50.0
+    wall_echo: bool = False
+
+    def __post_init__(self) -> None:
+        p = v.array("points_m", self.points_m, shape=(None, 3))
+        a = np.ones(len(p)) if self.amplitudes is None else v.array(
+            "amplitudes", self.amplitudes, shape=(len(p),)
+        )
+        vis = np.ones(len(p), bool) if self.visible is None else np.asarray(self.visible, bool)
+        if vis.shape != (len(p),):
+            raise ValueError(f"visible must have shape ({len(p)},), got {vis.shape}")
+        object.__setattr__(self, "points_m", p)
+        object.__setattr__(self, "amplitudes", a)
+        object.__setattr__(self, "visible", vis)
+        object.__setattr__(self, "walls", tuple(self.walls))
+        speed_of_sound(self.temperature_c)  # validates the temperature
+        h = v.finite("humidity_pct", self.humidity_pct)
+        if not 0 <= h <= 100:
+            raise ValueError(f"humidity_pct must be in [0, 100], got {h:g}")
+
+    @property
+    def c_mps(self) -> float:
+        return speed_of_sound(self.temperature_c)
+
+    def image_sources(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every reflector the rig hears: direct ones and first-order mirror images.
+
+        Returns ``(points (n, 3), amplitudes (n,))``.
+        """
+        pts = [self.points_m[self.visible]]
+        amps = [self.amplitudes[self.visible]]
+        for wall in self.walls:
+            pts.append(wall.mirror(self.points_m))
+            amps.append(self.amplitudes * wall.reflectivity**2)
+        return np.concatenate(pts), np.concatenate(amps)

@@ -1,0 +1,90 @@
+"""Transmit waveforms (eq. 2 of the paper), tapers and analytic signals."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.signal
+
+from . import _validate as v
+
+__all__ = ["lfm_chirp", "analytic", "chirp_times", "tukey_taper"]
+
+
+def _check_band(f_start_hz: float, f_stop_hz: float, fs_hz: float) -> tuple[float, float, float]:
+    fs = v.positive("fs_hz", fs_hz)
+    f1 = v.non_negative("f_start_hz", f_start_hz)
+    f2 = v.non_negative("f_stop_hz", f_stop_hz)
+    nyq = fs / 2
+    for name, f in (("f_start_hz", f1), ("f_stop_hz", f2)):
+        if f >= nyq:
+            raise ValueError(
+                f"{name}={f:g} Hz is at or above the Nyquist frequency fs_hz/2 = {nyq:g} Hz"
+            )
+    return f1, f2, fs
+
+
+def chirp_times(duration_s: float, fs_hz: float) -> np.ndarray:
+    """Sample times ``n / fs_hz`` for ``n = 0 .. round(duration_s * fs_hz) - 1``, in s."""
+    fs = v.positive("fs_hz", fs_hz)
+    dur = v.positive("duration_s", duration_s)
+    n = int(round(dur * fs))
+    if n < 2:
+        raise ValueError(
+            f"duration_s={dur:g} s gives {n} sample(s) at fs_hz={fs:g}; need at least 2"
+        )
+    return np.arange(n) / fs
+
+
+def tukey_taper(n: int, fraction: float) -> np.ndarray:
+    """Tukey window of ``n`` samples whose cosine edges take ``fraction`` of the length."""
+    fraction = v.non_negative("taper", fraction)
+    if fraction > 1:
+        raise ValueError(f"taper must be in [0, 1], got {fraction:g}")
+    return scipy.signal.windows.tukey(n, fraction) if fraction > 0 else np.ones(n)
+
+
+def lfm_chirp(
+    f_start_hz: float,
+    f_stop_hz: float,
+    duration_s: float,
+    fs_hz: float,
+    taper: float = 0.0,
+) -> np.ndarray:
+    """Linear FM chirp, eq. 2 of the paper: ``cos(xi/2 t^2 + omega t)`` on ``[0, T)``.
+
+    Parameters
+    ----------
+    f_start_hz, f_stop_hz : float
+        Instantaneous frequency at ``t = 0`` and ``t = T``, in Hz; both below ``fs_hz / 2``.
+        A down-chirp (``f_stop_hz < f_start_hz``) is allowed.
+    duration_s : float
+        Length ``T`` in s.
+    fs_hz : float
+        Sample rate in Hz.
+    taper : float
+        Fraction of the length taken by Tukey (cosine) edges; 0 gives the paper's hard on/off
+        edges, 0.2 a smooth atom suitable for continuous basis pursuit.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, shape ``(round(duration_s * fs_hz),)``.
+
+    Notes
+    -----
+    The paper writes ``cos(xi t^2 + omega t)`` with ``xi = 2 pi (f2 - f1) / T``; its
+    instantaneous frequency then sweeps to ``2 f2 - f1``. We use ``xi / 2`` so the sweep ends
+    at ``f_stop_hz`` as the paper intends (its own derivation writes ``psi = xi/2 t^2 + w t``).
+    """
+    f1, f2, fs = _check_band(f_start_hz, f_stop_hz, fs_hz)
+    t = chirp_times(duration_s, fs)
+    T = len(t) / fs
+    xi = 2 * np.pi * (f2 - f1) / T
+    phase = 0.5 * xi * t**2 + 2 * np.pi * f1 * t
+    return np.cos(phase) * tukey_taper(len(t), taper)
+
+
+def analytic(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Analytic signal ``x + j H{x}`` along ``axis`` (complex128)."""
+    arr = v.array("x", x, dtype=np.float64)
+    return scipy.signal.hilbert(arr, axis=axis)
