@@ -13,7 +13,8 @@
  * Measurements are processed in chunks [m_begin, m_end); the host accumulates chunks. */
 
 __kernel void backproject(
-    __global const float2 *profiles, /* (n_meas, n_lags) baseband complex range profiles      */
+    __global const float4 *pairs,    /* (n_meas, n_lags) (p[k], p[k+1]) of the baseband complex
+                                        profiles, as (re, im, re, im); p[n_lags] = 0           */
     const int n_lags,                /* samples per profile                                   */
     __global const float4 *tx,       /* (n_meas,) speaker position xyz, m (w unused)          */
     __global const float4 *rx,       /* (n_meas,) microphone position xyz, m (w unused)       */
@@ -31,46 +32,46 @@ __kernel void backproject(
     __global float *image_im)        /* (n_vox_padded,) imaginary part of the image           */
 {
     const int v0 = get_global_id(0) * VEC;
-    int vi[VEC];
-    for (int l = 0; l < VEC; ++l) vi[l] = v0 + l;
-    const intV vox = vloadV(0, vi);
-    const intV iz = vox % nz;
-    const intV iy = (vox / nz) % ny;
-    const intV ix = vox / (nz * ny);
-    const floatV X = origin.x + step.x * CAT(convert_float, VEC)(ix);
-    const floatV Y = origin.y + step.y * CAT(convert_float, VEC)(iy);
-    const floatV Z = origin.z + step.z * CAT(convert_float, VEC)(iz);
+    lanes_i vox;
+    for (int l = 0; l < VEC; ++l) vox.s[l] = v0 + l;
+    lanes_f fx, fy, fz;
+    for (int l = 0; l < VEC; ++l) {
+        const int iz = vox.s[l] % nz, iy = (vox.s[l] / nz) % ny, ix = vox.s[l] / (nz * ny);
+        fx.s[l] = origin.x + step.x * (float)ix;
+        fy.s[l] = origin.y + step.y * (float)iy;
+        fz.s[l] = origin.z + step.z * (float)iz;
+    }
+    const floatV X = fx.v, Y = fy.v, Z = fz.v;
     const float last = (float)(n_lags - 1);
 
     floatV acc_re = (floatV)(0.0f);
     floatV acc_im = (floatV)(0.0f);
-    int ii[VEC];
-    float a_re[VEC], a_im[VEC], b_re[VEC], b_im[VEC];
 
     for (int m = m_begin; m < m_end; ++m) {
         const float4 t = tx[m];
         const float4 r = rx[m];
         const floatV dtx = X - t.x, dty = Y - t.y, dtz = Z - t.z;
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
-        const floatV path = sqrt(mad(dtx, dtx, mad(dty, dty, dtz * dtz)))
-                          + sqrt(mad(drx, drx, mad(dry, dry, drz * drz)));
-        const floatV idx = mad(path, (floatV)(samples_per_m), (floatV)(-s0[m]));
+        const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz)
+                          + sqrt(drx * drx + dry * dry + drz * drz);
+        const floatV idx = path * samples_per_m - s0[m];
         const intV inside = (idx >= 0.0f) & (idx <= last);
-        const intV i0 = clamp(convert_intV(floor(clamp(idx, -1.0f, last + 1.0f))), 0, n_lags - 2); /* n_lags >= 2 */
-        const floatV w = idx - CAT(convert_float, VEC)(i0);
-        vstoreV(i0, 0, ii);
-        __global const float2 *row = profiles + (size_t)m * n_lags;
-        for (int l = 0; l < VEC; ++l) {
-            const float4 ab = vload4(0, (__global const float *)(row + ii[l]));
-            a_re[l] = ab.x; a_im[l] = ab.y; b_re[l] = ab.z; b_im[l] = ab.w;
-        }
-        const floatV are = vloadV(0, a_re), aim = vloadV(0, a_im);
-        const floatV re = select((floatV)(0.0f), mad(w, vloadV(0, b_re) - are, are), inside);
-        const floatV im = select((floatV)(0.0f), mad(w, vloadV(0, b_im) - aim, aim), inside);
+        /* floor(idx) clamped to [0, n_lags - 2] (n_lags >= 2), with operators only */
+        floatV i0 = RINT(idx);
+        i0 = (i0 > idx) ? i0 - 1.0f : i0;
+        i0 = (i0 < 0.0f) ? (floatV)(0.0f) : i0;
+        i0 = (i0 > last - 1.0f) ? (floatV)(last - 1.0f) : i0;
+        const floatV w = idx - i0;
+        lanes_f li;
+        li.v = i0;
+        __global const float4 *row = pairs + (size_t)m * n_lags;
+        GATHER_PAIRS(row, li, are, aim, bre, bim)
+        const floatV re = inside ? are + w * (bre - are) : (floatV)(0.0f);
+        const floatV im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
         floatV cyc = path * cycles_per_m;
-        cyc -= rint(cyc);
+        cyc -= RINT(cyc);
         floatV c;
-        const floatV s = sincos(6.28318530718f * cyc, &c);
+        const floatV s = sincos_2pi(cyc, &c);
         acc_re += re * c - im * s;
         acc_im += re * s + im * c;
     }

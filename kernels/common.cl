@@ -1,4 +1,8 @@
-/* Vector helpers shared by the clsas kernels. VEC (2, 4, 8 or 16) is set with -DVEC=n. */
+/* Vector helpers shared by the clsas kernels. VEC (4, 8 or 16) is set with -DVEC=n.
+ *
+ * Hot loops use operators, vector ?: and unions rather than builtins (mad, select, rint,
+ * vload): some OpenCL CPU runtimes (PoCL 3.0's wheel among them) call builtins out of line,
+ * which costs more than the arithmetic. Every device compiles these forms inline. */
 #ifndef VEC
 #define VEC 8
 #endif
@@ -8,4 +12,75 @@
 #define intV CAT(int, VEC)
 #define vloadV CAT(vload, VEC)
 #define vstoreV CAT(vstore, VEC)
-#define convert_intV CAT(convert_int, VEC)
+
+/* a vector and its lanes */
+typedef union { floatV v; float s[VEC]; } lanes_f;
+typedef union { intV v; int s[VEC]; } lanes_i;
+
+/* round to nearest for |x| < 2^22 (adding 1.5 * 2^23 leaves no fraction bits) */
+#define RINT(x) (((x) + 12582912.0f) - 12582912.0f)
+
+/* sin(2 pi c) and cos(2 pi c) for c in [-0.5, 0.5] (cycles already reduced).
+ * Quadrant q = rint(4c) in {-2..2}, remainder x = 2 pi (c - q/4) in [-pi/4, pi/4], Taylor
+ * polynomials of degree 7 and 8 (error < 4e-7), then a rotation by q quarter turns.
+ * Branch-free, so it vectorises on CPUs; the same accuracy on every device. */
+inline floatV sincos_2pi(const floatV c, floatV *cos_out)
+{
+    const floatV q = RINT(4.0f * c);
+    const floatV x = 6.28318530718f * (c - 0.25f * q);
+    const floatV x2 = x * x;
+    const floatV s = x * (1.0f + x2 * (-1.0f / 6.0f + x2 * (1.0f / 120.0f + x2 * (-1.0f / 5040.0f))));
+    const floatV k = 1.0f + x2 * (-0.5f + x2 * (1.0f / 24.0f + x2 * (-1.0f / 720.0f + x2 * (1.0f / 40320.0f))));
+    const intV zero = q == 0.0f;
+    const intV odd = (q == 1.0f) | (q == -1.0f);
+    const intV pos = q > 0.0f;
+    /* q = 0: (s, k); q = 1: (k, -s); q = -1: (-k, s); q = +-2: (-s, -k) */
+    *cos_out = odd ? (pos ? -s : s) : (zero ? k : -k);
+    return odd ? (pos ? k : -k) : (zero ? s : -s);
+}
+
+
+/* Gather VEC float4 (a_re, a_im, b_re, b_im) records at lane indices li (lanes_f holding
+ * integral floats) from `src` into four planar vectors, with constructors and .even/.odd
+ * swizzles (no private-memory round trip). */
+#define G4(src, li, l) (src)[(int)(li).s[l]]
+#define SPLIT16(c, e, o) const float8 e = (c).even, o = (c).odd
+#if VEC == 4
+#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                     \
+    floatV are, aim, bre, bim;                                                          \
+    {                                                                                   \
+        const float16 c0 = (float16)(G4(src, li, 0), G4(src, li, 1), G4(src, li, 2), G4(src, li, 3)); \
+        SPLIT16(c0, e0, o0);                                                            \
+        are = e0.even; bre = e0.odd; aim = o0.even; bim = o0.odd;                       \
+    }
+#elif VEC == 8
+#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                     \
+    floatV are, aim, bre, bim;                                                          \
+    {                                                                                   \
+        const float16 c0 = (float16)(G4(src, li, 0), G4(src, li, 1), G4(src, li, 2), G4(src, li, 3)); \
+        const float16 c1 = (float16)(G4(src, li, 4), G4(src, li, 5), G4(src, li, 6), G4(src, li, 7)); \
+        SPLIT16(c0, e0, o0);                                                            \
+        SPLIT16(c1, e1, o1);                                                            \
+        are = (float8)(e0.even, e1.even); bre = (float8)(e0.odd, e1.odd);               \
+        aim = (float8)(o0.even, o1.even); bim = (float8)(o0.odd, o1.odd);               \
+    }
+#elif VEC == 16
+#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                     \
+    floatV are, aim, bre, bim;                                                          \
+    {                                                                                   \
+        const float16 c0 = (float16)(G4(src, li, 0), G4(src, li, 1), G4(src, li, 2), G4(src, li, 3)); \
+        const float16 c1 = (float16)(G4(src, li, 4), G4(src, li, 5), G4(src, li, 6), G4(src, li, 7)); \
+        const float16 c2 = (float16)(G4(src, li, 8), G4(src, li, 9), G4(src, li, 10), G4(src, li, 11)); \
+        const float16 c3 = (float16)(G4(src, li, 12), G4(src, li, 13), G4(src, li, 14), G4(src, li, 15)); \
+        SPLIT16(c0, e0, o0);                                                            \
+        SPLIT16(c1, e1, o1);                                                            \
+        SPLIT16(c2, e2, o2);                                                            \
+        SPLIT16(c3, e3, o3);                                                            \
+        are = (float16)(e0.even, e1.even, e2.even, e3.even);                            \
+        bre = (float16)(e0.odd, e1.odd, e2.odd, e3.odd);                                \
+        aim = (float16)(o0.even, o1.even, o2.even, o3.even);                            \
+        bim = (float16)(o0.odd, o1.odd, o2.odd, o3.odd);                                \
+    }
+#else
+#error "VEC must be 4, 8 or 16"
+#endif

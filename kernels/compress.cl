@@ -31,11 +31,13 @@ __kernel void matched_filter(
     floatV acc_im = (floatV)(0.0f);
     if (L >= 0 && L + VEC - 1 + n_ref - 1 < n_samples) {
         /* fast path: the whole window lies inside the recording */
+        __global const float *x = row + L;
         for (int n = 0; n < n_ref; ++n) {
-            const floatV xv = vloadV(0, row + L + n);
+            lanes_f xv;
+            for (int l = 0; l < VEC; ++l) xv.s[l] = x[n + l];
             const float2 r = ref[n];
-            acc_re = mad(xv, (floatV)(r.x), acc_re);
-            acc_im = mad(xv, (floatV)(r.y), acc_im);
+            acc_re += xv.v * r.x;
+            acc_im += xv.v * r.y;
         }
     } else {
         /* edge path: samples outside the recording contribute nothing */
@@ -47,26 +49,28 @@ __kernel void matched_filter(
             const int n_hi = min(n_ref, n_samples - lag);
             for (int n = n_lo; n < n_hi; ++n) {
                 const float x = row[lag + n];
-                sr = mad(x, ref[n].x, sr);
-                si = mad(x, ref[n].y, si);
+                sr += x * ref[n].x;
+                si += x * ref[n].y;
             }
             re[l] = sr;
             im[l] = si;
         }
-        acc_re = vloadV(0, re);
-        acc_im = vloadV(0, im);
+        lanes_f ure, uim;
+        for (int l = 0; l < VEC; ++l) { ure.s[l] = re[l]; uim.s[l] = im[l]; }
+        acc_re = ure.v;
+        acc_im = uim.v;
     }
 
     /* rotate to baseband: exp(-j 2 pi fc (t0 + (lag0 + k)/fs)) = rot0[m] * rot[k] */
-    float ore[VEC], oim[VEC];
-    vstoreV(acc_re, 0, ore);
-    vstoreV(acc_im, 0, oim);
+    lanes_f ore, oim;
+    ore.v = acc_re;
+    oim.v = acc_im;
     const float2 r0 = rot0[m];
     __global float2 *o = out + (size_t)m * out_stride + k0;
     for (int l = 0; l < VEC; ++l) {
         const float2 rk = rot[k0 + l];
         const float2 w = (float2)(r0.x * rk.x - r0.y * rk.y, r0.x * rk.y + r0.y * rk.x);
-        const float2 v = (float2)(ore[l] * w.x - oim[l] * w.y, ore[l] * w.y + oim[l] * w.x);
+        const float2 v = (float2)(ore.s[l] * w.x - oim.s[l] * w.y, ore.s[l] * w.y + oim.s[l] * w.x);
         o[l] = (k0 + l < n_lags) ? v : (float2)(0.0f);
     }
 }
@@ -92,9 +96,9 @@ __kernel void fmcw_dechirp(
     const int k0 = blk * VEC;
     if (k0 >= out_stride) return;
     __global const float *row = signals + (size_t)m * n_samples;
-    float tl[VEC];
-    for (int l = 0; l < VEC; ++l) tl[l] = tau0_s + (float)(k0 + l) * dtau_s;
-    const floatV tau = vloadV(0, tl);
+    lanes_f tl;
+    for (int l = 0; l < VEC; ++l) tl.s[l] = tau0_s + (float)(k0 + l) * dtau_s;
+    const floatV tau = tl.v;
     /* phase step per sample (cycles) for each delay; centred time keeps phases small */
     const floatV step = tau * beat_cycles_per_sample_per_s;
     const int n_mix = min(n_ref, n_samples);
@@ -106,19 +110,19 @@ __kernel void fmcw_dechirp(
         const float2 r = ref[n];
         const float dre = x * r.x, dim = x * r.y;
         floatV cyc = step * ((float)n - centre);
-        cyc -= rint(cyc);
+        cyc -= RINT(cyc);
         floatV c;
-        const floatV s = sincos(6.28318530718f * cyc, &c);
+        const floatV s = sincos_2pi(cyc, &c);
         acc_re += dre * c - dim * s;
         acc_im += dre * s + dim * c;
     }
-    float ore[VEC], oim[VEC];
-    vstoreV(acc_re, 0, ore);
-    vstoreV(acc_im, 0, oim);
+    lanes_f ore, oim;
+    ore.v = acc_re;
+    oim.v = acc_im;
     __global float2 *o = out + (size_t)m * out_stride + k0;
     for (int l = 0; l < VEC; ++l) {
         const float2 w = rvp[k0 + l];
-        const float2 v = (float2)(ore[l] * w.x - oim[l] * w.y, ore[l] * w.y + oim[l] * w.x);
+        const float2 v = (float2)(ore.s[l] * w.x - oim.s[l] * w.y, ore.s[l] * w.y + oim.s[l] * w.x);
         o[l] = (k0 + l < n_lags) ? v : (float2)(0.0f);
     }
 }

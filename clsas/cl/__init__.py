@@ -20,6 +20,7 @@ __all__ = [
     "resolve_backend",
     "get_queue",
     "build",
+    "kernel",
     "list_devices",
     "kernel_source",
     "device_info",
@@ -162,6 +163,16 @@ def _build(ctx: Any, files: tuple[str, ...], defines: tuple[tuple[str, Any], ...
 def build(ctx: Any, files: tuple[str, ...], defines: dict[str, Any] | None = None) -> Any:
     """Build (once per context, files and defines) and return the program."""
     return _build(ctx, tuple(files), tuple(sorted((defines or {}).items())))
+
+
+@functools.cache
+def _kernel(ctx: Any, files: tuple[str, ...], defines: tuple, name: str) -> Any:
+    return _cl().Kernel(_build(ctx, files, defines), name)
+
+
+def kernel(ctx: Any, files: tuple[str, ...], name: str, defines: dict[str, Any] | None = None) -> Any:
+    """The kernel ``name`` from :func:`build`, retrieved once per context and variant."""
+    return _kernel(ctx, tuple(files), tuple(sorted((defines or {}).items())), name)
 
 
 @dataclass(frozen=True)

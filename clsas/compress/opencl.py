@@ -29,8 +29,7 @@ class _Plan:
         self.vec = vec or vec_width(self.queue.device)
         self.n_meas, self.n_samples, self.n_lags = n_meas, n_samples, n_lags
         self.stride = -(-n_lags // self.vec) * self.vec
-        prog = _cl.build(self.queue.context, ("common.cl", "compress.cl"), {"VEC": self.vec})
-        self.kernel = getattr(prog, self.kernel_name)
+        self.kernel = _cl.kernel(self.queue.context, ("common.cl", "compress.cl"), self.kernel_name, {"VEC": self.vec})
         mf = cl.mem_flags
         self.d_sig = cl.Buffer(self.queue.context, mf.READ_ONLY, max(4, 4 * n_meas * n_samples))
         self.d_out = cl.Buffer(self.queue.context, mf.WRITE_ONLY, 8 * n_meas * self.stride)

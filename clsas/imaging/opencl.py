@@ -29,9 +29,9 @@ class BackprojectPlan:
         self.n_pad = -(-self.n_vox // self.vec) * self.vec
         self.chunk = chunk or int(np.clip(4e7 // self.n_pad, 4, 256))
         ctx = self.queue.context
-        self.kernel = _cl.build(ctx, ("common.cl", "backproject.cl"), {"VEC": self.vec}).backproject
+        self.kernel = _cl.kernel(ctx, ("common.cl", "backproject.cl"), "backproject", {"VEC": self.vec})
         mf = cl.mem_flags
-        self.d_prof = cl.Buffer(ctx, mf.READ_ONLY, 8 * n_meas * self.n_lags)
+        self.d_prof = cl.Buffer(ctx, mf.READ_ONLY, 16 * n_meas * self.n_lags)
         self.d_tx = cl.Buffer(ctx, mf.READ_ONLY, 16 * n_meas)
         self.d_rx = cl.Buffer(ctx, mf.READ_ONLY, 16 * n_meas)
         self.d_s0 = cl.Buffer(ctx, mf.READ_ONLY, 4 * n_meas)
@@ -52,12 +52,16 @@ class BackprojectPlan:
     ) -> np.ndarray:
         """Backproject; same arguments as the NumPy twin (grid fixed). Returns (n_vox,) complex64."""
         cl, q = self.cl, self.queue
-        prof = np.zeros((self.n_meas, self.n_lags), np.complex64)
+        # pair layout: record k holds samples k and k + 1, so one load per voxel serves lerp
+        prof = np.zeros((self.n_meas, self.n_lags + 1), np.complex64)
         prof[:, : data.shape[1]] = data
+        pairs = np.empty((self.n_meas, self.n_lags, 2), np.complex64)
+        pairs[:, :, 0] = prof[:, :-1]
+        pairs[:, :, 1] = prof[:, 1:]
         pos4 = np.zeros((2, self.n_meas, 4), np.float32)
         pos4[0, :, :3] = tx_positions
         pos4[1, :, :3] = rx_positions
-        cl.enqueue_copy(q, self.d_prof, prof)
+        cl.enqueue_copy(q, self.d_prof, pairs)
         cl.enqueue_copy(q, self.d_tx, pos4[0])
         cl.enqueue_copy(q, self.d_rx, pos4[1])
         cl.enqueue_copy(q, self.d_s0, (np.asarray(tau0_s) / dtau_s).astype(np.float32))
