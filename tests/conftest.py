@@ -1,0 +1,45 @@
+import numpy as np
+import pytest
+
+import clsas
+
+
+def _opencl_reason() -> str | None:
+    from clsas import cl
+
+    try:
+        cl.get_queue()
+    except cl.OpenCLUnavailable as exc:
+        return str(exc)
+    return None
+
+
+OPENCL_MISSING = _opencl_reason()
+needs_opencl = pytest.mark.skipif(OPENCL_MISSING is not None, reason=f"no OpenCL device: {OPENCL_MISSING}")
+BACKENDS = [
+    pytest.param("numpy", id="numpy"),
+    pytest.param("opencl", id="opencl", marks=needs_opencl),
+]
+
+# tolerance of the float32 kernels against the float64 twins, relative to the peak
+TOL = {"compress": 1e-5, "fmcw": 2e-4, "backproject": 2e-4}
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="session")
+def chirp96():
+    fs = 96e3
+    return clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.1), fs
+
+
+def small_dataset(points, amplitudes=None, nx=9, ny=7, width=0.4, height=0.3, snr_db=None, walls=(),
+                  visible=None, duration_s=2e-3, fs=96e3):
+    w = clsas.lfm_chirp(20e3, 30e3, duration_s, fs, taper=0.1)
+    ap = clsas.raster_aperture(nx, ny, width, height)
+    scene = clsas.Scene(np.asarray(points, float), amplitudes, visible, walls)
+    return clsas.simulate(scene, ap, w, fs, snr_db=snr_db,
+                          chirp={"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": duration_s})

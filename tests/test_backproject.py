@@ -1,0 +1,173 @@
+"""Backprojection (kernels/backproject.cl): twin equivalence on PoCL, analytic and physics tests."""
+
+import numpy as np
+import pytest
+from conftest import BACKENDS, TOL, needs_opencl, small_dataset
+
+import clsas
+from clsas.imaging import numpy as twin
+from clsas.imaging.plan import path_bounds
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+@pytest.mark.parametrize(
+    "shape", [(13, 11, 9), (17, 1, 23), (1, 1, 50)], ids=["volume", "plane", "line"]
+)
+def test_backproject_opencl_equals_twin(rng, vec, shape):
+    from clsas.imaging.opencl import BackprojectPlan
+
+    ds = small_dataset([[0.02, -0.01, 0.6]])
+    p = clsas.compress(ds, gate_s=(2e-3, 6e-3), backend="numpy")
+    axes = [np.linspace(-0.1, 0.1, n) if n > 1 else np.zeros(1) for n in shape[:2]]
+    grid = clsas.VoxelGrid(axes[0], axes[1], np.linspace(0.5, 0.7, shape[2]))
+    plan = BackprojectPlan(grid, p.n_meas, p.n_lags, vec=vec, chunk=17)  # chunks that do not divide n_meas
+    got = plan(p.data, p.tau0_s, p.dtau_s, p.fc_hz, ds.tx_positions, ds.rx_positions, ds.c_mps)
+    want = twin.backproject(p.data, p.tau0_s, p.dtau_s, p.fc_hz, ds.tx_positions, ds.rx_positions,
+                            ds.c_mps, grid.points())
+    err = np.abs(got - want).max() / np.abs(want).max()
+    assert err < TOL["backproject"], err
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_point_target_lands_in_its_voxel(backend):
+    target = np.array([0.03, -0.02, 0.55])
+    ds = small_dataset([target], nx=15, ny=11)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.45, 0.65), 0.01)
+    image = clsas.reconstruct(ds, grid, backend=backend)
+    assert image.values.shape == grid.shape
+    assert image.peaks(1)[0].index == grid.index_of(target)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_two_reflectors_beyond_the_resolution_are_resolved(backend):
+    # 4 cm apart in range (resolution 1.7 cm) and 6 cm across (resolution ~1.4 cm here)
+    pts = [[0.0, 0.0, 0.50], [0.0, 0.0, 0.54], [0.06, 0.0, 0.50]]
+    ds = small_dataset(pts, nx=41, ny=1, width=0.4, height=0.0)
+    grid = clsas.VoxelGrid.from_bounds((-0.05, 0.1), (0.0, 0.0), (0.45, 0.6), 0.005)
+    image = clsas.reconstruct(ds, grid, backend=backend)
+    found = [p.position_m for p in image.peaks(3, min_separation_m=0.02)]
+    for t in pts:
+        assert min(np.linalg.norm(f - t) for f in found) < 0.006
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_around_the_corner_peak_is_at_the_mirror_image(backend):
+    wall = clsas.Wall((0.0, 0.0, 0.8), (0.70710678, 0.0, -0.70710678))
+    image_pos = np.array([0.0, 0.0, 1.0])
+    hidden = wall.mirror(image_pos[None])[0]  # the real target, beside the aperture
+    ds = small_dataset([hidden], visible=[False], walls=[wall], nx=15, ny=11)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    image = clsas.reconstruct(ds, grid, backend=backend)
+    assert image.peaks(1)[0].index == grid.index_of(image_pos)
+
+
+def _width_3db(values, axis_m):
+    mag = np.abs(values) / np.abs(values).max()
+    k = int(np.argmax(mag))
+    above = mag >= 1 / np.sqrt(2)
+    lo, hi = k, k
+    while lo > 0 and above[lo - 1]:
+        lo -= 1
+    while hi < len(mag) - 1 and above[hi + 1]:
+        hi += 1
+
+    def cross(i, j):  # linear interpolation of the -3 dB crossing between samples i and j
+        return axis_m[i] + (axis_m[j] - axis_m[i]) * (mag[i] - 1 / np.sqrt(2)) / (mag[i] - mag[j])
+
+    return cross(hi, hi + 1) - cross(lo, lo - 1)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_psf_widths_match_the_resolution_limits(backend):
+    """A well-sampled line aperture (3 mm < lambda/4 spacing): -3 dB widths within 20 %."""
+    R, D = 0.5, 0.3
+    ds = small_dataset([[0.0, 0.0, R]], nx=101, ny=1, width=D, height=0.0)
+    c = ds.c_mps
+    rng_res = c / (2 * 10e3)
+    cross_res = (c / 25e3) * R / (2 * D)
+    z_line = clsas.VoxelGrid(np.zeros(1), np.zeros(1), np.linspace(R - 0.04, R + 0.04, 161))
+    x_line = clsas.VoxelGrid(np.linspace(-0.04, 0.04, 161), np.zeros(1), np.array([R]))
+    wz = _width_3db(clsas.reconstruct(ds, z_line, backend=backend).values.ravel(), z_line.z_m)
+    wx = _width_3db(clsas.reconstruct(ds, x_line, backend=backend).values.ravel(), x_line.x_m)
+    assert wz == pytest.approx(rng_res, rel=0.2), (wz, rng_res)
+    assert wx == pytest.approx(cross_res, rel=0.2), (wx, cross_res)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_samples_outside_the_window_contribute_nothing(backend):
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=5, ny=3)
+    p = clsas.compress(ds, gate_s=(2.5e-3, 3.2e-3), backend="numpy")  # covers ~0.43-0.55 m
+    grid = clsas.VoxelGrid(np.zeros(1), np.zeros(1), np.array([0.1, 0.5, 0.9]))
+    image = clsas.backproject(p, grid, backend=backend)
+    v = image.values.ravel()
+    assert v[0] == 0 and v[2] == 0 and abs(v[1]) > 0
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_voxel_exactly_at_a_transducer_is_finite(backend):
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=3, ny=1, width=0.1, height=0.0)
+    tx = ds.tx_positions[0]
+    grid = clsas.VoxelGrid(np.array([tx[0]]), np.array([tx[1]]), np.array([tx[2], 0.5]))
+    image = clsas.reconstruct(ds, grid, backend=backend)
+    assert np.all(np.isfinite(image.values))
+
+
+def test_range_gate_is_exact_and_safe(rng):
+    """The gate's min/max path equal brute force over a dense grid, and never cut a voxel."""
+    tx = rng.uniform(-0.5, 0.5, (20, 3))
+    tx[:, 2] = 0
+    rx = tx + [0.04, 0, 0]
+    tx[0] = [0.0, 0.0, 0.7]  # a transducer inside the box
+    lo, hi = np.array([-0.2, -0.3, 0.5]), np.array([0.3, 0.1, 0.9])
+    pmin, pmax = path_bounds(lo, hi, tx, rx)
+    g = clsas.VoxelGrid.from_bounds(*zip(lo, hi, strict=True), 0.01).points()
+    d = np.linalg.norm(g[None] - tx[:, None], axis=2) + np.linalg.norm(g[None] - rx[:, None], axis=2)
+    assert np.all(pmin <= d.min(axis=1) + 1e-12)
+    assert np.all(pmax >= d.max(axis=1) - 1e-12)
+    np.testing.assert_allclose(pmin, d.min(axis=1), atol=0.01)  # grid spacing bounds the gap
+    np.testing.assert_allclose(pmax, d.max(axis=1), atol=1e-9)
+
+
+def test_plan_computes_only_what_the_grid_needs():
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=5, ny=3)
+    plane = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (0.0, 0.0), (0.45, 0.55), 0.01)
+    image = clsas.reconstruct(ds, plane, backend="numpy")
+    plan = image.plan
+    assert plan.grid_shape == (21, 1, 11)
+    assert plan.lags < plan.lags_full / 2
+    text = plan.describe()
+    assert "2-D" in text and "skipped" in text
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: clsas.VoxelGrid.from_bounds((0.1, -0.1), (0, 0), (0.4, 0.5), 0.01), "inverted"),
+        (lambda: clsas.VoxelGrid(np.array([]), np.zeros(1), np.zeros(1)), "empty"),
+        (lambda: clsas.VoxelGrid.from_bounds((0, 0.1), (0, 0), (0.4, 0.5), 0.0), "spacing_m"),
+        (lambda: clsas.VoxelGrid(np.array([0.0, np.nan]), np.zeros(1), np.zeros(1)), "NaN"),
+        (lambda: clsas.raster_aperture(0, 3, 1.0, 1.0), "nx"),
+        (lambda: clsas.Scene(np.zeros((2, 2))), "points_m"),
+    ],
+    ids=["inverted-grid", "empty-grid", "zero-spacing", "nan-axis", "zero-nx", "bad-points-shape"],
+)
+def test_geometry_rejects_bad_input(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_reconstruct_rejects_bad_input():
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=3, ny=1, width=0.1, height=0.0)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (0, 0), (0.4, 0.5), 0.05)
+    with pytest.raises(TypeError, match="dataset"):
+        clsas.reconstruct(ds.signals, grid)
+    with pytest.raises(ValueError, match="method"):
+        clsas.reconstruct(ds, grid, method="magic")
+    with pytest.raises(NotImplementedError, match="issue 3"):
+        clsas.reconstruct(ds, grid, method="bpdn", backend="numpy")
+    p = clsas.compress(ds, backend="numpy")
+    with pytest.raises(ValueError, match="c_mps"):
+        clsas.backproject(p, grid, c_mps=-1.0, backend="numpy")
+    with pytest.raises(ValueError, match="tx_positions"):
+        clsas.backproject(p, grid, tx_positions=np.zeros((2, 3)), backend="numpy")

@@ -1,0 +1,121 @@
+"""Pulse compression (kernels/compress.cl): twin equivalence on PoCL, analytic tests, input checks."""
+
+import numpy as np
+import pytest
+from conftest import BACKENDS, TOL, needs_opencl
+
+import clsas
+from clsas.compress import compress
+
+
+def _echo(wave, fs, n_samples, delay_s, amp=1.0, phase=0.0):
+    """A recording holding one echo at a fractional delay with a given phase (exact)."""
+    n = np.arange(n_samples) / fs
+    spec = np.fft.rfft(wave, 4 * n_samples)
+    f = np.fft.rfftfreq(4 * n_samples, 1 / fs)
+    shifted = np.fft.irfft(spec * np.exp(-2j * np.pi * f * delay_s), 4 * n_samples)[:n_samples]
+    # a phase rotation of the echo: Re(e^{j phase} analytic)
+    a = clsas.analytic(np.concatenate([shifted, np.zeros(64)]))[:n_samples]
+    return amp * np.real(np.exp(1j * phase) * a), n
+
+
+@needs_opencl
+@pytest.mark.parametrize("gate", [None, (0.004, 0.009), (-0.001, 0.05)], ids=["full", "gated", "beyond-edges"])
+@pytest.mark.parametrize("n_meas", [1, 7], ids=["1meas", "7meas"])
+def test_matched_filter_opencl_equals_twin(rng, chirp96, gate, n_meas):
+    wave, fs = chirp96
+    sig = rng.normal(size=(n_meas, 1000))
+    t0 = rng.uniform(0, 1e-3, n_meas)
+    a = compress(sig, wave, fs, gate_s=gate, t0_s=t0, backend="opencl")
+    b = compress(sig, wave, fs, gate_s=gate, t0_s=t0, backend="numpy")
+    assert a.data.shape == b.data.shape
+    np.testing.assert_allclose(a.tau0_s, b.tau0_s)
+    err = np.abs(a.data - b.data).max() / np.abs(b.data).max()
+    assert err < TOL["compress"], err
+
+
+@needs_opencl
+def test_fmcw_opencl_equals_twin(rng):
+    fs = 96e3
+    chirp = {"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": 20e-3}
+    wave = clsas.lfm_chirp(20e3, 30e3, 20e-3, fs)
+    sig = rng.normal(size=(3, 2400))
+    a = compress(sig, wave, fs, method="fmcw", chirp=chirp, gate_s=(1e-3, 4e-3), backend="opencl")
+    b = compress(sig, wave, fs, method="fmcw", chirp=chirp, gate_s=(1e-3, 4e-3), backend="numpy")
+    err = np.abs(a.data - b.data).max() / np.abs(b.data).max()
+    assert err < TOL["fmcw"], err
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("method", ["matched", "fmcw"])
+def test_echo_peaks_at_its_delay_with_its_phase(backend, method):
+    """An echo at delay tau with phase phi gives |P| peaked at tau and arg P = phi - 2 pi fc tau."""
+    fs = 96e3
+    dur = 20e-3 if method == "fmcw" else 3e-3
+    wave = clsas.lfm_chirp(20e3, 30e3, dur, fs)
+    chirp = {"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": dur}
+    tau, phi = 4.321e-3, 0.7
+    x, _ = _echo(wave, fs, 3000, tau, 1.0, phi)
+    p = compress(x[None], wave, fs, method=method, chirp=chirp, gate_s=(2e-3, 7e-3), backend=backend)
+    mag = np.abs(p.data[0])
+    k = int(np.argmax(mag))
+    # parabolic interpolation of the peak
+    y0, y1, y2 = mag[k - 1 : k + 2]
+    frac = 0.5 * (y0 - y2) / (y0 - 2 * y1 + y2)
+    tau_hat = p.tau0_s[0] + (k + frac) * p.dtau_s
+    assert tau_hat == pytest.approx(tau, abs=0.1 / fs)  # parabolic-fit bias, 0.17 mm of range
+
+    # phase: for an echo on the sample grid, P(tau) = |A| exp(j (phi - 2 pi fc tau))
+    tau = 415 / fs
+    x, _ = _echo(wave, fs, 3000, tau, 1.0, phi)
+    p = compress(x[None], wave, fs, method=method, chirp=chirp, gate_s=(2e-3, 7e-3), backend=backend)
+    k = int(round((tau - p.tau0_s[0]) / p.dtau_s))
+    assert k == int(np.argmax(np.abs(p.data[0])))
+    expected = phi - 2 * np.pi * p.fc_hz * tau
+    assert np.angle(p.data[0, k] * np.exp(-1j * expected)) == pytest.approx(0, abs=0.03)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gated_profile_is_a_slice_of_the_full_one(chirp96, rng, backend):
+    wave, fs = chirp96
+    sig = rng.normal(size=(2, 1200))
+    full = compress(sig, wave, fs, backend=backend)
+    part = compress(sig, wave, fs, gate_s=(3e-3, 6e-3), backend=backend)
+    k0 = int(round((part.tau0_s[0] - full.tau0_s[0]) / full.dtau_s))
+    np.testing.assert_allclose(part.data, full.data[:, k0 : k0 + part.n_lags], atol=1e-5 * np.abs(full.data).max())
+    assert part.n_lags < full.n_lags / 2
+
+
+def test_compress_rejects_bad_input(chirp96):
+    wave, fs = chirp96
+    sig = np.zeros((2, 500))
+    bad = sig.copy()
+    bad[1, 3] = np.nan
+    with pytest.raises(ValueError, match="signals contains 1 NaN"):
+        compress(bad, wave, fs, backend="numpy")
+    with pytest.raises(ValueError, match="signals must be 2-D"):
+        compress(sig[0], wave, fs, backend="numpy")
+    with pytest.raises(ValueError, match="fs_hz"):
+        compress(sig, wave, 0.0, backend="numpy")
+    with pytest.raises(ValueError, match="method"):
+        compress(sig, wave, fs, method="magic", backend="numpy")
+    with pytest.raises(ValueError, match="fmcw needs chirp parameters|chirp lacks"):
+        compress(sig, wave, fs, method="fmcw", backend="numpy")
+    with pytest.raises(ValueError, match="gate_s"):
+        compress(sig, wave, fs, gate_s=(5e-3, 1e-3), backend="numpy")
+    with pytest.raises(ValueError, match="backend"):
+        compress(sig, wave, fs, backend="cuda")
+
+
+def test_backend_opencl_without_device_is_a_clear_error(monkeypatch):
+    from clsas import cl
+
+    def none():
+        raise cl.OpenCLUnavailable("no OpenCL device found (test)")
+
+    monkeypatch.setattr(cl, "get_queue", none)
+    with pytest.raises(cl.OpenCLUnavailable, match="backend='opencl' was requested"):
+        cl.resolve_backend("opencl")
+    assert cl.resolve_backend("auto") == "numpy"
+    monkeypatch.setenv("CLSAS_BACKEND", "numpy")
+    assert cl.resolve_backend(None) == "numpy"
