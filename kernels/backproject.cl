@@ -36,7 +36,10 @@ __kernel void backproject(
     for (int l = 0; l < VEC; ++l) vox.s[l] = v0 + l;
     lanes_f fx, fy, fz;
     for (int l = 0; l < VEC; ++l) {
-        const int iz = vox.s[l] % nz, iy = (vox.s[l] / nz) % ny, ix = vox.s[l] / (nz * ny);
+        /* x - (x / n) * n rather than %: a div/rem pair becomes LLVM's `freeze`, which
+         * Oclgrind's uninitialised-value checker cannot follow */
+        const int yz = vox.s[l] / nz, iz = vox.s[l] - yz * nz;
+        const int ix = yz / ny, iy = yz - ix * ny;
         fx.s[l] = origin.x + step.x * (float)ix;
         fy.s[l] = origin.y + step.y * (float)iy;
         fz.s[l] = origin.z + step.z * (float)iz;
