@@ -123,7 +123,8 @@ def cmd_reconstruct(args) -> int:
     peaks = image.peaks(args.peaks, min_separation_m=0.03)
     print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
     for p in peaks:
-        print(f"peak ({p.position_m[0]:+.3f}, {p.position_m[1]:+.3f}, {p.position_m[2]:.3f}) m  |v| = {p.magnitude:.4g}")
+        x, y, z = p.position_m
+        print(f"peak ({x:+.3f}, {y:+.3f}, {z:.3f}) m  |v| = {p.magnitude:.4g}")
     if args.png:
         truth = cfg.scene.image_sources()[0] if cfg else None
         mip_png(image, out.with_suffix(".png"), truth, Path(args.data).name)
@@ -163,7 +164,6 @@ def cmd_missing(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging")
-    p.add_argument("-v", "--verbose", action="store_true", help="log what is computed and skipped")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = p.add_subparsers(dest="command", required=True)
 
@@ -171,6 +171,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--backend", choices=("auto", "opencl", "numpy"), default=None,
                         help="compute backend (default: $CLSAS_BACKEND or auto)")
         sp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+        sp.add_argument("-v", "--verbose", action="store_true", help="log what is computed and skipped")
 
     d = sub.add_parser("demo", help="simulate and image the paper's two scenes")
     d.add_argument("--out", default="demo-out", help="output folder (default: demo-out)")
@@ -219,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+    logging.basicConfig(level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return args.func(args)

@@ -113,11 +113,8 @@ def reconstruct(
             f"method={method!r}: sparse super-resolution is not implemented yet (issue 3); use 'bp'"
         )
     backend = _cl.resolve_backend(backend)
-    kernels = (
-        [f"compress.cl:{'matched_filter' if compression == 'matched' else 'fmcw_dechirp'}", "backproject.cl:backproject"]
-        if backend == "opencl"
-        else []
-    )
+    compress_kernel = "matched_filter" if compression == "matched" else "fmcw_dechirp"
+    kernels = [f"compress.cl:{compress_kernel}", "backproject.cl:backproject"] if backend == "opencl" else []
     plan = plan_reconstruction(dataset, grid, kernels)
     if compression == "fmcw":
         plan.notes.append("fmcw: delays are gated; the mixed window is the whole chirp overlap")

@@ -1,0 +1,82 @@
+import numpy as np
+import pytest
+
+import clsas
+from clsas.cli import main
+
+SCENE = """
+[chirp]
+f_start_hz = 20000.0
+f_stop_hz = 30000.0
+duration_s = 0.002
+fs_hz = 96000.0
+
+[aperture]
+nx = 9
+ny = 7
+width_m = 0.4
+height_m = 0.3
+
+[[points]]
+position_m = [0.02, -0.01, 0.6]
+
+[grid]
+x_m = [-0.1, 0.1]
+y_m = [-0.1, 0.1]
+z_m = [0.5, 0.7]
+spacing_m = 0.01
+"""
+
+
+def test_simulate_then_reconstruct(tmp_path, capsys):
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE)
+    data = tmp_path / "scan.h5"
+    assert main(["simulate", str(scene), str(data), "-q", "--backend", "numpy"]) == 0
+    assert main(["reconstruct", str(data), "-q", "--png", "--backend", "numpy"]) == 0
+    out = capsys.readouterr().out
+    assert "peak (+0.020, -0.010, 0.600) m" in out
+    image = clsas.imaging.Image.load(tmp_path / "scan-image.h5")
+    assert image.values.shape == (21, 21, 21)
+    assert (tmp_path / "scan-image.png").stat().st_size > 1000
+
+
+def test_reconstruct_verbose_prints_the_plan(tmp_path, capsys):
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE)
+    data = tmp_path / "scan.h5"
+    main(["simulate", str(scene), str(data), "-q"])
+    assert main(["reconstruct", str(data), "-q", "--verbose", "--grid", "-0.1,0.1,0,0,0.5,0.7",
+                 "--backend", "numpy"]) == 0
+    out = capsys.readouterr().out
+    assert "2-D" in out and "skipped" in out
+
+
+def test_limits_warns_about_the_paper_rig(capsys):
+    assert main(["limits"]) == 0
+    out = capsys.readouterr().out
+    assert "1.72 cm" in out and "grating lobes" in out
+
+
+def test_devices_runs(capsys):
+    assert main(["devices"]) == 0
+
+
+def test_errors_are_one_line(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SCENE.replace("fs_hz = 96000.0", "fs_hz = 50000.0"))
+    assert main(["simulate", str(bad), str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Nyquist" in err
+    assert main(["reconstruct", str(tmp_path / "missing.h5")]) == 2
+
+
+@pytest.mark.slow
+def test_demo_writes_datasets_images_and_pictures(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--spacing", "0.03", "-q"]) == 0
+    for name in ("front", "corner"):
+        for suffix in (".h5", "-image.h5", ".png"):
+            assert (tmp_path / f"{name}{suffix}").exists()
+    out = capsys.readouterr().out
+    assert out.count("from the nearest true (image) reflector") == 2
+    assert np.all(np.isfinite(clsas.imaging.Image.load(tmp_path / "corner-image.h5").values))
