@@ -187,7 +187,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     r = sub.add_parser("reconstruct", help="image a dataset file")
     r.add_argument("data")
-    r.add_argument("--grid", help="x0,x1,y0,y1,z0,z1 in m (default: the dataset's [grid])")
+    r.add_argument("--grid", help="x0,x1,y0,y1,z0,z1 in m, e.g. --grid=-0.5,0.5,-0.5,0.5,1,2 "
+                   "(default: the dataset's [grid])")
     r.add_argument("--spacing", type=float, help="voxel spacing in m")
     r.add_argument("--method", default="bp", choices=("bp", "bpdn", "cbp-taylor", "cbp-polar"))
     r.add_argument("--compression", default="matched", choices=("matched", "fmcw"))

@@ -46,7 +46,7 @@ def test_reconstruct_verbose_prints_the_plan(tmp_path, capsys):
     scene.write_text(SCENE)
     data = tmp_path / "scan.h5"
     main(["simulate", str(scene), str(data), "-q"])
-    assert main(["reconstruct", str(data), "-q", "--verbose", "--grid", "-0.1,0.1,0,0,0.5,0.7",
+    assert main(["reconstruct", str(data), "-q", "--verbose", "--grid=-0.1,0.1,0,0,0.5,0.7",
                  "--backend", "numpy"]) == 0
     out = capsys.readouterr().out
     assert "2-D" in out and "skipped" in out
