@@ -96,8 +96,9 @@ def simulate(
         n_samples = int(np.ceil((delay.max(initial=0.0) * fs) + len(wave))) + 16
     n_samples = v.positive_int("n_samples", n_samples)
 
-    n_fft = scipy.fft.next_fast_len(int(n_samples + len(wave) + max(0.0, -delay.min(initial=0.0)) * fs) + 16)
-    n_fft = max(n_fft, scipy.fft.next_fast_len(int(delay.max(initial=0.0) * fs) + len(wave) + 16))
+    # long enough that no echo (early or late) wraps around into the kept samples
+    span = max(n_samples, delay.max(initial=0.0) * fs) + max(0.0, -delay.min(initial=0.0)) * fs
+    n_fft = scipy.fft.next_fast_len(int(np.ceil(span)) + len(wave) + 16)
     spec = scipy.fft.rfft(wave, n_fft)
     freqs = scipy.fft.rfftfreq(n_fft, 1 / fs)
     keep = np.abs(spec) > 1e-7 * np.abs(spec).max(initial=0.0)  # only bins with energy

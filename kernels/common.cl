@@ -44,43 +44,32 @@ inline floatV sincos_2pi(const floatV c, floatV *cos_out)
  * integral floats) from `src` into four planar vectors, with constructors and .even/.odd
  * swizzles (no private-memory round trip). */
 #define G4(src, li, l) (src)[(int)(li).s[l]]
-#define SPLIT16(c, e, o) const float8 e = (c).even, o = (c).odd
+/* lanes 4j .. 4j+3 as one float16 of (a_re, a_im, b_re, b_im) records, split into
+ * e = (a_re, b_re, ...) and o = (a_im, b_im, ...) */
+#define QUAD(src, li, j, e, o)                                                              \
+    const float16 q##j = (float16)(G4(src, li, 4 * j), G4(src, li, 4 * j + 1),              \
+                                   G4(src, li, 4 * j + 2), G4(src, li, 4 * j + 3));          \
+    const float8 e = q##j.even, o = q##j.odd
 #if VEC == 4
-#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                     \
-    floatV are, aim, bre, bim;                                                          \
-    {                                                                                   \
-        const float16 c0 = (float16)(G4(src, li, 0), G4(src, li, 1), G4(src, li, 2), G4(src, li, 3)); \
-        SPLIT16(c0, e0, o0);                                                            \
-        are = e0.even; bre = e0.odd; aim = o0.even; bim = o0.odd;                       \
-    }
+#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                           \
+    QUAD(src, li, 0, e0, o0);                                                               \
+    const floatV are = e0.even, bre = e0.odd, aim = o0.even, bim = o0.odd;
 #elif VEC == 8
-#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                     \
-    floatV are, aim, bre, bim;                                                          \
-    {                                                                                   \
-        const float16 c0 = (float16)(G4(src, li, 0), G4(src, li, 1), G4(src, li, 2), G4(src, li, 3)); \
-        const float16 c1 = (float16)(G4(src, li, 4), G4(src, li, 5), G4(src, li, 6), G4(src, li, 7)); \
-        SPLIT16(c0, e0, o0);                                                            \
-        SPLIT16(c1, e1, o1);                                                            \
-        are = (float8)(e0.even, e1.even); bre = (float8)(e0.odd, e1.odd);               \
-        aim = (float8)(o0.even, o1.even); bim = (float8)(o0.odd, o1.odd);               \
-    }
+#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                           \
+    QUAD(src, li, 0, e0, o0);                                                               \
+    QUAD(src, li, 1, e1, o1);                                                               \
+    const floatV are = (float8)(e0.even, e1.even), bre = (float8)(e0.odd, e1.odd);          \
+    const floatV aim = (float8)(o0.even, o1.even), bim = (float8)(o0.odd, o1.odd);
 #elif VEC == 16
-#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                     \
-    floatV are, aim, bre, bim;                                                          \
-    {                                                                                   \
-        const float16 c0 = (float16)(G4(src, li, 0), G4(src, li, 1), G4(src, li, 2), G4(src, li, 3)); \
-        const float16 c1 = (float16)(G4(src, li, 4), G4(src, li, 5), G4(src, li, 6), G4(src, li, 7)); \
-        const float16 c2 = (float16)(G4(src, li, 8), G4(src, li, 9), G4(src, li, 10), G4(src, li, 11)); \
-        const float16 c3 = (float16)(G4(src, li, 12), G4(src, li, 13), G4(src, li, 14), G4(src, li, 15)); \
-        SPLIT16(c0, e0, o0);                                                            \
-        SPLIT16(c1, e1, o1);                                                            \
-        SPLIT16(c2, e2, o2);                                                            \
-        SPLIT16(c3, e3, o3);                                                            \
-        are = (float16)(e0.even, e1.even, e2.even, e3.even);                            \
-        bre = (float16)(e0.odd, e1.odd, e2.odd, e3.odd);                                \
-        aim = (float16)(o0.even, o1.even, o2.even, o3.even);                            \
-        bim = (float16)(o0.odd, o1.odd, o2.odd, o3.odd);                                \
-    }
+#define GATHER_PAIRS(src, li, are, aim, bre, bim)                                           \
+    QUAD(src, li, 0, e0, o0);                                                               \
+    QUAD(src, li, 1, e1, o1);                                                               \
+    QUAD(src, li, 2, e2, o2);                                                               \
+    QUAD(src, li, 3, e3, o3);                                                               \
+    const floatV are = (float16)(e0.even, e1.even, e2.even, e3.even);                      \
+    const floatV bre = (float16)(e0.odd, e1.odd, e2.odd, e3.odd);                          \
+    const floatV aim = (float16)(o0.even, o1.even, o2.even, o3.even);                      \
+    const floatV bim = (float16)(o0.odd, o1.odd, o2.odd, o3.odd);
 #else
 #error "VEC must be 4, 8 or 16"
 #endif

@@ -118,10 +118,11 @@ def reconstruct(
     plan = plan_reconstruction(dataset, grid, kernels)
     if compression == "fmcw":
         plan.notes.append("fmcw: delays are gated; the mixed window is the whole chirp overlap")
-    for line in plan.describe().splitlines():
-        log.info("plan: %s", line)
     t_start = time.perf_counter()
     prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=backend)
+    plan.lags = prof.n_lags
+    for line in plan.describe().splitlines():
+        log.info("plan: %s", line)
     image = backproject(prof, grid, backend=backend, progress=progress)
     image.method = method
     image.plan = plan

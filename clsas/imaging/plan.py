@@ -63,8 +63,8 @@ class ReconstructionPlan:
     path_min_m: float
     path_max_m: float
     gate_s: tuple[float, float]
-    lags: int
     lags_full: int
+    lags: int = 0  # filled in by reconstruct() from the profiles it computes
     kernels: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
@@ -88,7 +88,5 @@ def plan_reconstruction(dataset: Dataset, grid: VoxelGrid, kernels: list[str]) -
     pmin, pmax = path_bounds(b[:, 0], b[:, 1], dataset.tx_positions, dataset.rx_positions)
     c = dataset.c_mps
     gate = (float(pmin.min() / c), float(pmax.max() / c))
-    fs = dataset.fs_hz
-    lags = int(np.ceil((gate[1] - gate[0]) * fs)) + 3
     full = dataset.n_samples + len(dataset.waveform) - 1
-    return ReconstructionPlan(grid.shape, float(pmin.min()), float(pmax.max()), gate, lags, full, list(kernels))
+    return ReconstructionPlan(grid.shape, float(pmin.min()), float(pmax.max()), gate, full, kernels=list(kernels))
