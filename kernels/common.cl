@@ -44,12 +44,13 @@ inline floatV sincos_2pi(const floatV c, floatV *cos_out)
  * integral floats) from `src` into four planar vectors, with constructors and .even/.odd
  * swizzles (no private-memory round trip). */
 #define G4(src, li, l) (src)[(int)(li).s[l]]
-/* lanes 4j .. 4j+3 as one float16 of (a_re, a_im, b_re, b_im) records, split into
- * e = (a_re, b_re, ...) and o = (a_im, b_im, ...) */
+/* lanes 4j .. 4j+3 as two float8 of (a_re, a_im, b_re, b_im) records, split into
+ * e = (a_re, b_re, ...) and o = (a_im, b_im, ...). (One float16 of four records is a little
+ * faster on PoCL but crashes Oclgrind 19.10's uninitialised-value plugin.) */
 #define QUAD(src, li, j, e, o)                                                              \
-    const float16 q##j = (float16)(G4(src, li, 4 * j), G4(src, li, 4 * j + 1),              \
-                                   G4(src, li, 4 * j + 2), G4(src, li, 4 * j + 3));          \
-    const float8 e = q##j.even, o = q##j.odd
+    const float8 qa##j = (float8)(G4(src, li, 4 * j), G4(src, li, 4 * j + 1));               \
+    const float8 qb##j = (float8)(G4(src, li, 4 * j + 2), G4(src, li, 4 * j + 3));           \
+    const float8 e = (float8)(qa##j.even, qb##j.even), o = (float8)(qa##j.odd, qb##j.odd)
 #if VEC == 4
 #define GATHER_PAIRS(src, li, are, aim, bre, bim)                                           \
     QUAD(src, li, 0, e0, o0);                                                               \

@@ -19,7 +19,7 @@ from ..dataset import Dataset
 from ..signals import analytic
 from . import numpy as twin
 
-__all__ = ["Profiles", "compress", "center_frequency"]
+__all__ = ["Profiles", "compress", "center_frequency", "profile_decimation"]
 
 log = logging.getLogger(__name__)
 
@@ -83,6 +83,8 @@ def compress(
     t0_s: float | np.ndarray | None = None,
     fc_hz: float | None = None,
     chirp: dict | None = None,
+    lag_step: int | None = None,
+    algorithm: str = "auto",
     backend: str | None = "auto",
 ) -> Profiles:
     """Pulse-compress recordings into complex baseband range profiles.
@@ -108,6 +110,15 @@ def compress(
         Baseband rotation frequency; default the waveform's power-weighted mean frequency.
     chirp : dict, optional
         ``f_start_hz``, ``f_stop_hz``, ``duration_s`` (for ``"fmcw"``; default the dataset's).
+    lag_step : int, optional
+        Matched filter only: profile sample spacing in recording samples, a power of two.
+        Baseband profiles are band-limited, so they need not keep the recording's rate; the
+        default (:func:`profile_decimation`) is the largest step at which the linear
+        interpolation of backprojection still loses < 0.5 dB at the band edge.
+    algorithm : {"auto", "fft", "direct"}
+        Matched filter on OpenCL: FFT with frequency-domain decimation, or direct correlation
+        (cheaper for short references); ``"auto"`` picks the one with fewer operations. Both
+        compute the same profile (the twin's), which is a direct correlation.
     backend : {"auto", "opencl", "numpy"}, optional
 
     Returns
@@ -144,10 +155,16 @@ def compress(
         gate = tuple(v.array("gate_s", gate_s, shape=(2,)))
         if gate[1] < gate[0]:
             raise ValueError(f"gate_s must be (min, max) with min <= max, got {gate_s}")
+    v.choice("algorithm", algorithm, ("auto", "fft", "direct"))
+    if lag_step is None:
+        lag_step = profile_decimation(wave, fs, fc) if method == "matched" else 1
+    lag_step = v.positive_int("lag_step", lag_step)
+    if lag_step & (lag_step - 1):
+        raise ValueError(f"lag_step must be a power of two, got {lag_step}")
     backend = _cl.resolve_backend(backend)
     t_start = time.perf_counter()
     if method == "matched":
-        prof = _matched(signals, wave, fs, t0, fc, gate, backend)
+        prof = _matched(signals, wave, fs, t0, fc, gate, backend, lag_step, algorithm)
     else:
         prof = _fmcw(signals, fs, t0, fc, gate, chirp, backend)
     prof.timings_s["compress"] = time.perf_counter() - t_start
@@ -156,35 +173,116 @@ def compress(
     return prof
 
 
-def _matched(signals, wave, fs, t0, fc, gate, backend) -> Profiles:
-    n_meas, n_samples = signals.shape
-    lag0 = int(np.floor(np.min((gate[0] - t0) * fs))) - 1
-    lag_end = int(np.ceil(np.max((gate[1] - t0) * fs))) + 1
-    n_lags = max(2, lag_end - lag0 + 1)
-    # read only the samples the gated lags need: the gate plus the pulse length
-    s_lo = min(max(0, lag0), n_samples - 1)
-    s_hi = max(s_lo + 1, min(n_samples, lag0 + n_lags + len(wave) - 1))
-    signals = signals[:, s_lo:s_hi]
-    lag_read = lag0 - s_lo
-    ref_conj = np.conj(analytic(wave))
+# linear interpolation of a baseband profile loses at most 0.5 dB at the band edge when the
+# edge lies within this fraction of the profile's sample rate (sinc(0.186) = 0.944 = -0.5 dB)
+INTERP_EDGE_FRACTION = 0.186
+
+
+def profile_decimation(waveform: np.ndarray, fs_hz: float, fc_hz: float) -> int:
+    """Largest power-of-two lag step D for baseband profiles of ``waveform``.
+
+    Two conditions: linear interpolation of the profile costs < 0.5 dB at the waveform's
+    -20 dB band edges (``edge offset from fc <= 0.186 fs / D``), and the D-fold narrower band
+    kept around ``fc_hz`` holds the waveform's spectrum down to -60 dB.
+    """
+    n = 1 << int(np.ceil(np.log2(max(64, 8 * len(waveform)))))
+    spec = np.abs(scipy.fft.rfft(waveform, n))
+    f = scipy.fft.rfftfreq(n, 1 / fs_hz)
+    peak = spec.max()
+    if peak <= 0:
+        raise ValueError("waveform is all zeros")
+    band20 = f[spec >= 0.1 * peak]
+    band60 = f[spec >= 1e-3 * peak]
+    edge20 = max(band20.max() - fc_hz, fc_hz - band20.min())
+    edge60 = max(band60.max() - fc_hz, fc_hz - band60.min())
+    d = 1
+    while INTERP_EDGE_FRACTION * fs_hz / (2 * d) >= edge20 and fs_hz / (4 * d) >= edge60:
+        d *= 2
+    return d
+
+
+@dataclass
+class FftLayout:
+    """Sizes and tables of the FFT matched filter (``matched_fft`` in kernels/compress.cl)."""
+
+    s_lo: int
+    n_in: int
+    log2_n: int
+    log2_nd: int
+    bin0: int
+    idx0: int
+    n_lags: int
+    twiddles: np.ndarray
+    spec: np.ndarray
+    post: np.ndarray
+
+    @property
+    def n_fft(self) -> int:
+        return 1 << self.log2_n
+
+
+def fft_layout(ref_analytic, fs, fc, s_lo, n_in, lag_read, lag_step, n_lags, rot) -> FftLayout:
+    """FFT sizes so that no gated lag wraps around, and the reference spectrum on the kept bins."""
+    n_ref, d = len(ref_analytic), lag_step
+    l_max = lag_read + d * (n_lags - 1)
+    need = max(n_in - min(lag_read, 0), l_max + n_ref, 2 * d)
+    log2_n = int(np.ceil(np.log2(need)))
+    n = 1 << log2_n
+    nd = n // d
+    bin0 = int(round(fc * n / fs))
+    jj = np.where(np.arange(nd) < nd // 2, np.arange(nd), np.arange(nd) - nd)
+    spec = np.conj(np.fft.fft(ref_analytic, n))[(bin0 + jj) % n] / n
     k = np.arange(n_lags)
-    rot = np.exp(-2j * np.pi * ((fc * k / fs) % 1.0))
+    shift = (bin0 * (lag_read + d * k)) % n  # exact: integers
+    post = rot * np.exp(2j * np.pi * shift / n)
+    twiddles = np.exp(-2j * np.pi * np.arange(n) / n)
+    idx0 = (lag_read % n) // d
+    return FftLayout(s_lo, n_in, log2_n, log2_n - int(np.log2(d)), bin0, idx0, n_lags, twiddles, spec, post)
+
+
+def _matched(signals, wave, fs, t0, fc, gate, backend, lag_step, algorithm) -> Profiles:
+    n_meas, n_samples = signals.shape
+    n_ref, d = len(wave), lag_step
+    lag_lo = int(np.floor(np.min((gate[0] - t0) * fs))) - 1
+    lag_hi = int(np.ceil(np.max((gate[1] - t0) * fs))) + 1
+    lag0 = d * (lag_lo // d)  # a multiple of D, so the FFT path's lags fall on its grid
+    n_lags = max(2, -(-(lag_hi - lag0) // d) + 1)
+    # read only the samples the gated lags need: the gate plus the pulse length. The slice
+    # starts at lag0 (or 0, or the last samples) and keeps lag0 - s_lo a multiple of D
+    s_lo = min(max(lag0, 0), lag0 + d * ((n_samples - 1 - lag0) // d))
+    lag_read = lag0 - s_lo
+    s_hi = max(s_lo + 1, min(n_samples, s_lo + lag_read + d * (n_lags - 1) + n_ref))
+    signals = signals[:, s_lo:s_hi]
+    ref_a = analytic(wave)
+    ref_conj = np.conj(ref_a)
+    k = np.arange(n_lags)
+    rot = np.exp(-2j * np.pi * ((fc * d * k / fs) % 1.0))
     rot0 = np.exp(-2j * np.pi * ((fc * (t0 + lag0 / fs)) % 1.0))
-    total = n_samples + len(wave) - 1
+    total = n_samples + n_ref - 1
     log.info(
-        "matched filter: %d lags of %d (%.0f %% skipped by the range gate)",
-        n_lags, total, 100 * max(0.0, 1 - n_lags / total),
+        "matched filter: %d lags of %d (%.0f %% skipped by the range gate), lag step %d",
+        n_lags * d, total, 100 * max(0.0, 1 - n_lags * d / total), d,
     )
     timings = {}
     if backend == "opencl":
-        from .opencl import MatchedFilterPlan
+        from .opencl import FftMatchedPlan, MatchedFilterPlan
 
-        plan = MatchedFilterPlan(n_meas, signals.shape[1], ref_conj, lag_read, n_lags, rot, rot0)
+        layout = fft_layout(ref_a, fs, fc, 0, signals.shape[1], lag_read, d, n_lags, rot)
+        if algorithm == "auto":
+            # multiply-adds per recording: direct 2 n_lags n_ref; FFT ~ 5 (N log N + N' log N')
+            fft_cost = 5 * (layout.n_fft * layout.log2_n + (layout.n_fft >> (layout.log2_n - layout.log2_nd))
+                            * layout.log2_nd)
+            algorithm = "fft" if fft_cost < 2 * n_lags * n_ref else "direct"
+        if algorithm == "fft":
+            plan = FftMatchedPlan(n_meas, signals.shape[1], layout, rot0)
+        else:
+            plan = MatchedFilterPlan(n_meas, signals.shape[1], ref_conj, lag_read, n_lags, rot, rot0, d)
         out = plan(signals)
         timings["compress_kernel"] = plan.last_kernel_s
+        log.info("matched filter on OpenCL: %s algorithm", algorithm)
     else:
-        out = twin.matched_filter(signals, ref_conj, lag_read, n_lags, rot, rot0)
-    return Profiles(out, t0 + lag0 / fs, 1 / fs, fc, "matched", backend, timings_s=timings)
+        out = twin.matched_filter(signals, ref_conj, lag_read, n_lags, rot, rot0, d)
+    return Profiles(out, t0 + lag0 / fs, d / fs, fc, "matched", backend, timings_s=timings)
 
 
 def _fmcw(signals, fs, t0, fc, gate, chirp, backend) -> Profiles:

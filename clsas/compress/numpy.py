@@ -12,22 +12,24 @@ def matched_filter(
     n_lags: int,
     rot: np.ndarray,
     rot0: np.ndarray,
+    lag_step: int = 1,
 ) -> np.ndarray:
-    """Twin of ``matched_filter`` in kernels/compress.cl.
+    """Twin of ``matched_filter`` and ``matched_fft`` in kernels/compress.cl.
 
-    ``out[m, k] = rot0[m] rot[k] sum_n x[m, lag0 + k + n] ref_conj[n]``, where samples outside
-    the recording are zero. Returns (n_meas, n_lags) complex128.
+    ``out[m, k] = rot0[m] rot[k] sum_n x[m, lag0 + D k + n] ref_conj[n]`` with ``D = lag_step``,
+    where samples outside the recording are zero. Returns (n_meas, n_lags) complex128.
     """
     n_meas, n_samples = signals.shape
     n_ref = len(ref_conj)
+    span = lag_step * (n_lags - 1) + n_ref  # samples read from lag0 on
     # zero-pad so that every lag in the window reads defined samples
     pad_lo = max(0, -lag0)
-    pad_hi = max(0, lag0 + n_lags + n_ref - 1 - n_samples)
+    pad_hi = max(0, lag0 + span - n_samples)
     x = np.pad(np.asarray(signals, np.float64), ((0, 0), (pad_lo, pad_hi)))
     start = lag0 + pad_lo
     out = np.empty((n_meas, n_lags), dtype=np.complex128)
     for m in range(n_meas):
-        windows = np.lib.stride_tricks.sliding_window_view(x[m, start : start + n_lags + n_ref - 1], n_ref)
+        windows = np.lib.stride_tricks.sliding_window_view(x[m, start : start + span], n_ref)[::lag_step]
         out[m] = windows @ ref_conj
     return out * rot[None, :n_lags] * rot0[:, None]
 
