@@ -121,6 +121,7 @@ def reconstruct(
     t_start = time.perf_counter()
     prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=backend)
     plan.lags = prof.n_lags
+    plan.lag_step = int(round(prof.dtau_s * dataset.fs_hz))
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)
     image = backproject(prof, grid, backend=backend, progress=progress)

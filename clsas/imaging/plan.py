@@ -65,6 +65,7 @@ class ReconstructionPlan:
     gate_s: tuple[float, float]
     lags_full: int
     lags: int = 0  # filled in by reconstruct() from the profiles it computes
+    lag_step: int = 1  # recording samples per profile sample (the profiles' decimation)
     kernels: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
@@ -75,8 +76,9 @@ class ReconstructionPlan:
             f"grid {nx} x {ny} x {nz} = {nx * ny * nz} voxels ({dims}-D: computing only these)",
             f"bistatic path over the grid {self.path_min_m:.4f}-{self.path_max_m:.4f} m; "
             f"delay gate {self.gate_s[0] * 1e3:.3f}-{self.gate_s[1] * 1e3:.3f} ms",
-            f"range profiles: {self.lags} lags of {self.lags_full} "
-            f"({100 * max(0.0, 1 - self.lags / self.lags_full):.0f} % skipped)",
+            f"range profiles: {self.lags} samples every {self.lag_step} lag(s), covering "
+            f"{self.lags * self.lag_step} of {self.lags_full} lags "
+            f"({100 * max(0.0, 1 - self.lags * self.lag_step / self.lags_full):.0f} % skipped by the gate)",
             f"kernels built: {', '.join(self.kernels) or 'none (NumPy twins)'}",
         ]
         return "\n".join(lines + self.notes)
