@@ -1,0 +1,190 @@
+"""Atoms, shifted-atom dictionaries, Taylor and polar interpolators, coherence (eq. 4).
+
+An :class:`Atom` is a pulse shape f(t) that can be evaluated at any delay on a fixed sampling
+grid t_n = n / fs, n = 0..N-1: either a callable (evaluated exactly at t - tau) or a sampled
+waveform (shifted by band-limited interpolation: a phase ramp on its spectrum, never by
+rounding to whole samples). ``complex=True`` gives the analytic atom (positive frequencies
+only), the model for echoes with unknown phase.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import _validate as v
+
+__all__ = ["Atom", "Dictionary", "decaying_exponential", "coherence", "PolarTriple"]
+
+
+def decaying_exponential(alpha: float) -> Callable[[np.ndarray], np.ndarray]:
+    """The paper's 1-D atom ``1[t >= 0] t exp(-alpha t)`` (section 6), alpha in 1/s."""
+    a = v.positive("alpha", alpha)
+
+    def f(t):
+        t = np.asarray(t, float)
+        return np.where(t >= 0, t * np.exp(-a * np.maximum(t, 0.0)), 0.0)
+
+    f.alpha = a
+    return f
+
+
+class Atom:
+    """A pulse shape on the sampling grid ``t_n = n / fs_hz``, n < n_samples.
+
+    Parameters
+    ----------
+    shape : callable or 1-D array
+        ``f(t)`` (t in s, vectorised), or waveform samples starting at t = 0.
+    fs_hz : float
+        Sample rate of the signals the atom models.
+    n_samples : int
+        Samples in those signals.
+    complex : bool
+        Model analytic signals (echoes with unknown phase).
+    derivative : callable, optional
+        ``f'(t)`` for a callable shape; default a central difference (step 1e-4 / fs).
+    """
+
+    def __init__(self, shape, fs_hz: float, n_samples: int, *, complex: bool = False, derivative=None):
+        self.fs = v.positive("fs_hz", fs_hz)
+        self.n = v.positive_int("n_samples", n_samples)
+        self.complex = bool(complex)
+        self.t = np.arange(self.n) / self.fs
+        if callable(shape):
+            self._f, self._df = shape, derivative
+            self.sampled = None
+        else:
+            w = v.array("shape", shape, ndim=1)
+            if not np.any(w):
+                raise ValueError("shape (the atom's waveform) is all zeros")
+            self.sampled = w
+            # FFT length: the signal window plus the pulse, so no shift inside the window wraps
+            m = 1 << int(np.ceil(np.log2(2 * (self.n + len(w)))))
+            self._m = m
+            spec = np.fft.fft(w, m)
+            k = np.fft.fftfreq(m, 1 / self.fs)  # signed frequencies
+            if self.complex:
+                spec = spec * (2.0 * (k > 0) + 1.0 * (k == 0))
+            self._spec, self._freq = spec, k
+        self.norm = float(np.linalg.norm(self.matrix(np.array([0.0]))))
+        if self.norm == 0:
+            raise ValueError("the atom is zero on the sampling grid")
+
+    # -- evaluation ---------------------------------------------------------------------------
+    def _analytic_cols(self, cols: np.ndarray) -> np.ndarray:
+        import scipy.signal
+
+        return scipy.signal.hilbert(cols, axis=0)
+
+    def matrix(self, taus_s) -> np.ndarray:
+        """(n_samples, K) atoms delayed by ``taus_s`` (s)."""
+        taus = np.atleast_1d(np.asarray(taus_s, float))
+        if self.sampled is None:
+            cols = self._f(self.t[:, None] - taus[None, :])
+            return self._analytic_cols(cols) if self.complex else np.asarray(cols, float)
+        ramp = np.exp(-2j * np.pi * np.outer(taus, self._freq))  # (K, m)
+        cols = np.fft.ifft(self._spec[None, :] * ramp, axis=1)[:, : self.n].T
+        return cols if self.complex else cols.real
+
+    def dmatrix(self, taus_s) -> np.ndarray:
+        """(n_samples, K) derivatives of the delayed atoms with respect to the delay."""
+        taus = np.atleast_1d(np.asarray(taus_s, float))
+        if self.sampled is None:
+            if self._df is not None:
+                cols = -self._df(self.t[:, None] - taus[None, :])
+            else:
+                h = 1e-4 / self.fs
+                cols = (self._f(self.t[:, None] - taus[None, :] - h) - self._f(self.t[:, None] - taus[None, :] + h)) / (
+                    2 * h
+                )
+            return self._analytic_cols(cols) if self.complex else np.asarray(cols, float)
+        ramp = np.exp(-2j * np.pi * np.outer(taus, self._freq)) * (-2j * np.pi * self._freq)[None, :]
+        cols = np.fft.ifft(self._spec[None, :] * ramp, axis=1)[:, : self.n].T
+        return cols if self.complex else cols.real
+
+
+@dataclass
+class PolarTriple:
+    """Polar interpolator of Ekanadham et al. (2011) for one grid spacing.
+
+    The shifts f(t - tau - delta), |delta| <= Delta / 2, lie near an arc of radius ``r`` and
+    half-angle ``theta``: f(t - tau - delta) ~ C + r cos(2 theta delta / Delta) U
+    + r sin(2 theta delta / Delta) V, with unit vectors U, V and centre C (per atom, columns).
+    """
+
+    C: np.ndarray
+    U: np.ndarray
+    V: np.ndarray
+    r: float
+    theta: float
+
+
+class Dictionary:
+    """Atoms at delays ``tau_i = tau0 + i * Delta``, i < n_atoms.
+
+    Parameters
+    ----------
+    atom : Atom
+    delta_s : float
+        Grid spacing Delta, s.
+    tau0_s : float, optional
+        First delay (default 0).
+    n_atoms : int, optional
+        Default: enough to cover the signal window.
+    """
+
+    def __init__(self, atom: Atom, delta_s: float, tau0_s: float = 0.0, n_atoms: int | None = None):
+        self.atom = atom
+        self.delta = v.positive("delta_s", delta_s)
+        self.tau0 = v.finite("tau0_s", tau0_s)
+        if n_atoms is None:
+            n_atoms = int(np.floor((atom.n / atom.fs - self.tau0) / self.delta)) + 1
+        self.k = v.positive_int("n_atoms", n_atoms)
+        self.taus = self.tau0 + self.delta * np.arange(self.k)
+
+    def matrix(self) -> np.ndarray:
+        """(n_samples, n_atoms) shifted atoms."""
+        return self.atom.matrix(self.taus)
+
+    def taylor(self) -> tuple[np.ndarray, np.ndarray]:
+        """(F, G): the atoms and their delay derivatives scaled by Delta / 2 (CBP-Taylor)."""
+        return self.matrix(), (self.delta / 2) * self.atom.dmatrix(self.taus)
+
+    def polar(self) -> PolarTriple:
+        """The polar interpolator from the atoms shifted by -Delta/2, 0, +Delta/2."""
+        h = self.delta / 2
+        fm, f0, fp = self.atom.matrix(self.taus - h), self.atom.matrix(self.taus), self.atom.matrix(self.taus + h)
+        d1 = np.median(np.linalg.norm(fp - f0, axis=0))  # chord for the half cell: 2 r sin(theta / 2)
+        d2 = np.median(np.linalg.norm(fp - fm, axis=0))  # chord for the cell: 2 r sin(theta)
+        cos_half = np.clip(d2 / (2 * d1), -1.0, 1.0)
+        theta = float(2 * np.arccos(cos_half))
+        if theta < 1e-6:
+            raise ValueError(
+                f"delta_s={self.delta:g} is too small for a polar interpolator (the shifts do not curve: "
+                f"theta={theta:.2g})"
+            )
+        r = float(d2 / (2 * np.sin(theta)))
+        V = (fp - fm) / (2 * r * np.sin(theta))
+        U = (f0 - 0.5 * (fp + fm)) / (r * (1 - np.cos(theta)))
+        C = f0 - r * U
+        return PolarTriple(C, U, V, r, theta)
+
+
+def coherence(dictionary) -> float:
+    """Mutual coherence (eq. 4): the largest |<d_k, d_j>| / (|d_k| |d_j|) over k != j.
+
+    ``dictionary`` is a :class:`Dictionary` or an (n, K) matrix.
+    """
+    D = dictionary.matrix() if isinstance(dictionary, Dictionary) else v.array("dictionary", dictionary, ndim=2)
+    if D.shape[1] < 2:
+        raise ValueError("dictionary needs at least two atoms for a coherence")
+    norms = np.linalg.norm(D, axis=0)
+    if np.any(norms == 0):
+        raise ValueError("dictionary has an all-zero atom")
+    Dn = D / norms
+    G = np.abs(Dn.conj().T @ Dn)
+    np.fill_diagonal(G, 0.0)
+    return float(G.max())

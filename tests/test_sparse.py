@@ -1,0 +1,166 @@
+"""Sparse super-resolution: dictionaries, coherence, BPDN (fast against cvxpy), stability."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import clsas
+from clsas.sparse import Atom, Dictionary, ShiftOperator, bpdn, bpdn_cvxpy, coherence, decaying_exponential
+
+FS = 96e3
+cp = pytest.importorskip("cvxpy", reason="cvxpy is an optional dependency (pip install 'clsas[sparse]')")
+
+
+@pytest.fixture(scope="module")
+def chirp():
+    return clsas.lfm_chirp(20e3, 30e3, 1e-3, FS, taper=0.2)
+
+
+def _noise(rng, n, cplx, scale):
+    return scale * (rng.normal(size=n) + (1j * rng.normal(size=n) if cplx else 0))
+
+
+@pytest.mark.parametrize("cplx", [False, True], ids=["real", "complex"])
+@pytest.mark.parametrize("per_sample", [1, 3, 4])
+def test_fft_operator_equals_the_dense_dictionary(rng, chirp, cplx, per_sample):
+    at = Atom(chirp, FS, 300, complex=cplx)
+    d = Dictionary(at, 1 / (per_sample * FS), tau0_s=0.2e-3, n_atoms=250)
+    op = ShiftOperator(d)
+    assert op.fft
+    D = d.matrix()
+    x, r = _noise(rng, d.k, cplx, 1.0), _noise(rng, 300, cplx, 1.0)
+    np.testing.assert_allclose(op.forward(x), D @ x, atol=1e-10 * np.abs(D @ x).max())
+    np.testing.assert_allclose(op.adjoint(r), D.conj().T @ r, atol=1e-10 * np.abs(D.conj().T @ r).max())
+
+
+def test_sampled_atom_shifts_by_band_limited_interpolation(chirp):
+    """A shift by a whole number of samples is the waveform moved; a fractional one is not rounded."""
+    at = Atom(chirp, FS, 300)
+    col = at.matrix([10 / FS])[:, 0]
+    np.testing.assert_allclose(col[10 : 10 + len(chirp)], chirp, atol=1e-9)
+    half = at.matrix([10.5 / FS])[:, 0]
+    assert np.abs(half - col).max() > 0.1 and np.abs(half - at.matrix([11 / FS])[:, 0]).max() > 0.1
+    # derivative: central difference of the shifted atom
+    h = 1e-3 / FS
+    num = (at.matrix([10 / FS + h]) - at.matrix([10 / FS - h]))[:, 0] / (2 * h)
+    np.testing.assert_allclose(at.dmatrix([10 / FS])[:, 0], num, atol=1e-4 * np.abs(num).max())
+
+
+def test_interpolation_error_falls_as_delta_squared_and_cubed(chirp):
+    """Taylor (derivative atoms scaled by Delta/2) errs as Delta^2, polar as Delta^3 (tapered chirp)."""
+    at = Atom(clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.2), FS, 400)
+    taylor, polar = [], []
+    deltas = np.array([1 / 2, 1 / 4, 1 / 8, 1 / 16]) / FS
+    for dl in deltas:
+        d = Dictionary(at, dl, tau0_s=1e-3, n_atoms=1)
+        F, G = d.taylor()
+        P = d.polar()
+        et, ep = 0.0, 0.0
+        for frac in np.linspace(-0.5, 0.5, 11):
+            f = at.matrix([1e-3 + frac * dl])[:, 0]
+            et = max(et, np.linalg.norm(f - F[:, 0] - 2 * frac * G[:, 0]) / at.norm)
+            a = 2 * P.theta * frac
+            model = P.C[:, 0] + P.r * np.cos(a) * P.U[:, 0] + P.r * np.sin(a) * P.V[:, 0]
+            ep = max(ep, np.linalg.norm(f - model) / at.norm)
+        taylor.append(et)
+        polar.append(ep)
+    slope_t = np.polyfit(np.log(deltas), np.log(taylor), 1)[0]
+    slope_p = np.polyfit(np.log(deltas), np.log(polar), 1)[0]
+    assert slope_t == pytest.approx(2.0, abs=0.15)
+    assert slope_p == pytest.approx(3.0, abs=0.15)
+    assert polar[0] < taylor[0] / 10
+
+
+def test_coherence_rises_to_one_as_the_grid_shrinks(chirp):
+    at = Atom(chirp, FS, 300)
+    mus = [coherence(Dictionary(at, dl / FS, tau0_s=0.5e-3, n_atoms=20)) for dl in (4, 1, 0.25, 0.01)]
+    assert all(a < b for a, b in zip(mus, mus[1:], strict=False))
+    assert mus[-1] > 0.999
+    with pytest.raises(ValueError, match="at least two atoms"):
+        coherence(np.ones((5, 1)))
+
+
+def _two_echoes(at, cplx, rng, snr_scale=0.02, amps=(1.0, 0.7), taus=(1.0e-3, 1.06e-3)):
+    b = sum(a * at.matrix([t])[:, 0] for a, t in zip(amps, taus, strict=True))
+    return b + _noise(rng, at.n, cplx, snr_scale)
+
+
+@pytest.mark.parametrize("mode", ["positive", "real", "complex"])
+def test_fast_bpdn_matches_cvxpy_objective(rng, chirp, mode):
+    cplx = mode == "complex"
+    at = Atom(chirp, FS, 200, complex=cplx)
+    d = Dictionary(at, 1 / (2 * FS), tau0_s=0.6e-3, n_atoms=100)
+    amps = (1.0, -0.6) if mode == "real" else (1.0, 0.7j) if cplx else (1.0, 0.7)
+    b = _two_echoes(at, cplx, rng, amps=amps)
+    fast = bpdn(d, b, lam_frac=0.1, amplitudes=mode)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref = bpdn_cvxpy(d, b, lam=fast.lam, amplitudes=mode)
+    assert fast.status == "optimal" and ref.status == "optimal"
+    assert abs(fast.objective - ref.objective) <= 1e-6 * ref.objective
+    assert fast.gap <= 1e-7 * fast.objective
+    # the largest coefficient sits on the stronger echo
+    assert abs(d.taus[np.argmax(np.abs(fast.x))] - 1.0e-3) < 1 / FS
+
+
+@pytest.mark.parametrize("mode", ["positive", "real", "complex"])
+def test_lambda_at_or_above_lam_max_gives_exactly_zero(rng, chirp, mode):
+    at = Atom(chirp, FS, 200, complex=mode == "complex")
+    d = Dictionary(at, 1 / FS, tau0_s=0.5e-3)
+    b = _two_echoes(at, mode == "complex", rng)
+    for frac in (1.0, 3.0):
+        res = bpdn(d, b, lam_frac=frac, amplitudes=mode)
+        assert res.status == "optimal" and not np.any(res.x)
+    just_below = bpdn(d, b, lam_frac=0.999, amplitudes=mode)
+    assert 0 < np.count_nonzero(just_below.x) <= 3
+    if mode != "complex":  # lam -> 0: still finite, still certified (complex: see the slow test)
+        tiny = bpdn(d, b, lam_frac=1e-4, amplitudes=mode)
+        assert np.all(np.isfinite(tiny.x)) and tiny.status == "optimal"
+
+
+@pytest.mark.parametrize("case", ["zeros", "noise", "dynamic-range", "edges", "opposite-sign"])
+def test_bpdn_stability(rng, chirp, case):
+    at = Atom(chirp, FS, 200)
+    d = Dictionary(at, 1 / (2 * FS), tau0_s=0.0)
+    mode = "positive"
+    if case == "zeros":
+        b = np.zeros(200)
+    elif case == "noise":
+        b = rng.normal(size=200)
+    elif case == "dynamic-range":
+        b = _two_echoes(at, False, rng, snr_scale=0.0, amps=(1e6, 1.0), taus=(0.5e-3, 1.2e-3))
+    elif case == "edges":  # one echo cut by the window start, one running past its end
+        b = _two_echoes(at, False, rng, snr_scale=1e-3, taus=(0.0, 200 / FS - 0.3e-3))
+    else:
+        mode = "real"
+        b = _two_echoes(at, False, rng, snr_scale=1e-3, amps=(1.0, -1.0), taus=(1.0e-3, 1.02e-3))
+    res = bpdn(d, b, lam_frac=0.05, amplitudes=mode)
+    assert np.all(np.isfinite(res.x)) and np.isfinite(res.objective)
+    assert res.status == "optimal", res
+    if case == "zeros":
+        assert not np.any(res.x) and res.objective == 0.0
+    if case == "dynamic-range":
+        k = np.argmax(np.abs(res.x))
+        assert abs(d.taus[k] - 0.5e-3) < 1 / FS
+
+
+def test_decaying_exponential_atom_and_bad_input(chirp):
+    f = decaying_exponential(2000.0)
+    assert f(np.array([-1.0, 0.0]))[0] == 0 and f(np.array([1 / 2000.0]))[0] == pytest.approx(np.exp(-1) / 2000)
+    at = Atom(f, 10e3, 100)
+    with pytest.raises(ValueError, match="delta_s"):
+        Dictionary(at, 0.0)
+    with pytest.raises(ValueError, match="alpha"):
+        decaying_exponential(-1)
+    with pytest.raises(ValueError, match="shape"):
+        Atom(np.zeros(10), FS, 50)
+    d = Dictionary(Atom(chirp, FS, 100), 1 / FS)
+    with pytest.raises(ValueError, match="b has 99 samples"):
+        bpdn(d, np.ones(99), lam_frac=0.1)
+    with pytest.raises(ValueError, match="b contains 1 NaN"):
+        bpdn(d, np.r_[np.nan, np.ones(99)], lam_frac=0.1)
+    with pytest.raises(ValueError, match="exactly one of lam"):
+        bpdn(d, np.ones(100))
+    with pytest.raises(ValueError, match="complex"):
+        bpdn(d, np.ones(100), lam_frac=0.1, amplitudes="complex")
