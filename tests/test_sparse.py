@@ -164,3 +164,111 @@ def test_decaying_exponential_atom_and_bad_input(chirp):
         bpdn(d, np.ones(100))
     with pytest.raises(ValueError, match="complex"):
         bpdn(d, np.ones(100), lam_frac=0.1, amplitudes="complex")
+
+
+# -- metrics, CRB, CBP ---------------------------------------------------------------------------
+from clsas.sparse import (  # noqa: E402
+    Echoes,
+    cbp_polar,
+    cbp_polar_refined,
+    cbp_taylor,
+    crb_delays,
+    delay_error,
+    superres,
+)
+
+
+def test_delay_error_matches_optimally_and_penalises_count_changes():
+    truth = Echoes([1.0e-3, 2.0e-3], [1.0, 2.0])
+    est = Echoes([2.0e-3 + 1e-6, 1.0e-3 - 2e-6], [2.0, 1.0])  # listed in the other order
+    e = delay_error(est, truth, tol_s=5e-6)
+    assert e.success and e.penalty == 0
+    assert e.delay_term == pytest.approx((1e-6 * 2.0) ** 2 + (2e-6 * 1.0) ** 2)
+    assert e.rmse_s == pytest.approx(np.sqrt((1e-12 + 4e-12) / 2))
+    extra = Echoes([1.0e-3, 1.5e-3, 2.0e-3], [1.0, 0.5, 2.0])
+    e2 = delay_error(extra, truth, tol_s=5e-6, window_s=4e-3)
+    assert not e2.success and e2.penalty == pytest.approx((4e-3 * 0.5) ** 2)
+    missing = delay_error(Echoes([], []), truth, window_s=4e-3)
+    assert not missing.success and np.isnan(missing.rmse_s)
+    assert delay_error(Echoes([], []), Echoes([], [])).success
+
+
+def test_crb_matches_the_single_echo_formula_and_grows_as_echoes_close(chirp):
+    """One real echo: var(tau) >= sigma^2 / (a^2 |f'|^2) (amplitude known to be decoupled at the
+    peak of a symmetric atom only approximately, so compare within 5 %)."""
+    at = Atom(chirp, FS, 300)
+    sigma, a = 0.1, 2.0
+    crb = crb_delays(at, [1e-3], [a], sigma)[0]
+    simple = sigma**2 / (a**2 * np.sum(at.dmatrix([1e-3]) ** 2))
+    assert crb == pytest.approx(simple, rel=0.05)
+    atc = Atom(chirp, FS, 300, complex=True)
+    far = crb_delays(atc, [1e-3, 2e-3], [1.0, 1.0j], sigma)
+    near = crb_delays(atc, [1e-3, 1.0e-3 + 0.25 / 10e3], [1.0, 1.0j], sigma)
+    assert np.all(near > 2 * far)
+
+
+def _echo_signal(chirp, cplx, taus, amps, sigma, rng, n=300):
+    at = Atom(chirp, FS, n, complex=cplx)
+    return at, at.matrix(taus) @ np.asarray(amps) + _noise(rng, n, cplx, sigma)
+
+
+def test_convex_cbps_place_an_off_grid_echo_between_grid_points(rng, chirp):
+    tau = 1.0e-3 + 0.4 / FS
+    at, b = _echo_signal(chirp, False, [tau], [1.0], 1e-3, rng)
+    d = Dictionary(at, 1 / FS, tau0_s=0.5e-3, n_atoms=100)
+    grid = bpdn(d, b, lam_frac=0.05)
+    grid_tau = d.taus[np.argmax(grid.x)]
+    for fn in (cbp_taylor, cbp_polar):
+        e = fn(d, b, lam_frac=0.05)
+        k = np.argmax(e.amplitudes)
+        assert abs(e.delays_s[k] - tau) < abs(grid_tau - tau), fn.__name__
+        assert abs(e.delays_s[k] - tau) < 0.1 / FS, fn.__name__
+    with pytest.raises(ValueError, match="positive amplitudes"):
+        cbp_taylor(d, b, lam_frac=0.05, amplitudes="real")
+
+
+@pytest.mark.parametrize("mode", ["positive", "real", "complex"])
+def test_refined_cbp_polar_resolves_two_close_echoes(rng, chirp, mode):
+    """Two echoes 0.5/B apart (below the matched filter's resolution), off the grid."""
+    cplx = mode == "complex"
+    taus = [1.0e-3 + 0.3 / FS, 1.0e-3 + 0.3 / FS + 0.5 / 10e3]
+    amps = {"positive": [1.0, 0.8], "real": [1.0, -0.8], "complex": [1.0, 0.8j]}[mode]
+    at, b = _echo_signal(chirp, cplx, taus, amps, 1e-3, rng)
+    d = Dictionary(at, 1 / FS, tau0_s=0.5e-3, n_atoms=100)
+    e = cbp_polar_refined(d, b, lam_frac=0.02, amplitudes=mode)
+    assert len(e) == 2, e
+    np.testing.assert_allclose(e.delays_s, taus, atol=0.02 / FS)
+    np.testing.assert_allclose(e.amplitudes, amps, atol=0.02)
+    assert e.status and e.iterations > 0
+
+
+@pytest.mark.parametrize("case", ["zeros", "noise", "dynamic-range"])
+def test_refined_cbp_polar_stability(rng, chirp, case):
+    at = Atom(chirp, FS, 300, complex=True)
+    d = Dictionary(at, 1 / FS, tau0_s=0.0)
+    if case == "zeros":
+        b = np.zeros(300, complex)
+    elif case == "noise":
+        b = _noise(rng, 300, True, 1.0)
+    else:
+        b = at.matrix([1.0e-3, 2.0e-3]) @ np.array([1e6, 1.0])
+    e = cbp_polar_refined(d, b, lam_frac=0.05)
+    assert np.all(np.isfinite(e.delays_s)) and np.all(np.isfinite(e.amplitudes))
+    if case == "zeros":
+        assert len(e) == 0
+    if case == "dynamic-range":
+        assert abs(e.delays_s[np.argmax(np.abs(e.amplitudes))] - 1.0e-3) < 0.01 / FS
+
+
+@pytest.mark.parametrize("method", ["bpdn", "cbp-polar"])
+def test_superres_on_a_real_recording(rng, chirp, method):
+    """A real recording of one echo with unknown phase: the analytic model finds it."""
+    n = 300
+    tau = 1.2e-3 + 0.25 / FS
+    at = Atom(chirp, FS, n, complex=True)
+    x = np.real(at.matrix([tau])[:, 0] * np.exp(0.9j)) + 1e-3 * rng.normal(size=n)
+    e = superres(x, chirp, FS, method=method, delta_s=1 / FS)
+    k = np.argmax(np.abs(e.amplitudes))
+    assert abs(e.delays_s[k] - tau) < (1 / FS if method == "bpdn" else 0.05 / FS)
+    with pytest.raises(ValueError, match="method"):
+        superres(x, chirp, FS, method="music")

@@ -2,8 +2,11 @@
 
 from .atoms import Atom, Dictionary, PolarTriple, coherence, decaying_exponential
 from .bpdn import BpdnResult, ShiftOperator, bpdn, bpdn_cvxpy, lam_max
+from .cbp import cbp_polar, cbp_polar_refined, cbp_taylor, superres
+from .metrics import DelayError, Echoes, crb_delays, delay_error
 
 __all__ = [
-    "Atom", "BpdnResult", "Dictionary", "PolarTriple", "ShiftOperator", "bpdn", "bpdn_cvxpy",
-    "coherence", "decaying_exponential", "lam_max",
+    "Atom", "BpdnResult", "DelayError", "Dictionary", "Echoes", "PolarTriple", "ShiftOperator", "bpdn",
+    "bpdn_cvxpy", "cbp_polar", "cbp_polar_refined", "cbp_taylor", "coherence", "crb_delays",
+    "decaying_exponential", "delay_error", "lam_max", "superres",
 ]

@@ -1,0 +1,119 @@
+"""Echo lists, the paper's error (eq. 5) with optimal matching, success and RMSE, and the
+Cramer-Rao bound for K echoes of a known atom in white noise."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.optimize
+
+from .. import _validate as v
+
+__all__ = ["Echoes", "DelayError", "delay_error", "crb_delays"]
+
+
+@dataclass
+class Echoes:
+    """Echoes found in one signal: delays (s) and amplitudes (real or complex), plus how."""
+
+    delays_s: np.ndarray
+    amplitudes: np.ndarray
+    method: str = ""
+    status: str = "optimal"
+    iterations: int = 0
+    time_s: float = 0.0
+    info: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.delays_s = np.atleast_1d(np.asarray(self.delays_s, float))
+        self.amplitudes = np.atleast_1d(np.asarray(self.amplitudes))
+        if self.delays_s.shape != self.amplitudes.shape:
+            raise ValueError("delays_s and amplitudes must have the same length")
+        order = np.argsort(self.delays_s)
+        self.delays_s, self.amplitudes = self.delays_s[order], self.amplitudes[order]
+
+    def __len__(self) -> int:
+        return len(self.delays_s)
+
+    def signal(self, atom) -> np.ndarray:
+        """The signal these echoes predict on ``atom``'s sampling grid."""
+        if len(self) == 0:
+            return np.zeros(atom.n, complex if atom.complex else float)
+        return atom.matrix(self.delays_s) @ self.amplitudes
+
+
+@dataclass
+class DelayError:
+    """Result of :func:`delay_error`. Units: delays in s, amplitudes in the signal's units."""
+
+    total: float  # eq. 5: sum over matched echoes of (|tau~ - tau| a~)^2 + ||b - b~||^2 (+ penalties)
+    delay_term: float  # sum (|tau~ - tau| |a~|)^2 over matched pairs, s^2 x amplitude^2
+    fit_term: float  # ||b - b~||^2, amplitude^2
+    penalty: float  # (window x |a|)^2 for every unmatched true or estimated echo
+    pairs: list  # (index of estimate, index of truth)
+    delay_errors_s: np.ndarray  # tau~ - tau of the matched pairs
+    success: bool  # every true echo matched within tol_s, and no extra echo
+    rmse_s: float  # over the matched pairs (nan if none)
+
+
+def delay_error(estimate: Echoes, truth: Echoes, signal=None, atom=None, *, tol_s: float | None = None,
+                window_s: float | None = None) -> DelayError:
+    """The paper's error (eq. 5) with the optimal (Hungarian) matching of estimated to true delays.
+
+    ``signal`` (the measured b) and ``atom`` give the fit term ||b - b~||^2; without them it is 0.
+    When the counts differ, each unmatched echo adds ``(window_s |a|)^2``, the delay term of an
+    echo placed a whole window away (``window_s`` defaults to the atom's window, else the span
+    of all delays). ``success`` needs every true echo matched within ``tol_s`` and no extra one.
+    """
+    est_t, tru_t = estimate.delays_s, truth.delays_s
+    if window_s is None:
+        if atom is not None:
+            window_s = atom.n / atom.fs
+        else:
+            allt = np.r_[est_t, tru_t]
+            window_s = float(np.ptp(allt)) if allt.size else 0.0
+    pairs = []
+    if len(est_t) and len(tru_t):
+        cost = np.abs(est_t[:, None] - tru_t[None, :])
+        rows, cols = scipy.optimize.linear_sum_assignment(cost)
+        pairs = list(zip(rows.tolist(), cols.tolist(), strict=True))
+    d = np.array([est_t[i] - tru_t[j] for i, j in pairs])
+    delay_term = float(sum((abs(est_t[i] - tru_t[j]) * abs(estimate.amplitudes[i])) ** 2 for i, j in pairs))
+    un_est = set(range(len(est_t))) - {i for i, _ in pairs}
+    un_tru = set(range(len(tru_t))) - {j for _, j in pairs}
+    penalty = float(sum((window_s * abs(estimate.amplitudes[i])) ** 2 for i in un_est)
+                    + sum((window_s * abs(truth.amplitudes[j])) ** 2 for j in un_tru))
+    fit = 0.0
+    if signal is not None and atom is not None:
+        b = np.asarray(signal)
+        fit = float(np.sum(np.abs(b - estimate.signal(atom)) ** 2))
+    tol = np.inf if tol_s is None else v.positive("tol_s", tol_s)
+    success = (len(est_t) == len(tru_t)) and bool(np.all(np.abs(d) <= tol)) if len(tru_t) else len(est_t) == 0
+    rmse = float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+    return DelayError(delay_term + fit + penalty, delay_term, fit, penalty, pairs, d, success, rmse)
+
+
+def crb_delays(atom, delays_s, amplitudes, noise_sigma: float) -> np.ndarray:
+    """Cramer-Rao bound (s^2) on each delay of K echoes of ``atom`` in white noise.
+
+    Real atom: parameters (tau_k, a_k), noise N(0, sigma^2) per sample. Complex (analytic) atom:
+    parameters (tau_k, Re a_k, Im a_k), the unknown-phase case, circular noise with
+    E|n|^2 = sigma^2 per sample. The bound is the diagonal of the inverse Fisher information.
+    """
+    sigma = v.positive("noise_sigma", noise_sigma)
+    taus = np.atleast_1d(np.asarray(delays_s, float))
+    a = np.atleast_1d(np.asarray(amplitudes))
+    A, dA = atom.matrix(taus), atom.dmatrix(taus)
+    if atom.complex:
+        cols = [dA * a[None, :], A, 1j * A]  # d mu / d tau_k, d Re a_k, d Im a_k
+        psi = np.concatenate(cols, axis=1)
+        fisher = (2 / sigma**2) * np.real(psi.conj().T @ psi)
+    else:
+        psi = np.concatenate([dA * a[None, :].real, A], axis=1)
+        fisher = (1 / sigma**2) * psi.T @ psi
+    try:
+        inv = np.linalg.inv(fisher)
+    except np.linalg.LinAlgError:
+        return np.full(len(taus), np.inf)
+    return np.diag(inv)[: len(taus)].copy()
