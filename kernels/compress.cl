@@ -150,7 +150,6 @@ __kernel void fmcw_dechirp(
  * (re, im) = (a[2e], a[2e + 1]), each a floatV of VEC rows. tw[t] = exp(-j 2 pi t / N) for
  * the forward size N; sg = 1 forward, -1 inverse (conjugate twiddles). The twiddle of
  * sub-transform index k, output r is exp(-+j 2 pi k r / (ns R)) = tw[k r N / (ns R)]. */
-#define TW(t) tw[t]
 #define CMUL(xr, xi, w, sg, yr, yi)                                                         \
     const floatV yr = (xr) * (w).x - (xi) * ((sg) * (w).y);                                \
     const floatV yi = (xr) * ((sg) * (w).y) + (xi) * (w).x;
@@ -158,7 +157,7 @@ __kernel void fmcw_dechirp(
 #define STOCKHAM_R2(src, dst, n, ns, n_full, sg)                                            \
     for (int i = 0; i < ((n) >> 1); ++i) {                                                 \
         const int k = i & ((ns) - 1);                                                      \
-        const float2 w = TW(k * ((n_full) / (2 * (ns))));                                  \
+        const float2 w = tw[k * ((n_full) / (2 * (ns)))];                                  \
         const floatV ar = src[2 * i], ai = src[2 * i + 1];                                 \
         const floatV br = src[2 * (i + ((n) >> 1))], bi = src[2 * (i + ((n) >> 1)) + 1];   \
         CMUL(br, bi, w, sg, tr, ti)                                                        \
@@ -174,7 +173,7 @@ __kernel void fmcw_dechirp(
         const int q = (n) >> 2;                                                            \
         const int k = i & ((ns) - 1);                                                      \
         const int ts = k * ((n_full) / (4 * (ns)));                                        \
-        const float2 w1 = TW(ts), w2 = TW(2 * ts), w3 = TW(3 * ts);                        \
+        const float2 w1 = tw[ts], w2 = tw[2 * ts], w3 = tw[3 * ts];                        \
         const floatV v0r = src[2 * i], v0i = src[2 * i + 1];                               \
         CMUL(src[2 * (i + q)], src[2 * (i + q) + 1], w1, sg, v1r, v1i)                     \
         CMUL(src[2 * (i + 2 * q)], src[2 * (i + 2 * q) + 1], w2, sg, v2r, v2i)             \

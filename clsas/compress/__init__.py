@@ -267,7 +267,9 @@ def _matched(signals, wave, fs, t0, fc, gate, backend, lag_step, algorithm) -> P
     if backend == "opencl":
         from .opencl import FftMatchedPlan, MatchedFilterPlan
 
-        layout = fft_layout(ref_a, fs, fc, 0, signals.shape[1], lag_read, d, n_lags, rot)
+        layout = None
+        if algorithm != "direct":
+            layout = fft_layout(ref_a, fs, fc, 0, signals.shape[1], lag_read, d, n_lags, rot)
         if algorithm == "auto":
             # multiply-adds per recording: direct 2 n_lags n_ref; FFT ~ 5 (N log N + N' log N')
             fft_cost = 5 * (layout.n_fft * layout.log2_n + (layout.n_fft >> (layout.log2_n - layout.log2_nd))
