@@ -30,6 +30,7 @@ class Image:
     device: str = "NumPy (float64)"
     timings_s: dict = field(default_factory=dict)
     plan: object | None = None
+    echoes: list | None = None  # sparse methods: the Echoes found in each recording
 
     def magnitude(self) -> np.ndarray:
         return np.abs(self.values)
@@ -40,7 +41,8 @@ class Image:
         peak = mag.max(initial=0.0)
         if peak == 0:
             return np.full(mag.shape, floor_db)
-        return np.maximum(20 * np.log10(np.maximum(mag / peak, 1e-300)), floor_db)
+        rel = np.asarray(mag, np.float64) / float(peak)
+        return np.maximum(20 * np.log10(np.maximum(rel, 1e-300)), floor_db)
 
     def peaks(self, k: int = 1, min_separation_m: float = 0.0) -> list[Peak]:
         """The ``k`` strongest local maxima of ``|values|``, strongest first.

@@ -21,7 +21,7 @@ import numpy as np
 from .. import _validate as v
 from .atoms import Dictionary
 
-__all__ = ["BpdnResult", "ShiftOperator", "bpdn", "bpdn_cvxpy", "lam_max"]
+__all__ = ["BpdnResult", "ShiftOperator", "bpdn", "bpdn_cvxpy", "lam_max", "lam_noise", "noise_sigma"]
 
 log = logging.getLogger(__name__)
 MODES = ("positive", "real", "complex")
@@ -112,6 +112,25 @@ def lam_max(op: ShiftOperator, b: np.ndarray, amplitudes: str) -> float:
     if amplitudes == "positive":
         return float(max(0.0, 2 * np.max(g.real)))
     return float(2 * np.max(np.abs(g)))
+
+
+def noise_sigma(b) -> float:
+    """Robust noise level of a signal mostly made of noise: the median absolute value scaled to
+    the Gaussian's sigma (real: |n| median 0.6745 sigma; complex circular, E|n|^2 = sigma^2:
+    median sqrt(ln 2) sigma). Echoes covering less than half the window barely move it."""
+    b = np.asarray(b)
+    med = float(np.median(np.abs(b)))
+    return med / np.sqrt(np.log(2.0)) if np.iscomplexobj(b) else med / 0.6744897501960817
+
+
+def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real") -> float:
+    """lam at the noise level (the universal threshold): 2 sigma |atom| sqrt(2 ln K), the
+    largest correlation pure noise of the estimated sigma is likely to reach on K atoms, so
+    that BPDN keeps echoes and drops noise. Clipped to [0.01, 0.9] lam_max."""
+    b = _check(dictionary, b, amplitudes)
+    lmax = lam_max(ShiftOperator(dictionary), b, amplitudes)
+    lam = 2 * noise_sigma(b) * dictionary.atom.norm * np.sqrt(2 * np.log(max(dictionary.k, 2)))
+    return float(np.clip(lam, 0.01 * lmax, 0.9 * lmax))
 
 
 def _objective(r, x, lam):
