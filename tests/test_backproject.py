@@ -171,3 +171,15 @@ def test_reconstruct_rejects_bad_input():
         clsas.backproject(p, grid, c_mps=-1.0, backend="numpy")
     with pytest.raises(ValueError, match="tx_positions"):
         clsas.backproject(p, grid, tx_positions=np.zeros((2, 3)), backend="numpy")
+
+
+@pytest.mark.parametrize("method", ["bpdn", "cbp-polar"])
+def test_reconstruct_with_super_resolution_puts_the_reflector_in_its_voxel(method):
+    pytest.importorskip("nlopt", reason="sparse methods need the 'sparse' extra")
+    ds = small_dataset([[0.02, -0.01, 0.5]], nx=5, ny=4, snr_db=20)
+    grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.05, 0.05), (0.45, 0.55), 0.005)
+    img = clsas.reconstruct(ds, grid, method, backend="numpy")
+    assert np.linalg.norm(img.peaks(1)[0].position_m - [0.02, -0.01, 0.5]) <= 0.0075
+    assert len(img.echoes) == ds.n_meas and all(len(e) >= 1 for e in img.echoes)
+    with pytest.raises(ValueError, match="unknown option"):
+        clsas.reconstruct(ds, grid, method, backend="numpy", sparse={"lambda": 1})

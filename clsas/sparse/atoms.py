@@ -126,8 +126,7 @@ class Atom:
             big = np.zeros(m * L, complex)
             big[:half] = spec[:half]
             big[-half:] = spec[-half:]
-            big[half] *= 0.5  # split the Nyquist bin between +/- fs/2
-            big[-half] = 0.5 * spec[half]
+            big[half] = big[-half] = 0.5 * spec[half]  # split the Nyquist bin between +/- fs/2
             w = 2j * np.pi * np.fft.fftfreq(m * L, 1 / (self.fs * L))
             tabs = np.stack([np.fft.ifft(big * w**d) * L for d in range(3)])  # (3, m L)
             if not self.complex:
