@@ -135,7 +135,8 @@ def main() -> int:
                      f"{1e3 * s['median_time_s']:.0f} |")
     if cvx:
         lines += ["", "## Fast BPDN against cvxpy (Clarabel)", "",
-                  "| amplitudes | atoms | fast | cvxpy | speed-up | objective rel. difference |", "|---|---|---|---|---|---|"]
+                  "| amplitudes | atoms | fast | cvxpy | speed-up | objective rel. difference |",
+                  "|---|---|---|---|---|---|"]
         for r in cvx:
             lines.append(f"| {r['mode']} | {r['n_atoms']} | {r['fast_s']:.3f} s | {r['cvxpy_s']:.2f} s | "
                          f"{r['speedup']:.0f}x | {r['rel_diff']:.1e} |")

@@ -80,14 +80,16 @@ def main() -> int:
     refl = reflectors(sep)
     ds, grid = setup(args.snr_db, sep)
     res = images(ds, grid, args.methods.split(","))
-    rows = ["| method | dip between reflectors | two strongest peaks (x, z) m | error to nearest reflector | run time |",
+    rows = ["| method | dip between reflectors | two strongest peaks (x, z) m | error to nearest reflector "
+            "| run time |",
             "|---|---|---|---|---|"]
     for m, (img, dt) in res.items():
         pk = img.peaks(2, min_separation_m=0.4 * sep)
         pos = [p.position_m for p in pk]
         err = [float(np.min(np.linalg.norm(refl - q, axis=1))) for q in pos]
-        rows.append(f"| {m} | {midpoint_dip_db(img, refl):+.1f} dB | " + ", ".join(f"({q[0]:+.3f}, {q[2]:.3f})" for q in pos)
-                    + " | " + ", ".join(f"{1e3 * e:.1f} mm" for e in err) + f" | {dt:.2f} s |")
+        rows.append(f"| {m} | {midpoint_dip_db(img, refl):+.1f} dB | "
+                    + ", ".join(f"({q[0]:+.3f}, {q[2]:.3f})" for q in pos) + " | "
+                    + ", ".join(f"{1e3 * e:.1f} mm" for e in err) + f" | {dt:.2f} s |")
     text = "\n".join(rows)
     print(text)
     (out / "fig5.md").write_text(

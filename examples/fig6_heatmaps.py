@@ -82,7 +82,8 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     deltas, lams = (DELTAS[1:4], LAM_FRACS[1:4]) if args.quick else (DELTAS, LAM_FRACS)
     errs, times = grid_errors(deltas, lams)
-    rows = ["| method | best Delta (s) | best lam / lam_max | error there | median over the grid | run time, whole grid |",
+    rows = ["| method | best Delta (s) | best lam / lam_max | error there | median over the grid "
+            "| run time, whole grid |",
             "|---|---|---|---|---|---|"]
     for m, e in errs.items():
         i, j = np.unravel_index(np.nanargmin(e), e.shape)

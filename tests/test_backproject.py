@@ -164,8 +164,6 @@ def test_reconstruct_rejects_bad_input():
         clsas.reconstruct(ds.signals, grid)
     with pytest.raises(ValueError, match="method"):
         clsas.reconstruct(ds, grid, method="magic")
-    with pytest.raises(NotImplementedError, match="issue 3"):
-        clsas.reconstruct(ds, grid, method="bpdn", backend="numpy")
     p = clsas.compress(ds, backend="numpy")
     with pytest.raises(ValueError, match="c_mps"):
         clsas.backproject(p, grid, c_mps=-1.0, backend="numpy")

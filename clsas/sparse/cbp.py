@@ -250,9 +250,10 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
     2. Variable projection: nlopt (L-BFGS, analytic gradient) moves the delays continuously,
        the amplitudes are the least-squares (or NNLS) fit for the delays.
     3. Model order by BIC, n log(RSS / n) + p K log n_e (p = 2 real, 3 complex parameters per
-       echo; n_e the real samples one pulse covers, 99 % of its energy): each echo is tried split in two about itself; then each echo is tried removed;
-       echoes closer than 1e-3 of a sample merge, and echoes below ``rel_threshold`` of the
-       largest are pruned.
+       echo; n_e the real samples one pulse covers, 99 % of its energy): each echo is tried
+       split in two about itself (exhaustive pair search); then each echo is tried removed;
+       echoes below ``rel_threshold`` of the largest are pruned. Neighbouring delays stay at
+       least 1/16 of the matched filter's half-power half-width apart.
     """
     t_start = time.perf_counter()
     b = _check(dictionary, b, amplitudes)

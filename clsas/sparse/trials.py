@@ -128,7 +128,7 @@ def _bpdn_clusters(task, b, d, lam):
 def run_trial(task: TwoEchoTask, method: str, separation_b: float, snr_db: float, seed: int, *,
               delta_s: float | None = None, lam_frac: float | None = None, tol_b: float = 0.25) -> dict:
     """One trial: a dict of the setting, success, delay errors, RMSE, sqrt(CRB), run time."""
-    from .bpdn import lam_max, lam_noise, ShiftOperator
+    from .bpdn import ShiftOperator, lam_max, lam_noise
     from .cbp import cbp_polar, cbp_polar_refined, cbp_taylor
 
     if method not in TASK_METHODS:
