@@ -146,7 +146,7 @@ def _reconstruct_sparse(dataset, grid, method, backend, progress, options) -> Im
     gates = np.stack([pmin, pmax], axis=1) / dataset.c_mps
     plan.notes.append(f"{method}: each recording super-resolved within its own gate, echoes rendered as pulses")
     t_start = time.perf_counter()
-    prof, echoes = superres_profiles(dataset, gates, method, progress=None, **options)
+    prof, echoes = superres_profiles(dataset, gates, method, progress=progress, **options)
     plan.lags = prof.n_lags
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)
