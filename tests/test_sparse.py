@@ -278,19 +278,7 @@ def test_superres_on_a_real_recording(rng, chirp, method):
 
 def test_fig4_example_reproduces_the_papers_ordering(tmp_path):
     """examples/fig4_1d_recovery.py runs, writes its figure and table, and CBP-Polar beats BPDN."""
-    import runpy
-    import sys
-    from pathlib import Path
-
-    script = Path(__file__).parents[1] / "examples" / "fig4_1d_recovery.py"
-    argv = sys.argv
-    sys.argv = [str(script), "--out", str(tmp_path)]
-    try:
-        with pytest.raises(SystemExit) as done:
-            runpy.run_path(str(script), run_name="__main__")
-    finally:
-        sys.argv = argv
-    assert done.value.code == 0
+    _run_example("fig4_1d_recovery.py", tmp_path)
     assert (tmp_path / "fig4.png").stat().st_size > 10_000
     rows = {line.split("|")[1].strip(): float(line.split("|")[4]) for line in
             (tmp_path / "fig4.md").read_text().splitlines() if line.startswith("| ") and "method" not in line}
