@@ -1,0 +1,424 @@
+"""A GRBL 1.1 emulator on a pseudo-terminal, with fault injection.
+
+pyserial opens :attr:`GrblEmulator.port` as a real serial port; the emulator answers on the
+other end like a GRBL 1.1 controller: a start-up banner (after an optional boot delay and
+boot-loader noise, as an Arduino that resets when its port is opened), ``ok`` and ``error:N``,
+``ALARM:N`` pushes, ``$H`` homing, ``$X``, ``$$``, ``G0``/``G1`` moves that take time (the
+machine position advances while the state is ``Run``), ``G4`` dwells, and the real-time
+``?`` (status report), ``!`` (feed hold), ``~`` (cycle start) and Ctrl-X (soft reset).
+
+Faults are injected at the N-th motion command (``G0``/``G1``, counted from 1): a hard-limit
+alarm part way through the move, an ``error:N`` answer, a dropped ``ok``, or a disconnect.
+It is used by the tests and by ``clsas acquire --simulate``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import select
+import threading
+import time
+import tty
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["GrblEmulator", "Faults"]
+
+log = logging.getLogger(__name__)
+
+_WORD = re.compile(r"([A-Z])\s*([-+]?\d*\.?\d+)")
+
+
+@dataclass
+class Faults:
+    """Faults to inject, each at the N-th motion command (1-based); None for none.
+
+    alarm_at_move : ALARM:1 (hard limit) half way through that move; the machine stops.
+    error_at_move : answer ``error:<error_code>`` to that move instead of running it.
+    drop_ok_at_move : run that move but never send its ``ok``.
+    disconnect_at_move : close the port when that move arrives.
+    """
+
+    alarm_at_move: int | None = None
+    error_at_move: int | None = None
+    error_code: int = 33
+    drop_ok_at_move: int | None = None
+    disconnect_at_move: int | None = None
+
+    @classmethod
+    def parse(cls, text: str) -> Faults:
+        """From ``"alarm@5"``, ``"error@3"``, ``"drop-ok@2"``, ``"disconnect@4"`` (comma-separated)."""
+        f = cls()
+        names = {"alarm": "alarm_at_move", "error": "error_at_move", "drop-ok": "drop_ok_at_move",
+                 "disconnect": "disconnect_at_move"}
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            kind, _, n = part.partition("@")
+            if kind not in names or not n.isdigit() or int(n) < 1:
+                raise ValueError(f"fault must be one of {', '.join(k + '@N' for k in names)} with N >= 1, "
+                                 f"got {part!r}")
+            setattr(f, names[kind], int(n))
+        return f
+
+
+@dataclass
+class _Move:
+    start: np.ndarray
+    end: np.ndarray
+    duration_s: float
+    alarm: bool = False
+    t_start: float | None = None
+
+
+@dataclass
+class GrblEmulator:
+    """A GRBL 1.1 controller behind a pseudo-terminal.
+
+    Parameters
+    ----------
+    faults : Faults
+    time_scale : float
+        Multiplies every duration (moves, homing, boot); 0.01 makes a 1 s move take 10 ms.
+    travel_mm : machine travel per axis; with homing the machine spans [0, travel] from home at 0.
+    max_rate_mm_min : rapid (G0) rate per the ``$110`` setting.
+    homing : starts locked in Alarm until ``$H`` or ``$X`` (``$22=1``).
+    soft_limits : a target outside the travel raises ALARM:2 (``$20=1``).
+    banner_delay_s : boot time after the port opens, before the banner (an Arduino's boot loader
+        takes ~1.5 s); scaled by ``time_scale`` but never under 50 ms.
+    """
+
+    faults: Faults = field(default_factory=Faults)
+    time_scale: float = 1.0
+    travel_mm: tuple[float, float, float] = (1000.0, 1000.0, 100.0)
+    max_rate_mm_min: float = 6000.0
+    homing: bool = True
+    homing_s: float = 3.0
+    soft_limits: bool = True
+    banner_delay_s: float = 1.5
+
+    def __post_init__(self) -> None:
+        self.received: list[str] = []  # every line received, for the tests
+        self.moves = 0
+        self._pos = np.zeros(3)
+        self._queue: list[_Move] = []
+        self._state = "Alarm" if self.homing else "Idle"
+        self._hold = False
+        self._feed = 0.0
+        self._relative = False
+        self._line = b""
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._master, slave = os.openpty()
+        tty.setraw(slave)
+        self.port = os.ttyname(slave)
+        os.close(slave)  # clients open it by name; the master keeps the pair alive
+        os.set_blocking(self._master, False)
+        self._thread = threading.Thread(target=self._run, name="grbl-emulator", daemon=True)
+        self._closed = False
+
+    # -- lifecycle ---------------------------------------------------------------------------
+
+    def start(self) -> GrblEmulator:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(2.0)
+        self._close_master()
+
+    def __enter__(self) -> GrblEmulator:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def _close_master(self) -> None:
+        if not self._closed:
+            self._closed = True
+            try:
+                os.close(self._master)
+            except OSError:
+                pass
+
+    @property
+    def position_mm(self) -> np.ndarray:
+        with self._lock:
+            self._advance(time.monotonic())
+            return self._pos.copy()
+
+    @property
+    def state(self) -> str:
+        with self._lock:
+            self._advance(time.monotonic())
+            return self._state
+
+    # -- I/O -----------------------------------------------------------------------------------
+
+    def _send(self, text: str) -> None:
+        if self._closed:
+            return
+        data = text.encode("ascii") + b"\r\n"
+        deadline = time.monotonic() + 2.0
+        while data and not self._closed:
+            try:
+                data = data[os.write(self._master, data):]
+            except BlockingIOError:  # the client is not reading: wait a little, as a UART would
+                if time.monotonic() > deadline:
+                    return
+                time.sleep(0.001)
+            except OSError:
+                return  # no client on the port: the line is lost, as on a real serial line
+
+    def _banner(self) -> None:
+        self._send("")
+        self._send("Grbl 1.1h ['$' for help]")
+        if self._state == "Alarm":
+            self._send("[MSG:'$H'|'$X' to unlock]")
+
+    def _run(self) -> None:
+        # Like an Arduino, the controller resets whenever its port is opened: until a client
+        # opens the pseudo-terminal, reading the master fails (EIO); the first quiet select
+        # after that means a client is there, and the banner follows the boot delay.
+        connected = False
+        while not self._stop.is_set() and not self._closed:
+            try:
+                ready, _, _ = select.select([self._master], [], [], 0.005)
+            except (OSError, ValueError):
+                break
+            with self._lock:
+                self._advance(time.monotonic())
+            if not connected:
+                if ready:
+                    try:
+                        os.read(self._master, 1024)
+                        continue  # stale bytes from an earlier client
+                    except BlockingIOError:
+                        pass  # a client opened the port between select and read
+                    except OSError:
+                        time.sleep(0.005)  # no client: the slave side is closed
+                        continue
+                connected = True
+                log.debug("emulator: a client opened %s", self.port)
+                self._reset_on_open()
+                continue
+            if not ready:
+                continue
+            try:
+                data = os.read(self._master, 1024)
+            except BlockingIOError:
+                continue
+            except OSError:
+                log.debug("emulator: the client closed %s", self.port)
+                connected = False  # the client closed the port
+                continue
+            for byte in data:
+                self._byte(byte)
+
+    def _reset_on_open(self) -> None:
+        with self._lock:
+            self._queue.clear()
+            self._hold = False
+            self._pos = np.zeros(3) if self.homing else self._pos
+            self._state = "Alarm" if self.homing else "Idle"
+        # boot time (at least 50 ms: pyserial flushes the input buffer as it opens the port)
+        time.sleep(max(0.05, self.banner_delay_s * self.time_scale))
+        if not self._closed:
+            os.write(self._master, b"\x00\xf0\xfe")  # boot-loader noise before the banner
+        self._banner()
+
+    def _byte(self, byte: int) -> None:
+        ch = bytes([byte])
+        if ch == b"?":
+            with self._lock:
+                self._advance(time.monotonic())
+                x, y, z = self._pos
+                state = "Hold:0" if self._state == "Hold" else self._state
+                feed = self._feed if self._state == "Run" else 0
+            self._send(f"<{state}|MPos:{x:.3f},{y:.3f},{z:.3f}|FS:{feed:.0f},0>")
+        elif ch == b"!":
+            with self._lock:
+                self._advance(time.monotonic())
+                if self._state == "Run":
+                    self._hold_now()
+        elif ch == b"~":
+            with self._lock:
+                if self._state == "Hold":
+                    self._hold = False
+                    self._state = "Run" if self._queue else "Idle"
+                    if self._queue:
+                        self._queue[0].t_start = time.monotonic()
+        elif ch == b"\x18":
+            with self._lock:
+                moving = self._state in ("Run", "Hold", "Home")
+                self._queue.clear()
+                self._hold = False
+                self._state = "Alarm" if (self.homing or moving) else "Idle"
+            if moving:
+                self._send("ALARM:3")
+            self._banner()
+        elif ch in (b"\n", b"\r"):
+            line, self._line = self._line.decode("ascii", "replace").strip(), b""
+            if line:
+                self.received.append(line)
+                self._command(line)
+        else:
+            self._line += ch
+
+    # -- motion ----------------------------------------------------------------------------------
+
+    def _advance(self, now: float) -> None:
+        """Bring the position up to ``now`` (called with the lock held)."""
+        while self._queue and self._state == "Run":
+            mv = self._queue[0]
+            if mv.t_start is None:
+                mv.t_start = now
+            frac = (now - mv.t_start) / mv.duration_s if mv.duration_s > 0 else 1.0
+            if mv.alarm and frac >= 0.5:
+                self._pos = mv.start + 0.5 * (mv.end - mv.start)
+                self._queue.clear()
+                self._state = "Alarm"
+                self._send("ALARM:1")
+                return
+            if frac < 1.0:
+                self._pos = mv.start + frac * (mv.end - mv.start)
+                return
+            self._pos = mv.end.copy()
+            self._queue.pop(0)
+            if self._queue:
+                self._queue[0].t_start = mv.t_start + mv.duration_s
+                self._queue[0].start = self._pos.copy()
+        if not self._queue and self._state == "Run":
+            self._state = "Idle"
+
+    def _hold_now(self) -> None:
+        mv = self._queue[0]
+        mv.start = self._pos.copy()
+        remaining = float(np.linalg.norm(mv.end - mv.start))
+        full = float(np.linalg.norm(mv.end - mv.start)) or 1.0
+        mv.duration_s *= remaining / full
+        mv.t_start = None
+        self._state = "Hold"
+
+    # -- commands --------------------------------------------------------------------------------
+
+    def _command(self, line: str) -> None:
+        up = line.upper().replace(" ", "")
+        if len(line) > 80:
+            return self._send("error:11")
+        if up.startswith("$"):
+            return self._system(up)
+        if self._state == "Alarm":
+            return self._send("error:9")
+        words = _WORD.findall(up)
+        if not words or _WORD.sub("", up):
+            return self._send("error:1")  # not a sequence of letter-number words
+        vals: dict[str, float] = {}
+        motion = None
+        for letter, num in words:
+            if letter == "G":
+                g = float(num)
+                if g in (0, 1):
+                    motion = int(g)
+                elif g == 21:
+                    pass
+                elif g == 90:
+                    self._relative = False
+                elif g == 91:
+                    self._relative = True
+                elif g == 4:
+                    motion = 4
+                else:
+                    return self._send("error:20")
+            elif letter in "XYZFP":
+                vals[letter] = float(num)
+            else:
+                return self._send("error:20")
+        if "F" in vals:
+            if vals["F"] <= 0:
+                return self._send("error:4")
+            self._feed = vals["F"]
+        if motion == 4:
+            with self._lock:
+                self._advance(time.monotonic())
+                busy = bool(self._queue)
+            while busy and not self._closed:  # a dwell waits for the planner to empty
+                time.sleep(0.005)
+                with self._lock:
+                    self._advance(time.monotonic())
+                    busy = bool(self._queue) and self._state != "Alarm"
+            time.sleep(vals.get("P", 0.0) * self.time_scale)
+            return self._send("ok")
+        if motion is None:
+            return self._send("ok")
+        return self._move(motion, vals)
+
+    def _move(self, motion: int, vals: dict[str, float]) -> None:
+        self.moves += 1
+        n, f = self.moves, self.faults
+        if f.disconnect_at_move == n:
+            log.info("emulator: disconnect at move %d", n)
+            return self._close_master()
+        if f.error_at_move == n:
+            return self._send(f"error:{f.error_code}")
+        with self._lock:
+            last = self._queue[-1].end if self._queue else self._pos
+            target = last.copy()
+            for i, axis in enumerate("XYZ"):
+                if axis in vals:
+                    target[i] = (last[i] + vals[axis]) if self._relative else vals[axis]
+            if self.soft_limits and (np.any(target < -1e-9) or np.any(target > np.asarray(self.travel_mm) + 1e-9)):
+                self._queue.clear()
+                self._state = "Alarm"
+                self._send("ALARM:2")
+                return
+            rate = self.max_rate_mm_min if motion == 0 else self._feed
+            if rate <= 0:
+                self._send("error:22")
+                return
+            dist = float(np.linalg.norm(target - last))
+            self._queue.append(_Move(last.copy(), target, dist / rate * 60.0 * self.time_scale,
+                                     alarm=(f.alarm_at_move == n)))
+            if self._state == "Idle":
+                self._state = "Run"
+        if f.drop_ok_at_move == n:
+            log.info("emulator: dropping the ok of move %d", n)
+            return None
+        return self._send("ok")
+
+    def _system(self, up: str) -> None:
+        if up == "$H":
+            if not self.homing:
+                return self._send("error:5")
+            with self._lock:
+                self._state = "Home"
+            time.sleep(self.homing_s * self.time_scale)
+            with self._lock:
+                self._pos = np.zeros(3)
+                self._queue.clear()
+                self._state = "Idle"
+            return self._send("ok")
+        if up == "$X":
+            with self._lock:
+                if self._state == "Alarm":
+                    self._state = "Idle"
+                    self._send("[MSG:Caution: Unlocked]")
+            return self._send("ok")
+        if up == "$$":
+            settings = {20: int(self.soft_limits), 21: 0, 22: int(self.homing), 110: self.max_rate_mm_min,
+                        111: self.max_rate_mm_min, 130: self.travel_mm[0], 131: self.travel_mm[1],
+                        132: self.travel_mm[2]}
+            for k, val in settings.items():
+                self._send(f"${k}={val:g}")
+            return self._send("ok")
+        if up == "$I":
+            self._send("[VER:1.1h.20190825:clsas-emulator]")
+            self._send("[OPT:V,15,128]")
+            return self._send("ok")
+        if up == "$":
+            self._send("[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]")
+            return self._send("ok")
+        return self._send("error:3")

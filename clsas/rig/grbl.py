@@ -1,0 +1,361 @@
+"""An x-y stage driven by a GRBL 1.1 controller over pyserial.
+
+The line protocol keeps one command in flight: a line is sent, and the next is not sent until
+GRBL has answered ``ok`` or ``error:N``. GRBL also pushes ``ALARM:N`` and ``[MSG:...]`` lines at
+any time, and answers the real-time ``?`` with a status report ``<State|MPos:x,y,z|...>``. A
+motion command is acknowledged when it is *planned*, not when it is done, so a move is confirmed
+by polling ``?`` (at most 5 Hz) until the state is ``Idle`` at the target.
+
+Any pyserial URL is accepted as the port (``/dev/ttyUSB0``, ``COM3``, ``socket://host:port``,
+the path of a pseudo-terminal such as the one :class:`clsas.rig.emulator.GrblEmulator` opens).
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from dataclasses import dataclass
+
+from .. import _validate as v
+
+__all__ = ["GrblStage", "StageError", "GrblError", "GrblAlarm", "StageTimeout", "StageDisconnected",
+           "Status", "ERRORS", "ALARMS"]
+
+log = logging.getLogger(__name__)
+
+# GRBL 1.1 error and alarm codes (grbl/doc/csv/error_codes_en_US.csv, alarm_codes_en_US.csv)
+ERRORS = {
+    1: "G-code words consist of a letter and a value; letter was not found",
+    2: "numeric value format is not valid or missing an expected value",
+    3: "Grbl '$' system command was not recognized or supported",
+    4: "negative value received for an expected positive value",
+    5: "homing cycle is not enabled via settings ($22)",
+    8: "Grbl '$' command cannot be used unless Grbl is IDLE",
+    9: "G-code locked out during alarm or jog state",
+    10: "soft limits cannot be enabled without homing also enabled",
+    11: "max characters per line exceeded",
+    15: "jog target exceeds machine travel",
+    20: "unsupported or invalid g-code command found in block",
+    22: "feed rate has not yet been set or is undefined",
+    33: "motion command target is invalid",
+}
+ALARMS = {
+    1: "hard limit triggered; machine position is likely lost, re-homing is recommended",
+    2: "soft limit: the target exceeds machine travel; position kept, unlock with $X",
+    3: "reset while in motion; position is likely lost, re-homing is recommended",
+    4: "probe fail",
+    5: "probe fail",
+    6: "homing fail: reset during the homing cycle",
+    7: "homing fail: safety door opened during homing",
+    8: "homing fail: pull-off did not clear the limit switch",
+    9: "homing fail: limit switch not found within the search distance",
+    10: "homing fail: second switch not found (dual axis)",
+}
+
+_STATUS = re.compile(r"<([A-Za-z]+)(?::\d)?\|(?:MPos|WPos):([-\d.]+),([-\d.]+),([-\d.]+)")
+
+
+class StageError(RuntimeError):
+    """The stage could not do what was asked; the message says what happened."""
+
+
+class GrblError(StageError):
+    def __init__(self, code: int, line: str):
+        self.code = code
+        super().__init__(f"GRBL answered error:{code} ({ERRORS.get(code, 'unknown error')}) to {line!r}")
+
+
+class GrblAlarm(StageError):
+    def __init__(self, code: int):
+        self.code = code
+        super().__init__(f"GRBL raised ALARM:{code} ({ALARMS.get(code, 'unknown alarm')})")
+
+
+class StageTimeout(StageError):
+    pass
+
+
+class StageDisconnected(StageError):
+    pass
+
+
+@dataclass(frozen=True)
+class Status:
+    """One ``?`` report: the machine state and its machine position in mm."""
+
+    state: str
+    position_mm: tuple[float, float, float]
+
+
+class GrblStage:
+    """A GRBL 1.1 x-y stage.
+
+    Parameters
+    ----------
+    port : str
+        A pyserial port name or URL.
+    baudrate : int
+        115200 for GRBL 1.1.
+    work_area_mm : ((x_min, x_max), (y_min, y_max))
+        Machine coordinates a move may reach; a target outside is refused before it is sent.
+    feed_mm_min : float
+        Feed rate of ``G1`` moves; ``None`` moves with ``G0`` (the machine's rapid rate).
+    timeout_s : float
+        How long to wait for the answer to one line.
+    home_timeout_s : float
+        How long ``$H`` may take.
+    move_timeout_s : float
+        How long one move may take to reach ``Idle``.
+    poll_hz : float
+        Rate of ``?`` status polling while a move runs (GRBL recommends at most 5 Hz).
+    reset_wait_s : float
+        How long to wait for the start-up banner after opening the port (an Arduino resets
+        when its port is opened and boots for about 1.5 s).
+    position_tol_mm : float
+        How close the reported position must come to the target.
+    """
+
+    def __init__(
+        self,
+        port: str,
+        *,
+        baudrate: int = 115200,
+        work_area_mm: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 1000.0), (0.0, 1000.0)),
+        feed_mm_min: float | None = 3000.0,
+        timeout_s: float = 5.0,
+        home_timeout_s: float = 120.0,
+        move_timeout_s: float = 120.0,
+        poll_hz: float = 5.0,
+        reset_wait_s: float = 2.5,
+        position_tol_mm: float = 0.02,
+    ) -> None:
+        if not isinstance(port, str) or not port:
+            raise ValueError(f"port must be a serial port name or pyserial URL, got {port!r}")
+        self.port = port
+        self.baudrate = v.positive_int("baudrate", baudrate)
+        area = v.array("work_area_mm", work_area_mm, shape=(2, 2))
+        if not (area[:, 0] < area[:, 1]).all():
+            raise ValueError(f"work_area_mm must be ((x_min, x_max), (y_min, y_max)) with min < max, got {area.tolist()}")
+        self.work_area_mm = area
+        self.feed_mm_min = None if feed_mm_min is None else v.positive("feed_mm_min", feed_mm_min)
+        self.timeout_s = v.positive("timeout_s", timeout_s)
+        self.home_timeout_s = v.positive("home_timeout_s", home_timeout_s)
+        self.move_timeout_s = v.positive("move_timeout_s", move_timeout_s)
+        poll_hz = v.positive("poll_hz", poll_hz)
+        if poll_hz > 5.0:
+            raise ValueError(f"poll_hz must be at most 5 (GRBL's advice for '?' polling), got {poll_hz}")
+        self.poll_s = 1.0 / poll_hz
+        self.reset_wait_s = v.non_negative("reset_wait_s", reset_wait_s)
+        self.position_tol_mm = v.positive("position_tol_mm", position_tol_mm)
+        self.version = ""
+        self._ser = None
+        self._buf = b""
+
+    # -- connection ---------------------------------------------------------------------
+
+    def open(self) -> GrblStage:
+        """Open the port, wait for GRBL's banner (soft-resetting once if none comes)."""
+        try:
+            import serial
+        except ImportError as exc:
+            raise ImportError("the stage needs pyserial: pip install 'clsas[rig]'") from exc
+        try:
+            self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05,
+                                              write_timeout=self.timeout_s)
+        except (serial.SerialException, ValueError) as exc:
+            raise StageDisconnected(f"cannot open the stage port {self.port!r}: {exc}") from exc
+        banner = self._wait_banner(self.reset_wait_s)
+        if banner is None:
+            log.info("no banner from %s within %.1f s; sending a soft reset", self.port, self.reset_wait_s)
+            self._write(b"\x18")
+            banner = self._wait_banner(max(self.reset_wait_s, 1.0))
+        if banner is None:
+            self.close()
+            raise StageTimeout(f"no GRBL start-up banner on {self.port!r} at {self.baudrate} baud: "
+                               "is a GRBL 1.1 controller connected there?")
+        self.version = banner
+        log.info("connected to %s on %s", banner, self.port)
+        return self
+
+    def close(self) -> None:
+        if self._ser is not None:
+            try:
+                self._ser.close()
+            except Exception as exc:  # noqa: BLE001 - closing a dead port must not mask the real error
+                log.debug("closing %s: %s", self.port, exc)
+            self._ser = None
+
+    def __enter__(self) -> GrblStage:
+        return self.open() if self._ser is None else self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _wait_banner(self, wait_s: float) -> str | None:
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            line = self._readline()
+            if line is None:
+                continue
+            if line.startswith("Grbl "):
+                time.sleep(0.05)
+                self._drain()  # the [MSG:...] lines that follow the banner
+                return line.split("[")[0].strip()
+        return None
+
+    def _drain(self) -> None:
+        while (line := self._readline()) is not None:
+            self._push(line)
+
+    # -- low level ------------------------------------------------------------------------
+
+    def _write(self, data: bytes) -> None:
+        import serial
+
+        if self._ser is None:
+            raise StageDisconnected("the stage port is not open")
+        try:
+            self._ser.write(data)
+            self._ser.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise StageDisconnected(f"stage port {self.port!r} lost while writing: {exc}") from exc
+
+    def _readline(self) -> str | None:
+        """One line without its end, or None if none arrived within the port timeout."""
+        import serial
+
+        if self._ser is None:
+            raise StageDisconnected("the stage port is not open")
+        while b"\n" not in self._buf:
+            try:
+                chunk = self._ser.read(self._ser.in_waiting or 1)
+            except (serial.SerialException, OSError) as exc:
+                raise StageDisconnected(f"stage port {self.port!r} lost while reading: {exc}") from exc
+            if not chunk:
+                return None
+            self._buf += chunk
+        raw, self._buf = self._buf.split(b"\n", 1)
+        line = raw.decode("ascii", "replace").strip().strip("\ufffd\x00")
+        return line or None
+
+    def _push(self, line: str) -> str | None:
+        """Handle a line GRBL may send at any time; return it if it is something else."""
+        if line.startswith("ALARM:"):
+            raise GrblAlarm(_code(line))
+        if line.startswith("[MSG:") or line.startswith("[GC:") or line.startswith("[echo:"):
+            log.info("GRBL: %s", line)
+            return None
+        if line.startswith("Grbl "):
+            raise StageError(f"the controller on {self.port!r} reset unexpectedly ({line}); "
+                             "its position is lost and it must be homed again")
+        return line
+
+    def command(self, line: str, timeout_s: float | None = None) -> list[str]:
+        """Send one line and wait for ``ok``; return the lines GRBL sent before it.
+
+        Raises :class:`GrblError` on ``error:N``, :class:`GrblAlarm` on ``ALARM:N``,
+        :class:`StageTimeout` when no answer comes within ``timeout_s``.
+        """
+        line = line.strip()
+        if "\n" in line or not line:
+            raise ValueError(f"line must be one non-empty line, got {line!r}")
+        wait = self.timeout_s if timeout_s is None else timeout_s
+        log.debug("> %s", line)
+        self._write(line.encode("ascii") + b"\n")
+        got: list[str] = []
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            reply = self._readline()
+            if reply is None:
+                continue
+            log.debug("< %s", reply)
+            reply = self._push(reply)
+            if reply is None or reply.startswith("<"):
+                continue
+            if reply == "ok":
+                return got
+            if reply.startswith("error:"):
+                raise GrblError(_code(reply), line)
+            got.append(reply)
+        raise StageTimeout(f"GRBL did not answer {line!r} within {wait:g} s (a lost 'ok' or a stalled controller)")
+
+    def status(self) -> Status:
+        """Ask for a status report (real-time ``?``)."""
+        self._write(b"?")
+        deadline = time.monotonic() + self.timeout_s
+        while time.monotonic() < deadline:
+            reply = self._readline()
+            if reply is None:
+                continue
+            reply = self._push(reply)
+            if reply is None:
+                continue
+            m = _STATUS.match(reply)
+            if m:
+                return Status(m.group(1), (float(m.group(2)), float(m.group(3)), float(m.group(4))))
+            log.debug("ignored while waiting for a status report: %r", reply)
+        raise StageTimeout(f"no status report from GRBL within {self.timeout_s:g} s")
+
+    # -- operations --------------------------------------------------------------------------
+
+    def home(self) -> Status:
+        """Run the homing cycle (``$H``) and set millimetres, absolute (``G21 G90``)."""
+        self.command("$H", timeout_s=self.home_timeout_s)
+        self.command("G21 G90")
+        return self.wait_idle(self.home_timeout_s)
+
+    def unlock(self) -> Status:
+        """Clear an alarm lock without homing (``$X``) and set ``G21 G90``."""
+        self.command("$X")
+        self.command("G21 G90")
+        return self.status()
+
+    def check_target(self, x_mm: float, y_mm: float) -> None:
+        """Refuse a target outside the work area (before anything is sent)."""
+        for name, val, (lo, hi) in (("x_mm", x_mm, self.work_area_mm[0]), ("y_mm", y_mm, self.work_area_mm[1])):
+            val = v.finite(name, val)
+            if not lo <= val <= hi:
+                raise ValueError(f"{name} = {val:.3f} is outside the stage's work area [{lo:g}, {hi:g}] mm")
+
+    def move_to(self, x_mm: float, y_mm: float) -> Status:
+        """Move to machine position (x, y) in mm and wait until GRBL reports ``Idle`` there."""
+        self.check_target(x_mm, y_mm)
+        word = "G0" if self.feed_mm_min is None else "G1"
+        feed = "" if self.feed_mm_min is None else f" F{self.feed_mm_min:.0f}"
+        self.command(f"{word} X{x_mm:.3f} Y{y_mm:.3f}{feed}")
+        st = self.wait_idle(self.move_timeout_s)
+        err = max(abs(st.position_mm[0] - x_mm), abs(st.position_mm[1] - y_mm))
+        if err > self.position_tol_mm:
+            raise StageError(f"the stage reports Idle at ({st.position_mm[0]:.3f}, {st.position_mm[1]:.3f}) mm, "
+                             f"{err:.3f} mm from the target ({x_mm:.3f}, {y_mm:.3f})")
+        return st
+
+    def wait_idle(self, timeout_s: float) -> Status:
+        """Poll ``?`` at ``poll_hz`` until the state is ``Idle``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            t = time.monotonic()
+            st = self.status()
+            if st.state == "Idle":
+                return st
+            if st.state == "Alarm":
+                raise StageError("GRBL is in the Alarm state (an earlier alarm was not cleared)")
+            if t > deadline:
+                raise StageTimeout(f"the stage did not reach Idle within {timeout_s:g} s (state {st.state})")
+            time.sleep(max(0.0, self.poll_s - (time.monotonic() - t)))
+
+    def feed_hold(self) -> None:
+        """Real-time feed hold (``!``): decelerate and stop; best effort on a lost port."""
+        try:
+            self._write(b"!")
+            log.info("feed hold sent to %s", self.port)
+        except StageError as exc:
+            log.warning("could not send a feed hold: %s", exc)
+
+
+def _code(line: str) -> int:
+    try:
+        return int(line.split(":", 1)[1])
+    except (IndexError, ValueError):
+        return -1

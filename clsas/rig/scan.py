@@ -1,0 +1,202 @@
+"""The scan: move, settle, chirp, record, store, for every stop; stop safely on any fault."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..physics import speed_of_sound
+from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
+from .config import RigConfig
+from .emulator import Faults, GrblEmulator
+from .grbl import GrblStage, StageError
+from .store import ScanFile
+
+__all__ = ["acquire", "ScanResult", "ScanAborted", "ScanInterrupted"]
+
+log = logging.getLogger(__name__)
+
+
+class ScanAborted(RuntimeError):
+    """The scan stopped on a fault; the file holds every stop before it. The message says how to resume."""
+
+    def __init__(self, message: str, stops_done: int):
+        super().__init__(message)
+        self.stops_done = stops_done
+
+
+class ScanInterrupted(ScanAborted):
+    """The scan was stopped by the user (Ctrl-C)."""
+
+
+@dataclass
+class ScanResult:
+    path: Path
+    n_stops: int
+    stops_done: int
+    stops_this_run: int
+    elapsed_s: float
+    retried_stops: int
+
+    @property
+    def complete(self) -> bool:
+        return self.stops_done == self.n_stops
+
+
+def _stage_for(config: RigConfig, port: str) -> GrblStage:
+    return GrblStage(port, baudrate=config.baudrate, work_area_mm=tuple(map(tuple, config.work_area_mm)),
+                     feed_mm_min=config.feed_mm_min, timeout_s=config.stage_timeout_s, poll_hz=config.poll_hz)
+
+
+def acquire(
+    config: RigConfig,
+    out: str | Path,
+    *,
+    resume: bool = False,
+    simulate: bool = False,
+    faults: Faults | None = None,
+    audio_io=None,
+    stage: GrblStage | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    resume_hint: str | None = None,
+) -> ScanResult:
+    """Run the scan described by ``config`` and write it to ``out``, one stop at a time.
+
+    Parameters
+    ----------
+    config : RigConfig
+        From :func:`clsas.rig.load_rig_config`.
+    out : path
+        The dataset file. It must not exist unless ``resume``.
+    resume : bool
+        Continue ``out`` at its first missing stop (the configuration must be the same).
+    simulate : bool
+        Drive a GRBL emulator on a pseudo-terminal instead of ``stage.port``, and record what
+        the simulator says the microphones hear for the ``[simulate]`` scene.
+    faults : Faults, optional
+        Faults the emulator injects (``simulate`` only).
+    audio_io, stage : optional
+        Use these instead of the ones the configuration describes.
+    progress : callable(done, total), optional
+        Called after each stop.
+
+    Raises
+    ------
+    ScanAborted
+        On a stage, serial or audio fault, after a feed hold; the file keeps every stop
+        recorded so far and the message says how to resume.
+    ScanInterrupted
+        On Ctrl-C, likewise.
+    """
+    if not isinstance(config, RigConfig):
+        raise TypeError(f"config must be a RigConfig (clsas.rig.load_rig_config), got {type(config).__name__}")
+    out = Path(out)
+    hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
+    if faults is not None and not simulate:
+        raise ValueError("faults can only be injected into a simulated scan (simulate=True)")
+    if out.exists() and not resume:
+        raise FileExistsError(f"{out} exists: resume it (--resume) or choose another file name")
+    if not simulate and stage is None and not config.port:
+        raise ValueError("stage.port is not set in the rig configuration (or run with --simulate)")
+    sim = config.simulate
+    if audio_io is None:
+        if simulate:
+            audio_io = SimulatedIO(config.scene(), config.fs_hz, latency_samples=int(sim.get("latency_samples", 300)),
+                                   noise_rms=float(sim.get("noise_rms", 1e-4)), seed=int(sim.get("seed", 0)))
+        else:
+            audio_io = SoundDeviceIO(config.device, config.fs_hz, config.output_channel, config.loopback_channel,
+                                     config.mic_channels)
+    recorder = Recorder(audio_io, config.waveform, config.fs_hz, config.n_samples, level=config.level,
+                        repeats=config.repeats, repeat_gap_s=config.repeat_gap_s, retries=config.retries,
+                        clip_level=config.clip_level, max_latency_s=config.max_latency_s,
+                        acoustic_delay_s=config.acoustic_delay_s)
+
+    if resume and out.exists():
+        store = ScanFile.resume(out, config.text)
+        log.info("resuming %s at stop %d of %d", out, store.stops_done + 1, config.n_stops)
+    else:
+        t_c, rh = config.read_air()
+        store = ScanFile.create(out, fs_hz=config.fs_hz, waveform=config.level * config.waveform,
+                                n_samples=config.n_samples, n_mics=config.n_mics, n_stops=config.n_stops,
+                                temperature_c=t_c, humidity_pct=rh, c_mps=speed_of_sound(t_c), chirp=config.chirp,
+                                config_text=config.text)
+    start_done = store.stops_done
+    emulator = None
+    t_start = time.monotonic()
+    retried = 0
+    i = start_done
+    try:
+        if start_done >= config.n_stops:
+            log.info("%s already holds all %d stops", out, config.n_stops)
+            store.close(complete=True)
+            return ScanResult(out, config.n_stops, start_done, 0, 0.0, 0)
+        if stage is None:
+            if simulate:
+                emulator = GrblEmulator(faults=faults or Faults(), time_scale=float(sim.get("time_scale", 0.01)),
+                                        travel_mm=(float(config.work_area_mm[0, 1]), float(config.work_area_mm[1, 1]),
+                                                   100.0)).start()
+                stage = _stage_for(config, emulator.port)
+            else:
+                stage = _stage_for(config, config.port)
+        try:
+            stage.open()
+            if config.home:
+                stage.home()
+            else:
+                stage.unlock()
+            for i in range(start_done, config.n_stops):
+                x_mm, y_mm = config.stage_target_mm(i)
+                st = stage.move_to(x_mm, y_mm)
+                if config.settle_s:
+                    time.sleep(config.settle_s)
+                carriage = config.carriage_m(st.position_mm)
+                tx = carriage + config.tx_offset_m
+                rx = carriage[None, :] + config.rx_offsets_m
+                take = recorder.take(i, tx, rx)
+                retried += take.attempts > 1
+                store.append(i, signals=take.signals, tx_m=tx, rx_m=rx, t0_s=take.t0_s, stage_m=carriage,
+                             timestamp=time.time(), loopback=take.loopback)
+                if progress is not None:
+                    progress(i + 1, config.n_stops)
+        except KeyboardInterrupt:
+            stage.feed_hold()
+            done = store.stops_done
+            store.close()
+            raise ScanInterrupted(f"interrupted at stop {i + 1} of {config.n_stops}; {done} stops are saved in "
+                                  f"{out}; {hint}", done) from None
+        except (StageError, AudioError, OSError) as exc:
+            stage.feed_hold()
+            done = store.stops_done
+            store.close()
+            where = f"at stop {i + 1} of {config.n_stops}"
+            raise ScanAborted(f"scan stopped {where}: {exc}. The stage was sent a feed hold; {done} stops are "
+                              f"saved in {out}. Fix the cause, then {hint}", done) from exc
+        finally:
+            stage.close()
+    finally:
+        if emulator is not None:
+            emulator.stop()
+        store.close()
+    done = config.n_stops
+    _mark_complete(out)
+    return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
+
+
+def _mark_complete(path: Path) -> None:
+    import h5py
+
+    with h5py.File(path, "r+") as f:
+        f.attrs["complete"] = True
+
+
+def stop_indices(path: str | Path) -> np.ndarray:
+    """The stop number of every measurement in a scan file (to check each stop is there once)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return f["stop_index"][: f["signals"].shape[0]]
