@@ -1,4 +1,4 @@
-"""The ``clsas`` command: demo, simulate, reconstruct, limits, devices (acquire, bench)."""
+"""The ``clsas`` command: demo, simulate, reconstruct, limits, devices, acquire (bench)."""
 
 from __future__ import annotations
 
@@ -110,11 +110,11 @@ def cmd_simulate(args) -> int:
 def cmd_reconstruct(args) -> int:
     import clsas
     from clsas.plots import mip_png
-    from clsas.scenes import parse_config
+    from clsas.scenes import stored_grid_and_truth
 
     ds = clsas.load(args.data)
-    cfg = parse_config(ds.config) if ds.config.strip() else None
-    grid = _grid_arg(args.grid, args.spacing, cfg.grid if cfg else None)
+    stored_grid, truth = stored_grid_and_truth(ds.config)
+    grid = _grid_arg(args.grid, args.spacing, stored_grid)
     image = _reconstruct(ds, grid, args, not args.quiet)
     out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
     image.save(out)
@@ -126,7 +126,6 @@ def cmd_reconstruct(args) -> int:
         x, y, z = p.position_m
         print(f"peak ({x:+.3f}, {y:+.3f}, {z:.3f}) m  |v| = {p.magnitude:.4g}")
     if args.png:
-        truth = cfg.scene.image_sources()[0] if cfg else None
         mip_png(image, out.with_suffix(".png"), truth, Path(args.data).name)
         print(f"wrote {out.with_suffix('.png')}")
     print(f"wrote {out}")
@@ -155,7 +154,76 @@ def cmd_devices(args) -> int:
               f"{r.global_mem_mib} MiB | fp64 {'yes' if r.fp64 else 'no'}")
     if rows:
         print("(* = used by backend='auto'; set PYOPENCL_CTX to choose, e.g. PYOPENCL_CTX=0:0)")
+    if not args.opencl_only:
+        _print_rig_devices()
     return 0
+
+
+def cmd_acquire(args) -> int:
+    from clsas import rig
+
+    if args.sample_config:
+        print(rig.SAMPLE_RIG_TOML, end="")
+        return 0
+    if not args.config or not args.out:
+        raise ValueError("clsas acquire needs a rig configuration and an output file: clsas acquire rig.toml out.h5 "
+                         "(clsas acquire --sample-config > rig.toml writes a commented example)")
+    if args.fault and not args.simulate:
+        raise ValueError("--fault injects faults into the emulated rig: use it with --simulate")
+    cfg = rig.load_rig_config(args.config)
+    faults = rig.Faults.parse(args.fault) if args.fault else None
+    flags = " --simulate" if args.simulate else ""
+    hint = f"resume with: clsas acquire {args.config} {args.out} --resume{flags}"
+    print(f"{'emulated ' if args.simulate else ''}scan: {cfg.n_stops} stops x {cfg.n_mics} microphone(s), "
+          f"{cfg.repeats} chirp(s) per stop at {cfg.fs_hz:g} Hz -> {args.out}")
+    from tqdm import tqdm
+
+    with tqdm(total=cfg.n_stops, desc="acquire", unit="stop", disable=args.quiet) as bar:
+        def progress(done: int, total: int) -> None:
+            bar.n = done
+            bar.refresh()
+
+        try:
+            res = rig.acquire(cfg, args.out, resume=args.resume, simulate=args.simulate, faults=faults,
+                              progress=progress, resume_hint=hint)
+        except rig.ScanInterrupted as exc:
+            bar.close()
+            print(f"clsas acquire: {exc}", file=sys.stderr)
+            return 130
+        except rig.ScanAborted as exc:
+            bar.close()
+            print(f"clsas acquire: {exc}", file=sys.stderr)
+            return 3
+    print(f"wrote {res.path}: {res.stops_done} of {res.n_stops} stops ({res.stops_this_run} this run, "
+          f"{res.retried_stops} retried) in {res.elapsed_s:.1f} s; image it with: clsas reconstruct {res.path}")
+    return 0
+
+
+def _print_rig_devices() -> None:
+    from clsas.rig.audio import list_audio_devices
+
+    print()
+    try:
+        rows = list_audio_devices()
+    except ImportError as exc:
+        print(f"audio devices: unavailable ({exc})")
+        rows = None
+    if rows is not None:
+        print("audio devices (for [audio] device in rig.toml):" if rows else "audio devices: none found")
+        for r in rows:
+            rates = ", ".join(f"{fs // 1000} kHz" for fs in r["rates_hz"]) or "neither 96 nor 192 kHz"
+            print(f"  {r['index']:2d} {r['name']} | {r['hostapi']} | {r['inputs']} in, {r['outputs']} out | "
+                  f"default {r['default_hz']:g} Hz | {rates}")
+    print()
+    try:
+        from serial.tools import list_ports
+    except ImportError:
+        print("serial ports: unavailable (pip install 'clsas[rig]' for pyserial)")
+        return
+    ports = list_ports.comports()
+    print("serial ports (for [stage] port):" if ports else "serial ports: none found")
+    for p in ports:
+        print(f"  {p.device} | {p.description} | {p.hwid}")
 
 
 def cmd_missing(args) -> int:
@@ -210,9 +278,23 @@ def build_parser() -> argparse.ArgumentParser:
     lim.add_argument("--humidity", type=float, default=50.0, help="%% RH")
     lim.set_defaults(func=cmd_limits)
 
-    dv = sub.add_parser("devices", help="list OpenCL platforms and devices")
+    dv = sub.add_parser("devices", help="list OpenCL devices, audio devices and serial ports")
+    dv.add_argument("--opencl-only", action="store_true", help="only the OpenCL devices")
     dv.set_defaults(func=cmd_devices)
-    for name in ("acquire", "bench"):
+
+    a = sub.add_parser("acquire", help="run a scan on a rig (or an emulated one) described by rig.toml")
+    a.add_argument("config", nargs="?", help="rig configuration (TOML)")
+    a.add_argument("out", nargs="?", help="dataset file to write (HDF5)")
+    a.add_argument("--resume", action="store_true", help="continue the file at its first missing stop")
+    a.add_argument("--simulate", action="store_true",
+                   help="emulated GRBL stage and simulated microphone hearing the [simulate] scene")
+    a.add_argument("--fault", help="with --simulate: inject faults, e.g. alarm@5, error@3, drop-ok@2, disconnect@4 "
+                   "(at the N-th move)")
+    a.add_argument("--sample-config", action="store_true", help="print a commented rig.toml and exit")
+    a.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    a.add_argument("-v", "--verbose", action="store_true", help="log the stage dialogue and retries")
+    a.set_defaults(func=cmd_acquire)
+    for name in ("bench",):
         m = sub.add_parser(name, help="(not available yet)")
         m.add_argument("rest", nargs="*")
         m.set_defaults(func=cmd_missing)

@@ -17,7 +17,7 @@ import tomli_w
 from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
 from .signals import lfm_chirp
 
-__all__ = ["SceneConfig", "load_config", "parse_config", "mannequin_points", "demo_configs"]
+__all__ = ["SceneConfig", "load_config", "parse_config", "mannequin_points", "demo_configs", "stored_grid_and_truth"]
 
 
 @dataclass
@@ -88,6 +88,28 @@ def parse_config(text: str) -> SceneConfig:
     snr = noise.get("snr_db")
     return SceneConfig(scene, aperture, waveform, fs, chirp, grid, None if snr is None else float(snr),
                        int(noise.get("seed", 0)), text)
+
+
+def stored_grid_and_truth(text: str) -> tuple[VoxelGrid | None, np.ndarray | None]:
+    """The ``[grid]`` and the true reflector (image) positions of a configuration stored in a dataset.
+
+    Works for scene files (``clsas simulate``) and rig files (``clsas acquire``; the truth is its
+    ``[simulate]`` scene, if any).
+    """
+    if not text.strip():
+        return None, None
+    cfg = tomllib.loads(text)
+    g = cfg.get("grid")
+    grid = None
+    if g is not None:
+        grid = VoxelGrid.from_bounds(tuple(g["x_m"]), tuple(g["y_m"]), tuple(g["z_m"]), g.get("spacing_m", 0.01))
+    if "stage" in cfg or "audio" in cfg:
+        from .rig.config import parse_rig_config
+
+        rig = parse_rig_config(text)
+        truth = rig.scene().image_sources()[0] if rig.simulate.get("points") else None
+        return grid, truth
+    return grid, parse_config(text).scene.image_sources()[0]
 
 
 def load_config(path: str | Path) -> SceneConfig:

@@ -18,6 +18,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.fft
 import scipy.signal
 
 from ..geometry import Aperture, Scene
@@ -75,28 +76,34 @@ def list_audio_devices() -> list[dict]:
 def find_onset(loopback: np.ndarray, waveform: np.ndarray, min_correlation: float = 0.5) -> float:
     """Sample index (fractional) where ``waveform`` starts in ``loopback``.
 
-    The peak of the cross-correlation, refined by a parabola through it and its neighbours
-    (exact for a whole-sample delay: a chirp's autocorrelation is symmetric). Raises
-    :class:`AudioError` when the best match is too weak to be the chirp.
+    The envelope peak of the cross-correlation with the analytic chirp picks the whole sample
+    (a carrier-rate ripple cannot fool it); the correlation's phase there gives the fraction
+    (phase = 2 pi f_c x offset, f_c the chirp's spectral centroid). A whole-sample delay gives
+    phase 0 exactly. Raises :class:`AudioError` when the best match is too weak to be the chirp.
     """
     x = np.asarray(loopback, float)
     w = np.asarray(waveform, float)
     if len(x) < len(w):
         raise AudioError("the loopback recording is shorter than the chirp")
-    c = scipy.signal.correlate(x, w, mode="valid", method="fft")
-    k = int(np.argmax(np.abs(c)))
+    n = scipy.fft.next_fast_len(2 * len(w))
+    spec = scipy.fft.fft(w, n)
+    freqs = scipy.fft.fftfreq(n)
+    centroid = float(np.sum(np.abs(freqs) * np.abs(spec) ** 2) / np.sum(np.abs(spec) ** 2))  # cycles/sample
+    wa = scipy.fft.ifft(spec * (1 + np.sign(freqs)))[: len(w)]  # analytic chirp
+    c = scipy.signal.correlate(x, wa, mode="valid", method="fft")  # sum x[k + i] conj(wa[i])
+    env = np.abs(c)
+    k = int(np.argmax(env))
     seg = x[k:k + len(w)]
     norm = np.linalg.norm(seg) * np.linalg.norm(w)
-    rho = abs(c[k]) / norm if norm > 0 else 0.0
+    rho = env[k] / np.sqrt(2) / norm if norm > 0 else 0.0
     if rho < min_correlation:
         raise AudioError(f"no chirp on the loopback channel (best normalised correlation {rho:.2f}): "
                          "check that the speaker drive is wired back to the loopback input")
-    frac = 0.0
-    if 0 < k < len(c) - 1:
-        a, b, d = np.abs(c[k - 1:k + 2])
-        den = a - 2 * b + d
-        frac = 0.5 * (a - d) / den if den != 0 else 0.0
-    return k + float(np.clip(frac, -0.5, 0.5))
+    frac = -np.angle(c[k]) / (2 * np.pi * centroid)
+    if abs(frac) > 1.0 and 0 < k < len(c) - 1:  # phase wrapped: fall back to the envelope's parabola
+        a, b, d = env[k - 1:k + 2]
+        frac = 0.5 * (a - d) / (a - 2 * b + d)
+    return k + float(frac)
 
 
 @dataclass
@@ -229,7 +236,8 @@ class SimulatedIO:
     """What the microphones would hear: the simulator's echoes of ``scene`` at the stop's positions.
 
     The loopback is the drive delayed by a whole-sample latency that changes from stop to
-    stop; the microphones hear the same latency plus the acoustic path. Noise is seeded per
+    stop; the microphones hear the same latency plus the acoustic path, scaled by ``mic_gain``
+    (the simulator's amplitudes are per square metre of spreading). Noise is seeded per
     stop and attempt, so a resumed scan records what an uninterrupted one would.
 
     Faults (stop indices are 0-based): ``clip_at_stop`` and ``xrun_at_stop`` spoil the first
@@ -237,12 +245,13 @@ class SimulatedIO:
     """
 
     def __init__(self, scene: Scene, fs_hz: float, *, latency_samples: int = 300, noise_rms: float = 1e-4,
-                 seed: int = 0, clip_at_stop: int | None = None, xrun_at_stop: int | None = None,
-                 error_at_stop: int | None = None) -> None:
+                 mic_gain: float = 0.05, seed: int = 0, clip_at_stop: int | None = None,
+                 xrun_at_stop: int | None = None, error_at_stop: int | None = None) -> None:
         self.scene = scene
         self.fs_hz = float(fs_hz)
         self.latency = int(latency_samples)
         self.noise_rms = float(noise_rms)
+        self.mic_gain = float(mic_gain)
         self.seed = int(seed)
         self.clip_at_stop, self.xrun_at_stop, self.error_at_stop = clip_at_stop, xrun_at_stop, error_at_stop
 
@@ -259,7 +268,7 @@ class SimulatedIO:
         rng = np.random.default_rng([self.seed, ctx.index, ctx.attempt, ctx.repeat])
         rec = np.zeros((n, 1 + m))
         rec[lat:, 0] = out[: n - lat]
-        rec[:, 1:] = mics.T + rng.normal(0.0, self.noise_rms, (n, m))
+        rec[:, 1:] = self.mic_gain * mics.T + rng.normal(0.0, self.noise_rms, (n, m))
         flags: list[str] = []
         if ctx.attempt == 1 and ctx.index == self.clip_at_stop:
             rec[:, 1:] = np.clip(rec[:, 1:] * 1e4, -1.0, 1.0)

@@ -74,8 +74,9 @@ spacing_m = 0.01
 
 [simulate]                     # used only by `clsas acquire --simulate`
 points = [{ position_m = [0.0, 0.0, 1.2], amplitude = 1.0 }]
-noise_rms = 1e-4
-latency_samples = 300
+noise_rms = 1e-4               # microphone noise, full scale = 1
+mic_gain = 0.05                # echo level of a unit reflector at 1 m: 0.05 x level
+latency_samples = 300          # output-to-input latency of the emulated sound card
 time_scale = 0.01              # emulated moves run 100x faster than real ones
 """
 

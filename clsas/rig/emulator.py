@@ -100,6 +100,7 @@ class GrblEmulator:
 
     def __post_init__(self) -> None:
         self.received: list[str] = []  # every line received, for the tests
+        self.status_times: list[float] = []  # when each '?' arrived (monotonic s)
         self.moves = 0
         self._pos = np.zeros(3)
         self._queue: list[_Move] = []
@@ -233,6 +234,7 @@ class GrblEmulator:
     def _byte(self, byte: int) -> None:
         ch = bytes([byte])
         if ch == b"?":
+            self.status_times.append(time.monotonic())
             with self._lock:
                 self._advance(time.monotonic())
                 x, y, z = self._pos

@@ -136,7 +136,8 @@ class GrblStage:
         self.baudrate = v.positive_int("baudrate", baudrate)
         area = v.array("work_area_mm", work_area_mm, shape=(2, 2))
         if not (area[:, 0] < area[:, 1]).all():
-            raise ValueError(f"work_area_mm must be ((x_min, x_max), (y_min, y_max)) with min < max, got {area.tolist()}")
+            raise ValueError("work_area_mm must be ((x_min, x_max), (y_min, y_max)) with min < max, "
+                             f"got {area.tolist()}")
         self.work_area_mm = area
         self.feed_mm_min = None if feed_mm_min is None else v.positive("feed_mm_min", feed_mm_min)
         self.timeout_s = v.positive("timeout_s", timeout_s)
@@ -345,13 +346,15 @@ class GrblStage:
                 raise StageTimeout(f"the stage did not reach Idle within {timeout_s:g} s (state {st.state})")
             time.sleep(max(0.0, self.poll_s - (time.monotonic() - t)))
 
-    def feed_hold(self) -> None:
-        """Real-time feed hold (``!``): decelerate and stop; best effort on a lost port."""
+    def feed_hold(self) -> bool:
+        """Real-time feed hold (``!``): decelerate and stop. Returns False if the port was lost."""
         try:
             self._write(b"!")
-            log.info("feed hold sent to %s", self.port)
         except StageError as exc:
             log.warning("could not send a feed hold: %s", exc)
+            return False
+        log.info("feed hold sent to %s", self.port)
+        return True
 
 
 def _code(line: str) -> int:

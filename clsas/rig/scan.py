@@ -106,8 +106,10 @@ def acquire(
     sim = config.simulate
     if audio_io is None:
         if simulate:
-            audio_io = SimulatedIO(config.scene(), config.fs_hz, latency_samples=int(sim.get("latency_samples", 300)),
-                                   noise_rms=float(sim.get("noise_rms", 1e-4)), seed=int(sim.get("seed", 0)))
+            audio_io = SimulatedIO(config.scene(), config.fs_hz,
+                                   latency_samples=int(sim.get("latency_samples", 300)),
+                                   noise_rms=float(sim.get("noise_rms", 1e-4)),
+                                   mic_gain=float(sim.get("mic_gain", 0.05)), seed=int(sim.get("seed", 0)))
         else:
             audio_io = SoundDeviceIO(config.device, config.fs_hz, config.output_channel, config.loopback_channel,
                                      config.mic_channels)
@@ -170,11 +172,12 @@ def acquire(
             raise ScanInterrupted(f"interrupted at stop {i + 1} of {config.n_stops}; {done} stops are saved in "
                                   f"{out}; {hint}", done) from None
         except (StageError, AudioError, OSError) as exc:
-            stage.feed_hold()
+            held = stage.feed_hold()
             done = store.stops_done
             store.close()
-            where = f"at stop {i + 1} of {config.n_stops}"
-            raise ScanAborted(f"scan stopped {where}: {exc}. The stage was sent a feed hold; {done} stops are "
+            safe = ("The stage was sent a feed hold" if held else
+                    "No feed hold could be sent (the port is lost): check that the machine has stopped")
+            raise ScanAborted(f"scan stopped at stop {i + 1} of {config.n_stops}: {exc}. {safe}; {done} stops are "
                               f"saved in {out}. Fix the cause, then {hint}", done) from exc
         finally:
             stage.close()
