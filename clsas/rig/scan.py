@@ -129,6 +129,7 @@ def acquire(
                                 config_text=config.text)
     start_done = store.stops_done
     emulator = None
+    settle_s = config.settle_s * (float(sim.get("time_scale", 0.01)) if simulate else 1.0)
     t_start = time.monotonic()
     retried = 0
     i = start_done
@@ -154,8 +155,8 @@ def acquire(
             for i in range(start_done, config.n_stops):
                 x_mm, y_mm = config.stage_target_mm(i)
                 st = stage.move_to(x_mm, y_mm)
-                if config.settle_s:
-                    time.sleep(config.settle_s)
+                if settle_s:
+                    time.sleep(settle_s)
                 carriage = config.carriage_m(st.position_mm)
                 tx = carriage + config.tx_offset_m
                 rx = carriage[None, :] + config.rx_offsets_m
