@@ -1,4 +1,4 @@
-"""The ``clsas`` command: demo, simulate, reconstruct, limits, devices, acquire (bench)."""
+"""The ``clsas`` command: demo, simulate, reconstruct, limits, devices, acquire, bench."""
 
 from __future__ import annotations
 
@@ -226,8 +226,30 @@ def _print_rig_devices() -> None:
         print(f"  {p.device} | {p.description} | {p.hwid}")
 
 
-def cmd_missing(args) -> int:
-    raise NotImplementedError(f"'clsas {args.command}' is not available yet in this release")
+def cmd_bench(args) -> int:
+    from clsas.bench import run
+
+    def status(line: str) -> None:
+        if not args.quiet:
+            print(f"[bench] {line}", flush=True)
+
+    res = run(full=args.full, out_dir=args.out, scheduler=args.scheduler, use_dask=True if args.dask else None,
+              plots=not args.no_plots, status=status)
+    for r in res["backprojection"]:
+        rt = r.get("ratios", {})
+        if "opencl_kernel / numpy_twin" in rt:
+            print(f"backprojection {r['workload']}: {r['opencl_kernel']['rate_per_s']:.3g} pairs/s, "
+                  f"{rt['opencl_kernel / numpy_twin']:.0f}x the NumPy twin"
+                  + (f", {rt['opencl_kernel / numba_peer']:.1f}x Numba" if "opencl_kernel / numba_peer" in rt else ""))
+    rt = res["compression"].get("ratios", {})
+    if "opencl_fft_kernel / fftconvolve" in rt:
+        print(f"compression: kernel {rt['opencl_fft_kernel / fftconvolve']:.2f}x fftconvolve, "
+              f"wall {rt['opencl_fft_wall / fftconvolve']:.2f}x")
+    if "backprojection_vs_pairs" in res["scaling"]:
+        print(f"backprojection cost ~ pairs^{res['scaling']['backprojection_vs_pairs']['exponent']:.2f}")
+    for path in res["paths"].values():
+        print(f"wrote {path}")
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -294,10 +316,16 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     a.add_argument("-v", "--verbose", action="store_true", help="log the stage dialogue and retries")
     a.set_defaults(func=cmd_acquire)
-    for name in ("bench",):
-        m = sub.add_parser(name, help="(not available yet)")
-        m.add_argument("rest", nargs="*")
-        m.set_defaults(func=cmd_missing)
+    b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time")
+    b.add_argument("--full", action="store_true", help="the full set (tens of minutes on a 2-core CPU)")
+    b.add_argument("--out", default="bench/results", help="results folder (default: bench/results)")
+    b.add_argument("--scheduler", help="address of a Dask scheduler for the sweeps and tiles (default: a local "
+                   "cluster of 2 workers with --full)")
+    b.add_argument("--dask", action="store_true", help="run the Dask part in the quick set too")
+    b.add_argument("--no-plots", action="store_true", help="no PNG")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    b.add_argument("-v", "--verbose", action="store_true", help="log details")
+    b.set_defaults(func=cmd_bench)
     return p
 
 

@@ -11,65 +11,30 @@ in the paper, and the refined CBP-Polar.
 from __future__ import annotations
 
 import argparse
-import time
 from pathlib import Path
 
 import numpy as np
 
-from clsas.sparse import (
-    Atom,
-    Dictionary,
-    Echoes,
-    bpdn,
-    cbp_polar,
-    cbp_polar_refined,
-    cbp_taylor,
-    decaying_exponential,
-    delay_error,
-)
+from clsas.sparse.trials import grid_cell, grid_problem
 
-FS = 1000.0
-ALPHA = 8.0
-TRUTH = Echoes([0.31, 0.47], [1.0, 0.8])
+TRUTH = grid_problem()[2]
 DELTAS = (0.0125, 0.025, 0.05, 0.1, 0.2)
 LAM_FRACS = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3)
-
-
-def _bpdn(d, b, lam_frac):
-    g = bpdn(d, b, lam_frac=lam_frac)
-    on = g.x > 0
-    return Echoes(d.taus[on], g.x[on], "bpdn", g.status, g.iterations, g.time_s)
-
-
-METHODS = {
-    "BPDN": _bpdn,
-    "CBP-Taylor": lambda d, b, lf: cbp_taylor(d, b, lam_frac=lf),
-    "CBP-Polar (convex)": lambda d, b, lf: cbp_polar(d, b, lam_frac=lf),
-    "CBP-Polar (refined)": lambda d, b, lf: cbp_polar_refined(d, b, lam_frac=lf, amplitudes="positive"),
-}
-
-
-def problem():
-    f = decaying_exponential(ALPHA)
-    atom = Atom(f, FS, 1000,
-                derivative=lambda t: np.where(t >= 0, (1 - ALPHA * t) * np.exp(-ALPHA * np.maximum(t, 0)), 0))
-    b = TRUTH.signal(atom) + 1e-4 * np.random.default_rng(4).normal(size=atom.n)
-    return atom, b
+METHODS = {"BPDN": "bpdn", "CBP-Taylor": "cbp-taylor", "CBP-Polar (convex)": "cbp-polar-socp",
+           "CBP-Polar (refined)": "cbp-polar"}
 
 
 def grid_errors(deltas=DELTAS, lam_fracs=LAM_FRACS):
-    """{method: (len(deltas), len(lam_fracs)) eq. 5 errors}, and the run time per method."""
-    atom, b = problem()
+    """{method: (len(deltas), len(lam_fracs)) eq. 5 errors}, and the run time per method
+    (the cells are computed by clsas.sparse.trials.grid_cell, which the benchmark suite uses too)."""
     errs = {m: np.full((len(deltas), len(lam_fracs)), np.nan) for m in METHODS}
     times = dict.fromkeys(METHODS, 0.0)
     for i, delta in enumerate(deltas):
-        d = Dictionary(atom, delta, tau0_s=0.0, n_atoms=int(round(1.0 / delta)))
         for j, lf in enumerate(lam_fracs):
-            for m, fn in METHODS.items():
-                t = time.perf_counter()
-                e = fn(d, b, lf)
-                times[m] += time.perf_counter() - t
-                errs[m][i, j] = delay_error(e, TRUTH, b, atom).total
+            for m, key in METHODS.items():
+                cell = grid_cell(key, delta, lf)
+                times[m] += cell["time_s"]
+                errs[m][i, j] = cell["error"]
     return errs, times
 
 

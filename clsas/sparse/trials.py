@@ -18,9 +18,10 @@ import numpy as np
 from .atoms import Atom, Dictionary
 from .metrics import Echoes, crb_delays, delay_error
 
-__all__ = ["TwoEchoTask", "TASK_METHODS", "run_trial", "sweep", "summarise"]
+__all__ = ["TwoEchoTask", "TASK_METHODS", "run_trial", "sweep", "summarise", "GRID_METHODS", "grid_problem",
+           "grid_cell", "grid_sweep"]
 
-TASK_METHODS = ("matched", "bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar", "ml2")
+TASK_METHODS = ("matched", "fmcw", "bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar", "ml2")
 
 
 @dataclass(frozen=True)
@@ -77,23 +78,60 @@ class TwoEchoTask:
         return a.matrix(taus) @ amps + noise, Echoes(taus, amps), sigma
 
 
-def _matched(task, b):
-    """Peaks of the matched filter's envelope above half its maximum (parabolic refinement)."""
+def _peaks(y, taus, delta, scale, status):
+    """Peaks of an envelope above half its maximum, refined by a parabola."""
     import scipy.signal
 
-    d = task.dictionary(0.25 / task.fs_hz)
-    y = np.abs(d.matrix().conj().T @ b)
     pk, _ = scipy.signal.find_peaks(y, height=0.5 * y.max())
-    taus, amps = [], []
+    out_t, out_a = [], []
     for k in pk:
         if 0 < k < len(y) - 1:
             den = y[k - 1] - 2 * y[k] + y[k + 1]
             off = 0.5 * (y[k - 1] - y[k + 1]) / den if den != 0 else 0.0
         else:
             off = 0.0
-        taus.append(d.taus[k] + off * d.delta)
-        amps.append(y[k] / task.atom.norm**2)
-    return Echoes(taus, amps, "matched")
+        out_t.append(taus[k] + off * delta)
+        out_a.append(y[k] / scale)
+    return Echoes(out_t, out_a, status)
+
+
+def _matched(task, b, oversample: int = 4):
+    """Peaks of the matched filter's envelope above half its maximum (parabolic refinement).
+
+    The correlation with every delayed atom on a grid of 1/(4 fs), computed as one FFT
+    product and a zero-padded inverse FFT (band-limited interpolation): the same values as
+    ``dictionary(1 / (4 fs)).matrix().conj().T @ b``, in O(n log n).
+    """
+    a = task.atom
+    m, big = a._m, oversample * a._m
+    k = np.rint(np.fft.fftfreq(m) * m).astype(int)  # signed bin numbers
+    z = np.zeros(big, complex)
+    z[k % big] = np.conj(a._spec) * np.fft.fft(b, m)
+    y_all = np.fft.ifft(z) * oversample  # y(j / (oversample fs)), j = 0 .. big - 1
+    d = task.dictionary(1.0 / (oversample * task.fs_hz))
+    start = int(round(d.tau0 * oversample * task.fs_hz))
+    y = np.abs(y_all[start:start + len(d.taus)])
+    return _peaks(y, d.taus, d.delta, a.norm**2, "matched")
+
+
+def _fmcw(task, b):
+    """FMCW (stretch processing): mix with the chirp delayed to the gate start, Fourier transform.
+
+    The echoes arrive after the chirp has ended, so the local chirp is started at the gate's
+    near edge (a delayed reference, as long-range FMCW does); the mixed window is the overlap
+    of that reference with the gate's far edge, which sets the resolution.
+    """
+    from ..compress import compress
+
+    chirp = {"f_start_hz": task.f_start_hz, "f_stop_hz": task.f_stop_hz, "duration_s": task.duration_s}
+    start = int(task.gate_s[0] * task.fs_hz)  # the reference chirp starts here
+    ref = start / task.fs_hz
+    p = compress(np.real(b)[None, start:], task.waveform, task.fs_hz, method="fmcw", chirp=chirp, t0_s=0.0,
+                 gate_s=(0.0, task.gate_s[1] - ref), backend="numpy")
+    y = np.abs(p.data[0])
+    taus = ref + p.tau0_s[0] + np.arange(p.n_lags) * p.dtau_s
+    inside = (taus >= task.gate_s[0]) & (taus <= task.gate_s[1])
+    return _peaks(np.where(inside, y, 0.0), taus, p.dtau_s, max(y.max(), 1e-30), "fmcw")
 
 
 def _ml2(task, b):
@@ -142,6 +180,8 @@ def run_trial(task: TwoEchoTask, method: str, separation_b: float, snr_db: float
                else lam_noise(d, b, task.amplitudes))
     if method == "matched":
         est = _matched(task, b)
+    elif method == "fmcw":
+        est = _fmcw(task, b)
     elif method == "ml2":
         est = _ml2(task, b)
     elif method == "bpdn":
@@ -194,3 +234,57 @@ def summarise(rows: list[dict]) -> list[dict]:
             "sqrt_crb_s": crb, "median_time_s": float(np.median([r["time_s"] for r in g])),
         })
     return out
+
+
+# -- the paper's Delta x lam grid (Fig. 6): two shifted decaying exponentials ---------------------
+
+GRID_DELTAS = (0.0125, 0.025, 0.05, 0.1, 0.2)
+GRID_LAM_FRACS = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3)
+GRID_METHODS = ("bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar")
+
+
+def grid_problem(alpha: float = 8.0, fs_hz: float = 1000.0, noise: float = 1e-4, seed: int = 4):
+    """(atom, signal, truth) of the paper's 1-D problem (Fig. 4 and 6)."""
+    from .atoms import decaying_exponential
+
+    truth = Echoes([0.31, 0.47], [1.0, 0.8])
+    atom = Atom(decaying_exponential(alpha), fs_hz, 1000,
+                derivative=lambda t: np.where(t >= 0, (1 - alpha * t) * np.exp(-alpha * np.maximum(t, 0)), 0))
+    b = truth.signal(atom) + noise * np.random.default_rng(seed).normal(size=atom.n)
+    return atom, b, truth
+
+
+def grid_cell(method: str, delta_s: float, lam_frac: float) -> dict:
+    """One cell of the Delta x lam grid: eq. 5 error and run time of one method."""
+    from .bpdn import bpdn
+    from .cbp import cbp_polar, cbp_polar_refined, cbp_taylor
+
+    if method not in GRID_METHODS:
+        raise ValueError(f"method must be one of {GRID_METHODS}, got {method!r}")
+    atom, b, truth = grid_problem()
+    d = Dictionary(atom, delta_s, tau0_s=0.0, n_atoms=int(round(1.0 / delta_s)))
+    t = time.perf_counter()
+    if method == "bpdn":
+        g = bpdn(d, b, lam_frac=lam_frac)
+        on = g.x > 0
+        est = Echoes(d.taus[on], g.x[on], "bpdn")
+    elif method == "cbp-taylor":
+        est = cbp_taylor(d, b, lam_frac=lam_frac)
+    elif method == "cbp-polar-socp":
+        est = cbp_polar(d, b, lam_frac=lam_frac)
+    else:
+        est = cbp_polar_refined(d, b, lam_frac=lam_frac, amplitudes="positive")
+    elapsed = time.perf_counter() - t
+    return {"method": method, "delta_s": delta_s, "lam_frac": lam_frac,
+            "error": float(delay_error(est, truth, b, atom).total), "time_s": elapsed}
+
+
+def grid_sweep(methods=GRID_METHODS, deltas=GRID_DELTAS, lam_fracs=GRID_LAM_FRACS, progress=None) -> list[dict]:
+    """Every method at every (Delta, lam) cell, in a fixed order."""
+    cells = [(m, d, lf) for d in deltas for lf in lam_fracs for m in methods]
+    rows = []
+    for m, d, lf in cells:
+        rows.append(grid_cell(m, d, lf))
+        if progress is not None:
+            progress(len(rows), len(cells))
+    return rows

@@ -1,0 +1,37 @@
+"""Timing and fitting helpers of the benchmark suite."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+__all__ = ["timed", "fit_exponent"]
+
+
+def timed(fn: Callable[[], object], repeats: int, warmup: bool = True) -> list[float]:
+    """Wall times of ``repeats`` calls of ``fn``, after one untimed warm-up call.
+
+    ``fn`` is called ``repeats + 1`` times with ``warmup`` (the first call's side effects, such
+    as appending a kernel time, happen too), ``repeats`` times without.
+    """
+    if repeats < 1:
+        raise ValueError(f"repeats must be at least 1, got {repeats}")
+    if warmup:
+        fn()
+    out = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t)
+    return out
+
+
+def fit_exponent(sizes, times) -> float:
+    """Least-squares slope of log(time) against log(size): cost ~ size^exponent."""
+    x = np.log(np.asarray(sizes, float))
+    y = np.log(np.asarray(times, float))
+    if len(x) < 2 or not np.all(np.isfinite(x)) or not np.all(np.isfinite(y)) or np.ptp(x) == 0:
+        raise ValueError("fit_exponent needs at least two distinct positive sizes and positive times")
+    return float(np.polyfit(x, y, 1)[0])
