@@ -500,3 +500,18 @@ def test_jack_scan_with_emulated_stage(tmp_path, jack_io):
     ds = clsas.load(path)
     assert ds.n_meas == 3 and np.all(np.abs(ds.t0_s) < 1e-8)
     np.testing.assert_allclose(ds.loopback[:, :192], np.tile(cfg.level * cfg.waveform[:192], (3, 1)), atol=1e-6)
+
+
+def test_air_sensor_command_sets_the_speed_of_sound(tmp_path):
+    cfg = rig.parse_rig_config(rig_toml(nx=2, ny=1) + '\n[air]\nsensor_command = "echo 30.0 40"\n')
+    assert cfg.read_air() == (30.0, 40.0)
+    rig.acquire(cfg, tmp_path / "warm.h5", simulate=True)
+    ds = clsas.load(tmp_path / "warm.h5")
+    assert ds.temperature_c == 30.0 and ds.c_mps == pytest.approx(clsas.speed_of_sound(30.0))
+    p = np.array([0.05, -0.03, 0.9])  # the [simulate] reflector
+    path = np.linalg.norm(p - ds.tx_positions[0]) + np.linalg.norm(p - ds.rx_positions[0])
+    heard = rig.find_onset(ds.signals[0], cfg.waveform) / ds.fs_hz + ds.t0_s[0]
+    assert heard == pytest.approx(path / clsas.speed_of_sound(30.0), abs=0.2 / ds.fs_hz)  # the room is at 30 C too
+    bad = rig.parse_rig_config(rig_toml(nx=2, ny=1) + '\n[air]\nsensor_command = "echo warm"\n')
+    with pytest.raises(ValueError, match="air.sensor_command 'echo warm' must print"):
+        bad.read_air()

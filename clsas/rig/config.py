@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import _validate as v
 from ..geometry import Scene, Wall, raster_aperture
+from ..scenes import _section as _table
 from ..signals import lfm_chirp
 
 __all__ = ["RigConfig", "parse_rig_config", "load_rig_config", "SAMPLE_RIG_TOML"]
@@ -140,8 +141,9 @@ class RigConfig:
         xy = (np.asarray(position_mm[:2], float) - self.origin_mm) / 1000.0
         return np.array([xy[0], xy[1], self.stops_m[0, 2]])
 
-    def scene(self) -> Scene:
-        """The scene heard by ``--simulate`` (``[simulate]`` points and walls)."""
+    def scene(self, temperature_c: float | None = None, humidity_pct: float | None = None) -> Scene:
+        """The scene heard by ``--simulate`` (``[simulate]`` points and walls), in the given air
+        (default: the file's)."""
         sim = self.simulate
         points = sim.get("points", [])
         if not points:
@@ -151,7 +153,8 @@ class RigConfig:
         return Scene(np.array([p["position_m"] for p in points], float),
                      np.array([p.get("amplitude", 1.0) for p in points], float),
                      np.array([p.get("visible", True) for p in points], bool), walls,
-                     temperature_c=self.temperature_c, humidity_pct=self.humidity_pct)
+                     temperature_c=self.temperature_c if temperature_c is None else temperature_c,
+                     humidity_pct=self.humidity_pct if humidity_pct is None else humidity_pct)
 
     def read_air(self) -> tuple[float, float]:
         """Temperature (C) and humidity (%) now: from ``sensor_command`` if set, else the file's."""
@@ -167,16 +170,7 @@ class RigConfig:
         return v.finite("temperature_c", t), v.non_negative("humidity_pct", h)
 
 
-def _table(cfg: dict, name: str) -> dict:
-    sec = cfg.get(name, {})
-    if not isinstance(sec, dict):
-        raise ValueError(f"[{name}] must be a table")
-    return sec
-
-
-def _channel(name: str, value) -> int:
-    ch = v.positive_int(name, value)
-    return ch
+_channel = v.positive_int  # a 1-based sound card channel
 
 
 def parse_rig_config(text: str) -> RigConfig:

@@ -104,9 +104,11 @@ def acquire(
     if not simulate and stage is None and not config.port:
         raise ValueError("stage.port is not set in the rig configuration (or run with --simulate)")
     sim = config.simulate
+    resuming = resume and out.exists()
+    t_c, rh = _stored_air(out) if resuming else config.read_air()
     if audio_io is None:
         if simulate:
-            audio_io = SimulatedIO(config.scene(), config.fs_hz,
+            audio_io = SimulatedIO(config.scene(t_c, rh), config.fs_hz,
                                    latency_samples=int(sim.get("latency_samples", 300)),
                                    noise_rms=float(sim.get("noise_rms", 1e-4)),
                                    mic_gain=float(sim.get("mic_gain", 0.05)), seed=int(sim.get("seed", 0)))
@@ -118,11 +120,10 @@ def acquire(
                         clip_level=config.clip_level, max_latency_s=config.max_latency_s,
                         acoustic_delay_s=config.acoustic_delay_s)
 
-    if resume and out.exists():
+    if resuming:
         store = ScanFile.resume(out, config.text)
         log.info("resuming %s at stop %d of %d", out, store.stops_done + 1, config.n_stops)
     else:
-        t_c, rh = config.read_air()
         store = ScanFile.create(out, fs_hz=config.fs_hz, waveform=config.level * config.waveform,
                                 n_samples=config.n_samples, n_mics=config.n_mics, n_stops=config.n_stops,
                                 temperature_c=t_c, humidity_pct=rh, c_mps=speed_of_sound(t_c), chirp=config.chirp,
@@ -189,6 +190,17 @@ def acquire(
     done = config.n_stops
     _mark_complete(out)
     return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
+
+
+def _stored_air(path: Path) -> tuple[float, float]:
+    """The air a partial scan was started with (a resumed scan keeps it)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return float(f.attrs["temperature_c"]), float(f.attrs["humidity_pct"])
+    except (OSError, KeyError) as exc:
+        raise ValueError(f"cannot resume {path}: {exc}") from None
 
 
 def _mark_complete(path: Path) -> None:
