@@ -33,6 +33,18 @@ def _import_distributed():
 def dask_client(scheduler: str | None = None, n_workers: int = 2):
     """A client of the cluster at ``scheduler``, or of a local cluster of ``n_workers`` processes."""
     distributed = _import_distributed()
+    quiet = logging.getLogger("distributed")
+    level = quiet.level
+    quiet.setLevel(logging.WARNING)  # its INFO lines would bury the report's progress
+    try:
+        with _client(distributed, scheduler, n_workers) as client:
+            yield client
+    finally:
+        quiet.setLevel(level)
+
+
+@contextmanager
+def _client(distributed, scheduler, n_workers):
     if scheduler:
         client = distributed.Client(scheduler, timeout="20s")
         log.info("dask: connected to %s (%d workers)", scheduler, len(client.scheduler_info()["workers"]))

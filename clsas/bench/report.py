@@ -37,7 +37,9 @@ def write_report(res: dict, out_dir: Path, stem: str, plots: bool = True) -> dic
 
 def _rate(row, key):
     r = row.get(key)
-    return f"{r['rate_per_s']:.3g}" if r else "n/a"
+    if not r:
+        return "n/a"
+    return f"{r['rate_per_s']:.3g}" + (f" ({r['note'].split(' measurements')[0]} meas.)" if "note" in r else "")
 
 
 def markdown(res: dict, png: Path | None = None) -> str:
@@ -69,11 +71,9 @@ def markdown(res: dict, png: Path | None = None) -> str:
                    f"float vector width x 2 for FMA) / about {cb['flops_per_pair']} flops per pair (sin and cos "
                    f"counted as 10 each) = {cb['pairs_per_s']:.3g} pairs/s; the kernel reaches "
                    f"{100 * best / cb['pairs_per_s']:.0f} % of it."]
-    notes = {r.get('numpy_twin', {}).get('note') for r in res["backprojection"]} | \
-            {r.get('numba_peer', {}).get('note') for r in res["backprojection"]}
     md += ["", "The NumPy twin and the Numba peer (a float64 `prange` loop over voxels, as one would write it) "
-               "run a subset of the measurements (" + "; ".join(sorted(n for n in notes if n)) +
-               "); their cost is linear in measurements and the rates are per pair.", ""]
+               "run the number of measurements shown in brackets; their cost is linear in measurements and the "
+               "rates are per pair.", ""]
 
     c = res["compression"]
     md += ["## Pulse compression (input samples/s)", "", f"{c['workload']}.", "",

@@ -95,13 +95,13 @@ def _peaks(y, taus, delta, scale, status):
     return Echoes(out_t, out_a, status)
 
 
-def _matched(task, b, oversample: int = 4):
-    """Peaks of the matched filter's envelope above half its maximum (parabolic refinement).
+def _envelope(task, b, oversample: int = 4):
+    """(|correlation| on a grid of 1/(oversample fs), that grid's Dictionary).
 
-    The correlation with every delayed atom on a grid of 1/(4 fs), computed as one FFT
-    product and a zero-padded inverse FFT (band-limited interpolation): the same values as
-    ``dictionary(1 / (4 fs)).matrix().conj().T @ b``, in O(n log n) (for a real atom, the
-    magnitude of its analytic signal, the envelope).
+    The correlation with every delayed atom, computed as one FFT product and a zero-padded
+    inverse FFT (band-limited interpolation): the same values as
+    ``dictionary(1 / (4 fs)).matrix().conj().T @ b``, in O(n log n); for a real atom, the
+    magnitude of its analytic signal (the envelope).
     """
     a = task.atom
     m, big = a._m, oversample * a._m
@@ -113,8 +113,13 @@ def _matched(task, b, oversample: int = 4):
     y_all = np.fft.ifft(z) * oversample  # y(j / (oversample fs)), j = 0 .. big - 1
     d = task.dictionary(1.0 / (oversample * task.fs_hz))
     start = int(round(d.tau0 * oversample * task.fs_hz))
-    y = np.abs(y_all[start:start + len(d.taus)])
-    return _peaks(y, d.taus, d.delta, a.norm**2, "matched")
+    return np.abs(y_all[start:start + len(d.taus)]), d
+
+
+def _matched(task, b):
+    """Peaks of the matched filter's envelope above half its maximum (parabolic refinement)."""
+    y, d = _envelope(task, b)
+    return _peaks(y, d.taus, d.delta, task.atom.norm**2, "matched")
 
 
 def _fmcw(task, b):
@@ -142,8 +147,7 @@ def _ml2(task, b):
     the gate, then nlopt refinement (the reference the issue quotes)."""
     from .cbp import _best_pair, _mainlobe_s, _VarPro
 
-    d = task.dictionary(0.25 / task.fs_hz)
-    y = np.abs(d.matrix().conj().T @ b)
+    y, d = _envelope(task, b)
     centre = d.taus[int(np.argmax(y))]
     pair = _best_pair(task.atom, b, centre, 2 * _mainlobe_s(task.atom), task.amplitudes, n_grid=40)
     vp = _VarPro(task.atom, b, task.amplitudes)
