@@ -182,12 +182,13 @@ def _plot(res: dict, path: Path) -> None:
             sub = p["success_rate_below_1_over_b"]
             if sub is None:
                 continue
-            a.semilogx(p["median_time_s"], 1 - sub, mark, ms=8, label=m)
+            a.semilogx(p["median_time_s"], 1 - sub, mark, ms=8,
+                       label=m if key == "two_echo" else f"{m} (positive amplitudes)")
     a.set_xlabel("median run time per profile (s)")
     a.set_ylabel("failure rate below 1/B")
     a.set_ylim(-0.05, 1.05)
     a.legend(fontsize=7)
-    a.set_title("two-echo task: error against run time", fontsize=9)
+    a.set_title("two-echo task: error against run time (circles: complex amplitudes)", fontsize=9)
 
     a = ax[1, 1]
     for m in res["delta_lambda"]["best"]:
