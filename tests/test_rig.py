@@ -515,3 +515,13 @@ def test_air_sensor_command_sets_the_speed_of_sound(tmp_path):
     bad = rig.parse_rig_config(rig_toml(nx=2, ny=1) + '\n[air]\nsensor_command = "echo warm"\n')
     with pytest.raises(ValueError, match="air.sensor_command 'echo warm' must print"):
         bad.read_air()
+
+
+def test_only_a_finished_scan_is_marked_complete(tmp_path, reference):
+    with h5py.File(reference, "r") as f:
+        assert bool(f.attrs["complete"]) and int(f.attrs["n_stops_planned"]) == 12
+    path = tmp_path / "part.h5"
+    with pytest.raises(ScanAborted):
+        rig.acquire(rig.parse_rig_config(rig_toml()), path, simulate=True, faults=Faults(error_at_move=3))
+    with h5py.File(path, "r") as f:
+        assert not bool(f.attrs["complete"])

@@ -167,6 +167,7 @@ def acquire(
                              timestamp=time.time(), loopback=take.loopback)
                 if progress is not None:
                     progress(i + 1, config.n_stops)
+            store.close(complete=True)
         except KeyboardInterrupt:
             stage.feed_hold()
             done = store.stops_done
@@ -188,7 +189,6 @@ def acquire(
             emulator.stop()
         store.close()
     done = config.n_stops
-    _mark_complete(out)
     return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
 
 
@@ -201,13 +201,6 @@ def _stored_air(path: Path) -> tuple[float, float]:
             return float(f.attrs["temperature_c"]), float(f.attrs["humidity_pct"])
     except (OSError, KeyError) as exc:
         raise ValueError(f"cannot resume {path}: {exc}") from None
-
-
-def _mark_complete(path: Path) -> None:
-    import h5py
-
-    with h5py.File(path, "r+") as f:
-        f.attrs["complete"] = True
 
 
 def stop_indices(path: str | Path) -> np.ndarray:
