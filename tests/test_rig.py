@@ -525,3 +525,16 @@ def test_only_a_finished_scan_is_marked_complete(tmp_path, reference):
         rig.acquire(rig.parse_rig_config(rig_toml()), path, simulate=True, faults=Faults(error_at_move=3))
     with h5py.File(path, "r") as f:
         assert not bool(f.attrs["complete"])
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    ({"level": 1.5}, "at most 1"), ({"fs_hz": 0}, "fs_hz"), ({"repeats": 0}, "repeats"),
+    ({"max_latency_s": float("inf")}, "max_latency_s"),
+])
+def test_recorder_arguments_are_checked(kwargs, match):
+    io = rig.SimulatedIO(clsas.Scene(np.array([[0.0, 0.0, 0.5]])), 96e3)
+    args = {"fs_hz": 96e3, "n_samples": 100, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        rig.Recorder(io, np.ones(10), args.pop("fs_hz"), args.pop("n_samples"), **args)
+    with pytest.raises(ValueError, match="loopback"):
+        rig.find_onset(np.full(50, np.nan), np.ones(10))

@@ -21,6 +21,7 @@ import numpy as np
 import scipy.fft
 import scipy.signal
 
+from .. import _validate as v
 from ..geometry import Aperture, Scene
 from ..simulate import simulate
 
@@ -81,8 +82,8 @@ def find_onset(loopback: np.ndarray, waveform: np.ndarray, min_correlation: floa
     (phase = 2 pi f_c x offset, f_c the chirp's spectral centroid). A whole-sample delay gives
     phase 0 exactly. Raises :class:`AudioError` when the best match is too weak to be the chirp.
     """
-    x = np.asarray(loopback, float)
-    w = np.asarray(waveform, float)
+    x = v.array("loopback", loopback, ndim=1)
+    w = v.array("waveform", waveform, ndim=1)
     if len(x) < len(w):
         raise AudioError("the loopback recording is shorter than the chirp")
     n = scipy.fft.next_fast_len(2 * len(w))
@@ -142,17 +143,24 @@ class Recorder:
     def __init__(self, io, waveform: np.ndarray, fs_hz: float, n_samples: int, *, level: float = 0.5,
                  repeats: int = 1, repeat_gap_s: float = 0.05, retries: int = 3, clip_level: float = 0.99,
                  max_latency_s: float = 0.1, acoustic_delay_s: float = 0.0) -> None:
+        if not callable(getattr(io, "playrec", None)):
+            raise TypeError(f"io must have a playrec(out, context) method, got {type(io).__name__}")
         self.io = io
-        self.waveform = np.asarray(waveform, float)
+        self.waveform = v.array("waveform", waveform, ndim=1)
+        level = v.positive("level", level)
+        clip_level = v.positive("clip_level", clip_level)
+        if level > 1 or clip_level > 1:
+            raise ValueError(f"level and clip_level are fractions of full scale (at most 1), got {level}, {clip_level}")
         self.drive = level * self.waveform
-        self.fs_hz = float(fs_hz)
-        self.n_samples = int(n_samples)
-        self.repeats = int(repeats)
-        self.gap = int(round(repeat_gap_s * fs_hz))
-        self.retries = int(retries)
-        self.clip_level = float(clip_level)
+        self.fs_hz = v.positive("fs_hz", fs_hz)
+        self.n_samples = v.positive_int("n_samples", n_samples)
+        self.repeats = v.positive_int("repeats", repeats)
+        self.gap = int(round(v.non_negative("repeat_gap_s", repeat_gap_s) * fs_hz))
+        self.retries = v.positive_int("retries", retries)
+        self.clip_level = clip_level
+        max_latency_s = v.positive("max_latency_s", max_latency_s)
         self.n_buffer = self.n_samples + int(np.ceil(max_latency_s * fs_hz))
-        self.acoustic_delay_s = float(acoustic_delay_s)
+        self.acoustic_delay_s = v.finite("acoustic_delay_s", acoustic_delay_s)
 
     def take(self, index: int, tx_m: np.ndarray, rx_m: np.ndarray) -> Take:
         """Record stop ``index``, retrying on clipping and over/underflow."""
