@@ -93,3 +93,15 @@ def test_quick_bench_writes_json_report_and_plot(tmp_path, capsys):
     md = js[0].with_suffix(".md").read_text()
     assert "## Backprojection" in md and "## Error against run time" in md
     assert js[0].with_suffix(".png").stat().st_size > 10_000
+
+
+def test_bench_names_what_to_install_before_any_work(monkeypatch, tmp_path):
+    import importlib.util
+
+    from clsas import bench
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "nlopt" else real(name, *a))
+    with pytest.raises(ImportError, match=r"needs nlopt .*pip install 'clsas\[bench\]'"):
+        bench.run(out_dir=tmp_path)
+    assert not any(tmp_path.iterdir())

@@ -112,6 +112,7 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     say = status or (lambda s: log.info("%s", s))
     cfg = FULL if full else QUICK
     use_dask = bool(full or scheduler) if use_dask is None else use_dask
+    _check_dependencies(use_dask, say)
     rng = np.random.default_rng(0)
     info = throughput.opencl_device_info()
     opencl = info is not None
@@ -161,6 +162,19 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     stem = f"{dt.date.today()}-{re.sub(r'[^A-Za-z0-9]+', '-', device).strip('-')[:60]}" + ("" if full else "-quick")
     res["paths"] = write_report(res, Path(out_dir), stem, plots=plots)
     return res
+
+
+def _check_dependencies(use_dask: bool, say) -> None:
+    """Refuse before any work if a part cannot run; say what a missing optional peer leaves out."""
+    from importlib.util import find_spec
+
+    need = ["cvxpy", "nlopt"] + (["distributed"] if use_dask else [])
+    missing = [m for m in need if find_spec(m) is None]
+    if missing:
+        raise ImportError(f"clsas bench needs {', '.join(missing)} (the sparse methods"
+                          f"{' and the Dask runs' if 'distributed' in missing else ''}): pip install 'clsas[bench]'")
+    if find_spec("numba") is None:
+        say("numba is not installed: the Numba peer is left out of the report (pip install 'clsas[bench]')")
 
 
 def _demo_dataset(n_stops: int):
