@@ -103,6 +103,11 @@ def acquire(
         raise FileExistsError(f"{out} exists: resume it (--resume) or choose another file name")
     if not simulate and stage is None and not config.port:
         raise ValueError("stage.port is not set in the rig configuration (or run with --simulate)")
+    if stage is None:
+        from importlib.util import find_spec
+
+        if find_spec("serial") is None:  # before any file is written
+            raise ImportError("the stage (and its emulator) needs pyserial: pip install 'clsas[rig]'")
     sim = config.simulate
     resuming = resume and out.exists()
     t_c, rh = _stored_air(out) if resuming else config.read_air()
