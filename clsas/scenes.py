@@ -40,6 +40,14 @@ def _section(cfg: dict, name: str) -> dict:
     return sec
 
 
+def _grid(cfg: dict) -> VoxelGrid | None:
+    """The ``[grid]`` table of a scene or rig configuration, if any."""
+    g = cfg.get("grid")
+    if g is None:
+        return None
+    return VoxelGrid.from_bounds(tuple(g["x_m"]), tuple(g["y_m"]), tuple(g["z_m"]), g.get("spacing_m", 0.01))
+
+
 def parse_config(text: str) -> SceneConfig:
     """Build the scene, aperture, waveform and grid described by TOML ``text``."""
     try:
@@ -80,10 +88,7 @@ def parse_config(text: str) -> SceneConfig:
         humidity_pct=float(air.get("humidity_pct", 50.0)),
         wall_echo=bool(air.get("wall_echo", False)),
     )
-    g = cfg.get("grid")
-    grid = None
-    if g is not None:
-        grid = VoxelGrid.from_bounds(tuple(g["x_m"]), tuple(g["y_m"]), tuple(g["z_m"]), g.get("spacing_m", 0.01))
+    grid = _grid(cfg)
     noise = _section(cfg, "noise")
     snr = noise.get("snr_db")
     return SceneConfig(scene, aperture, waveform, fs, chirp, grid, None if snr is None else float(snr),
@@ -99,10 +104,7 @@ def stored_grid_and_truth(text: str) -> tuple[VoxelGrid | None, np.ndarray | Non
     if not text.strip():
         return None, None
     cfg = tomllib.loads(text)
-    g = cfg.get("grid")
-    grid = None
-    if g is not None:
-        grid = VoxelGrid.from_bounds(tuple(g["x_m"]), tuple(g["y_m"]), tuple(g["z_m"]), g.get("spacing_m", 0.01))
+    grid = _grid(cfg)
     if "stage" in cfg or "audio" in cfg:
         from .rig.config import parse_rig_config
 

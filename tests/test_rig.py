@@ -162,6 +162,8 @@ def test_feed_hold_stops_motion():
         time.sleep(0.2)
         assert held.state == "Hold" and st.status().position_mm == held.position_mm
         assert 0.0 < held.position_mm[0] < 50.0
+        st.cycle_start()  # the rest of the move runs from where it was held
+        assert st.wait_idle(5.0).position_mm == (50.0, 0.0, 0.0)
 
 
 def test_no_controller_on_the_port_says_so():

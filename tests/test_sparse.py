@@ -395,3 +395,21 @@ def test_2d_example_matched_filter_one_blob_superres_two(tmp_path):
     assert dips["bp"] > -6
     assert dips["bpdn"] < -6 and dips["cbp-polar"] < -6
     assert (tmp_path / "fig5.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("cplx", [False, True], ids=["real", "complex"])
+def test_atom_correlate_equals_the_dictionary_product(cplx, rng):
+    from clsas.sparse.trials import TwoEchoTask
+
+    task = TwoEchoTask(amplitudes="complex" if cplx else "positive")
+    b, _, _ = task.draw(0.5, 20, 3)
+    d = task.dictionary(0.25 / task.fs_hz)
+    direct = d.matrix().conj().T @ b
+    fast = task.atom.correlate(b)[int(round(d.tau0 * 4 * task.fs_hz)):][:len(d.taus)]
+    if cplx:
+        np.testing.assert_allclose(fast, direct, atol=1e-10 * np.abs(direct).max())
+    else:  # the analytic signal of the real correlation: its real part is the correlation (the
+        # analytic signal drops the Nyquist bin, where the chirp has no energy)
+        np.testing.assert_allclose(fast.real, direct, atol=1e-7 * np.abs(direct).max())
+    with pytest.raises(ValueError, match="b"):
+        task.atom.correlate(b[:10])

@@ -119,7 +119,7 @@ def bench_backprojection(name, grid, n_meas, *, repeats, twin_meas, numba_meas, 
 
         plan = BackprojectPlan(grid, n_meas, wl["data"].shape[1])
         args = (wl["data"], wl["tau0"], wl["dtau"], wl["fc"], wl["tx"], wl["rx"], wl["c"])
-        kern, wall = [], []
+        kern = []
 
         def run():
             plan(*args)  # ends in queue.finish() (results copied back)

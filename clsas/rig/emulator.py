@@ -105,7 +105,6 @@ class GrblEmulator:
         self._pos = np.zeros(3)
         self._queue: list[_Move] = []
         self._state = "Alarm" if self.homing else "Idle"
-        self._hold = False
         self._feed = 0.0
         self._relative = False
         self._line = b""
@@ -160,9 +159,9 @@ class GrblEmulator:
     # -- I/O -----------------------------------------------------------------------------------
 
     def _send(self, text: str) -> None:
-        if self._closed:
-            return
-        data = text.encode("ascii") + b"\r\n"
+        self._write(text.encode("ascii") + b"\r\n")
+
+    def _write(self, data: bytes) -> None:
         deadline = time.monotonic() + 2.0
         while data and not self._closed:
             try:
@@ -222,13 +221,11 @@ class GrblEmulator:
     def _reset_on_open(self) -> None:
         with self._lock:
             self._queue.clear()
-            self._hold = False
             self._pos = np.zeros(3) if self.homing else self._pos
             self._state = "Alarm" if self.homing else "Idle"
         # boot time (at least 50 ms: pyserial flushes the input buffer as it opens the port)
         time.sleep(max(0.05, self.banner_delay_s * self.time_scale))
-        if not self._closed:
-            os.write(self._master, b"\x00\xf0\xfe")  # boot-loader noise before the banner
+        self._write(b"\x00\xf0\xfe")  # boot-loader noise before the banner
         self._banner()
 
     def _byte(self, byte: int) -> None:
@@ -249,7 +246,6 @@ class GrblEmulator:
         elif ch == b"~":
             with self._lock:
                 if self._state == "Hold":
-                    self._hold = False
                     self._state = "Run" if self._queue else "Idle"
                     if self._queue:
                         self._queue[0].t_start = time.monotonic()
@@ -257,7 +253,6 @@ class GrblEmulator:
             with self._lock:
                 moving = self._state in ("Run", "Hold", "Home")
                 self._queue.clear()
-                self._hold = False
                 self._state = "Alarm" if (self.homing or moving) else "Idle"
             if moving:
                 self._send("ALARM:3")
@@ -298,10 +293,9 @@ class GrblEmulator:
 
     def _hold_now(self) -> None:
         mv = self._queue[0]
-        mv.start = self._pos.copy()
-        remaining = float(np.linalg.norm(mv.end - mv.start))
         full = float(np.linalg.norm(mv.end - mv.start)) or 1.0
-        mv.duration_s *= remaining / full
+        mv.start = self._pos.copy()  # the rest of the move runs from here after '~'
+        mv.duration_s *= float(np.linalg.norm(mv.end - mv.start)) / full
         mv.t_start = None
         self._state = "Hold"
 

@@ -357,6 +357,11 @@ class GrblStage:
         return True
 
 
+    def cycle_start(self) -> None:
+        """Real-time cycle start (``~``): resume the motion a feed hold stopped."""
+        self._write(b"~")
+
+
 def _code(line: str) -> int:
     try:
         return int(line.split(":", 1)[1])

@@ -96,6 +96,24 @@ class Atom:
         cols = np.fft.ifft(self._spec[None, :] * ramp, axis=1)[:, : self.n].T
         return cols if self.complex else cols.real
 
+    def correlate(self, b: np.ndarray, oversample: int = 4) -> np.ndarray:
+        """Correlations ``<atom(tau_j), b>`` at ``tau_j = j / (oversample fs)`` for every j < oversample m.
+
+        One FFT product and a zero-padded inverse FFT (band-limited interpolation): the same
+        values as ``matrix(taus).conj().T @ b``, in O(m log m). For a real atom, the analytic
+        signal of the correlation (its magnitude is the envelope). Sampled atoms only.
+        """
+        if self.sampled is None:
+            raise ValueError("correlate needs a sampled atom (a waveform), not a function")
+        b = v.array("b", b, shape=(self.n,), dtype=None, allow_complex=True)
+        m, big = self._m, oversample * self._m
+        k = np.rint(np.fft.fftfreq(m) * m).astype(int)  # signed bin numbers
+        z = np.zeros(big, complex)
+        z[k % big] = np.conj(self._spec) * np.fft.fft(b, m)
+        if not self.complex:
+            z[k % big] *= 2.0 * (k > 0) + 1.0 * (k == 0)
+        return np.fft.ifft(z) * oversample
+
     def dmatrix(self, taus_s, *, fast: bool = False) -> np.ndarray:
         """(n_samples, K) derivatives of the delayed atoms with respect to the delay."""
         taus = np.atleast_1d(np.asarray(taus_s, float))

@@ -96,21 +96,9 @@ def _peaks(y, taus, delta, scale, status):
 
 
 def _envelope(task, b, oversample: int = 4):
-    """(|correlation| on a grid of 1/(oversample fs), that grid's Dictionary).
-
-    The correlation with every delayed atom, computed as one FFT product and a zero-padded
-    inverse FFT (band-limited interpolation): the same values as
-    ``dictionary(1 / (4 fs)).matrix().conj().T @ b``, in O(n log n); for a real atom, the
-    magnitude of its analytic signal (the envelope).
-    """
-    a = task.atom
-    m, big = a._m, oversample * a._m
-    k = np.rint(np.fft.fftfreq(m) * m).astype(int)  # signed bin numbers
-    z = np.zeros(big, complex)
-    z[k % big] = np.conj(a._spec) * np.fft.fft(b, m)
-    if not a.complex:  # the envelope of a real correlation: its analytic signal
-        z[k % big] *= 2.0 * (k > 0) + 1.0 * (k == 0)
-    y_all = np.fft.ifft(z) * oversample  # y(j / (oversample fs)), j = 0 .. big - 1
+    """(|correlation| with every atom of ``dictionary(1 / (oversample fs))``, that Dictionary),
+    by :meth:`Atom.correlate` (FFT, O(n log n)); for a real atom, the envelope."""
+    y_all = task.atom.correlate(b, oversample)
     d = task.dictionary(1.0 / (oversample * task.fs_hz))
     start = int(round(d.tau0 * oversample * task.fs_hz))
     return np.abs(y_all[start:start + len(d.taus)]), d
