@@ -7,13 +7,13 @@ __version__ = "0.1.0"
 from .compress import Profiles, compress
 from .dataset import Dataset, load
 from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
-from .imaging import Image, ReconstructionPlan, backproject, reconstruct
+from .imaging import Backprojector, Image, ReconstructionPlan, backproject, reconstruct
 from .physics import air_absorption_db_per_m, resolution_limits, speed_of_sound
 from .signals import analytic, lfm_chirp
 from .simulate import simulate
 
 __all__ = [
-    "Aperture", "Dataset", "Image", "Profiles", "ReconstructionPlan", "Scene", "VoxelGrid",
+    "Aperture", "Backprojector", "Dataset", "Image", "Profiles", "ReconstructionPlan", "Scene", "VoxelGrid",
     "Wall", "air_absorption_db_per_m", "analytic", "backproject", "compress", "lfm_chirp",
     "load", "raster_aperture", "reconstruct", "resolution_limits", "simulate", "speed_of_sound",
 ]

@@ -25,6 +25,29 @@ BACKENDS = [
 TOL = {"compress": 1e-5, "compress_fft": 1e-4, "fmcw": 2e-4, "backproject": 2e-4}
 
 
+def width_or_skip(kernel: str, vec: int) -> None:
+    """Skip unless the device layer verified ``kernel`` at width ``vec`` on the default device."""
+    from clsas import cl
+
+    verdict = cl.check(cl.get_queue(), kernel, vec)
+    if not verdict.ok:
+        pytest.skip(f"{kernel} at VEC={vec} is not usable on this device: {verdict.reason}")
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _variant_cache(tmp_path_factory):
+    """Kernel-variant verdicts go to a directory of this session, not the user's cache."""
+    import os
+
+    old = os.environ.get("CLSAS_CACHE_DIR")
+    os.environ["CLSAS_CACHE_DIR"] = str(tmp_path_factory.mktemp("clsas-cache"))
+    yield
+    if old is None:
+        os.environ.pop("CLSAS_CACHE_DIR", None)
+    else:
+        os.environ["CLSAS_CACHE_DIR"] = old
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from conftest import BACKENDS, TOL, needs_opencl, small_dataset
+from conftest import BACKENDS, TOL, needs_opencl, small_dataset, width_or_skip
 
 import clsas
 from clsas.imaging import numpy as twin
@@ -17,6 +17,7 @@ from clsas.imaging.plan import path_bounds
 def test_backproject_opencl_equals_twin(rng, vec, shape):
     from clsas.imaging.opencl import BackprojectPlan
 
+    width_or_skip("backproject", vec)
     ds = small_dataset([[0.02, -0.01, 0.6]])
     p = clsas.compress(ds, gate_s=(2e-3, 6e-3), backend="numpy")
     axes = [np.linspace(-0.1, 0.1, n) if n > 1 else np.zeros(1) for n in shape[:2]]

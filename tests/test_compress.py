@@ -2,7 +2,7 @@
 
 import numpy as np
 import pytest
-from conftest import BACKENDS, TOL, needs_opencl
+from conftest import BACKENDS, TOL, needs_opencl, width_or_skip
 
 import clsas
 from clsas.compress import compress, profile_decimation
@@ -153,15 +153,43 @@ def test_compress_rejects_bad_input(chirp96):
         compress(sig, wave, fs, algorithm="fast", backend="numpy")
 
 
-def test_backend_opencl_without_device_is_a_clear_error(monkeypatch):
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+@pytest.mark.parametrize("kernel", ["matched_filter", "fmcw_dechirp", "matched_fft"])
+def test_every_compress_kernel_equals_twin_at_every_width(rng, chirp96, kernel, vec):
+    """Each kernel at each vector width the device layer accepts (others skip with its reason)."""
     from clsas import cl
+    from clsas.compress import fft_layout
+    from clsas.compress import numpy as twin
+    from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 
-    def none():
-        raise cl.OpenCLUnavailable("no OpenCL device found (test)")
-
-    monkeypatch.setattr(cl, "get_queue", none)
-    with pytest.raises(cl.OpenCLUnavailable, match="backend='opencl' was requested"):
-        cl.resolve_backend("opencl")
-    assert cl.resolve_backend("auto") == "numpy"
-    monkeypatch.setenv("CLSAS_BACKEND", "numpy")
-    assert cl.resolve_backend(None) == "numpy"
+    width_or_skip(kernel, vec)
+    wave, fs = chirp96
+    ref_a = clsas.analytic(wave)
+    sig = rng.normal(size=(2 * vec + 5, 1500))  # more rows than one FFT work-item holds
+    n_meas, n = sig.shape
+    rot0 = np.exp(-2j * np.pi * rng.uniform(size=n_meas))
+    q = cl.get_queue()
+    if kernel == "fmcw_dechirp":
+        slope = 10e3 / 2e-3
+        ref = np.conj(ref_a) * np.hanning(len(ref_a))
+        taus = 1e-3 + np.arange(203) / fs
+        rvp = np.exp(1j * rng.uniform(size=len(taus)))
+        got = FmcwPlan(n_meas, n, ref, slope, fs, taus, rvp, queue=q, vec=vec)(sig)
+        want = twin.fmcw_dechirp(sig, ref, slope, fs, taus, rvp)
+        tol = TOL["fmcw"]
+    else:
+        lag0, n_lags = -50, 1601  # past both edges of the recording
+        rot = np.exp(-2j * np.pi * 0.26 * np.arange(n_lags))
+        want = twin.matched_filter(sig, np.conj(ref_a), lag0, n_lags, rot, rot0)
+        if kernel == "matched_filter":
+            got = MatchedFilterPlan(n_meas, n, np.conj(ref_a), lag0, n_lags, rot, rot0, queue=q, vec=vec)(sig)
+            tol = TOL["compress"]
+        else:
+            lay = fft_layout(ref_a, fs, 25e3, 0, n, lag0, 1, n_lags, rot)
+            plan = FftMatchedPlan(n_meas, n, lay, rot0, queue=q, vec=vec, max_scratch_bytes=16 * lay.n_fft * vec)
+            assert plan.vec == vec and plan.items == 1  # several batches
+            got = plan(sig)
+            tol = TOL["compress_fft"]
+    err = np.abs(got - want).max() / np.abs(want).max()
+    assert err < tol, err

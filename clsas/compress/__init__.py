@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.fft
@@ -44,6 +45,7 @@ class Profiles:
     rx_positions: np.ndarray | None = None
     c_mps: float | None = None
     timings_s: dict = field(default_factory=dict)
+    device: str = ""
 
     @property
     def n_meas(self) -> int:
@@ -85,7 +87,8 @@ def compress(
     chirp: dict | None = None,
     lag_step: int | None = None,
     algorithm: str = "auto",
-    backend: str | None = "auto",
+    backend: str | None = None,
+    device: Any = None,
 ) -> Profiles:
     """Pulse-compress recordings into complex baseband range profiles.
 
@@ -120,6 +123,10 @@ def compress(
         (cheaper for short references); ``"auto"`` picks the one with fewer operations. Both
         compute the same profile (the twin's), which is a direct correlation.
     backend : {"auto", "opencl", "numpy"}, optional
+        Default ``$CLSAS_BACKEND``, else ``"auto"``: OpenCL where a device exists and its kernel
+        variant builds, else the NumPy twin with one warning. ``"opencl"`` raises instead.
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+        The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one).
 
     Returns
     -------
@@ -161,12 +168,12 @@ def compress(
     lag_step = v.positive_int("lag_step", lag_step)
     if lag_step & (lag_step - 1):
         raise ValueError(f"lag_step must be a power of two, got {lag_step}")
-    backend = _cl.resolve_backend(backend)
+    sel = _cl.select(backend, device)
     t_start = time.perf_counter()
     if method == "matched":
-        prof = _matched(signals, wave, fs, t0, fc, gate, backend, lag_step, algorithm)
+        prof = _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm)
     else:
-        prof = _fmcw(signals, fs, t0, fc, gate, chirp, backend)
+        prof = _fmcw(signals, fs, t0, fc, gate, chirp, sel)
     prof.timings_s["compress"] = time.perf_counter() - t_start
     for k, val in positions.items():
         setattr(prof, k, val)
@@ -240,7 +247,7 @@ def fft_layout(ref_analytic, fs, fc, s_lo, n_in, lag_read, lag_step, n_lags, rot
     return FftLayout(s_lo, n_in, log2_n, log2_n - int(np.log2(d)), bin0, idx0, n_lags, twiddles, spec, post)
 
 
-def _matched(signals, wave, fs, t0, fc, gate, backend, lag_step, algorithm) -> Profiles:
+def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm) -> Profiles:
     n_meas, n_samples = signals.shape
     n_ref, d = len(wave), lag_step
     lag_lo = int(np.floor(np.min((gate[0] - t0) * fs))) - 1
@@ -264,30 +271,53 @@ def _matched(signals, wave, fs, t0, fc, gate, backend, lag_step, algorithm) -> P
         n_lags * d, total, 100 * max(0.0, 1 - n_lags * d / total), d,
     )
     timings = {}
-    if backend == "opencl":
+    if sel.opencl:
         from .opencl import FftMatchedPlan, MatchedFilterPlan
 
         layout = None
         if algorithm != "direct":
             layout = fft_layout(ref_a, fs, fc, 0, signals.shape[1], lag_read, d, n_lags, rot)
         if algorithm == "auto":
-            # multiply-adds per recording: direct 2 n_lags n_ref; FFT ~ 5 (N log N + N' log N')
-            fft_cost = 5 * (layout.n_fft * layout.log2_n + (layout.n_fft >> (layout.log2_n - layout.log2_nd))
-                            * layout.log2_nd)
-            algorithm = "fft" if fft_cost < 2 * n_lags * n_ref else "direct"
-        if algorithm == "fft":
-            plan = FftMatchedPlan(n_meas, signals.shape[1], layout, rot0)
+            algorithm = choose_algorithm(sel.queue.device, n_meas, n_lags, n_ref, layout)
+        try:
+            if algorithm == "fft":
+                plan = FftMatchedPlan(n_meas, signals.shape[1], layout, rot0, queue=sel.queue)
+            else:
+                plan = MatchedFilterPlan(n_meas, signals.shape[1], ref_conj, lag_read, n_lags, rot, rot0, d,
+                                         queue=sel.queue)
+        except _cl.BuildError as exc:
+            sel = sel.fall_back(exc)
         else:
-            plan = MatchedFilterPlan(n_meas, signals.shape[1], ref_conj, lag_read, n_lags, rot, rot0, d)
-        out = plan(signals)
-        timings["compress_kernel"] = plan.last_kernel_s
-        log.info("matched filter on OpenCL: %s algorithm", algorithm)
-    else:
+            out = plan(signals)
+            timings["compress_kernel"] = plan.last_kernel_s
+            log.info("matched filter on OpenCL: %s algorithm, VEC=%d", algorithm, plan.vec)
+    if not sel.opencl:
         out = twin.matched_filter(signals, ref_conj, lag_read, n_lags, rot, rot0, d)
-    return Profiles(out, t0 + lag0 / fs, d / fs, fc, "matched", backend, timings_s=timings)
+    return Profiles(out, t0 + lag0 / fs, d / fs, fc, "matched", sel.kind, timings_s=timings, device=sel.device)
 
 
-def _fmcw(signals, fs, t0, fc, gate, chirp, backend) -> Profiles:
+def choose_algorithm(device: Any, n_meas: int, n_lags: int, n_ref: int, layout: FftLayout) -> str:
+    """``"fft"`` or ``"direct"`` for the OpenCL matched filter on ``device``.
+
+    Work: the direct kernel does ``n_lags * n_ref`` complex multiply-adds per recording, the
+    FFT ``~5 (N log2 N + N' log2 N')``; the FFT must be cheaper by that count. Parallelism:
+    the FFT kernel runs one work-item per VEC recordings, so it is chosen only where that
+    keeps the device busy: at least 4 work-items per compute unit on a CPU, and on a GPU (whose
+    compute units each run dozens of wavefronts) at least 256 per compute unit; otherwise the
+    direct kernel, which has one work-item per VEC lags of every recording.
+    """
+    import pyopencl as cl
+
+    n, nd = layout.n_fft, layout.n_fft >> (layout.log2_n - layout.log2_nd)
+    fft_cost = 5 * (n * layout.log2_n + nd * layout.log2_nd)
+    if fft_cost >= 2 * n_lags * n_ref:
+        return "direct"
+    per_cu = 4 if device.type & cl.device_type.CPU else 256
+    items = -(-n_meas // 4)  # at the narrowest width
+    return "fft" if items >= per_cu * device.max_compute_units else "direct"
+
+
+def _fmcw(signals, fs, t0, fc, gate, chirp, sel) -> Profiles:
     chirp = chirp or {}
     missing = [k for k in ("f_start_hz", "f_stop_hz", "duration_s") if k not in chirp]
     if missing:
@@ -313,13 +343,17 @@ def _fmcw(signals, fs, t0, fc, gate, chirp, backend) -> Profiles:
     rvp = np.exp(2j * np.pi * (((f1 + slope * t_c - fc) * taus - 0.5 * slope * taus**2) % 1.0))
     log.info("fmcw: %d delays from %.3f to %.3f ms, %d samples mixed", n_lags, 1e3 * taus[0], 1e3 * taus[-1], n_mix)
     timings = {}
-    if backend == "opencl":
+    if sel.opencl:
         from .opencl import FmcwPlan
 
-        plan = FmcwPlan(signals.shape[0], n_samples, ref, slope, fs, taus, rvp)
-        out = plan(signals)
-        timings["compress_kernel"] = plan.last_kernel_s
-    else:
+        try:
+            plan = FmcwPlan(signals.shape[0], n_samples, ref, slope, fs, taus, rvp, queue=sel.queue)
+        except _cl.BuildError as exc:
+            sel = sel.fall_back(exc)
+        else:
+            out = plan(signals)
+            timings["compress_kernel"] = plan.last_kernel_s
+    if not sel.opencl:
         out = twin.fmcw_dechirp(signals, ref, slope, fs, taus, rvp)
     tau0 = np.full(signals.shape[0], taus[0])
-    return Profiles(out, tau0, 1 / fs, fc, "fmcw", backend, timings_s=timings)
+    return Profiles(out, tau0, 1 / fs, fc, "fmcw", sel.kind, timings_s=timings, device=sel.device)

@@ -1,57 +1,50 @@
-"""OpenCL plans for the pulse-compression kernels: construct once, call many times."""
+"""OpenCL plans for the pulse-compression kernels: construct once, call many times.
+
+Each plan's ``selftest(queue, vec)`` runs it on a small input against its NumPy twin and
+returns the error relative to the peak; the device layer runs it in a child process to
+verify a kernel variant before it is used (:mod:`clsas.cl.variants`).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
-from .. import cl as _cl
+from ..cl import Plan
+from . import numpy as twin
+
+_FS = 96e3
 
 
-def vec_width(device) -> int:
-    """Voxels or lags per work-item: the float vector width on CPUs, 4 elsewhere."""
-    import pyopencl as cl
+def _selftest_inputs(rows: int = 3, n: int = 120):
+    from ..signals import analytic, lfm_chirp
 
-    if device.type & cl.device_type.CPU:
-        return int(min(16, max(4, device.preferred_vector_width_float)))
-    return 4
+    rng = np.random.default_rng(7)
+    wave = lfm_chirp(20e3, 30e3, 0.4e-3, _FS, taper=0.1)
+    return rng, analytic(wave), rng.normal(size=(rows, n))
 
 
-class _Plan:
-    """Shared pieces: queue, program, padded output rows, timing of the last call."""
+def _rel_err(got, want) -> float:
+    return float(np.abs(got - want).max() / np.abs(want).max())
 
-    kernel_name = ""
+
+class _RowPlan(Plan):
+    """Shared pieces of the direct kernels: one work-item per VEC lags of one recording."""
 
     def __init__(self, n_meas: int, n_samples: int, n_lags: int, queue=None, vec: int | None = None):
-        import pyopencl as cl
-
-        self.cl = cl
-        self.queue = queue or _cl.get_queue()
-        self.vec = vec or vec_width(self.queue.device)
+        super().__init__(queue, vec)
         self.n_meas, self.n_samples, self.n_lags = n_meas, n_samples, n_lags
         self.stride = -(-n_lags // self.vec) * self.vec
-        self.kernel = _cl.kernel(self.queue.context, ("common.cl", "compress.cl"), self.kernel_name, {"VEC": self.vec})
-        mf = cl.mem_flags
-        self.d_sig = cl.Buffer(self.queue.context, mf.READ_ONLY, max(4, 4 * n_meas * n_samples))
-        self.d_out = cl.Buffer(self.queue.context, mf.WRITE_ONLY, 8 * n_meas * self.stride)
-        self.last_kernel_s = 0.0
-
-    def _buf(self, arr: np.ndarray):
-        mf = self.cl.mem_flags
-        return self.cl.Buffer(self.queue.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=arr)
+        self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
+        self.d_out = self.alloc(8 * n_meas * self.stride, "w")
 
     def _run(self, signals: np.ndarray, args: list) -> np.ndarray:
-        cl = self.cl
-        sig = np.ascontiguousarray(signals, dtype=np.float32)
-        cl.enqueue_copy(self.queue, self.d_sig, sig)
-        gsize = (self.stride // self.vec, self.n_meas)
-        evt = self.kernel(self.queue, gsize, None, self.d_sig, np.int32(self.n_samples), *args, self.d_out)
-        out = np.empty((self.n_meas, self.stride), dtype=np.complex64)
-        cl.enqueue_copy(self.queue, out, self.d_out, wait_for=[evt])
-        self.last_kernel_s = (evt.profile.end - evt.profile.start) * 1e-9
-        return out[:, : self.n_lags]
+        self.begin()
+        self.write(self.d_sig, signals, np.float32)
+        self.launch((self.stride // self.vec, self.n_meas), self.d_sig, np.int32(self.n_samples), *args, self.d_out)
+        return self.read(self.d_out, (self.n_meas, self.stride), np.complex64)[:, : self.n_lags]
 
 
-class MatchedFilterPlan(_Plan):
+class MatchedFilterPlan(_RowPlan):
     """Matched filter over a fixed lag window for recordings of a fixed shape."""
 
     kernel_name = "matched_filter"
@@ -60,19 +53,30 @@ class MatchedFilterPlan(_Plan):
         super().__init__(n_meas, n_samples, n_lags, queue, vec)
         rot_p = np.zeros(self.stride, np.complex64)
         rot_p[:n_lags] = rot[:n_lags]
-        self.d_ref = self._buf(np.ascontiguousarray(ref_conj, np.complex64))
-        self.d_rot = self._buf(rot_p)
-        self.d_rot0 = self._buf(np.ascontiguousarray(rot0, np.complex64))
         self.args = [
-            self.d_ref, np.int32(len(ref_conj)), np.int32(lag0), np.int32(lag_step), np.int32(n_lags),
-            self.d_rot, self.d_rot0, np.int32(self.stride),
+            self.upload(ref_conj, np.complex64), np.int32(len(ref_conj)), np.int32(lag0), np.int32(lag_step),
+            np.int32(n_lags), self.upload(rot_p, np.complex64), self.upload(rot0, np.complex64),
+            np.int32(self.stride),
         ]
 
     def __call__(self, signals: np.ndarray) -> np.ndarray:
         return self._run(signals, self.args)
 
+    @classmethod
+    def selftest(cls, queue, vec: int) -> float:
+        """A lag window past both edges of the recording, lag steps 1 and 2; error vs the twin."""
+        rng, ref_a, sig = _selftest_inputs()
+        ref = np.conj(ref_a)
+        err = 0.0
+        for step, n_lags in [(1, 130), (2, 65)]:
+            rot = np.exp(-2j * np.pi * 0.26 * step * np.arange(n_lags))
+            rot0 = np.exp(-2j * np.pi * rng.uniform(size=len(sig)))
+            got = cls(len(sig), sig.shape[1], ref, -10, n_lags, rot, rot0, step, queue=queue, vec=vec)(sig)
+            err = max(err, _rel_err(got, twin.matched_filter(sig, ref, -10, n_lags, rot, rot0, step)))
+        return err
 
-class FmcwPlan(_Plan):
+
+class FmcwPlan(_RowPlan):
     """FMCW dechirp + DFT at gated delays for recordings of a fixed shape."""
 
     kernel_name = "fmcw_dechirp"
@@ -82,20 +86,28 @@ class FmcwPlan(_Plan):
         super().__init__(n_meas, n_samples, n_lags, queue, vec)
         rvp_p = np.zeros(self.stride, np.complex64)
         rvp_p[:n_lags] = rvp[:n_lags]
-        self.d_ref = self._buf(np.ascontiguousarray(ref, np.complex64))
-        self.d_rvp = self._buf(rvp_p)
         dtau = float(taus_s[1] - taus_s[0]) if n_lags > 1 else 0.0
         self.args = [
-            self.d_ref, np.int32(len(ref)), np.float32(slope_hz_per_s / fs_hz),
-            np.float32(taus_s[0]), np.float32(dtau), np.int32(n_lags), self.d_rvp,
+            self.upload(ref, np.complex64), np.int32(len(ref)), np.float32(slope_hz_per_s / fs_hz),
+            np.float32(taus_s[0]), np.float32(dtau), np.int32(n_lags), self.upload(rvp_p, np.complex64),
             np.int32(self.stride),
         ]
 
     def __call__(self, signals: np.ndarray) -> np.ndarray:
         return self._run(signals, self.args)
 
+    @classmethod
+    def selftest(cls, queue, vec: int) -> float:
+        rng, ref_a, sig = _selftest_inputs()
+        ref = np.conj(ref_a) * np.hanning(len(ref_a))
+        taus = 1e-4 + np.arange(21) / _FS
+        rvp = np.exp(1j * rng.uniform(size=21))
+        slope = 10e3 / 0.4e-3
+        got = cls(len(sig), sig.shape[1], ref, slope, _FS, taus, rvp, queue=queue, vec=vec)(sig)
+        return _rel_err(got, twin.fmcw_dechirp(sig, ref, slope, _FS, taus, rvp))
 
-class FftMatchedPlan:
+
+class FftMatchedPlan(Plan):
     """Matched filter by FFT with decimation in the frequency domain (``matched_fft``).
 
     Parameters come from :func:`clsas.compress.fft_layout`. Scratch is two arrays of N complex
@@ -103,45 +115,47 @@ class FftMatchedPlan:
     ``max_scratch_bytes``.
     """
 
-    def __init__(self, n_meas, n_samples, layout, rot0, queue=None, vec=None, max_scratch_bytes=256 << 20):
-        import pyopencl as cl
+    kernel_name = "matched_fft"
 
-        self.cl = cl
-        self.queue = queue or _cl.get_queue()
-        self.vec = vec or vec_width(self.queue.device)
+    def __init__(self, n_meas, n_samples, layout, rot0, queue=None, vec=None, max_scratch_bytes=256 << 20):
+        super().__init__(queue, vec)
         self.n_meas, self.n_samples, self.layout = n_meas, n_samples, layout
         self.n_lags = layout.n_lags
-        self.kernel = _cl.kernel(self.queue.context, ("common.cl", "compress.cl"), "matched_fft", {"VEC": self.vec})
-        ctx, mf = self.queue.context, cl.mem_flags
-        n = layout.n_fft
-        per_item = 4 * n * self.vec * 4  # bytes of scratch per work-item
+        per_item = 4 * layout.n_fft * self.vec * 4  # bytes of scratch per work-item
         self.items = max(1, min(-(-n_meas // self.vec), max_scratch_bytes // per_item))
-        self.d_work = cl.Buffer(ctx, mf.READ_WRITE, self.items * per_item)
-        self.d_sig = cl.Buffer(ctx, mf.READ_ONLY, max(4, 4 * n_meas * n_samples))
-        self.d_out = cl.Buffer(ctx, mf.WRITE_ONLY, max(8, 8 * n_meas * self.n_lags))
-
-        def buf(arr):
-            return cl.Buffer(ctx, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=np.ascontiguousarray(arr, np.complex64))
-
-        self.d_tw, self.d_spec, self.d_post = buf(layout.twiddles), buf(layout.spec), buf(layout.post)
-        self.d_rot0 = buf(rot0)
-        self.last_kernel_s = 0.0
+        self.d_work = self.alloc(self.items * per_item)
+        self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
+        self.d_out = self.alloc(8 * n_meas * self.n_lags, "w")
+        self.d_tw, self.d_spec, self.d_post = (self.upload(a, np.complex64)
+                                               for a in (layout.twiddles, layout.spec, layout.post))
+        self.d_rot0 = self.upload(rot0, np.complex64)
 
     def __call__(self, signals: np.ndarray) -> np.ndarray:
-        cl, lay = self.cl, self.layout
-        cl.enqueue_copy(self.queue, self.d_sig, np.ascontiguousarray(signals, dtype=np.float32))
+        lay = self.layout
+        self.begin()
+        self.write(self.d_sig, signals, np.float32)
         rows_per_batch = self.items * self.vec
-        events = []
         for m0 in range(0, self.n_meas, rows_per_batch):
             rows = min(rows_per_batch, self.n_meas - m0)
-            items = -(-rows // self.vec)
-            events.append(self.kernel(
-                self.queue, (items,), None, self.d_sig, np.int32(self.n_samples), np.int32(self.n_meas),
+            self.launch(
+                (-(-rows // self.vec),), self.d_sig, np.int32(self.n_samples), np.int32(self.n_meas),
                 np.int32(m0), np.int32(lay.s_lo), np.int32(lay.n_in), np.int32(lay.log2_n), np.int32(lay.log2_nd),
                 self.d_tw, np.int32(lay.bin0), self.d_spec, np.int32(lay.idx0), np.int32(self.n_lags),
                 self.d_post, self.d_rot0, self.d_work, np.int32(self.n_lags), self.d_out,
-            ))
-        res = np.empty((self.n_meas, self.n_lags), dtype=np.complex64)
-        cl.enqueue_copy(self.queue, res, self.d_out, wait_for=events)
-        self.last_kernel_s = sum((e.profile.end - e.profile.start) * 1e-9 for e in events)
-        return res
+            )
+        return self.read(self.d_out, (self.n_meas, self.n_lags), np.complex64)
+
+    @classmethod
+    def selftest(cls, queue, vec: int) -> float:
+        """Lag step 1 against the direct twin, rows in two batches (more rows than one work-item)."""
+        from . import fft_layout
+
+        rng, ref_a, _ = _selftest_inputs()
+        rows = rng.normal(size=(2 * vec + 3, 120))
+        n_lags, lag0 = 130, -10
+        rot = np.exp(-2j * np.pi * 0.26 * np.arange(n_lags))
+        rot0 = np.exp(-2j * np.pi * rng.uniform(size=len(rows)))
+        lay = fft_layout(ref_a, _FS, 25e3, 0, 120, lag0, 1, n_lags, rot)
+        plan = cls(len(rows), 120, lay, rot0, queue=queue, vec=vec, max_scratch_bytes=16 * lay.n_fft * vec * 2)
+        want = twin.matched_filter(rows, np.conj(ref_a), lag0, n_lags, rot, rot0, 1)
+        return _rel_err(plan(rows), want)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -17,11 +18,92 @@ from . import numpy as twin
 from .image import Image, Peak
 from .plan import ReconstructionPlan, path_bounds, plan_reconstruction
 
-__all__ = ["Image", "Peak", "ReconstructionPlan", "backproject", "reconstruct", "path_bounds"]
+__all__ = ["Backprojector", "Image", "Peak", "ReconstructionPlan", "backproject", "reconstruct", "path_bounds"]
 
 log = logging.getLogger(__name__)
 
 METHODS = ("bp", "bpdn", "cbp-taylor", "cbp-polar")
+
+
+class Backprojector:
+    """Backprojection onto one grid: built once, called many times.
+
+    The OpenCL plan (kernel variant chosen and verified, buffers allocated) is made on the
+    first call and kept while the profiles keep their number of measurements and do not grow
+    longer; :func:`backproject` is one call of a fresh Backprojector.
+
+    Parameters
+    ----------
+    grid : VoxelGrid
+    backend : {"auto", "opencl", "numpy"}, optional
+        Default ``$CLSAS_BACKEND``, else ``"auto"``. With ``"auto"``, a device that cannot
+        build the kernel (:class:`clsas.cl.BuildError`) falls back to the NumPy twin with one
+        warning naming the device and the reason; ``"opencl"`` raises instead.
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one).
+    chunk : int, optional
+        Measurements per kernel launch.
+    """
+
+    def __init__(self, grid: VoxelGrid, *, backend: str | None = None, device: Any = None, chunk: int | None = None):
+        if not isinstance(grid, VoxelGrid):
+            raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+        if chunk is not None:
+            chunk = v.positive_int("chunk", chunk)
+        self.grid = grid
+        self.chunk = chunk
+        self.selection = _cl.select(backend, device)
+        self._plan = None
+
+    @property
+    def backend(self) -> str:
+        """``"opencl"`` or ``"numpy"``: where the next call runs."""
+        return self.selection.kind
+
+    def _opencl_plan(self, n_meas: int, n_lags: int):
+        from .opencl import BackprojectPlan
+
+        p = self._plan
+        if p is None or p.n_meas != n_meas or p.n_lags < n_lags:
+            self._plan = None
+            try:
+                self._plan = BackprojectPlan(self.grid, n_meas, n_lags, queue=self.selection.queue, chunk=self.chunk)
+            except _cl.BuildError as exc:
+                self.selection = self.selection.fall_back(exc)
+        return self._plan
+
+    def __call__(
+        self,
+        profiles: Profiles,
+        *,
+        tx_positions: np.ndarray | None = None,
+        rx_positions: np.ndarray | None = None,
+        c_mps: float | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> Image:
+        """Backproject ``profiles`` (see :func:`backproject` for the arguments)."""
+        if not isinstance(profiles, Profiles):
+            raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
+        n = profiles.n_meas
+        tx = v.array("tx_positions", profiles.tx_positions if tx_positions is None else tx_positions, shape=(n, 3))
+        rx = v.array("rx_positions", profiles.rx_positions if rx_positions is None else rx_positions, shape=(n, 3))
+        c = v.positive("c_mps", profiles.c_mps if c_mps is None else c_mps)
+        data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
+        tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
+        dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
+        fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
+        t_start = time.perf_counter()
+        timings = {}
+        plan = self._opencl_plan(n, data.shape[1]) if self.selection.opencl else None
+        if plan is not None:
+            values = plan(data, tau0, dtau, fc, tx, rx, c, progress)
+            timings["backproject_kernel"] = plan.last_kernel_s
+        else:
+            values = twin.backproject(data.astype(np.complex128), tau0, dtau, fc, tx, rx, c, self.grid.points(),
+                                      progress)
+        timings["backproject"] = time.perf_counter() - t_start
+        sel = self.selection
+        return Image(values.reshape(self.grid.shape), self.grid, "bp", sel.kind, sel.device, timings)
 
 
 def backproject(
@@ -31,7 +113,8 @@ def backproject(
     tx_positions: np.ndarray | None = None,
     rx_positions: np.ndarray | None = None,
     c_mps: float | None = None,
-    backend: str | None = "auto",
+    backend: str | None = None,
+    device: Any = None,
     chunk: int | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Image:
@@ -40,7 +123,14 @@ def backproject(
     For each voxel and measurement the profile is linearly interpolated at the bistatic
     delay ``(|v - tx| + |v - rx|) / c`` and the carrier phase restored; samples outside the
     profile window contribute nothing. Positions and ``c`` default to those the profiles
-    carry (from a Dataset).
+    carry (from a Dataset). To image many profile sets onto one grid, build a
+    :class:`Backprojector` once and call it.
+
+    Parameters
+    ----------
+    backend : {"auto", "opencl", "numpy"}, optional
+        Default ``$CLSAS_BACKEND``, else ``"auto"`` (see :class:`Backprojector`).
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
 
     Returns
     -------
@@ -49,31 +139,8 @@ def backproject(
     """
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
-    if not isinstance(grid, VoxelGrid):
-        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    n = profiles.n_meas
-    tx = v.array("tx_positions", profiles.tx_positions if tx_positions is None else tx_positions, shape=(n, 3))
-    rx = v.array("rx_positions", profiles.rx_positions if rx_positions is None else rx_positions, shape=(n, 3))
-    c = v.positive("c_mps", profiles.c_mps if c_mps is None else c_mps)
-    data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
-    backend = _cl.resolve_backend(backend)
-    t_start = time.perf_counter()
-    timings = {}
-    if backend == "opencl":
-        from .opencl import BackprojectPlan
-
-        plan = BackprojectPlan(grid, n, data.shape[1], chunk=chunk)
-        values = plan(data, profiles.tau0_s, profiles.dtau_s, profiles.fc_hz, tx, rx, c, progress)
-        timings["backproject_kernel"] = plan.last_kernel_s
-        device = _cl.device_info()
-    else:
-        values = twin.backproject(
-            data.astype(np.complex128), profiles.tau0_s, profiles.dtau_s, profiles.fc_hz, tx, rx, c,
-            grid.points(), progress,
-        )
-        device = "NumPy (float64)"
-    timings["backproject"] = time.perf_counter() - t_start
-    return Image(values.reshape(grid.shape), grid, "bp", backend, device, timings)
+    bp = Backprojector(grid, backend=backend, device=device, chunk=chunk)
+    return bp(profiles, tx_positions=tx_positions, rx_positions=rx_positions, c_mps=c_mps, progress=progress)
 
 
 def reconstruct(
@@ -82,7 +149,8 @@ def reconstruct(
     method: str = "bp",
     *,
     compression: str = "matched",
-    backend: str | None = "auto",
+    backend: str | None = None,
+    device: Any = None,
     progress: Callable[[int, int], None] | None = None,
     sparse: dict | None = None,
 ) -> Image:
@@ -102,7 +170,11 @@ def reconstruct(
         render each echo as a pulse much narrower than the matched filter's, and backproject
         those profiles (see :func:`clsas.imaging.sparse.superres_profiles`).
     compression : {"matched", "fmcw"}
-    backend : {"auto", "opencl", "numpy"}
+    backend : {"auto", "opencl", "numpy"}, optional
+        Default ``$CLSAS_BACKEND``, else ``"auto"``: OpenCL where a device exists and the
+        kernels build, else the NumPy twins with one warning; ``"opencl"`` raises instead.
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+        The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one).
     progress : callable(done, total), optional
     sparse : dict, optional
         Options for the sparse methods: ``delta_s``, ``lam``, ``lam_frac``, ``render_width_s``.
@@ -112,35 +184,37 @@ def reconstruct(
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     v.choice("method", method, METHODS)
-    backend = _cl.resolve_backend(backend)
+    v.choice("compression", compression, ("matched", "fmcw"))
+    sel = _cl.select(backend, device)
+    bp = Backprojector(grid, backend=sel.requested if sel.opencl else "numpy", device=sel.queue)
     if method != "bp":
-        return _reconstruct_sparse(dataset, grid, method, backend, progress, sparse or {})
-    compress_kernel = "matched_filter" if compression == "matched" else "fmcw_dechirp"
-    kernels = [f"compress.cl:{compress_kernel}", "backproject.cl:backproject"] if backend == "opencl" else []
-    plan = plan_reconstruction(dataset, grid, kernels)
+        return _reconstruct_sparse(dataset, grid, method, bp, progress, sparse or {})
+    plan = plan_reconstruction(dataset, grid, [])
     if compression == "fmcw":
         plan.notes.append("fmcw: delays are gated; the mixed window is the whole chirp overlap")
     t_start = time.perf_counter()
-    prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=backend)
+    prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=sel.requested if sel.opencl else "numpy",
+                    device=sel.queue)
     plan.lags = prof.n_lags
     plan.lag_step = int(round(prof.dtau_s * dataset.fs_hz))
+    image = bp(prof, progress=progress)
+    plan.kernels = [k for k, b in ((f"compress ({compression})", prof.backend), ("backproject", image.backend))
+                    if b == "opencl"]
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)
-    image = backproject(prof, grid, backend=backend, progress=progress)
     image.method = method
     image.plan = plan
     image.timings_s = {**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start}
     return image
 
 
-def _reconstruct_sparse(dataset, grid, method, backend, progress, options) -> Image:
+def _reconstruct_sparse(dataset, grid, method, bp, progress, options) -> Image:
     from .sparse import superres_profiles
 
     unknown = set(options) - {"delta_s", "lam", "lam_frac", "render_width_s"}
     if unknown:
         raise ValueError(f"sparse: unknown option(s) {sorted(unknown)}")
-    kernels = ["backproject.cl:backproject"] if backend == "opencl" else []
-    plan = plan_reconstruction(dataset, grid, kernels)
+    plan = plan_reconstruction(dataset, grid, [])
     b = grid.bounds()
     pmin, pmax = path_bounds(b[:, 0], b[:, 1], dataset.tx_positions, dataset.rx_positions)
     gates = np.stack([pmin, pmax], axis=1) / dataset.c_mps
@@ -148,9 +222,10 @@ def _reconstruct_sparse(dataset, grid, method, backend, progress, options) -> Im
     t_start = time.perf_counter()
     prof, echoes = superres_profiles(dataset, gates, method, progress=progress, **options)
     plan.lags = prof.n_lags
+    image = bp(prof, progress=progress)
+    plan.kernels = ["backproject"] if image.backend == "opencl" else []
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)
-    image = backproject(prof, grid, backend=backend, progress=progress)
     image.method = method
     image.plan = plan
     image.echoes = echoes

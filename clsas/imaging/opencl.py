@@ -6,38 +6,31 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import cl as _cl
-from ..compress.opencl import vec_width
+from ..cl import Plan
 from ..geometry import VoxelGrid
 
 
-class BackprojectPlan:
+class BackprojectPlan(Plan):
     """Compiled kernel and device buffers for one grid and profile shape.
 
     Measurements go through the kernel in chunks of ``chunk`` (bounded launches, profiles of
     a chunk stay in cache); the image accumulates on the device.
     """
 
-    def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None):
-        import pyopencl as cl
+    kernel_name = "backproject"
 
-        self.cl = cl
-        self.queue = queue or _cl.get_queue()
-        self.vec = vec or vec_width(self.queue.device)
+    def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None):
+        super().__init__(queue, vec)
         self.grid, self.n_meas, self.n_lags = grid, n_meas, max(2, n_lags)
         self.n_vox = grid.size
         self.n_pad = -(-self.n_vox // self.vec) * self.vec
         self.chunk = chunk or int(np.clip(4e7 // self.n_pad, 4, 256))
-        ctx = self.queue.context
-        self.kernel = _cl.kernel(ctx, ("common.cl", "backproject.cl"), "backproject", {"VEC": self.vec})
-        mf = cl.mem_flags
-        self.d_prof = cl.Buffer(ctx, mf.READ_ONLY, 16 * n_meas * self.n_lags)
-        self.d_tx = cl.Buffer(ctx, mf.READ_ONLY, 16 * n_meas)
-        self.d_rx = cl.Buffer(ctx, mf.READ_ONLY, 16 * n_meas)
-        self.d_s0 = cl.Buffer(ctx, mf.READ_ONLY, 4 * n_meas)
-        self.d_re = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.n_pad)
-        self.d_im = cl.Buffer(ctx, mf.READ_WRITE, 4 * self.n_pad)
-        self.last_kernel_s = 0.0
+        self.d_prof = self.alloc(16 * n_meas * self.n_lags, "r")
+        self.d_tx = self.alloc(16 * n_meas, "r")
+        self.d_rx = self.alloc(16 * n_meas, "r")
+        self.d_s0 = self.alloc(4 * n_meas, "r")
+        self.d_re = self.alloc(4 * self.n_pad)
+        self.d_im = self.alloc(4 * self.n_pad)
 
     def __call__(
         self,
@@ -51,7 +44,6 @@ class BackprojectPlan:
         progress: Callable[[int, int], None] | None = None,
     ) -> np.ndarray:
         """Backproject; same arguments as the NumPy twin (grid fixed). Returns (n_vox,) complex64."""
-        cl, q = self.cl, self.queue
         # pair layout: record k holds samples k and k + 1, so one load per voxel serves lerp
         prof = np.zeros((self.n_meas, self.n_lags + 1), np.complex64)
         prof[:, : data.shape[1]] = data
@@ -61,10 +53,11 @@ class BackprojectPlan:
         pos4 = np.zeros((2, self.n_meas, 4), np.float32)
         pos4[0, :, :3] = tx_positions
         pos4[1, :, :3] = rx_positions
-        cl.enqueue_copy(q, self.d_prof, pairs)
-        cl.enqueue_copy(q, self.d_tx, pos4[0])
-        cl.enqueue_copy(q, self.d_rx, pos4[1])
-        cl.enqueue_copy(q, self.d_s0, (np.asarray(tau0_s) / dtau_s).astype(np.float32))
+        self.begin()
+        self.write(self.d_prof, pairs, np.complex64)
+        self.write(self.d_tx, pos4[0], np.float32)
+        self.write(self.d_rx, pos4[1], np.float32)
+        self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
@@ -73,20 +66,35 @@ class BackprojectPlan:
             np.float32(1.0 / (c_mps * dtau_s)), np.float32(fc_hz / c_mps), origin, step,
             np.int32(g.shape[1]), np.int32(g.shape[2]),
         )
-        events = []
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
-            evt = self.kernel(
-                q, (self.n_pad // self.vec,), None, *fixed, np.int32(m0), np.int32(m1),
-                np.int32(m0 > 0), self.d_re, self.d_im,
+            evt = self.launch(
+                (self.n_pad // self.vec,), *fixed, np.int32(m0), np.int32(m1), np.int32(m0 > 0), self.d_re, self.d_im,
             )
-            events.append(evt)
             if progress is not None:
                 evt.wait()
                 progress(m1, self.n_meas)
-        re = np.empty(self.n_pad, np.float32)
-        im = np.empty(self.n_pad, np.float32)
-        cl.enqueue_copy(q, re, self.d_re, wait_for=events)
-        cl.enqueue_copy(q, im, self.d_im)
-        self.last_kernel_s = sum((e.profile.end - e.profile.start) * 1e-9 for e in events)
+        re = self.read(self.d_re, (self.n_pad,), np.float32)
+        im = self.read(self.d_im, (self.n_pad,), np.float32)
         return (re[: self.n_vox] + 1j * im[: self.n_vox]).astype(np.complex64)
+
+    @classmethod
+    def selftest(cls, queue, vec: int) -> float:
+        """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, voxels in and out of the window."""
+        from . import numpy as twin
+
+        rng = np.random.default_rng(7)
+        fs = 96e3
+        grid = VoxelGrid(np.linspace(-0.1, 0.1, 5), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 3))
+        tx = np.c_[rng.uniform(-0.2, 0.2, (3, 2)), np.zeros(3)]
+        rx = tx + [0.03, 0, 0]
+        prof = (rng.normal(size=(3, 40)) + 1j * rng.normal(size=(3, 40))) * np.hanning(40)
+        # the window (40 samples) centred on the grid's centre: voxels inside and outside it
+        centre = np.array([0.0, 0.025, 0.4])
+        path = np.linalg.norm(centre - tx, axis=1) + np.linalg.norm(centre - rx, axis=1)
+        tau0 = path / 343.0 - 20 / fs
+        got = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2)(prof, tau0, 1 / fs, 25e3, tx, rx, 343.0)
+        want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, 343.0, grid.points())
+        if not (np.any(want == 0) and np.any(want != 0)):
+            raise RuntimeError("selftest scene must have voxels inside and outside the profile window")
+        return float(np.abs(got - want).max() / np.abs(want).max())

@@ -1,0 +1,200 @@
+"""Device and queue choice, and the backend a public function runs on.
+
+"No OpenCL" is a normal state: :func:`get_queue` raises :class:`OpenCLUnavailable`, and
+:func:`select` turns ``backend`` and ``device`` into a :class:`Selection` that either holds a
+queue or says "NumPy", with one warning when ``"auto"`` had to fall back.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import os
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger("clsas.cl")
+
+BACKENDS = ("auto", "opencl", "numpy")
+
+
+class OpenCLUnavailable(RuntimeError):
+    """No usable OpenCL platform or device."""
+
+
+def _cl():
+    try:
+        import pyopencl
+    except ImportError as exc:  # pragma: no cover - pyopencl is a dependency
+        raise OpenCLUnavailable(
+            "pyopencl is not installed: pip install 'pyopencl[pocl]' for the PoCL CPU device"
+        ) from exc
+    return pyopencl
+
+
+def _score(device: Any) -> int:
+    """Preference when no device is named: GPUs, then PoCL's CPU, then other CPUs."""
+    cl = _cl()
+    plat = device.platform.name
+    if "Oclgrind" in plat:
+        return -1  # a debugging simulator: only when asked for by name
+    if device.type & cl.device_type.GPU:
+        return 3
+    if "Portable Computing Language" in plat:
+        return 2
+    return 1
+
+
+def _platforms() -> list:
+    cl = _cl()
+    try:
+        return cl.get_platforms()
+    except cl.Error as exc:
+        raise OpenCLUnavailable(f"no OpenCL platform found ({exc})") from None
+
+
+def _by_numbers(spec: str, what: str) -> Any:
+    """The device ``"P:D"`` (platform and device numbers, as in ``PYOPENCL_CTX``)."""
+    platforms = _platforms()
+    parts = spec.split(":")
+    try:
+        p = int(parts[0]) if parts[0] else 0
+        d = int(parts[1]) if len(parts) > 1 and parts[1] else 0
+    except ValueError:
+        raise OpenCLUnavailable(f"{what}={spec!r} is not 'P:D' (platform:device numbers, see clsas devices)") from None
+    if not 0 <= p < len(platforms):
+        raise OpenCLUnavailable(f"{what}={spec!r}: there are {len(platforms)} OpenCL platform(s)")
+    devices = platforms[p].get_devices()
+    if not 0 <= d < len(devices):
+        raise OpenCLUnavailable(f"{what}={spec!r}: platform {p} has {len(devices)} device(s)")
+    return devices[d]
+
+
+def _default_device() -> Any:
+    env = os.environ.get("PYOPENCL_CTX")
+    if env:
+        return _by_numbers(env, "PYOPENCL_CTX")
+    devices = [d for p in _platforms() for d in p.get_devices() if _score(d) >= 0]
+    if not devices:
+        raise OpenCLUnavailable("no OpenCL device found (install pyopencl[pocl])")
+    return max(devices, key=_score)
+
+
+@functools.cache
+def _queue_for(device_ptr: int) -> Any:
+    cl = _cl()
+    device = next(d for p in _platforms() for d in p.get_devices() if d.int_ptr == device_ptr)
+    ctx = cl.Context([device])
+    queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
+    log.info("OpenCL device: %s", describe(device))
+    return queue
+
+
+def get_queue(device: Any = None) -> Any:
+    """A profiling-enabled command queue (one per device, created on first use).
+
+    Parameters
+    ----------
+    device : None, str, pyopencl.Device or pyopencl.CommandQueue
+        ``None``: ``PYOPENCL_CTX`` if set, else the preferred device (a GPU, then PoCL's CPU,
+        then any CPU; never the Oclgrind simulator). ``"P:D"``: platform and device numbers as
+        ``clsas devices`` lists them. A ``Device`` gets its own queue; a ``CommandQueue`` is used
+        as it is (it must have profiling enabled for kernel timings).
+    """
+    cl = _cl()
+    if isinstance(device, cl.CommandQueue):
+        return device
+    if device is None:
+        device = _default_device()
+    elif isinstance(device, str):
+        device = _by_numbers(device, "device")
+    elif not isinstance(device, cl.Device):
+        raise TypeError(
+            "device must be None, 'P:D', a pyopencl.Device or a pyopencl.CommandQueue, "
+            f"got {type(device).__name__}"
+        )
+    return _queue_for(device.int_ptr)
+
+
+def describe(device: Any) -> str:
+    """'<device> on <platform>'."""
+    return f"{device.name.strip()} on {device.platform.name.strip()}"
+
+
+def device_info(queue: Any | None = None) -> str:
+    """'<device> on <platform>' for the queue's device."""
+    return describe((queue or get_queue()).device)
+
+
+def default_backend(backend: str | None) -> str:
+    """``backend``, or ``CLSAS_BACKEND`` (default ``"auto"``) where it is None; checked."""
+    if backend is None:
+        backend = os.environ.get("CLSAS_BACKEND", "").strip() or "auto"
+        if backend not in BACKENDS:
+            raise ValueError(f"CLSAS_BACKEND must be one of {BACKENDS}, got {backend!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    return backend
+
+
+@dataclass
+class Selection:
+    """Where a call runs: ``kind`` is ``"opencl"`` (with ``queue``) or ``"numpy"``.
+
+    ``requested`` is what the caller asked for (``"auto"``, ``"opencl"`` or ``"numpy"``); a
+    ``"opencl"`` request never becomes NumPy: :meth:`fall_back` re-raises instead.
+    """
+
+    kind: str
+    requested: str
+    queue: Any = None
+
+    @property
+    def opencl(self) -> bool:
+        return self.kind == "opencl"
+
+    @property
+    def device(self) -> str:
+        return device_info(self.queue) if self.opencl else "NumPy (float64)"
+
+    def fall_back(self, exc: Exception) -> Selection:
+        """After a failed kernel build (``BuildError``): NumPy with one warning, or raise."""
+        if self.requested == "opencl":
+            raise exc
+        where = device_info(self.queue) if self.queue is not None else "OpenCL"
+        _warn_once(f"{where}: {_first_line(exc)}: using the NumPy backend")
+        return Selection("numpy", self.requested)
+
+
+def select(backend: str | None = None, device: Any = None) -> Selection:
+    """Resolve ``backend`` (None reads ``CLSAS_BACKEND``) and ``device`` into a Selection.
+
+    ``"auto"`` picks OpenCL where a device exists, else NumPy with one warning naming the
+    reason; ``"opencl"`` raises :class:`OpenCLUnavailable` where there is none.
+    """
+    backend = default_backend(backend)
+    if backend == "numpy":
+        return Selection("numpy", backend)
+    try:
+        queue = get_queue(device)
+    except OpenCLUnavailable as exc:
+        if backend == "opencl":
+            raise OpenCLUnavailable(f"backend='opencl' was requested but {exc}") from None
+        _warn_once(f"no OpenCL device ({exc}): using the NumPy backend")
+        return Selection("numpy", backend)
+    return Selection("opencl", backend, queue)
+
+
+def resolve_backend(backend: str | None, device: Any = None) -> str:
+    """``"opencl"`` or ``"numpy"``: the kind :func:`select` picks."""
+    return select(backend, device).kind
+
+
+def _first_line(exc: Exception) -> str:
+    text = str(exc).strip()
+    return text.splitlines()[0] if text else type(exc).__name__
+
+
+@functools.cache
+def _warn_once(message: str) -> None:
+    log.warning("%s", message)

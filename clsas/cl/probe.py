@@ -1,0 +1,65 @@
+"""Child process of :mod:`clsas.cl.variants`: build one kernel variant, launch it, check it.
+
+Reads a JSON spec on stdin (platform and device names, kernel, width, source texts), runs the
+plan class's ``selftest`` (a small input against the NumPy twin) on that device and prints one
+JSON line ``{"ok": ..., "reason": ..., "log": ...}``. A crash of the OpenCL runtime kills only
+this process; the parent reads that from the exit status.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import json
+import sys
+
+from . import variants
+from .device import _cl
+from .program import BuildError, override_source
+
+TOLERANCE = 1e-3  # relative to the peak: catches wrong code, not float32 rounding
+
+
+def _device(platform: str, name: str):
+    for p in _cl().get_platforms():
+        if p.name == platform:
+            for d in p.get_devices():
+                if d.name == name:
+                    return d
+    raise LookupError(f"device {name!r} on {platform!r} not found")
+
+
+def run(spec: dict) -> dict:
+    cl = _cl()
+    variants._IN_PROBE = True
+    name, vec = spec["kernel"], int(spec["vec"])
+    files, module, cls = variants.KERNELS[name]
+    device = _device(spec["platform"], spec["device"])
+    queue = cl.CommandQueue(cl.Context([device]), properties=cl.command_queue_properties.PROFILING_ENABLE)
+    with contextlib.ExitStack() as stack:
+        for f, text in spec.get("sources", {}).items():
+            stack.enter_context(override_source(f, text))
+        plan_cls = getattr(importlib.import_module(module), cls)
+        try:
+            err = plan_cls.selftest(queue, vec)
+        except BuildError as exc:
+            return {"ok": False, "reason": exc.reason, "log": exc.log}
+    if not err < TOLERANCE:
+        return {"ok": False, "reason": f"VEC={vec}: result differs from the NumPy twin by {err:.3g} of the peak"}
+    return {"ok": True, "reason": f"VEC={vec}: equal to the twin to {err:.2g} of the peak"}
+
+
+def main() -> int:
+    spec = json.loads(sys.stdin.read())
+    try:
+        report = run(spec)
+    except ImportError as exc:  # a broken installation, not a verdict on the variant
+        report = {"ok": False, "definitive": False, "reason": f"the probe cannot import what it needs ({exc})"}
+    except Exception as exc:  # noqa: BLE001 - any failure of the variant is a verdict, reported to the parent
+        report = {"ok": False, "reason": f"VEC={spec.get('vec')}: {type(exc).__name__}: {exc}"}
+    print(json.dumps(report), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
