@@ -58,7 +58,7 @@ def _reconstruct(ds, grid, args, progress=True):
     with _bar("backproject", ds.n_meas, progress) as cb:
         return clsas.reconstruct(ds, grid, method=getattr(args, "method", "bp"),
                                  compression=getattr(args, "compression", "matched"),
-                                 backend=args.backend, progress=cb)
+                                 backend=args.backend, device=getattr(args, "device", None), progress=cb)
 
 
 def cmd_demo(args) -> int:
@@ -144,16 +144,23 @@ def cmd_limits(args) -> int:
 def cmd_devices(args) -> int:
     from clsas import cl
 
+    if args.clear_cache:
+        n = cl.clear_cache()
+        print(f"removed {n} kernel-variant verdict(s) from {cl.cache_dir()}")
     rows = cl.list_devices()
     if not rows:
         print("no OpenCL platform found: install pyopencl[pocl] for the PoCL CPU device; "
               "the NumPy backend works without one")
     for r in rows:
         mark = "*" if r.selected else " "
-        print(f"{mark} {r.platform} | {r.device} | {r.kind} | {r.compute_units} CUs | "
-              f"{r.global_mem_mib} MiB | fp64 {'yes' if r.fp64 else 'no'}")
+        print(f"{mark} {r.index}  {r.platform} | {r.device} | {r.kind} | {r.compute_units} CUs | "
+              f"{r.global_mem_mib} MiB | fp64 {'yes' if r.fp64 else 'no'} | driver {r.driver} | "
+              f"preferred float width {r.preferred_vec}")
     if rows:
-        print("(* = used by backend='auto'; set PYOPENCL_CTX to choose, e.g. PYOPENCL_CTX=0:0)")
+        print("(* = used by backend='auto'; choose with --device P:D or PYOPENCL_CTX=P:D)")
+    if args.variants and rows:
+        _print_variants(cl, [r for r in rows if r.selected] if args.device is None else
+                        [r for r in rows if r.index == args.device])
     if not args.opencl_only:
         _print_rig_devices()
     return 0
@@ -197,6 +204,21 @@ def cmd_acquire(args) -> int:
     print(f"wrote {res.path}: {res.stops_done} of {res.n_stops} stops ({res.stops_this_run} this run, "
           f"{res.retried_stops} retried) in {res.elapsed_s:.1f} s; image it with: clsas reconstruct {res.path}")
     return 0
+
+
+def _print_variants(cl, rows) -> None:
+    """The kernel width each kernel gets on each device, and why wider ones were refused."""
+    if not rows:
+        print("--variants: no such device (see the P:D numbers above)")
+    for r in rows:
+        q = cl.get_queue(r.index)
+        print(f"kernel variants on {r.index} {r.device} (verdicts in {cl.cache_dir()}):")
+        for name in cl.KERNELS:
+            for w in cl.candidate_widths(q.device):
+                v = cl.check(q, name, w)
+                print(f"  {name:15s} VEC={w:<2d} {'ok  ' if v.ok else 'NO  '} {v.reason} [{v.source}]")
+                if v.ok:
+                    break
 
 
 def _print_rig_devices() -> None:
@@ -260,6 +282,8 @@ def build_parser() -> argparse.ArgumentParser:
     def common(sp):
         sp.add_argument("--backend", choices=("auto", "opencl", "numpy"), default=None,
                         help="compute backend (default: $CLSAS_BACKEND or auto)")
+        sp.add_argument("--device", default=None, metavar="P:D",
+                        help="OpenCL platform:device numbers from `clsas devices` (default: $PYOPENCL_CTX or the best)")
         sp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
         sp.add_argument("-v", "--verbose", action="store_true", help="log what is computed and skipped")
 
@@ -302,6 +326,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     dv = sub.add_parser("devices", help="list OpenCL devices, audio devices and serial ports")
     dv.add_argument("--opencl-only", action="store_true", help="only the OpenCL devices")
+    dv.add_argument("--variants", action="store_true",
+                    help="check (or read the stored verdicts of) each kernel's vector width on the device")
+    dv.add_argument("--device", default=None, help="P:D: the device for --variants (default: the one auto uses)")
+    dv.add_argument("--clear-cache", action="store_true",
+                    help="forget the stored kernel-variant verdicts (they are probed again on next use)")
     dv.set_defaults(func=cmd_devices)
 
     a = sub.add_parser("acquire", help="run a scan on a rig (or an emulated one) described by rig.toml")

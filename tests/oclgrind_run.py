@@ -1,6 +1,6 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [vec=N]. Checks each result against its NumPy
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [vec=N ...]. Checks each result against its NumPy
 twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """

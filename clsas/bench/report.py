@@ -55,14 +55,22 @@ def markdown(res: dict, png: Path | None = None) -> str:
         md += [f"![plots]({png.name})", ""]
 
     md += ["## Backprojection (voxel-measurement pairs/s)", "",
-           "| workload | pairs | OpenCL kernel | OpenCL wall | NumPy twin | Numba peer | kernel / twin | "
-           "kernel / Numba | wall / Numba |", "|---|---|---|---|---|---|---|---|---|"]
+           "| workload | pairs | VEC | OpenCL kernel | OpenCL wall | NumPy twin | Numba peer | C/OpenMP peer | "
+           "kernel / twin | kernel / Numba | kernel / C | wall / C |", "|---" * 12 + "|"]
     for r in res["backprojection"]:
         rt = r.get("ratios", {})
-        md.append(f"| {r['workload']} | {r['pairs']:.3g} | {_rate(r, 'opencl_kernel')} | {_rate(r, 'opencl_wall')} | "
-                  f"{_rate(r, 'numpy_twin')} | {_rate(r, 'numba_peer')} | "
+        md.append(f"| {r['workload']} | {r['pairs']:.3g} | {r.get('opencl_vec', '-')} | {_rate(r, 'opencl_kernel')} | "
+                  f"{_rate(r, 'opencl_wall')} | {_rate(r, 'numpy_twin')} | {_rate(r, 'numba_peer')} | "
+                  f"{_rate(r, 'c_openmp_peer')} | "
                   f"{_x(rt.get('opencl_kernel / numpy_twin'))} | {_x(rt.get('opencl_kernel / numba_peer'))} | "
-                  f"{_x(rt.get('opencl_wall / numba_peer'))} |")
+                  f"{_x(rt.get('opencl_kernel / c_openmp_peer'))} | {_x(rt.get('opencl_wall / c_openmp_peer'))} |")
+    peer = next((r["c_openmp_peer"].get("note") for r in res["backprojection"] if "c_openmp_peer" in r), None)
+    missing = next((r["c_openmp_peer_missing"] for r in res["backprojection"] if "c_openmp_peer_missing" in r), None)
+    if peer:
+        md += ["", f"C/OpenMP peer: `clsas/bench/backproject_omp.c`, {peer}: float32, the same polynomial sin/cos, "
+                   "a vectorised loop over blocks of 64 voxels, run on the whole workload."]
+    elif missing:
+        md += ["", f"C/OpenMP peer left out: {missing}."]
     cb = res.get("compute_bound")
     if cb:
         best = max((r["opencl_kernel"]["rate_per_s"] for r in res["backprojection"] if "opencl_kernel" in r),
@@ -155,7 +163,7 @@ def _plot(res: dict, path: Path) -> None:
     labels, vals = [], []
     for r in res["backprojection"]:
         for key, name in (("opencl_kernel", "OpenCL kernel"), ("opencl_wall", "OpenCL wall"),
-                          ("numba_peer", "Numba"), ("numpy_twin", "NumPy twin")):
+                          ("c_openmp_peer", "C/OpenMP"), ("numba_peer", "Numba"), ("numpy_twin", "NumPy twin")):
             if key in r:
                 labels.append(f"{name}\n{r['voxels']}x{r['measurements']}")
                 vals.append(r[key]["rate_per_s"])

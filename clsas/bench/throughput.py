@@ -118,6 +118,7 @@ def bench_backprojection(name, grid, n_meas, *, repeats, twin_meas, numba_meas, 
         from ..imaging.opencl import BackprojectPlan
 
         plan = BackprojectPlan(grid, n_meas, wl["data"].shape[1])
+        row["opencl_vec"] = plan.vec
         args = (wl["data"], wl["tau0"], wl["dtau"], wl["fc"], wl["tx"], wl["rx"], wl["c"])
         kern = []
 
@@ -132,12 +133,19 @@ def bench_backprojection(name, grid, n_meas, *, repeats, twin_meas, numba_meas, 
     t = timed(lambda: twin.backproject(wl["data"][sub].astype(np.complex128), wl["tau0"][sub], wl["dtau"],
                                        wl["fc"], wl["tx"][sub], wl["rx"][sub], wl["c"], pts), 1, warmup=False)
     row["numpy_twin"] = _stat(t, grid.size * twin_meas, note=f"{twin_meas} measurements timed")
+    from . import cpeer
+
+    if cpeer.backproject(wl, pts[:8]) is not None:  # compiles once (cached), then timed on the whole workload
+        t = timed(lambda: cpeer.backproject(wl, pts), repeats)
+        row["c_openmp_peer"] = _stat(t, pairs, note=cpeer.load()[1])
+    else:
+        row["c_openmp_peer_missing"] = cpeer.load()[1]
     nsub = {k: (v[:numba_meas] if isinstance(v, np.ndarray) else v) for k, v in wl.items()}
     if numba_backproject(nsub, pts[:8]) is not None:  # compiles
         t = timed(lambda: numba_backproject(nsub, pts), max(1, repeats // 2))
         row["numba_peer"] = _stat(t, grid.size * numba_meas, note=f"{numba_meas} measurements timed")
-    _ratios(row, "opencl_kernel", ("numpy_twin", "numba_peer"))
-    _ratios(row, "opencl_wall", ("numpy_twin", "numba_peer"))
+    _ratios(row, "opencl_kernel", ("numpy_twin", "numba_peer", "c_openmp_peer"))
+    _ratios(row, "opencl_wall", ("numpy_twin", "numba_peer", "c_openmp_peer"))
     return row
 
 

@@ -161,8 +161,10 @@ class Selection:
         """After a failed kernel build (``BuildError``): NumPy with one warning, or raise."""
         if self.requested == "opencl":
             raise exc
-        where = device_info(self.queue) if self.queue is not None else "OpenCL"
-        _warn_once(f"{where}: {_first_line(exc)}: using the NumPy backend")
+        text = _first_line(exc)
+        if self.queue is not None and device_info(self.queue) not in text:
+            text = f"{device_info(self.queue)}: {text}"
+        _warn_once(f"{text}: using the NumPy backend")
         return Selection("numpy", self.requested)
 
 

@@ -224,7 +224,8 @@ def check(queue: Any, name: str, vec: int) -> Verdict:
         # the in-process checks: the build holds the kernel, the log has no vector-ABI warning
         try:
             kernel(queue.context, KERNELS[name][0], name, {"VEC": vec})
-            verdict = verdict or Verdict(True, source="in-process")
+            verdict = verdict or Verdict(True, f"VEC={vec}: built in-process (a simulator: not probed)",
+                                         source="in-process")
         except BuildError as exc:
             verdict = Verdict(False, exc.reason, exc.log, "in-process")
     if not verdict.ok:
