@@ -362,6 +362,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    if not getattr(args, "quiet", False):
+        # the first run on a machine checks each kernel variant in a child process: say so
+        logging.getLogger("clsas.cl.variants").setLevel(logging.INFO)
     try:
         return args.func(args)
     except KeyboardInterrupt:

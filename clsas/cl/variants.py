@@ -38,7 +38,7 @@ from .program import BuildError, kernel, kernel_source, sources_hash
 
 __all__ = ["KERNELS", "Verdict", "cache_dir", "clear_cache", "candidate_widths", "check", "choose"]
 
-log = logging.getLogger("clsas.cl")
+log = logging.getLogger("clsas.cl.variants")
 
 # kernel name -> (source files, module and plan class whose ``selftest`` the probe runs)
 KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
@@ -164,6 +164,8 @@ def _run_probe(device: Any, name: str, vec: int) -> tuple[Verdict, bool]:
     env["PYTHONPATH"] = pkg_root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     env.pop("PYOPENCL_CTX", None)
     t0 = time.perf_counter()
+    log.info("checking kernel %s at VEC=%d on %s in a child process (once; verdict kept in %s)", name, vec,
+             describe(device), cache_dir())
     try:
         res = subprocess.run(
             _probe_command(), input=json.dumps(spec), capture_output=True, text=True, env=env, timeout=PROBE_TIMEOUT_S,
@@ -172,8 +174,7 @@ def _run_probe(device: Any, name: str, vec: int) -> tuple[Verdict, bool]:
         return Verdict(False, f"VEC={vec}: the probe did not finish in {PROBE_TIMEOUT_S:.0f} s"), False
     except OSError as exc:
         return Verdict(False, f"VEC={vec}: the probe could not start ({exc})"), False
-    log.info("probed %s VEC=%d on %s in %.1f s: exit %d", name, vec, describe(device), time.perf_counter() - t0,
-             res.returncode)
+    log.debug("probe of %s VEC=%d took %.1f s: exit %d", name, vec, time.perf_counter() - t0, res.returncode)
     tail = (res.stderr or "")[-4000:]
     if res.returncode < 0:
         try:
