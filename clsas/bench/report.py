@@ -146,7 +146,9 @@ def markdown(res: dict, png: Path | None = None) -> str:
 
 
 def _x(v):
-    return "n/a" if v is None else f"{v:.1f}x"
+    if v is None:
+        return "n/a"
+    return f"{v:.2f}x" if v < 10 else f"{v:.1f}x"
 
 
 def _f(v):
