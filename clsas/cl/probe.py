@@ -57,7 +57,9 @@ def main() -> int:
         report = {"ok": False, "definitive": False, "reason": f"the probe cannot import what it needs ({exc})"}
     except Exception as exc:  # noqa: BLE001 - any failure of the variant is a verdict, reported to the parent
         report = {"ok": False, "reason": f"VEC={spec.get('vec')}: {type(exc).__name__}: {exc}"}
-    print(json.dumps(report), flush=True)
+    # the verdict is this child's output to its parent (a protocol line, not a message to a user)
+    sys.stdout.write(json.dumps(report) + "\n")
+    sys.stdout.flush()
     return 0
 
 
