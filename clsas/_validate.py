@@ -90,3 +90,13 @@ def choice(name: str, value: Any, options: tuple[str, ...]) -> str:
     if value not in options:
         raise ValueError(f"{name} must be one of {', '.join(map(repr, options))}, got {value!r}")
     return value
+
+
+def speeds(name: str, value: Any, n: int) -> float | np.ndarray:
+    """A speed of sound: a float > 0, or an (n,) array of them (one per measurement)."""
+    if np.ndim(value) == 0:
+        return positive(name, value)
+    arr = array(name, value, shape=(n,))
+    if np.any(arr <= 0):
+        raise ValueError(f"{name} must be > 0, got min {arr.min():g}")
+    return arr

@@ -24,7 +24,14 @@ _UNITS = {
     "stage_positions": "m",
     "timestamps": "s since the Unix epoch",
     "loopback": "arbitrary (loopback input)",
+    "background": "arbitrary (microphone output, empty scene)",
+    "c_mps": "m/s",
+    "temperature_c": "degC",
+    "humidity_pct": "percent relative humidity",
 }
+
+# per-measurement air: stored as an array when it varies, as an attribute when it does not
+_AIR = ("c_mps", "temperature_c", "humidity_pct")
 
 
 @dataclass
@@ -37,11 +44,21 @@ class Dataset:
     tx_positions, rx_positions : (n_meas, 3) float64, metres
     fs_hz : sample rate, Hz
     waveform : (n_wave,) transmitted signal at ``fs_hz``
-    t0_s : (n_meas,) time of sample 0 after the transmit start (latency included), s
-    c_mps : speed of sound; default from ``temperature_c``
-    temperature_c, humidity_pct : air
+    t0_s : (n_meas,) time of sample 0 after the transmit start (latency included), s; may be
+        negative (a transducer group delay removed, see :func:`clsas.preprocess.remove_delay`)
+    c_mps : float or (n_meas,) array
+        Speed of sound, m/s; default from ``temperature_c``. An array gives each measurement
+        its own (air that changes during a scan); compression, backprojection and every
+        reconstruction method use it per measurement.
+    temperature_c, humidity_pct : float or (n_meas,) array
+        Air, as logged; a per-measurement temperature gives a per-measurement ``c_mps``.
+    background : (n_meas, n_samples) array, optional
+        Recordings of the empty scene taken at the same stops (for background subtraction).
     chirp : chirp parameters (stored as attributes)
     config : the scan or scene configuration as TOML text
+    provenance : list of dict
+        What made these recordings what they are, oldest first: an importer, each
+        preprocessing step with its parameters (stored as JSON in the file).
     """
 
     signals: np.ndarray
@@ -50,14 +67,16 @@ class Dataset:
     fs_hz: float
     waveform: np.ndarray
     t0_s: np.ndarray | None = None
-    c_mps: float | None = None
-    temperature_c: float = 20.0
-    humidity_pct: float = 50.0
+    c_mps: float | np.ndarray | None = None
+    temperature_c: float | np.ndarray = 20.0
+    humidity_pct: float | np.ndarray = 50.0
     stage_positions: np.ndarray | None = None
     timestamps: np.ndarray | None = None
     loopback: np.ndarray | None = None
     chirp: dict = field(default_factory=dict)
     config: str = ""
+    background: np.ndarray | None = None
+    provenance: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.fs_hz = v.positive("fs_hz", self.fs_hz)
@@ -74,9 +93,20 @@ class Dataset:
             if self.t0_s is None
             else v.array("t0_s", np.broadcast_to(np.asarray(self.t0_s, float), (n,)).copy())
         )
+        self.temperature_c = _per_meas("temperature_c", self.temperature_c, n)
+        self.humidity_pct = _per_meas("humidity_pct", self.humidity_pct, n)
+        h = np.asarray(self.humidity_pct)
+        if np.any((h < 0) | (h > 100)):
+            raise ValueError(f"humidity_pct must be in [0, 100], got {h.min():g} to {h.max():g}")
         if self.c_mps is None:
             self.c_mps = speed_of_sound(self.temperature_c)
-        self.c_mps = v.positive("c_mps", self.c_mps)
+        self.c_mps = _per_meas("c_mps", self.c_mps, n)
+        if np.any(np.asarray(self.c_mps) <= 0):
+            raise ValueError(f"c_mps must be > 0, got min {np.min(self.c_mps):g}")
+        if self.background is not None:
+            self.background = v.array("background", self.background, shape=sig.shape, dtype=None)
+        if not isinstance(self.provenance, list) or not all(isinstance(p, dict) for p in self.provenance):
+            raise TypeError("provenance must be a list of dicts (one per processing step)")
         for name, shape in (("stage_positions", (n, 3)), ("timestamps", (n,))):
             val = getattr(self, name)
             if val is not None:
@@ -92,16 +122,37 @@ class Dataset:
     def n_samples(self) -> int:
         return self.signals.shape[1]
 
+    @property
+    def c_per_meas(self) -> np.ndarray:
+        """(n_meas,) speed of sound of each measurement, m/s (a copy)."""
+        return np.broadcast_to(np.asarray(self.c_mps, float), (self.n_meas,)).copy()
+
+    @property
+    def air_varies(self) -> bool:
+        """Whether the speed of sound differs between measurements."""
+        return np.ndim(self.c_mps) > 0
+
+    def replace(self, **changes) -> Dataset:
+        """A copy with some fields replaced (arrays not named are shared, not copied)."""
+        fields = {k: getattr(self, k) for k in self.__dataclass_fields__}
+        if "temperature_c" in changes and "c_mps" not in changes:
+            fields["c_mps"] = None  # follow the new temperature
+        fields.update(changes)
+        fields["chirp"] = dict(fields["chirp"])
+        fields["provenance"] = list(fields["provenance"])
+        return Dataset(**fields)
+
     def subset(self, index: slice | np.ndarray) -> Dataset:
         """A dataset holding only the measurements selected by ``index``."""
         opt = {
             k: (None if getattr(self, k) is None else getattr(self, k)[index])
-            for k in ("stage_positions", "timestamps", "loopback")
+            for k in ("stage_positions", "timestamps", "loopback", "background")
         }
+        air = {k: (getattr(self, k)[index] if np.ndim(getattr(self, k)) else getattr(self, k)) for k in _AIR}
         return Dataset(
             self.signals[index], self.tx_positions[index], self.rx_positions[index], self.fs_hz,
-            self.waveform, self.t0_s[index], self.c_mps, self.temperature_c, self.humidity_pct,
-            chirp=dict(self.chirp), config=self.config, **opt,
+            self.waveform, self.t0_s[index], chirp=dict(self.chirp), config=self.config,
+            provenance=list(self.provenance), **air, **opt,
         )
 
     def save(self, path: str | Path) -> Path:
@@ -117,17 +168,25 @@ class Dataset:
         return path
 
 
+def _per_meas(name: str, value, n: int) -> float | np.ndarray:
+    """A float, or an (n,) array when the value differs between measurements."""
+    if np.ndim(value) == 0:
+        return v.finite(name, value)
+    arr = v.array(name, value, shape=(n,))
+    return float(arr[0]) if np.all(arr == arr[0]) else arr
+
+
 def _attrs(ds: Dataset, version: str) -> dict:
     attrs = {
         "format_version": FORMAT_VERSION,
         "clsas_version": version,
         "fs_hz": ds.fs_hz,
-        "c_mps": ds.c_mps,
-        "temperature_c": ds.temperature_c,
-        "humidity_pct": ds.humidity_pct,
         "config_toml": ds.config,
         "chirp_json": json.dumps(ds.chirp),
+        "provenance_json": json.dumps(ds.provenance, default=_json_default),
     }
+    for k in _AIR:  # per-measurement values are arrays (see _write_arrays); the mean for readers
+        attrs[k] = float(np.mean(getattr(ds, k)))
     for k, val in ds.chirp.items():
         if isinstance(val, int | float | str):
             attrs[f"chirp_{k}"] = val
@@ -144,7 +203,11 @@ def _write_arrays(f, ds: Dataset) -> None:
         "stage_positions": ds.stage_positions,
         "timestamps": ds.timestamps,
         "loopback": ds.loopback,
+        "background": None if ds.background is None else ds.background.astype(np.float32),
     }
+    for k in _AIR:
+        if np.ndim(getattr(ds, k)):
+            arrays[k] = getattr(ds, k)
     for name, arr in arrays.items():
         if arr is None:
             continue
@@ -173,9 +236,13 @@ def load(path: str | Path) -> Dataset:
             return f[name][()] if name in f else None
 
         n = f["signals"].shape[0]
+
         # a scan in progress may have grown its arrays ahead of 'signals': trim to it
         def trim(x):
             return None if x is None else x[:n]
+
+        air = {k: trim(get(k)) if k in f else (float(a[k]) if k in a else None) for k in _AIR}
+        air = {k: val for k, val in air.items() if val is not None}
 
         return Dataset(
             signals=f["signals"][()],
@@ -184,12 +251,20 @@ def load(path: str | Path) -> Dataset:
             fs_hz=float(a["fs_hz"]),
             waveform=get("waveform"),
             t0_s=trim(get("t0_s")),
-            c_mps=float(a["c_mps"]) if "c_mps" in a else None,
-            temperature_c=float(a.get("temperature_c", 20.0)),
-            humidity_pct=float(a.get("humidity_pct", 50.0)),
+            **air,
             stage_positions=trim(get("stage_positions")),
             timestamps=trim(get("timestamps")),
             loopback=trim(get("loopback")),
+            background=trim(get("background")),
             chirp=json.loads(a.get("chirp_json", "{}")),
             config=str(a.get("config_toml", "")),
+            provenance=json.loads(a.get("provenance_json", "[]")),
         )
+
+
+def _json_default(obj):
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)

@@ -31,10 +31,19 @@ def _check_air(temperature_c: float, humidity_pct: float | None = None) -> float
     return t
 
 
-def speed_of_sound(temperature_c: float = 20.0) -> float:
-    """Speed of sound in dry air, ``331.3 sqrt(1 + T/273.15)`` m/s (343.2 m/s at 20 C)."""
-    t = _check_air(temperature_c)
-    return 331.3 * float(np.sqrt(1.0 + t / 273.15))
+def speed_of_sound(temperature_c: float | np.ndarray = 20.0) -> float | np.ndarray:
+    """Speed of sound in dry air, ``331.3 sqrt(1 + T/273.15)`` m/s (343.2 m/s at 20 C).
+
+    ``temperature_c`` may be an array (one temperature per measurement, as logged during a
+    scan); the result then has its shape.
+    """
+    if np.ndim(temperature_c) == 0:
+        t = _check_air(temperature_c)
+        return 331.3 * float(np.sqrt(1.0 + t / 273.15))
+    t = v.array("temperature_c", temperature_c)
+    if np.any(t <= -273.15):
+        raise ValueError(f"temperature_c must be above absolute zero, got min {t.min():g}")
+    return 331.3 * np.sqrt(1.0 + t / 273.15)
 
 
 def air_absorption_db_per_m(

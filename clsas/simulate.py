@@ -11,7 +11,7 @@ import scipy.fft
 from . import _validate as v
 from .dataset import Dataset
 from .geometry import Aperture, Scene
-from .physics import air_absorption_db_per_m
+from .physics import air_absorption_db_per_m, speed_of_sound
 
 __all__ = ["simulate"]
 
@@ -31,6 +31,7 @@ def simulate(
     absorption: bool = True,
     chirp: dict | None = None,
     config: str = "",
+    temperature_c: float | np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> Dataset:
     """Simulate the recordings of a scan.
@@ -60,6 +61,10 @@ def simulate(
     absorption : bool
         Apply air absorption.
     chirp, config : stored in the dataset's attributes.
+    temperature_c : float or (n_meas,) array, optional
+        Air temperature during each measurement (default the scene's): air that changes
+        during a scan gives each measurement its own speed of sound. Absorption uses the
+        mean temperature. The dataset records it (and so its ``c_mps`` per measurement).
     progress : callable(done, total), optional
         Called after each block of measurements.
 
@@ -78,7 +83,12 @@ def simulate(
     v.array("t0_s", t0)
     if snr_db is not None:
         snr_db = v.finite("snr_db", snr_db)
-    c = scene.c_mps
+    if temperature_c is None:
+        temperature_c = scene.temperature_c
+    elif np.ndim(temperature_c):
+        temperature_c = v.array("temperature_c", temperature_c, shape=(n_meas,))
+    c = np.broadcast_to(np.asarray(speed_of_sound(temperature_c), float), (n_meas,))
+    t_mean = float(np.mean(temperature_c))
 
     src, amp = scene.image_sources()
     tx, rx = aperture.tx_positions, aperture.rx_positions
@@ -91,7 +101,7 @@ def simulate(
             p = np.linalg.norm(wall.mirror(tx) - rx, axis=1)[:, None]
             path = np.concatenate([path, p], axis=1)
             gain = np.concatenate([gain, wall.reflectivity / np.maximum(p, 1e-6)], axis=1)
-    delay = path / c - t0[:, None]  # delay into the recording, s
+    delay = path / c[:, None] - t0[:, None]  # delay into the recording, s
     if n_samples is None:
         n_samples = int(np.ceil((delay.max(initial=0.0) * fs) + len(wave))) + 16
     n_samples = v.positive_int("n_samples", n_samples)
@@ -105,7 +115,7 @@ def simulate(
     spec_k, f_k = spec[keep], freqs[keep]
     log.debug("simulate: %d sources, %d of %d frequency bins", src.shape[0], keep.sum(), len(freqs))
     beta = (
-        air_absorption_db_per_m(f_k, scene.temperature_c, scene.humidity_pct) * np.log(10) / 20
+        air_absorption_db_per_m(f_k, t_mean, scene.humidity_pct) * np.log(10) / 20
         if absorption
         else np.zeros_like(f_k)
     )
@@ -136,7 +146,7 @@ def simulate(
         fs_hz=fs,
         waveform=wave,
         t0_s=t0,
-        temperature_c=scene.temperature_c,
+        temperature_c=temperature_c,
         humidity_pct=scene.humidity_pct,
         stage_positions=aperture.stage_positions,
         chirp=chirp or {},

@@ -2,9 +2,10 @@
  *
  * For every voxel v and measurement m:
  *   path  = |v - tx_m| + |v - rx_m|                      (m)
- *   idx   = path * fs / c - s0_m                          (profile samples)
- *   value = lerp(profile_m, idx) * exp(+j 2 pi fc path / c)
- * and the image is the sum over m. Samples outside [0, n_lags - 1] contribute nothing.
+ *   idx   = path / (c_m dtau) - s0_m                      (profile samples)
+ *   value = lerp(profile_m, idx) * exp(+j 2 pi fc path / c_m)
+ * and the image is the sum over m. The speed of sound c_m is per measurement (air that
+ * changes during a scan): its two path scales ride in the w lanes of tx and rx. Samples outside [0, n_lags - 1] contribute nothing.
  * The carrier phase is reduced to cycles in [-0.5, 0.5] before sin/cos, so float32 keeps
  * it to ~1e-5 cycles at a few metres.
  *
@@ -16,11 +17,11 @@ __kernel void backproject(
     __global const float4 *pairs,    /* (n_meas, n_lags) (p[k], p[k+1]) of the baseband complex
                                         profiles, as (re, im, re, im); p[n_lags] = 0           */
     const int n_lags,                /* samples per profile                                   */
-    __global const float4 *tx,       /* (n_meas,) speaker position xyz, m (w unused)          */
-    __global const float4 *rx,       /* (n_meas,) microphone position xyz, m (w unused)       */
-    __global const float *s0,        /* (n_meas,) profile index of zero delay: t_start * fs   */
-    const float samples_per_m,       /* fs / c, samples per metre of path                     */
-    const float cycles_per_m,        /* fc / c, carrier cycles per metre of path              */
+    __global const float4 *tx,       /* (n_meas,) speaker position xyz, m; w: 1 / (c_m dtau),
+                                        profile samples per metre of path                     */
+    __global const float4 *rx,       /* (n_meas,) microphone position xyz, m; w: fc / c_m,
+                                        carrier cycles per metre of path                      */
+    __global const float *s0,        /* (n_meas,) profile index of zero delay: tau0_m / dtau  */
     const float4 origin,             /* centre of voxel (0, 0, 0), m                          */
     const float4 step,               /* voxel spacing along x, y, z, m                        */
     const int ny,                    /* voxels along y                                        */
@@ -57,7 +58,7 @@ __kernel void backproject(
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
         const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz)
                           + sqrt(drx * drx + dry * dry + drz * drz);
-        const floatV idx = path * samples_per_m - s0[m];
+        const floatV idx = path * t.w - s0[m];
         const intV inside = (idx >= 0.0f) & (idx <= last);
         /* floor(idx) clamped to [0, n_lags - 2] (n_lags >= 2), with operators only */
         floatV i0 = RINT(idx);
@@ -71,7 +72,7 @@ __kernel void backproject(
         GATHER_PAIRS(row, li, are, aim, bre, bim)
         const floatV re = inside ? are + w * (bre - are) : (floatV)(0.0f);
         const floatV im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
-        floatV cyc = path * cycles_per_m;
+        floatV cyc = path * r.w;
         cyc -= RINT(cyc);
         floatV c;
         const floatV s = sincos_2pi(cyc, &c);

@@ -43,7 +43,7 @@ class Profiles:
     backend: str
     tx_positions: np.ndarray | None = None
     rx_positions: np.ndarray | None = None
-    c_mps: float | None = None
+    c_mps: float | np.ndarray | None = None  # one per measurement where the air changed
     timings_s: dict = field(default_factory=dict)
     device: str = ""
 

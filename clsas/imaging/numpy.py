@@ -14,7 +14,7 @@ def backproject(
     fc_hz: float,
     tx_positions: np.ndarray,
     rx_positions: np.ndarray,
-    c_mps: float,
+    c_mps: float | np.ndarray,
     points_m: np.ndarray,
     progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
@@ -24,6 +24,8 @@ def backproject(
     ----------
     data : (n_meas, n_lags) complex baseband profiles; sample ``k`` of row ``m`` is delay
         ``tau0_s[m] + k dtau_s``.
+    c_mps : float or (n_meas,) array
+        Speed of sound, m/s; an array gives each measurement its own.
     points_m : (n_vox, 3) voxel centres, m.
 
     Returns
@@ -32,11 +34,12 @@ def backproject(
     """
     n_meas, n_lags = data.shape
     out = np.zeros(len(points_m), dtype=np.complex128)
+    c = np.broadcast_to(np.asarray(c_mps, float), (n_meas,))
     for m in range(n_meas):
         path = np.linalg.norm(points_m - tx_positions[m], axis=1) + np.linalg.norm(
             points_m - rx_positions[m], axis=1
         )
-        tau = path / c_mps
+        tau = path / c[m]
         idx = (tau - tau0_s[m]) / dtau_s
         inside = (idx >= 0) & (idx <= n_lags - 1)  # no wrap-around, no clamping to the edge
         i0 = np.clip(np.floor(idx), 0, n_lags - 2).astype(np.int64)

@@ -40,7 +40,7 @@ class BackprojectPlan(Plan):
         fc_hz: float,
         tx_positions: np.ndarray,
         rx_positions: np.ndarray,
-        c_mps: float,
+        c_mps: float | np.ndarray,
         progress: Callable[[int, int], None] | None = None,
     ) -> np.ndarray:
         """Backproject; same arguments as the NumPy twin (grid fixed). Returns (n_vox,) complex64."""
@@ -50,9 +50,12 @@ class BackprojectPlan(Plan):
         pairs = np.empty((self.n_meas, self.n_lags, 2), np.complex64)
         pairs[:, :, 0] = prof[:, :-1]
         pairs[:, :, 1] = prof[:, 1:]
+        c = np.broadcast_to(np.asarray(c_mps, float), (self.n_meas,))
         pos4 = np.zeros((2, self.n_meas, 4), np.float32)
         pos4[0, :, :3] = tx_positions
+        pos4[0, :, 3] = 1.0 / (c * dtau_s)  # profile samples per metre of path
         pos4[1, :, :3] = rx_positions
+        pos4[1, :, 3] = fc_hz / c  # carrier cycles per metre of path
         self.begin()
         self.write(self.d_prof, pairs, np.complex64)
         self.write(self.d_tx, pos4[0], np.float32)
@@ -62,8 +65,7 @@ class BackprojectPlan(Plan):
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
         fixed = (
-            self.d_prof, np.int32(self.n_lags), self.d_tx, self.d_rx, self.d_s0,
-            np.float32(1.0 / (c_mps * dtau_s)), np.float32(fc_hz / c_mps), origin, step,
+            self.d_prof, np.int32(self.n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
             np.int32(g.shape[1]), np.int32(g.shape[2]),
         )
         for m0 in range(0, self.n_meas, self.chunk):
@@ -80,7 +82,8 @@ class BackprojectPlan(Plan):
 
     @classmethod
     def selftest(cls, queue, vec: int) -> float:
-        """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, voxels in and out of the window."""
+        """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, voxels in and out of the window,
+        a different speed of sound for each measurement."""
         from . import numpy as twin
 
         rng = np.random.default_rng(7)
@@ -93,8 +96,9 @@ class BackprojectPlan(Plan):
         centre = np.array([0.0, 0.025, 0.4])
         path = np.linalg.norm(centre - tx, axis=1) + np.linalg.norm(centre - rx, axis=1)
         tau0 = path / 343.0 - 20 / fs
-        got = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2)(prof, tau0, 1 / fs, 25e3, tx, rx, 343.0)
-        want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, 343.0, grid.points())
+        c = np.array([343.0, 340.0, 346.0])
+        got = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2)(prof, tau0, 1 / fs, 25e3, tx, rx, c)
+        want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
         if not (np.any(want == 0) and np.any(want != 0)):
             raise RuntimeError("selftest scene must have voxels inside and outside the profile window")
         return float(np.abs(got - want).max() / np.abs(want).max())

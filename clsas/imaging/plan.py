@@ -88,7 +88,7 @@ def plan_reconstruction(dataset: Dataset, grid: VoxelGrid, kernels: list[str]) -
     """Range gate for ``grid``: exact min and max bistatic path over all voxels and stops."""
     b = grid.bounds()
     pmin, pmax = path_bounds(b[:, 0], b[:, 1], dataset.tx_positions, dataset.rx_positions)
-    c = dataset.c_mps
-    gate = (float(pmin.min() / c), float(pmax.max() / c))
+    c = dataset.c_per_meas
+    gate = (float((pmin / c).min()), float((pmax / c).max()))
     full = dataset.n_samples + len(dataset.waveform) - 1
     return ReconstructionPlan(grid.shape, float(pmin.min()), float(pmax.max()), gate, full, kernels=list(kernels))
