@@ -142,7 +142,8 @@ def attach_background(ds: Dataset, background: Dataset | np.ndarray) -> Dataset:
             raise ValueError(f"background fs_hz={background.fs_hz:g} differs from the scan's {ds.fs_hz:g}")
         # the same echo path arrives at p / c: stretch the background to the scan's air
         scale = ds.c_per_meas / background.c_per_meas
-        bg = _on_time_axis(background.signals, background.t0_s, ds.t0_s, ds.fs_hz, ds.n_samples, scale)
+        bg = _on_time_axis(background.signals, background.t0_s, ds.t0_s, ds.fs_hz, ds.n_samples, scale,
+                           ds.waveform)
         if np.any(np.abs(scale - 1) > 1e-12):
             log.info("background: stretched to the scan's air (speed of sound ratio %.5f to %.5f)",
                      scale.min(), scale.max())
@@ -210,18 +211,28 @@ def _fit_length(x: np.ndarray, n: int) -> np.ndarray:
     return np.pad(x, ((0, 0), (0, n - x.shape[1])))
 
 
-def _on_time_axis(sig, t0_from, t0_to, fs, n, scale) -> np.ndarray:
-    """Recordings with sample 0 at ``t0_from``, evaluated at the times ``t0_to + j / fs``
-    stretched by ``scale`` (per row): an echo at ``t`` in ``sig`` lands at ``t / scale``.
+def _upsampled(x: np.ndarray, up: int) -> tuple[np.ndarray, int]:
+    import scipy.fft
 
-    Whole-sample shifts with no stretch are copied exactly; otherwise the rows are upsampled
-    8 times by FFT and interpolated linearly (error below -40 dB up to 0.4 fs).
+    nf = scipy.fft.next_fast_len(len(x) + 64)
+    return scipy.fft.irfft(scipy.fft.rfft(x, nf), nf * up) * up, nf
+
+
+def _on_time_axis(sig, t0_from, t0_to, fs, n, scale, waveform=None) -> np.ndarray:
+    """Recordings with sample 0 at ``t0_from``, evaluated at the times ``t0_to + j / fs``
+    with their echoes moved from delay ``tau`` to ``tau / scale`` (per row).
+
+    Whole-sample shifts with no stretch are copied exactly. Otherwise the row is stretched in
+    time (upsampled 8 times by FFT, interpolated linearly: error below -40 dB up to 0.4 fs),
+    which moves every echo to its new delay but also squeezes each echo's waveform by
+    ``scale``; a filter ``W(f) / W_s(f)`` (W the waveform's spectrum, W_s the squeezed
+    waveform's, Wiener-regularised) then restores the waveform, so each echo is exactly the
+    transmitted waveform at its new delay.
     """
     import scipy.fft
 
     out = np.zeros((sig.shape[0], n))
     up = 8
-    nf = 0
     for m in range(sig.shape[0]):
         k = (t0_to[m] - t0_from[m]) * fs  # sample of sig at our sample 0
         if abs(scale[m] - 1) < 1e-12 and abs(k - round(k)) < 1e-6:
@@ -230,13 +241,28 @@ def _on_time_axis(sig, t0_from, t0_to, fs, n, scale) -> np.ndarray:
             if hi > lo:
                 out[m, lo - k : hi - k] = sig[m, lo:hi]
             continue
-        if not nf:
-            nf = scipy.fft.next_fast_len(sig.shape[1] + 64)
-        fine = scipy.fft.irfft(scipy.fft.rfft(sig[m], nf), nf * up) * up
+        fine, nf = _upsampled(sig[m], up)
         want = ((t0_to[m] + np.arange(n) / fs) * scale[m] - t0_from[m]) * fs * up
         out[m] = np.interp(want, np.arange(nf * up), fine, left=0.0, right=0.0)
         out[m, want > (sig.shape[1] - 1) * up] = 0.0
+        if waveform is not None and abs(scale[m] - 1) >= 1e-12:
+            out[m] = _unsqueeze(out[m], waveform, scale[m], up)
     return out
+
+
+def _unsqueeze(x: np.ndarray, waveform: np.ndarray, scale: float, up: int) -> np.ndarray:
+    """Filter ``x``, whose echoes are ``w(scale t)``, so that they become ``w(t)``."""
+    import scipy.fft
+
+    fine, _ = _upsampled(waveform, up)
+    k = np.arange(int(np.ceil(len(waveform) / scale)) + 1)
+    squeezed = np.interp(k * scale * up, np.arange(len(fine)), fine, left=0.0, right=0.0)
+    nf = scipy.fft.next_fast_len(len(x) + 2 * len(squeezed) + 16)
+    W = scipy.fft.rfft(waveform, nf)
+    Ws = scipy.fft.rfft(squeezed, nf)
+    p = np.abs(Ws) ** 2
+    h = W * np.conj(Ws) / (p + 1e-4 * p.max())
+    return scipy.fft.irfft(scipy.fft.rfft(x, nf) * h, nf)[: len(x)]
 
 
 def _align(sig, bg, fs, max_shift_s):

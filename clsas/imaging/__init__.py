@@ -78,7 +78,7 @@ class Backprojector:
         *,
         tx_positions: np.ndarray | None = None,
         rx_positions: np.ndarray | None = None,
-        c_mps: float | None = None,
+        c_mps: float | np.ndarray | None = None,
         progress: Callable[[int, int], None] | None = None,
     ) -> Image:
         """Backproject ``profiles`` (see :func:`backproject` for the arguments)."""
@@ -87,7 +87,7 @@ class Backprojector:
         n = profiles.n_meas
         tx = v.array("tx_positions", profiles.tx_positions if tx_positions is None else tx_positions, shape=(n, 3))
         rx = v.array("rx_positions", profiles.rx_positions if rx_positions is None else rx_positions, shape=(n, 3))
-        c = v.positive("c_mps", profiles.c_mps if c_mps is None else c_mps)
+        c = v.speeds("c_mps", profiles.c_mps if c_mps is None else c_mps, n)
         data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
         tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
         dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
@@ -112,7 +112,7 @@ def backproject(
     *,
     tx_positions: np.ndarray | None = None,
     rx_positions: np.ndarray | None = None,
-    c_mps: float | None = None,
+    c_mps: float | np.ndarray | None = None,
     backend: str | None = None,
     device: Any = None,
     chunk: int | None = None,
@@ -123,7 +123,8 @@ def backproject(
     For each voxel and measurement the profile is linearly interpolated at the bistatic
     delay ``(|v - tx| + |v - rx|) / c`` and the carrier phase restored; samples outside the
     profile window contribute nothing. Positions and ``c`` default to those the profiles
-    carry (from a Dataset). To image many profile sets onto one grid, build a
+    carry (from a Dataset); ``c_mps`` may be an (n_meas,) array, one speed of sound per
+    measurement (air that changes during a scan). To image many profile sets onto one grid, build a
     :class:`Backprojector` once and call it.
 
     Parameters
@@ -162,7 +163,9 @@ def reconstruct(
 
     Parameters
     ----------
-    dataset : Dataset
+    dataset : Dataset or Profiles
+        Recordings, or range profiles computed elsewhere
+        (:meth:`clsas.Profiles.from_range_profiles`; imaged by ``method="bp"`` only).
     grid : VoxelGrid
     method : {"bp", "bpdn", "cbp-taylor", "cbp-polar"}
         ``"bp"``: pulse compression + backprojection. The sparse methods super-resolve each
@@ -179,10 +182,19 @@ def reconstruct(
     sparse : dict, optional
         Options for the sparse methods: ``delta_s``, ``lam``, ``lam_frac``, ``render_width_s``.
     """
-    if not isinstance(dataset, Dataset):
-        raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
+        if method != "bp":
+            raise ValueError(f"method={method!r} needs the recordings (a Dataset); range profiles are imaged "
+                             "by method='bp'")
+        t_start = time.perf_counter()
+        image = Backprojector(grid, backend=backend, device=device)(dataset, progress=progress)
+        image.method = f"bp ({dataset.method} profiles)"
+        image.timings_s["total"] = time.perf_counter() - t_start
+        return image
+    if not isinstance(dataset, Dataset):
+        raise TypeError(f"dataset must be a clsas.Dataset or clsas.Profiles, got {type(dataset).__name__}")
     v.choice("method", method, METHODS)
     v.choice("compression", compression, ("matched", "fmcw"))
     sel = _cl.select(backend, device)
@@ -217,7 +229,7 @@ def _reconstruct_sparse(dataset, grid, method, bp, progress, options) -> Image:
     plan = plan_reconstruction(dataset, grid, [])
     b = grid.bounds()
     pmin, pmax = path_bounds(b[:, 0], b[:, 1], dataset.tx_positions, dataset.rx_positions)
-    gates = np.stack([pmin, pmax], axis=1) / dataset.c_mps
+    gates = np.stack([pmin, pmax], axis=1) / dataset.c_per_meas[:, None]
     plan.notes.append(f"{method}: each recording super-resolved within its own gate, echoes rendered as pulses")
     t_start = time.perf_counter()
     prof, echoes = superres_profiles(dataset, gates, method, progress=progress, **options)
