@@ -1,8 +1,31 @@
-"""Apertures (raster, serpentine), voxel grids, scenes with point reflectors and mirror walls."""
+"""Apertures (the type, raster scans), voxel grids, scenes with point reflectors and mirror walls.
+
+Frames
+------
+All positions are in the scene frame, metres. The raster aperture's rig faces +z (z is range, y
+is up). Circular and helical apertures turn about a vertical axis: z is up and the rotation axis
+is the line through ``center_m`` parallel to z; the rig looks horizontally towards that axis.
+
+Transducer offsets are given in the rig's local frame, the same right-handed frame in every
+aperture: local y is up, local z points where the rig looks, local x = y x z is horizontal. For
+the raster aperture the local frame is the scene frame; on a circle at azimuth phi (measured
+counterclockwise seen from +z, from the +x axis) local z = (-cos phi, -sin phi, 0) points to the
+axis, local y = (0, 0, 1) and local x = (sin phi, -cos phi, 0) is tangential, pointing clockwise
+seen from above. An offset ``(-0.02, 0, 0)`` thus means "2 cm along -x" on the raster and "2 cm
+along the counterclockwise tangent" on a circle: the same side of the rig in both.
+
+Several microphones per ping: an aperture with k microphones per stop has k measurements per
+stop, stop-major (measurement ``i * k + j`` is microphone j at stop i); ``tx_positions`` and
+``stage_positions`` repeat for each microphone.
+
+Circular, helical and CSV apertures are built in :mod:`clsas.apertures`.
+"""
 
 from __future__ import annotations
 
+import csv
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -10,6 +33,12 @@ from . import _validate as v
 from .physics import speed_of_sound
 
 __all__ = ["Aperture", "raster_aperture", "VoxelGrid", "Wall", "Scene"]
+
+_TX_OFFSET = (-0.02, 0.0, 0.0)
+_RX_OFFSET = (0.02, 0.0, 0.0)
+# the columns of an aperture CSV table (see clsas.apertures.aperture_from_csv)
+_BISTATIC = ("tx_x", "tx_y", "tx_z", "rx_x", "rx_y", "rx_z")
+_STAGE = ("x", "y", "z")
 
 
 @dataclass(frozen=True)
@@ -21,20 +50,28 @@ class Aperture:
     tx_positions, rx_positions : numpy.ndarray
         (n_meas, 3) float64, metres.
     stage_positions : numpy.ndarray
-        (n_meas, 3) carriage positions in the order the stops are visited, metres.
+        (n_meas, 3) rig reference point (the carriage) in the order the stops are visited,
+        metres; repeated for each microphone of a stop.
+    mics_per_stop : int
+        Microphones recorded per ping (k): measurements ``i * k .. i * k + k - 1`` are stop i.
     """
 
     tx_positions: np.ndarray
     rx_positions: np.ndarray
     stage_positions: np.ndarray
+    mics_per_stop: int = 1
 
     def __post_init__(self) -> None:
         tx = v.array("tx_positions", self.tx_positions, shape=(None, 3))
         rx = v.array("rx_positions", self.rx_positions, shape=(len(tx), 3))
         st = v.array("stage_positions", self.stage_positions, shape=(len(tx), 3))
+        k = v.positive_int("mics_per_stop", self.mics_per_stop)
+        if len(tx) % k:
+            raise ValueError(f"mics_per_stop={k} does not divide the {len(tx)} measurements")
         object.__setattr__(self, "tx_positions", tx)
         object.__setattr__(self, "rx_positions", rx)
         object.__setattr__(self, "stage_positions", st)
+        object.__setattr__(self, "mics_per_stop", k)
 
     def __len__(self) -> int:
         return len(self.tx_positions)
@@ -42,6 +79,39 @@ class Aperture:
     @property
     def n_meas(self) -> int:
         return len(self.tx_positions)
+
+    @property
+    def n_stops(self) -> int:
+        """Pings (stops): ``n_meas // mics_per_stop``."""
+        return len(self.tx_positions) // self.mics_per_stop
+
+    def to_csv(self, path: str | Path) -> Path:
+        """Write one row per measurement: ``tx_x..rx_z`` and the stage ``x, y, z``, metres.
+
+        :func:`aperture_from_csv` reads it back (with ``mics_per_stop`` = 1).
+        """
+        path = Path(path)
+        table = np.hstack([self.tx_positions, self.rx_positions, self.stage_positions])
+        with path.open("w", newline="", encoding="utf-8") as f:
+            w = csv.writer(f)
+            w.writerow(_BISTATIC + _STAGE)
+            w.writerows([[repr(float(x)) for x in row] for row in table])
+        return path
+
+
+def _mic_offsets(rx_offset_m, rx_offsets_m) -> np.ndarray:
+    """(k, 3) microphone offsets from ``rx_offset_m`` (one) or ``rx_offsets_m`` (several)."""
+    if rx_offsets_m is None:
+        return v.array("rx_offset_m", _RX_OFFSET if rx_offset_m is None else rx_offset_m, shape=(3,))[None]
+    if rx_offset_m is not None:
+        raise ValueError("give rx_offset_m (one microphone) or rx_offsets_m (several), not both")
+    return v.array("rx_offsets_m", rx_offsets_m, shape=(None, 3))
+
+
+def _per_mic(stage: np.ndarray, tx: np.ndarray, rx: np.ndarray) -> Aperture:
+    """Aperture from stops: ``stage``, ``tx`` (n, 3) and ``rx`` (n, k, 3), stop-major."""
+    k = rx.shape[1]
+    return Aperture(np.repeat(tx, k, axis=0), rx.reshape(-1, 3), np.repeat(stage, k, axis=0), k)
 
 
 def raster_aperture(
@@ -51,9 +121,10 @@ def raster_aperture(
     height_m: float,
     *,
     center_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    tx_offset_m: tuple[float, float, float] = (-0.02, 0.0, 0.0),
-    rx_offset_m: tuple[float, float, float] = (0.02, 0.0, 0.0),
+    tx_offset_m: tuple[float, float, float] = _TX_OFFSET,
+    rx_offset_m: tuple[float, float, float] | None = None,
     pattern: str = "serpentine",
+    rx_offsets_m: np.ndarray | None = None,
 ) -> Aperture:
     """Stops on an ``nx`` x ``ny`` grid in the plane ``z = center_m[2]`` facing +z.
 
@@ -66,10 +137,13 @@ def raster_aperture(
     center_m : tuple of float
         Centre of the scan, metres.
     tx_offset_m, rx_offset_m : tuple of float
-        Speaker and microphone offsets from the carriage, metres.
+        Speaker and microphone offsets from the carriage, metres (the rig's local frame is the
+        scene frame here). ``rx_offset_m`` defaults to ``(0.02, 0, 0)``.
     pattern : {"serpentine", "raster"}
         Visiting order: serpentine reverses every other row (shorter moves); raster always
         runs along +x.
+    rx_offsets_m : (k, 3) array, optional
+        Several microphones per ping, replacing ``rx_offset_m``: k measurements per stop.
     """
     nx = v.positive_int("nx", nx)
     ny = v.positive_int("ny", ny)
@@ -78,7 +152,7 @@ def raster_aperture(
     v.choice("pattern", pattern, ("serpentine", "raster"))
     c = v.array("center_m", center_m, shape=(3,))
     txo = v.array("tx_offset_m", tx_offset_m, shape=(3,))
-    rxo = v.array("rx_offset_m", rx_offset_m, shape=(3,))
+    rxo = _mic_offsets(rx_offset_m, rx_offsets_m)
     xs = np.linspace(-w / 2, w / 2, nx) if nx > 1 else np.zeros(1)
     ys = np.linspace(-h / 2, h / 2, ny) if ny > 1 else np.zeros(1)
     stops = []
@@ -86,7 +160,7 @@ def raster_aperture(
         row = xs[::-1] if (pattern == "serpentine" and j % 2) else xs
         stops += [(x, y, 0.0) for x in row]
     stage = np.asarray(stops) + c
-    return Aperture(stage + txo, stage + rxo, stage)
+    return _per_mic(stage, stage + txo, stage[:, None, :] + rxo[None])
 
 
 @dataclass(frozen=True)
@@ -130,6 +204,54 @@ class VoxelGrid:
             n = int(np.floor((hi - lo) / d + 1e-9)) + 1
             axes.append(lo + d * np.arange(n))
         return cls(*axes)
+
+    @classmethod
+    def plane(
+        cls,
+        axis: str = "z",
+        *,
+        at_m: float,
+        u_m: tuple[float, float],
+        v_m: tuple[float, float],
+        spacing_m: float | tuple[float, float],
+    ) -> VoxelGrid:
+        """A 2-D grid: the plane ``axis = at_m``, one voxel thick.
+
+        ``axis="z"`` is a horizontal plane (z is up for circular apertures: turntable users image
+        the plane through the target), ``"x"`` or ``"y"`` a vertical one. The in-plane axes
+        (u, v) are the other two in order: (x, y) for ``"z"``, (x, z) for ``"y"``, (y, z) for ``"x"``.
+
+        Parameters
+        ----------
+        axis : {"x", "y", "z"}
+            The axis normal to the plane.
+        at_m : float
+            Position of the plane on that axis, metres.
+        u_m, v_m : (lo, hi) tuple of float
+            Extent along the in-plane axes, metres (voxel centres from lo, up to hi).
+        spacing_m : float or (du, dv)
+            Voxel spacing in the plane, metres.
+
+        Returns
+        -------
+        VoxelGrid
+            Shape with a 1 on ``axis``, e.g. ``(nu, nv, 1)`` for ``axis="z"``.
+        """
+        v.choice("axis", axis, ("x", "y", "z"))
+        at = v.finite("at_m", at_m)
+        bounds = {}
+        for name, b in (("u_m", u_m), ("v_m", v_m)):
+            lo, hi = v.array(name, b, shape=(2,))
+            if hi < lo:
+                raise ValueError(f"{name} bounds are inverted: ({lo:g}, {hi:g})")
+            bounds[name] = (lo, hi)
+        sp = v.array("spacing_m", np.broadcast_to(np.asarray(spacing_m, dtype=float), (2,)), shape=(2,))
+        for d in sp:
+            v.positive("spacing_m", d)
+        inplane = [a for a in "xyz" if a != axis]
+        box = {inplane[0]: bounds["u_m"], inplane[1]: bounds["v_m"], axis: (at, at)}
+        step = {inplane[0]: sp[0], inplane[1]: sp[1], axis: 1.0}
+        return cls.from_bounds(box["x"], box["y"], box["z"], tuple(step[a] for a in "xyz"))
 
     @property
     def shape(self) -> tuple[int, int, int]:
