@@ -115,6 +115,12 @@ def cmd_reconstruct(args) -> int:
     ds = clsas.load(args.data)
     stored_grid, truth = stored_grid_and_truth(ds.config)
     grid = _grid_arg(args.grid, args.spacing, stored_grid)
+    if args.preprocess:
+        n_before = len(ds.provenance)
+        ds, source = _apply_preprocessing(ds, args, stored=True)
+        if not source:
+            raise ValueError("--preprocess: no steps given and no [preprocess] table in the dataset or --config")
+        print(f"preprocessed with the steps from {source}: {', '.join(p['step'] for p in ds.provenance[n_before:])}")
     image = _reconstruct(ds, grid, args, not args.quiet)
     out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
     image.save(out)
@@ -125,10 +131,101 @@ def cmd_reconstruct(args) -> int:
     for p in peaks:
         x, y, z = p.position_m
         print(f"peak ({x:+.3f}, {y:+.3f}, {z:.3f}) m  |v| = {p.magnitude:.4g}")
+    if args.box is not None:
+        from clsas.quality import tcr_db
+
+        print(f"target-to-clutter ratio in {args.box}: {tcr_db(image, _box_arg('--box', args.box)):.1f} dB")
     if args.png:
         mip_png(image, out.with_suffix(".png"), truth, Path(args.data).name)
         print(f"wrote {out.with_suffix('.png')}")
     print(f"wrote {out}")
+    return 0
+
+
+def _preprocess_table(ds, config_path: str | None) -> tuple[dict, str]:
+    """The [preprocess] table of a TOML file, else the one stored in the dataset's configuration."""
+    import tomllib
+
+    if config_path is not None:
+        path = Path(config_path)
+        if not path.exists():
+            raise FileNotFoundError(f"no preprocessing file at {path}")
+        try:
+            cfg = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"{path} is not valid TOML: {exc}") from None
+        where = f"{path}"
+        bg = cfg.get("preprocess", {}).get("background") if isinstance(cfg.get("preprocess"), dict) else None
+        # a background file named in the table is relative to the table's file
+        if isinstance(bg, str) and not Path(bg).is_absolute():
+            cfg["preprocess"]["background"] = str(path.parent / bg)
+        elif isinstance(bg, dict) and isinstance(bg.get("path"), str) and not Path(bg["path"]).is_absolute():
+            bg["path"] = str(path.parent / bg["path"])
+    else:
+        cfg = tomllib.loads(ds.config) if ds.config.strip() else {}
+        where = "the dataset's stored configuration"
+    table = cfg.get("preprocess")
+    if table is None:
+        return {}, where
+    if not isinstance(table, dict):
+        raise ValueError(f"[preprocess] in {where} must be a table")
+    return table, where
+
+
+def _preprocess_args(args) -> dict:
+    """preprocess.apply() arguments from the command-line flags."""
+    opts: dict = {}
+    if args.group_delay_samples is not None:
+        opts["group_delay_samples"] = args.group_delay_samples
+    if args.dc:
+        opts["dc"] = True
+    if args.bandpass is not None:
+        if args.bandpass == "chirp":
+            opts["bandpass"] = True
+        else:
+            try:
+                lo, hi = (float(x) for x in args.bandpass.split(","))
+            except ValueError:
+                raise ValueError(f"--bandpass must be 'chirp' or F_LO,F_HI in Hz, got {args.bandpass!r}") from None
+            opts["bandpass"] = (lo, hi)
+    if args.background is not None:
+        opts["background"] = {"path": args.background, "align_s": args.align_s}
+    elif args.own_background:
+        opts["background"] = {"align_s": args.align_s}
+    if args.blank_direct:
+        opts["blank_direct"] = True
+    return opts
+
+
+def _apply_preprocessing(ds, args, stored: bool):
+    from clsas import preprocess as pp
+
+    opts = _preprocess_args(args)
+    if opts:
+        return pp.apply(ds, **opts), "the command line"
+    if stored or args.config is not None:
+        table, where = _preprocess_table(ds, args.config)
+        if table:
+            return pp.from_table(ds, table, where=f"[preprocess] in {where}"), where
+    return ds, ""
+
+
+def cmd_preprocess(args) -> int:
+    import clsas
+
+    ds = clsas.load(args.data)
+    out, source = _apply_preprocessing(ds, args, stored=True)
+    if not source:
+        raise ValueError("nothing to do: give steps (--dc, --bandpass, --background, --blank-direct, "
+                         "--group-delay-samples) or a [preprocess] table (--config, or stored in the dataset)")
+    out.save(args.out)
+    steps = out.provenance[len(ds.provenance):]
+    print(f"preprocessed {args.data} ({ds.n_meas} measurements) with the steps from {source}:")
+    for st in steps:
+        detail = ", ".join(f"{k}={val:.4g}" if isinstance(val, float) else f"{k}={val}"
+                           for k, val in st.items() if k != "step")
+        print(f"  {st['step']}{': ' + detail if detail else ''}")
+    print(f"wrote {args.out}; image it with: clsas reconstruct {args.out}")
     return 0
 
 
@@ -138,6 +235,28 @@ def cmd_limits(args) -> int:
     lim = clsas.resolution_limits(args.f_start, args.f_stop, args.width, args.height, args.nx, args.ny,
                                   args.range, args.temperature, args.humidity)
     print(lim.report())
+    return 0
+
+
+def _box_arg(option: str, text: str | None):
+    if text is None:
+        return None
+    try:
+        vals = [float(s) for s in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) != 6:
+        raise ValueError(f"{option} must be six numbers x0,x1,y0,y1,z0,z1 in metres, got {text!r}")
+    return (tuple(vals[0:2]), tuple(vals[2:4]), tuple(vals[4:6]))
+
+
+def cmd_compare(args) -> int:
+    from clsas.quality import compare
+
+    res = compare(args.a, args.b, target_box=_box_arg("--box", args.box),
+                  clutter_box=_box_arg("--clutter-box", args.clutter_box), peaks=args.peaks)
+    print(f"a = {args.a}\nb = {args.b}")
+    print(res.report())
     return 0
 
 
@@ -274,6 +393,62 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _preprocess_options(sp) -> None:
+    g = sp.add_argument_group("preprocessing (in this order; default: the [preprocess] table of --config or of "
+                              "the dataset's stored configuration)")
+    g.add_argument("--group-delay-samples", type=float, metavar="N",
+                   help="system (transducer) delay to remove, in samples (t0_s becomes t0_s - N/fs)")
+    g.add_argument("--dc", action="store_true", help="subtract each recording's mean")
+    g.add_argument("--bandpass", nargs="?", const="chirp", metavar="F_LO,F_HI",
+                   help="zero-phase band-pass: the chirp's band (no value) or F_LO,F_HI in Hz")
+    g.add_argument("--background", metavar="EMPTY.h5",
+                   help="subtract this empty-scene scan (same stops), stretched to the scan's air")
+    g.add_argument("--own-background", action="store_true", help="subtract the background stored in the dataset")
+    g.add_argument("--align-s", type=float, default=0.0, metavar="S",
+                   help="with a background: also align each of its recordings within +-S seconds")
+    g.add_argument("--blank-direct", action="store_true",
+                   help="zero each recording until the direct speaker-to-microphone sound has passed")
+    g.add_argument("--config", metavar="FILE.toml", help="take the steps from this file's [preprocess] table")
+
+
+def cmd_import(args) -> int:
+    import clsas.io
+
+    fmt = clsas.io.detect_format(args.source) if args.format == "auto" else args.format
+    opts = {}
+    if args.waveform_index is not None:
+        if fmt != "airsas":
+            raise ValueError("--waveform-index is for the airsas format")
+        opts["waveform_index"] = args.waveform_index
+    ds = clsas.io.import_scan(args.source, format=fmt, background=args.background, **opts)
+    ds.save(args.out)
+    print(f"imported {args.source} ({fmt}): {ds.n_meas} measurements x {ds.n_samples} samples "
+          f"at {ds.fs_hz:g} Hz")
+    ch = ds.chirp
+    if {"f_start_hz", "f_stop_hz", "duration_s"} <= set(ch):
+        print(f"  waveform: LFM {ch['f_start_hz']:g} -> {ch['f_stop_hz']:g} Hz, {ch['duration_s'] * 1e3:g} ms, "
+              f"taper {ch.get('taper', 0.0):g} ({len(ds.waveform)} samples)")
+    else:
+        print(f"  waveform: {len(ds.waveform)} samples ({len(ds.waveform) / ds.fs_hz * 1e3:.3g} ms)")
+    t, c = np.asarray(ds.temperature_c), ds.c_per_meas
+    print(f"  t0: {ds.t0_s.min() * 1e3:.4g} to {ds.t0_s.max() * 1e3:.4g} ms; air: {t.min():.1f} to {t.max():.1f} C, "
+          f"c {c.min():.1f} to {c.max():.1f} m/s")
+    pos = np.concatenate([ds.tx_positions, ds.rx_positions])
+    lo, hi = pos.min(axis=0), pos.max(axis=0)
+    print("  aperture (speakers and microphones): " + ", ".join(
+        f"{a} {lo[i]:+.3f} to {hi[i]:+.3f}" for i, a in enumerate("xyz")) + " m")
+    if ds.background is not None:
+        print(f"  background: {args.background} ({ds.background.shape[0]} recordings, stored for subtraction)")
+    print(f"wrote {args.out}")
+    if fmt == "airsas":  # target frame: the turntable axis is x = y = 0
+        r = float(np.min(np.hypot(ds.tx_positions[:, 0], ds.tx_positions[:, 1]))) / 4
+        grid = f"{-r:.2f},{r:.2f},{-r:.2f},{r:.2f},0,0"
+    else:
+        grid = "x0,x1,y0,y1,z0,z1"
+    print(f"next: clsas reconstruct {args.out} --grid={grid} --spacing 0.005  (metres, in the dataset's frame)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -309,8 +484,19 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="image file (default: <data>-image.h5)")
     r.add_argument("--png", action="store_true", help="also write maximum-intensity projections")
     r.add_argument("--peaks", type=int, default=3, help="peaks to print")
+    r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
+    r.add_argument("--preprocess", action="store_true",
+                   help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
+    _preprocess_options(r)
     common(r)
     r.set_defaults(func=cmd_reconstruct)
+
+    pre = sub.add_parser("preprocess", help="DC, band-pass, background subtraction, direct-path blanking, "
+                         "group delay: write a new dataset file")
+    pre.add_argument("data", help="dataset file (HDF5)")
+    pre.add_argument("out", help="dataset file to write")
+    _preprocess_options(pre)
+    pre.set_defaults(func=cmd_preprocess)
 
     lim = sub.add_parser("limits", help="resolution limits of a scan configuration")
     lim.add_argument("--f-start", type=float, default=20e3, help="Hz")
@@ -323,6 +509,15 @@ def build_parser() -> argparse.ArgumentParser:
     lim.add_argument("--temperature", type=float, default=20.0, help="C")
     lim.add_argument("--humidity", type=float, default=50.0, help="%% RH")
     lim.set_defaults(func=cmd_limits)
+
+    cmp_ = sub.add_parser("compare", help="compare two images on the same grid: correlation, peak offsets, TCR")
+    cmp_.add_argument("a", help="image file (HDF5, from clsas reconstruct)")
+    cmp_.add_argument("b", help="image file on the same grid")
+    cmp_.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: report each image's target-to-clutter "
+                      "ratio (peak in the box / RMS outside it), e.g. --box=-0.05,0.05,-0.05,0.05,0,0")
+    cmp_.add_argument("--clutter-box", help="x0,x1,y0,y1,z0,z1 in m: measure the clutter here (less the target box)")
+    cmp_.add_argument("--peaks", type=int, default=3, help="strongest peaks to match between the images (default 3)")
+    cmp_.set_defaults(func=cmd_compare)
 
     dv = sub.add_parser("devices", help="list OpenCL devices, audio devices and serial ports")
     dv.add_argument("--opencl-only", action="store_true", help="only the OpenCL devices")
@@ -345,6 +540,14 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     a.add_argument("-v", "--verbose", action="store_true", help="log the stage dialogue and retries")
     a.set_defaults(func=cmd_acquire)
+    im = sub.add_parser("import", help="import measured recordings (a WAV/CSV folder or the AirSAS layout)")
+    im.add_argument("source", help="the scan's folder")
+    im.add_argument("out", help="dataset file to write (HDF5)")
+    im.add_argument("--format", choices=("auto", "folder", "airsas"), default="auto",
+                    help="layout of SOURCE (default: auto)")
+    im.add_argument("--background", metavar="FOLDER", help="the empty-scene scan, same layout and stops")
+    im.add_argument("--waveform-index", type=int, help="airsas: which interleaved waveform (0-based)")
+    im.set_defaults(func=cmd_import)
     b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time")
     b.add_argument("--full", action="store_true", help="the full set (tens of minutes on a 2-core CPU)")
     b.add_argument("--out", default="bench/results", help="results folder (default: bench/results)")

@@ -156,7 +156,7 @@ def attach_background(ds: Dataset, background: Dataset | np.ndarray) -> Dataset:
 
 
 def subtract_background(ds: Dataset, background: Dataset | np.ndarray | None = None, *,
-                        align_s: float = 0.0, fit_gain: bool = False) -> Dataset:
+                        align_s: float = 0.0, fit_gain: bool = False, label: str | None = None) -> Dataset:
     """Subtract the empty scene's recordings, stop by stop.
 
     Parameters
@@ -171,6 +171,8 @@ def subtract_background(ds: Dataset, background: Dataset | np.ndarray | None = N
         recording: static clutter moves a little when the air warms between the two scans.
     fit_gain : bool
         Also scale each background recording by its least-squares gain.
+    label : str, optional
+        Where the background came from, for the provenance (e.g. its file name).
 
     Returns
     -------
@@ -184,6 +186,8 @@ def subtract_background(ds: Dataset, background: Dataset | np.ndarray | None = N
         ds = attach_background(ds, background)
     elif ds.background is None:
         raise ValueError("subtract_background: the dataset has no background scan; pass background=")
+    if label is not None:
+        source = str(label)
     bg = ds.background
     align = v.non_negative("align_s", align_s)
     shifts = np.zeros(ds.n_meas)
@@ -383,7 +387,10 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
         if isinstance(src, str):
             from .dataset import load
 
+            bg_opts["label"] = src
             src = load(src)
+        elif isinstance(src, Dataset):
+            bg_opts["label"] = "background dataset"
         if src is True and ds.background is None:
             raise ValueError("background=True: the dataset has no background scan of its own")
     if group_delay_s is not None and group_delay_samples is not None:

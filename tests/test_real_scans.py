@@ -209,3 +209,35 @@ def test_profiles_from_elsewhere_image_like_the_library_s_own(quiet_scan):
                                            tx_positions=ds.tx_positions, rx_positions=ds.rx_positions, c_mps=343)
     with pytest.raises(ValueError, match="needs the recordings"):
         clsas.reconstruct(base, GRID, method="cbp-polar")
+
+
+def test_cli_preprocess_and_reconstruct_with_a_box(tmp_path, capsys):
+    from clsas.cli import main
+
+    sc = turntable_scan(36)
+    sc.dataset.save(tmp_path / "scan.h5")
+    sc.background.save(tmp_path / "empty.h5")
+    sub = tmp_path / "cfg"
+    sub.mkdir()
+    (sub / "pre.toml").write_text('[preprocess]\ngroup_delay_samples = 62.33\ndc = true\nbandpass = true\n'
+                                  'background = "../empty.h5"\nblank_direct = true\n')
+    assert main(["preprocess", str(tmp_path / "scan.h5"), str(tmp_path / "clean.h5"),
+                 "--config", str(sub / "pre.toml")]) == 0
+    clean = clsas.load(tmp_path / "clean.h5")
+    assert [p["step"] for p in clean.provenance][1:] == ["group_delay", "dc", "bandpass", "background", "blank_direct"]
+    assert clean.provenance[4]["source"].endswith("empty.h5")
+    capsys.readouterr()
+    box = "--box=-0.11,0.11,-0.11,0.11,-0.03,0.03"
+    grid = "--grid=-0.15,0.15,-0.15,0.15,0,0"
+    assert main(["reconstruct", str(tmp_path / "clean.h5"), grid, "--spacing", "0.005", box, "-q",
+                 "--backend", "numpy"]) == 0
+    after = float(capsys.readouterr().out.split("target-to-clutter ratio")[1].split(":")[1].split("dB")[0])
+    assert main(["reconstruct", str(tmp_path / "scan.h5"), grid, "--spacing", "0.005", box, "-q", "--backend",
+                 "numpy", "--preprocess", "--group-delay-samples", "62.33", "--dc", "--bandpass"]) == 0
+    before = float(capsys.readouterr().out.split("target-to-clutter ratio")[1].split(":")[1].split("dB")[0])
+    assert after > before + 6
+    assert main(["preprocess", str(tmp_path / "scan.h5"), str(tmp_path / "x.h5")]) == 2  # nothing to do
+    (sub / "bad.toml").write_text("[preprocess]\nbandpas = true\n")
+    assert main(["preprocess", str(tmp_path / "scan.h5"), str(tmp_path / "x.h5"), "--config",
+                 str(sub / "bad.toml")]) == 2
+    assert "bandpas" in capsys.readouterr().err
