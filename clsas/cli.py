@@ -430,9 +430,9 @@ def cmd_import(args) -> int:
               f"taper {ch.get('taper', 0.0):g} ({len(ds.waveform)} samples)")
     else:
         print(f"  waveform: {len(ds.waveform)} samples ({len(ds.waveform) / ds.fs_hz * 1e3:.3g} ms)")
-    t, c = np.asarray(ds.temperature_c), ds.c_per_meas
-    print(f"  t0: {ds.t0_s.min() * 1e3:.4g} to {ds.t0_s.max() * 1e3:.4g} ms; air: {t.min():.1f} to {t.max():.1f} C, "
-          f"c {c.min():.1f} to {c.max():.1f} m/s")
+    t, c, t0 = np.asarray(ds.temperature_c), ds.c_per_meas, ds.t0_s * 1e3
+    t0_text = f"{t0[0]:.4g}" if np.ptp(t0) == 0 else f"{t0.min():.4g} to {t0.max():.4g}"
+    print(f"  t0: {t0_text} ms; air: {t.min():.1f} to {t.max():.1f} C, c {c.min():.1f} to {c.max():.1f} m/s")
     pos = np.concatenate([ds.tx_positions, ds.rx_positions])
     lo, hi = pos.min(axis=0), pos.max(axis=0)
     print("  aperture (speakers and microphones): " + ", ".join(
