@@ -540,3 +540,24 @@ def test_recorder_arguments_are_checked(kwargs, match):
         rig.Recorder(io, np.ones(10), args.pop("fs_hz"), args.pop("n_samples"), **args)
     with pytest.raises(ValueError, match="loopback"):
         rig.find_onset(np.full(50, np.nan), np.ones(10))
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="termios is POSIX")
+def test_a_port_lost_in_tcdrain_is_a_disconnect_not_a_crash():
+    # pyserial's flush() calls termios.tcdrain: a pulled cable raises termios.error, which is
+    # neither SerialException nor OSError
+    import termios
+
+    from clsas.rig.grbl import StageDisconnected
+
+    class DeadPort:
+        def write(self, data):
+            return len(data)
+
+        def flush(self):
+            raise termios.error(5, "Input/output error")
+
+    stage = GrblStage("/dev/null")
+    stage._ser = DeadPort()
+    with pytest.raises(StageDisconnected, match="lost while writing"):
+        stage._write(b"?")

@@ -211,27 +211,37 @@ class GrblStage:
 
     # -- low level ------------------------------------------------------------------------
 
-    def _write(self, data: bytes) -> None:
+    @staticmethod
+    def _port_errors() -> tuple[type[BaseException], ...]:
+        """What a lost port raises: pyserial's errors, OSError, and on POSIX termios.error
+        (``flush()`` calls tcdrain, whose EIO is neither of the others)."""
         import serial
+
+        errors: tuple[type[BaseException], ...] = (serial.SerialException, OSError)
+        try:
+            import termios
+        except ImportError:  # Windows
+            return errors
+        return (*errors, termios.error)
+
+    def _write(self, data: bytes) -> None:
 
         if self._ser is None:
             raise StageDisconnected("the stage port is not open")
         try:
             self._ser.write(data)
             self._ser.flush()
-        except (serial.SerialException, OSError) as exc:
+        except self._port_errors() as exc:
             raise StageDisconnected(f"stage port {self.port!r} lost while writing: {exc}") from exc
 
     def _readline(self) -> str | None:
         """One line without its end, or None if none arrived within the port timeout."""
-        import serial
-
         if self._ser is None:
             raise StageDisconnected("the stage port is not open")
         while b"\n" not in self._buf:
             try:
                 chunk = self._ser.read(self._ser.in_waiting or 1)
-            except (serial.SerialException, OSError) as exc:
+            except self._port_errors() as exc:
                 raise StageDisconnected(f"stage port {self.port!r} lost while reading: {exc}") from exc
             if not chunk:
                 return None
