@@ -8,7 +8,7 @@ import pytest
 
 import clsas
 from clsas.bench import accuracy, distributed, stats
-from clsas.sparse.trials import TwoEchoTask, grid_sweep, sweep
+from clsas.bench.trials import TwoEchoTask, grid_sweep, sweep
 
 pytest.importorskip("distributed", reason="the Dask tests need dask.distributed (pip install 'clsas[bench]')")
 

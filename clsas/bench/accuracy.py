@@ -1,6 +1,6 @@
 """Error against run time for every reconstruction method.
 
-Two tasks: the two-echo task (clsas.sparse.trials: the paper's chirp, complex amplitudes,
+Two tasks: the two-echo task (clsas.bench.trials: the paper's chirp, complex amplitudes,
 separations in units of 1/B, SNR per echo sample) and the paper's Delta x lam grid (Fig. 6,
 eq. 5 error). Every method sees the same data; the best setting of each method is named.
 """
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..sparse.trials import TwoEchoTask, grid_sweep, summarise, sweep
+from .trials import TwoEchoTask, grid_sweep, summarise, sweep
 
 __all__ = ["two_echo", "delta_lambda", "pareto_front"]
 

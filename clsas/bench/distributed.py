@@ -61,8 +61,8 @@ def _client(distributed, scheduler, n_workers):
 
 
 def sweep_dask(client, task, methods, separations_b, snrs_db, trials: int, *, seed0: int = 0, **kwargs) -> list[dict]:
-    """:func:`clsas.sparse.trials.sweep` with one Dask task per trial; same rows, same order."""
-    from ..sparse.trials import run_trial
+    """:func:`clsas.bench.trials.sweep` with one Dask task per trial; same rows, same order."""
+    from .trials import run_trial
 
     futures = [client.submit(run_trial, task, m, sep, snr, seed0 + k, pure=False, **kwargs)
                for sep in separations_b for snr in snrs_db for k in range(trials) for m in methods]
@@ -70,8 +70,8 @@ def sweep_dask(client, task, methods, separations_b, snrs_db, trials: int, *, se
 
 
 def grid_sweep_dask(client, methods, deltas, lam_fracs) -> list[dict]:
-    """:func:`clsas.sparse.trials.grid_sweep` with one Dask task per cell; same rows, same order."""
-    from ..sparse.trials import grid_cell
+    """:func:`clsas.bench.trials.grid_sweep` with one Dask task per cell; same rows, same order."""
+    from .trials import grid_cell
 
     futures = [client.submit(grid_cell, m, d, lf, pure=False) for d in deltas for lf in lam_fracs for m in methods]
     return client.gather(futures)

@@ -221,9 +221,9 @@ def reconstruct(
 
 
 def _reconstruct_sparse(dataset, grid, method, bp, progress, options) -> Image:
-    from .sparse import superres_profiles
+    from .sparse import SPARSE_OPTIONS, superres_profiles
 
-    unknown = set(options) - {"delta_s", "lam", "lam_frac", "render_width_s"}
+    unknown = set(options) - set(SPARSE_OPTIONS)
     if unknown:
         raise ValueError(f"sparse: unknown option(s) {sorted(unknown)}")
     plan = plan_reconstruction(dataset, grid, [])

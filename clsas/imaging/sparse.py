@@ -1,12 +1,21 @@
-"""Super-resolved range profiles for imaging: each recording's echoes are found by sparse
-recovery (BPDN, CBP-Taylor or refined CBP-Polar) on the analytic transmit waveform, then
+"""Super-resolved range profiles for imaging: each recording's echoes are found by one of the
+sparse methods (:data:`clsas.sparse.SPARSE_METHODS`) on the analytic transmit waveform, then
 rendered as narrow pulses into baseband profiles that backprojection takes as it takes the
-matched filter's."""
+matched filter's.
+
+Measured recordings are not simulations: echoes straddle the gate's edges, clutter and extended
+reflectors fill it, the recorded pulse is not quite the transmitted one. So the dictionary
+reaches a guard band beyond the gate on each side (echoes there explain the energy that spills
+into the window, and are then dropped), each recording is capped at ``max_echoes`` echoes, and a
+recording the method fails on (an exception, a non-finite answer, a failed status) is imaged by
+its matched filter instead of aborting the image; both are reported per recording in its
+:class:`~clsas.sparse.Echoes` and in one summary log line each."""
 
 from __future__ import annotations
 
 import logging
 import time
+from collections import Counter
 from collections.abc import Callable
 
 import numpy as np
@@ -16,26 +25,98 @@ from ..compress import Profiles, center_frequency
 from ..dataset import Dataset
 from ..signals import analytic
 
-__all__ = ["superres_profiles"]
+__all__ = ["SPARSE_OPTIONS", "superres_profiles"]
 
 log = logging.getLogger(__name__)
 
 SPARSE_METHODS = ("bpdn", "cbp-taylor", "cbp-polar")
+# the options reconstruct(..., sparse={...}) accepts
+SPARSE_OPTIONS = ("delta_s", "lam", "lam_frac", "render_width_s", "max_echoes", "guard_s", "method_options")
 
 
-def _echoes(method, x, atom, delta, tau0, n_atoms, lam, lam_frac):
-    from ..sparse import Dictionary, Echoes, bpdn, cbp_polar_refined, cbp_taylor, lam_noise
+def _failure_kind(exc: BaseException) -> str:
+    """A short name for the summary line: ``nlopt invalid_argument``, ``FloatingPointError``..."""
+    text = str(exc)
+    if "nlopt " in text:
+        word = text.split("nlopt ", 1)[1].split()[0]
+        return f"nlopt {word}"
+    return type(exc).__name__
 
-    d = Dictionary(atom, delta, tau0, n_atoms)
-    if lam is None and lam_frac is None:
-        lam = lam_noise(d, x, "complex")
-    if method == "bpdn":
-        res = bpdn(d, x, lam, lam_frac=lam_frac, amplitudes="complex", tol=1e-4)  # ample for an image
-        on = np.abs(res.x) > 0
-        return Echoes(d.taus[on], res.x[on], "bpdn", res.status, res.iterations, res.time_s)
-    if method == "cbp-taylor":
-        return cbp_taylor(d, x, lam, lam_frac=lam_frac, amplitudes="complex")
-    return cbp_polar_refined(d, x, lam, lam_frac=lam_frac, amplitudes="complex")
+
+def _one(method, x, atom, delta, tau0, n_atoms, gate_rel, lam, lam_frac, max_echoes, options):
+    """Echoes of one recording (delays relative to its window), or a failure: (Echoes, kind)."""
+    from ..sparse import Dictionary, Echoes, sparse_echoes, succeeded
+
+    t_start = time.perf_counter()
+    try:
+        d = Dictionary(atom, delta, tau0, n_atoms)
+        e = sparse_echoes(method, d, x, lam, lam_frac=lam_frac, amplitudes="complex", max_echoes=max_echoes,
+                          **options)
+    except Exception as exc:  # noqa: BLE001 - any failure of a solver on one recording is that recording's
+        e, kind = None, _failure_kind(exc)
+        reason = f"{type(exc).__name__}: {exc}"[:200]
+    else:
+        if succeeded(e):
+            inside = (e.delays_s >= gate_rel[0]) & (e.delays_s <= gate_rel[1])
+            info = {**e.info, "outside_gate": int(np.count_nonzero(~inside))}
+            return Echoes(e.delays_s[inside], e.amplitudes[inside], e.method, e.status, e.iterations, e.time_s, info,
+                          False, e.capped), None
+        finite = np.all(np.isfinite(e.delays_s)) and np.all(np.isfinite(e.amplitudes))
+        kind = f"status {e.status}" if finite else "non-finite"
+        reason = kind
+    return Echoes([], [], method, f"fallback: {reason}", 0, time.perf_counter() - t_start,
+                  {"fallback_kind": kind}, True, False), kind
+
+
+def _check_options(method: str, method_options: dict | None) -> dict:
+    """``method_options`` checked against the method's keyword arguments (a wrong name is the
+    caller's error, raised once here, not a failure of every recording)."""
+    import inspect
+
+    from ..sparse import SPARSE_METHODS
+
+    options = dict(method_options or {})
+    params = inspect.signature(SPARSE_METHODS[method]).parameters
+    known = {k for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY} - {"max_echoes"}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise ValueError(f"method_options: {method} takes {sorted(known)}, got unknown {unknown}")
+    return options
+
+
+def _matched_row(x, atom, fc, offset, gate_rel, taus_abs) -> np.ndarray:
+    """The matched filter's baseband profile of one recording at the delays ``taus_abs`` (zero
+    outside its gate), scaled as rendered echoes: an echo of amplitude a peaks at |a|.
+
+    The analytic correlation with the atom peaks at ``a |atom|^2`` on an echo of amplitude a,
+    so it is divided by the atom's energy; it is rotated to baseband with the delay after the
+    transmit start (``offset`` + the delay in the window), as rendered echoes are.
+    """
+    os_ = 4
+    c = atom.correlate(x, os_)
+    period = len(c) / (os_ * atom.fs)
+    tau = np.arange(len(c)) / (os_ * atom.fs)
+    tau = np.where(tau >= period / 2, tau - period, tau)  # circular: the upper half is negative delays
+    order = np.argsort(tau)
+    tau, c = tau[order], c[order] * np.exp(-2j * np.pi * fc * (tau[order] + offset)) / atom.norm**2
+    rel = taus_abs - offset
+    out = np.interp(rel, tau, c.real) + 1j * np.interp(rel, tau, c.imag)
+    return np.where((rel >= gate_rel[0]) & (rel <= gate_rel[1]), out, 0.0)
+
+
+def _summarise(method, echoes, n_meas, t_total):
+    found = sum(len(e) for e in echoes)
+    log.info("%s: %d echoes in %d recordings, %.2f s", method, found, n_meas, t_total)
+    kinds = Counter(e.info.get("fallback_kind", "?") for e in echoes if e.fallback)
+    if kinds:
+        why = ", ".join(f"{k} x{n}" for k, n in kinds.most_common())
+        log.warning("%s: %d of %d recordings fell back to the matched filter (%s)", method, sum(kinds.values()),
+                    n_meas, why)
+    capped = [e for e in echoes if e.capped]
+    if capped:
+        caps = sorted({e.info.get("max_echoes", len(e)) for e in capped})
+        log.warning("%s: the echo cap (max_echoes=%s) was hit in %d of %d recordings; the strongest echoes were "
+                    "kept", method, "/".join(str(c) for c in caps), len(capped), n_meas)
 
 
 def superres_profiles(
@@ -47,6 +128,9 @@ def superres_profiles(
     lam: float | None = None,
     lam_frac: float | None = None,
     render_width_s: float | None = None,
+    max_echoes: int | None = None,
+    guard_s: float | None = None,
+    method_options: dict | None = None,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Profiles, list]:
     """Super-resolve every recording of ``dataset`` within its delay gate.
@@ -56,32 +140,56 @@ def superres_profiles(
     gates_s : (n_meas, 2) array
         Delays after the transmit start to search, per measurement, s.
     method : {"bpdn", "cbp-taylor", "cbp-polar"}
-        Complex amplitudes (echoes have unknown phase): BPDN on the grid; CBP-Taylor in its
-        complex form (``|c_i|, |d_i| <= t_i``); CBP-Polar refined by nlopt.
+        Complex amplitudes (echoes have unknown phase): BPDN on the grid, one echo per run
+        of neighbouring atoms; CBP-Taylor in its complex form (``|c_i|, |d_i| <= t_i``);
+        CBP-Polar refined by nlopt.
     delta_s : float, optional
         Dictionary spacing; default one sample.
     lam, lam_frac : float, optional
         Absolute lam or a fraction of lam_max; default the noise level of each recording
         (:func:`clsas.sparse.lam_noise`).
     render_width_s : float, optional
-        Each echo becomes a Gaussian pulse of this standard deviation in the profile (default
-        0.05 / B, B the waveform's -20 dB bandwidth); the profile step is a quarter of it.
+        Each echo becomes a Gaussian pulse of this standard deviation and peak ``|a|`` in the
+        profile (default 0.05 / B, B the waveform's -20 dB bandwidth); the profile step is a
+        quarter of it.
+    max_echoes : int, optional
+        Echoes per recording at most (guard band included); default two per pulse length
+        over the dictionary's span (:func:`clsas.sparse.default_max_echoes`). Where a
+        recording has more, the strongest are kept and ``Echoes.capped`` is set.
+    guard_s : float, optional
+        The dictionary reaches this far beyond each end of the gate, so that echoes
+        straddling the gate's edges are explained (and then dropped) instead of being
+        mistaken for echoes inside it; default the waveform's length.
+    method_options : dict, optional
+        Passed to the method (see :func:`clsas.sparse.sparse_echoes`).
 
     Returns
     -------
     (Profiles, list of Echoes)
         The rendered profiles (baseband at the waveform's centre frequency, all rows on one
-        delay grid) and the echoes of each measurement (delays after the transmit start).
+        delay grid) and the echoes of each measurement (delays after the transmit start,
+        inside its gate). A recording the method failed on has ``fallback=True``, its
+        reason in ``status``, no echoes, and its matched-filter profile in the rows.
     """
-    from ..sparse import Atom
+    from ..sparse import Atom, Echoes
 
     v.choice("method", method, SPARSE_METHODS)
     fs = dataset.fs_hz
     wave = dataset.waveform
-    gates = v.array("gates_s", gates_s, shape=(dataset.n_meas, 2))
+    n = dataset.n_meas
+    gates = v.array("gates_s", gates_s, shape=(n, 2))
     if np.any(gates[:, 1] < gates[:, 0]):
         raise ValueError("gates_s rows must be (min, max) with min <= max")
     delta = 1.0 / fs if delta_s is None else v.positive("delta_s", delta_s)
+    guard = len(wave) / fs if guard_s is None else v.non_negative("guard_s", guard_s)
+    if max_echoes is not None:
+        max_echoes = v.positive_int("max_echoes", max_echoes)
+    if lam is not None and lam_frac is not None:
+        raise ValueError("give at most one of lam (absolute) and lam_frac (a fraction of lam_max)")
+    for name, value in (("lam", lam), ("lam_frac", lam_frac)):
+        if value is not None:
+            v.non_negative(name, value)
+    options = _check_options(method, method_options)
     fc = center_frequency(wave, fs)
     if render_width_s is None:
         spec = np.abs(np.fft.rfft(wave, 8 * len(wave)))
@@ -89,48 +197,48 @@ def superres_profiles(
         band = f[spec >= 0.1 * spec.max()]
         render_width_s = 0.05 / max(band.max() - band.min(), fs / len(wave))
     width = v.positive("render_width_s", render_width_s)
-    t0 = np.zeros(dataset.n_meas) if dataset.t0_s is None else np.asarray(dataset.t0_s, float)
+    t0 = np.zeros(n) if dataset.t0_s is None else np.broadcast_to(np.asarray(dataset.t0_s, float), (n,))
     n_wave = len(wave)
+    # the common delay grid of the rendered profiles: every gate, and room for a pulse's tails
+    dtau = width / 4
+    lo, hi = float(gates[:, 0].min()) - 4 * width, float(gates[:, 1].max()) + 4 * width
+    n_lags = int(np.ceil((hi - lo) / dtau)) + 1
+    grid = lo + dtau * np.arange(n_lags)
+    data = np.zeros((n, n_lags), np.complex128)
     echoes = []
     t_start = time.perf_counter()
-    for m in range(dataset.n_meas):
+    for m in range(n):
         # the samples that echoes from the gate can reach, and the delays (from that first sample)
         s_lo = max(0, int(np.floor((gates[m, 0] - t0[m]) * fs)) - 2)
         s_hi = min(dataset.n_samples, int(np.ceil((gates[m, 1] - t0[m]) * fs)) + n_wave + 2)
         if s_hi - s_lo < 2:
-            echoes.append(None)
+            echoes.append(Echoes([], [], method, "empty window: the gate lies outside the recording",
+                                 info={"gate_s": (float(gates[m, 0]), float(gates[m, 1]))}))
             continue
         x = analytic(np.asarray(dataset.signals[m, s_lo:s_hi], float))
         atom = Atom(wave, fs, s_hi - s_lo, complex=True)
-        tau0 = gates[m, 0] - t0[m] - s_lo / fs
-        n_atoms = max(2, int(np.ceil((gates[m, 1] - gates[m, 0]) / delta)) + 1)
-        e = _echoes(method, x, atom, delta, tau0, n_atoms, lam, lam_frac)
-        e.delays_s = e.delays_s + t0[m] + s_lo / fs  # after the transmit start
+        offset = t0[m] + s_lo / fs  # delay after the transmit start of the window's first sample
+        gate_rel = (gates[m, 0] - offset, gates[m, 1] - offset)
+        tau0 = gate_rel[0] - guard
+        n_atoms = max(2, int(np.ceil((gate_rel[1] + guard - tau0) / delta)) + 1)
+        e, failed = _one(method, x, atom, delta, tau0, n_atoms, gate_rel, lam, lam_frac, max_echoes, options)
+        if failed is not None:
+            data[m] = _matched_row(x, atom, fc, offset, gate_rel, grid)
+        e.delays_s = e.delays_s + offset  # after the transmit start
+        e.info["gate_s"] = (float(gates[m, 0]), float(gates[m, 1]))
         echoes.append(e)
         if progress is not None:
-            progress(m + 1, dataset.n_meas)
-    found = [e for e in echoes if e is not None]
-    log.info("%s: %d echoes in %d recordings, %.2f s", method, sum(len(e) for e in found), dataset.n_meas,
-             time.perf_counter() - t_start)
-    # render: one common delay grid spanning every gate, a Gaussian of sigma = width per echo
-    dtau = width / 4
-    lo, hi = float(gates[:, 0].min()) - 4 * width, float(gates[:, 1].max()) + 4 * width
-    n_lags = int(np.ceil((hi - lo) / dtau)) + 1
-    data = np.zeros((dataset.n_meas, n_lags), np.complex128)
+            progress(m + 1, n)
+    _summarise(method, echoes, n, time.perf_counter() - t_start)
+    # render: a Gaussian of sigma = width per echo
     reach = int(np.ceil(5 * width / dtau))
     for m, e in enumerate(echoes):
-        for tau, a in zip(e.delays_s if e is not None else [], e.amplitudes if e is not None else [], strict=True):
+        for tau, a in zip(e.delays_s, e.amplitudes, strict=True):
             k0 = int(round((tau - lo) / dtau))
             ks = np.arange(max(0, k0 - reach), min(n_lags, k0 + reach + 1))
-            g = np.exp(-0.5 * ((lo + ks * dtau - tau) / width) ** 2)
+            g = np.exp(-0.5 * ((grid[ks] - tau) / width) ** 2)
             data[m, ks] += a * np.exp(-2j * np.pi * fc * tau) * g
-    prof = Profiles(data, np.full(dataset.n_meas, lo), dtau, fc, method, "numpy",
+    prof = Profiles(data, np.full(n, lo), dtau, fc, method, "numpy",
                     tx_positions=dataset.tx_positions, rx_positions=dataset.rx_positions, c_mps=dataset.c_mps,
                     timings_s={"superres": time.perf_counter() - t_start})
-    return prof, [e if e is not None else _empty() for e in echoes]
-
-
-def _empty():
-    from ..sparse import Echoes
-
-    return Echoes([], [])
+    return prof, echoes

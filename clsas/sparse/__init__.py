@@ -1,12 +1,16 @@
-"""Sparse super-resolution of range profiles: dictionaries, BPDN, CBP-Taylor, CBP-Polar, metrics."""
+"""Sparse super-resolution of range profiles: dictionaries, BPDN, CBP-Taylor, CBP-Polar, metrics,
+and one registry of the methods (:data:`SPARSE_METHODS`), all returning :class:`Echoes`."""
 
-from .atoms import Atom, Dictionary, PolarTriple, coherence, decaying_exponential
-from .bpdn import BpdnResult, ShiftOperator, bpdn, bpdn_cvxpy, lam_max, lam_noise, noise_sigma
-from .cbp import cbp_polar, cbp_polar_refined, cbp_taylor, superres
+from .atoms import Atom, Dictionary, PolarTriple, coherence, decaying_exponential, default_max_echoes, pulse_length_s
+from .bpdn import BpdnResult, ShiftOperator, bpdn, bpdn_cvxpy, group_atoms, lam_max, lam_noise, noise_sigma
+from .cbp import cbp_polar, cbp_taylor
 from .metrics import DelayError, Echoes, crb_delays, delay_error
+from .refined import cbp_polar_refined
+from .registry import SPARSE_METHODS, cap_echoes, sparse_echoes, succeeded, superres
 
 __all__ = [
-    "Atom", "BpdnResult", "DelayError", "Dictionary", "Echoes", "PolarTriple", "ShiftOperator", "bpdn",
-    "bpdn_cvxpy", "cbp_polar", "cbp_polar_refined", "cbp_taylor", "coherence", "crb_delays",
-    "decaying_exponential", "delay_error", "lam_max", "lam_noise", "noise_sigma", "superres",
+    "Atom", "BpdnResult", "DelayError", "Dictionary", "Echoes", "PolarTriple", "SPARSE_METHODS", "ShiftOperator",
+    "bpdn", "bpdn_cvxpy", "cap_echoes", "cbp_polar", "cbp_polar_refined", "cbp_taylor", "coherence", "crb_delays",
+    "decaying_exponential", "default_max_echoes", "delay_error", "group_atoms", "lam_max", "lam_noise",
+    "noise_sigma", "pulse_length_s", "sparse_echoes", "succeeded", "superres",
 ]

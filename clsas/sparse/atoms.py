@@ -16,7 +16,8 @@ import numpy as np
 
 from .. import _validate as v
 
-__all__ = ["Atom", "Dictionary", "decaying_exponential", "coherence", "PolarTriple"]
+__all__ = ["Atom", "Dictionary", "decaying_exponential", "coherence", "PolarTriple", "pulse_length_s",
+           "default_max_echoes"]
 
 
 def decaying_exponential(alpha: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -162,29 +163,34 @@ class Atom:
 
         t_n is a whole number of table steps, so the fractional position (and with it the four
         Hermite weights) is one per column; the tables are stored polyphase, (derivative, phase,
-        sample), so each column is a small contraction of a contiguous slice."""
+        sample), so each column reads a contiguous run of one phase, gathered for all columns at once."""
         poly = self._tables()
         L, m, n = self._OVERSAMPLE, self._m, self.n
         h = 1.0 / (self.fs * L)
         taus = np.atleast_1d(np.asarray(taus, float))
-        f = np.empty((n, len(taus)), poly.dtype) if want_f else None
-        df = np.empty((n, len(taus)), poly.dtype) if want_df else None
-        for k, tau in enumerate(taus):
-            pos = -tau / h
-            j0 = int(np.floor(pos))
-            u = pos - j0
-            u2, u3 = u * u, u * u * u
-            w = np.array([[2 * u3 - 3 * u2 + 1, -2 * u3 + 3 * u2], [h * (u3 - 2 * u2 + u), h * (u3 - u2)]])
-            q, r = divmod(j0, L)
-            q %= m
-            # rows (phase r at sample q + i) and (phase r + 1, i.e. the next table point)
-            blk = poly[:, :, q : q + n + 1]  # (3, L, n + 1); n < m, so no wrap in the doubled table
-            a = blk[:, r, :n]
-            b = blk[:, r + 1, :n] if r + 1 < L else blk[:, 0, 1 : n + 1]
-            if want_f:
-                f[:, k] = w[0, 0] * a[0] + w[0, 1] * b[0] + w[1, 0] * a[1] + w[1, 1] * b[1]
-            if want_df:
-                df[:, k] = w[0, 0] * a[1] + w[0, 1] * b[1] + w[1, 0] * a[2] + w[1, 1] * b[2]
+        pos = -taus / h
+        j0 = np.floor(pos)
+        u = (pos - j0)[:, None]
+        u2, u3 = u * u, u * u * u
+        w00, w01 = 2 * u3 - 3 * u2 + 1, -2 * u3 + 3 * u2
+        w10, w11 = h * (u3 - 2 * u2 + u), h * (u3 - u2)
+        q, r = np.divmod(j0.astype(np.int64), L)
+        q %= m
+        # rows (phase r at sample q + i) and (phase r + 1, i.e. the next table point); n < m and the
+        # table holds two periods, so no index wraps
+        idx = q[:, None] + np.arange(n)[None, :]  # (K, n)
+        r_next = (r + 1) % L
+        idx_next = idx + (r + 1 == L)[:, None]
+        d_lo, d_hi = (0 if want_f else 1), (1 if not want_df else 2)
+        a = poly[d_lo:d_hi + 1][:, r[:, None], idx]  # (d, K, n)
+        b = poly[d_lo:d_hi + 1][:, r_next[:, None], idx_next]
+
+        def comb(d):  # the Hermite interpolant of derivative d (d and d + 1 in the tables)
+            i = d - d_lo
+            return (w00 * a[i] + w01 * b[i] + w10 * a[i + 1] + w11 * b[i + 1]).T
+
+        f = comb(0) if want_f else None
+        df = comb(1) if want_df else None
         return f, df
 
 
@@ -270,3 +276,19 @@ def coherence(dictionary) -> float:
     G = np.abs(Dn.conj().T @ Dn)
     np.fill_diagonal(G, 0.0)
     return float(G.max())
+
+
+def pulse_length_s(atom: Atom) -> float:
+    """The time the atom's energy takes: the fewest samples holding 99 % of it, over fs (cached), s."""
+    if getattr(atom, "_pulse_length", None) is None:
+        e = np.sort(np.abs(atom.matrix([0.0])[:, 0]) ** 2)[::-1]
+        atom._pulse_length = float(np.searchsorted(np.cumsum(e), 0.99 * e.sum()) + 1) / atom.fs
+    return atom._pulse_length
+
+
+def default_max_echoes(dictionary: Dictionary) -> int:
+    """The echo cap of one signal: two echoes per pulse length over the dictionary's span of
+    delays, at least 8 and at most 32 (a recording's cost grows with it, and clutter or an
+    extended target would otherwise add echoes without end)."""
+    span = dictionary.taus[-1] - dictionary.taus[0]
+    return int(np.clip(np.ceil(2 * span / pulse_length_s(dictionary.atom)), 8, 32))

@@ -15,7 +15,14 @@ __all__ = ["Echoes", "DelayError", "delay_error", "crb_delays"]
 
 @dataclass
 class Echoes:
-    """Echoes found in one signal: delays (s) and amplitudes (real or complex), plus how."""
+    """Echoes found in one signal: delays (s) and amplitudes (real or complex), plus how.
+
+    ``status`` says how the solver ended (``"optimal"``, ``"roundoff (best point kept)"``, ...;
+    ``"fallback: <reason>"`` where the method failed on this signal). ``fallback`` is True where
+    the sparse method failed and the recording was imaged by its matched filter instead (then
+    there are no echoes). ``capped`` is True where the method had more echoes than its
+    ``max_echoes`` and kept the strongest.
+    """
 
     delays_s: np.ndarray
     amplitudes: np.ndarray
@@ -24,6 +31,8 @@ class Echoes:
     iterations: int = 0
     time_s: float = 0.0
     info: dict = field(default_factory=dict)
+    fallback: bool = False
+    capped: bool = False
 
     def __post_init__(self):
         self.delays_s = np.atleast_1d(np.asarray(self.delays_s, float))

@@ -1,0 +1,347 @@
+"""CBP-Polar refined: BPDN finds the support, then nlopt moves each echo continuously while the
+amplitudes are refit (variable projection), splitting, merging and pruning echoes by the
+Bayesian information criterion. Every delay it tries stays inside the bounds it is given (the
+recording's gate), however the data look."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import time
+
+import numpy as np
+
+from .. import _validate as v
+from .atoms import Dictionary, default_max_echoes, pulse_length_s
+from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_noise
+from .metrics import Echoes
+
+__all__ = ["cbp_polar_refined"]
+
+log = logging.getLogger(__name__)
+
+_W_MIN = 1e-9  # lower bound of a slack fraction: 0 would let every weight vanish at once
+_NLOPT_STATUS = {1: "optimal", 2: "optimal", 3: "optimal", 4: "optimal", 5: "max_eval (best point kept)",
+                 6: "max_time (best point kept)"}
+
+
+def _amplitudes(A, b, mode):
+    if mode == "positive":
+        import scipy.optimize
+
+        return scipy.optimize.nnls(A, b)[0]
+    import scipy.linalg
+
+    AH = A.conj().T
+    G = AH @ A
+    try:  # the normal equations: K x K, much cheaper than an SVD of A, while well conditioned
+        c, lower = scipy.linalg.cho_factor(G, check_finite=False)
+        d = np.abs(np.diag(c))
+        if d.min() ** 2 > 1e-10 * d.max() ** 2:
+            return scipy.linalg.cho_solve((c, lower), AH @ b, check_finite=False)
+    except np.linalg.LinAlgError:
+        pass
+    return np.linalg.lstsq(A, b, rcond=None)[0]
+
+
+def _feasible(taus, lo: float, hi: float, min_gap: float) -> tuple[np.ndarray, float]:
+    """Sorted delays moved into ``[lo, hi]`` with neighbours at least ``min_gap`` apart.
+
+    Returns the compressed delays ``z_j = tau_j - j min_gap`` (non-decreasing, within
+    ``[lo, lo + free]``) and the free length ``free = hi - lo - (k - 1) min_gap``. Where more
+    echoes are asked for than fit (``k min_gap`` beyond the gate), the later echo of the
+    closest pair is dropped until they fit: fewer echoes, never a failure.
+    """
+    taus = np.asarray(taus, float)
+    taus = np.sort(np.clip(taus[np.isfinite(taus)], lo, hi))
+    k_max = int(np.floor((hi - lo) / min_gap + 1e-9)) + 1 if min_gap > 0 else len(taus)
+    while len(taus) > k_max:
+        j = int(np.argmin(np.diff(taus)))
+        taus = np.delete(taus, j + 1)
+    k = len(taus)
+    free = max(hi - lo - (k - 1) * min_gap, 0.0)
+    z = np.maximum.accumulate(np.clip(taus - min_gap * np.arange(k), lo, lo + free))
+    return z, free
+
+
+class _VarPro:
+    """RSS(taus) = |b - A(taus) a*(taus)|^2 with a* the best amplitudes, and its gradient."""
+
+    def __init__(self, atom, b, mode):
+        self.atom, self.b, self.mode = atom, b, mode
+        self.evals = 0
+
+    def __call__(self, taus, grad=None):
+        self.evals += 1
+        want_grad = grad is not None and grad.size
+        if self.atom.sampled is not None:
+            A, df = self.atom._hermite_both(taus, True, want_grad)
+            dA = -df if want_grad else None  # d/dtau f(t - tau) = -f'(t - tau)
+        else:
+            A, dA = self.atom.matrix(taus), (self.atom.dmatrix(taus) if want_grad else None)
+        a = _amplitudes(A, self.b, self.mode)
+        r = self.b - A @ a
+        if want_grad:
+            grad[:] = -2 * np.real(np.conj(a) * (dA.conj().T @ r))
+        return float(np.vdot(r, r).real)
+
+    def _result(self, taus, status):
+        if not len(taus):
+            return taus, np.zeros(0), float(np.vdot(self.b, self.b).real), status
+        A = self.atom.matrix(taus, fast=True)
+        a = _amplitudes(A, self.b, self.mode)
+        r = self.b - A @ a
+        return taus, a, float(np.vdot(r, r).real), status
+
+    def fit(self, taus0, lo: float, hi: float, min_gap: float = 0.0, max_eval: int = 300):
+        """Sorted delays in ``[lo, hi]``, neighbours at least ``min_gap`` apart, minimising the
+        RSS from ``taus0`` (moved into those bounds first). Returns (taus, amplitudes, rss, status).
+
+        Parametrisation: the k echoes split the free length ``hi - lo - (k - 1) min_gap`` into
+        k + 1 slacks (before the first echo, between neighbours beyond the minimum gap, after
+        the last), written as normalised weights ``w_i / sum(w)``, each weight in
+        ``[1e-9, 1]``. A box in w is exactly the set of sorted delays in the gate with the
+        minimum gaps, so L-BFGS (fast here, with its box bounds) cannot leave the gate or
+        collapse two echoes into the degenerate atom-plus-derivative limit, and every
+        evaluation is of a feasible point. Bounding the first delay and each gap instead does
+        not bound their sum (delays left the gate and the next start point fell outside
+        nlopt's bounds); SLSQP or MMA take the linear constraints but only approximately at
+        the intermediate points, and cost more per step. A roundoff stop or a stalled line
+        search keeps the best point; nlopt failing before any finite point raises RuntimeError.
+        """
+        import nlopt
+
+        z0, free = _feasible(taus0, lo, hi, min_gap)
+        k = len(z0)
+        offsets = lo + min_gap * np.arange(k)
+        if k == 0 or free <= 1e-6 / self.atom.fs:
+            return self._result(np.clip(offsets + (z0 - lo), lo, hi), "optimal")
+        w0 = np.clip(np.diff(np.r_[lo, z0, lo + free]) / free, _W_MIN, 1.0)
+
+        def taus_of(w):
+            return offsets + free * np.cumsum(w[:k]) / w.sum()
+
+        best = {"f": np.inf, "x": w0.copy()}
+
+        def obj(w, grad):
+            g = np.empty(k) if grad.size else None
+            taus = taus_of(w)
+            f = self(taus, g)
+            if grad.size:
+                s = w.sum()
+                tail = np.r_[np.cumsum(g[::-1])[::-1], 0.0]  # sum of g_j over echoes j >= i
+                grad[:] = free / s * tail - free * float(g @ np.cumsum(w[:k])) / s**2
+            if np.isfinite(f) and f < best["f"]:
+                best["f"], best["x"] = f, w.copy()
+            return f
+
+        opt = nlopt.opt(nlopt.LD_LBFGS, k + 1)
+        opt.set_lower_bounds(np.full(k + 1, _W_MIN))
+        opt.set_upper_bounds(np.ones(k + 1))
+        opt.set_min_objective(obj)
+        opt.set_xtol_abs(1e-4 / (self.atom.fs * free))
+        opt.set_ftol_rel(1e-12)
+        opt.set_maxeval(max_eval)
+        try:
+            opt.optimize(w0)
+            status = _NLOPT_STATUS.get(opt.last_optimize_result(), f"nlopt result {opt.last_optimize_result()}")
+        except nlopt.RoundoffLimited:
+            status = "roundoff (best point kept)"
+        except Exception as exc:  # noqa: BLE001 - nlopt raises its own runtime_error and invalid_argument types
+            name = _nlopt_name(exc)
+            if not np.isfinite(best["f"]):
+                raise RuntimeError(f"cbp-polar: nlopt {name} before any finite point") from exc
+            # L-BFGS's generic failure is its line search finding no descent, typically at a
+            # minimum already (a start on the optimum); any other error is reported as such
+            status = "stalled (best point kept)" if name == "runtime_error" else f"nlopt {name} (best point kept)"
+        return self._result(np.clip(taus_of(best["x"]), lo, hi), status)
+
+
+def _nlopt_name(exc: BaseException) -> str:
+    """``invalid_argument``, ``runtime_error``...: the C++ exception's name where nlopt says it."""
+    name = type(exc).__name__
+    text = repr(exc)
+    for cxx in ("invalid_argument", "runtime_error", "bad_alloc", "forced_stop", "roundoff_limited"):
+        if cxx in text:
+            return cxx
+    return name
+
+
+def _mainlobe_s(atom) -> float:
+    """Half-power half-width of the atom's autocorrelation |<f(t), f(t - s)>|, s (cached)."""
+    if getattr(atom, "_mainlobe", None) is None:
+        step = 1.0 / (8 * atom.fs)
+        f0 = atom.matrix([0.0])[:, 0]
+        e0 = float(np.vdot(f0, f0).real)
+        width = atom.n / atom.fs
+        for start in range(1, 8 * atom.n, 64):
+            shifts = step * np.arange(start, start + 64)
+            acf = np.abs(atom.matrix(shifts).conj().T @ f0)
+            below = np.flatnonzero(acf < 0.5 * e0)
+            if below.size:
+                width = float(shifts[below[0]])
+                break
+        atom._mainlobe = width
+    return atom._mainlobe
+
+
+def _best_pair(atom, r, centre, half, mode, n_grid=24):
+    """The two delays within centre +- half that best explain r by least squares: an exhaustive
+    search on a grid of step half / n_grid, in closed form from the grid's Gram matrix."""
+    grid = centre + half * np.arange(-n_grid, n_grid + 1) / n_grid
+    F = atom.matrix(grid, fast=True)
+    G = F.conj().T @ F
+    c = F.conj().T @ r
+    if mode != "complex":
+        G, c = G.real, c.real
+    g = np.real(np.diag(G))
+    det = g[:, None] * g[None, :] - np.abs(G) ** 2
+    num = (g[None, :] * np.abs(c[:, None]) ** 2 + g[:, None] * np.abs(c[None, :]) ** 2
+           - 2 * np.real(np.conj(c[:, None]) * G * c[None, :]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gain = np.where(det > 1e-9 * np.outer(g, g), num / det, -np.inf)
+    gain = np.triu(gain, 1) + np.tril(np.full_like(gain, -np.inf))
+    i, j = np.unravel_index(int(np.argmax(gain)), gain.shape)
+    return float(grid[i]), float(grid[j])
+
+
+def _bounds(dictionary, bounds_s):
+    if bounds_s is None:
+        return float(dictionary.taus[0]), float(dictionary.taus[-1])
+    lo, hi = (v.finite("bounds_s", x) for x in bounds_s)
+    if hi < lo:
+        raise ValueError(f"bounds_s must be (min, max) with min <= max, got {tuple(bounds_s)}")
+    return lo, hi
+
+
+def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes="complex",
+                      max_echoes: int | None = None, rel_threshold: float = 0.02,
+                      bounds_s: tuple[float, float] | None = None) -> Echoes:
+    """CBP-Polar refined by nlopt, seeded by BPDN; any amplitude model.
+
+    1. BPDN on the grid (lam: given, else :func:`lam_noise`); each run of neighbouring
+       active atoms seeds one echo, the ``max_echoes`` strongest runs.
+    2. Variable projection: nlopt (L-BFGS, analytic gradient) moves the delays continuously
+       within ``bounds_s`` (default the dictionary's span), the amplitudes are the
+       least-squares (or NNLS) fit for the delays.
+    3. Model order by BIC, n log(RSS / n) + p K log n_e (p = 2 real, 3 complex parameters per
+       echo; n_e the real samples one pulse covers, 99 % of its energy): the three echoes
+       whose pulses leave the most residual energy are tried split in two about themselves
+       (exhaustive pair search), and one echo is tried added where the residual correlates
+       most with an atom, up to ``max_echoes``; then each echo is tried removed (the
+       three that cost the least with only the amplitudes refit are refit in full); echoes
+       below ``rel_threshold`` of the largest are pruned.
+       Neighbouring delays stay at least 1/16 of the matched filter's half-power half-width
+       apart; a trial fit that fails is skipped.
+
+    ``max_echoes`` defaults to :func:`clsas.sparse.atoms.default_max_echoes` (two per pulse
+    length over the span); ``capped`` on the result says that the seeds were more than it or
+    the forward search (splits and additions) reached it.
+    """
+    t_start = time.perf_counter()
+    b = _check(dictionary, b, amplitudes)
+    atom = dictionary.atom
+    max_echoes = default_max_echoes(dictionary) if max_echoes is None else v.positive_int("max_echoes", max_echoes)
+    t_lo, t_hi = _bounds(dictionary, bounds_s)
+    if lam is None and lam_frac is None:
+        lam = lam_noise(dictionary, b, amplitudes)
+    # the seed only needs the support: a loose gap is enough
+    seed = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=1e-3, max_inner=5000)
+    half = _mainlobe_s(atom)
+    delays, _, weight = group_atoms(dictionary, seed.x, rel_threshold=rel_threshold)
+    capped = len(delays) > max_echoes
+    taus0 = np.sort(delays[np.argsort(weight)[::-1][:max_echoes]])
+    info = {"lam": seed.lam, "seed_echoes": len(delays), "bpdn_time_s": seed.time_s, "max_echoes": max_echoes,
+            "bounds_s": (t_lo, t_hi)}
+    if not len(taus0):
+        return Echoes([], [], "cbp-polar", "optimal", 0, time.perf_counter() - t_start, info)
+    n_real = atom.n * (2 if amplitudes == "complex" else 1)
+    p = 3 if amplitudes == "complex" else 2
+    # an echo's parameters are informed by the samples its pulse covers, not the whole window
+    n_eff = int(round(pulse_length_s(atom) * atom.fs))
+    penalty = p * np.log(n_eff * (2 if amplitudes == "complex" else 1))
+    vp = _VarPro(atom, b, amplitudes)
+    min_gap = half / 16
+
+    def bic(rss, k):
+        return n_real * np.log(max(rss, 1e-300) / n_real) + penalty * k
+
+    def fit(taus):
+        return vp.fit(taus, t_lo, t_hi, min_gap)
+
+    def rss_at(taus):  # the amplitudes refit, the delays kept
+        A = atom.matrix(np.clip(np.sort(taus), t_lo, t_hi), fast=True)
+        r = b - A @ _amplitudes(A, b, amplitudes)
+        return float(np.vdot(r, r).real)
+
+    def best_of(trials, score, n_try=3):
+        """The trial with the lowest BIC below ``score``, or None. The trials are ranked by
+        their BIC with only the amplitudes refit; the ``n_try`` best are fitted in full (each
+        full fit costs ~100 RSS evaluations); failed fits are skipped."""
+        trials = list(trials)
+        approx = [bic(rss_at(t), len(t)) for t in trials]
+        best = None
+        for i in np.argsort(approx, kind="stable")[:n_try]:
+            trial = trials[i]
+            try:
+                t2, a2, rss2, st2 = fit(trial)
+            except RuntimeError as exc:
+                log.debug("cbp-polar: a trial fit failed (%s)", exc)
+                continue
+            s2 = bic(rss2, len(t2))
+            if s2 < score - 1e-9 and (best is None or s2 < best[0]):
+                best = (s2, t2, a2, rss2, st2)
+        return best
+
+    pulse_n = max(1, n_eff)
+
+    def splits(taus, a, n_try=3):
+        """Each echo split in two, for the ``n_try`` echoes whose pulses leave the most residual
+        energy (the others' splits would rarely win, and each costs a pair search)."""
+        A = atom.matrix(taus, fast=True)
+        resid = np.abs(b - A @ a) ** 2
+        start = np.clip(np.round(taus * atom.fs).astype(int), 0, atom.n - 1)
+        csum = np.r_[0.0, np.cumsum(resid)]
+        local = csum[np.minimum(start + pulse_n, atom.n)] - csum[start]
+        for k in np.sort(np.argsort(local, kind="stable")[::-1][:n_try]):
+            # split echo k: the best pair (exhaustive search) for what the others leave over
+            others = np.delete(np.arange(len(taus)), k)
+            r = b - A[:, others] @ a[others] if others.size else b
+            yield np.r_[taus[others], _best_pair(atom, r, taus[k], half, amplitudes)]
+
+    op = ShiftOperator(dictionary)
+    in_bounds = (dictionary.taus >= t_lo) & (dictionary.taus <= t_hi)
+
+    def additions(taus, a):
+        """One more echo where the residual correlates most with an atom (an echo the seeds
+        missed, away from every echo found, which no split reaches)."""
+        g = op.adjoint(b - atom.matrix(taus, fast=True) @ a)
+        score_g = np.where(in_bounds, g.real if amplitudes == "positive" else np.abs(g), -np.inf)
+        cand = dictionary.taus[int(np.argmax(score_g))]
+        if np.isfinite(score_g.max()) and np.min(np.abs(taus - cand)) > half:
+            yield np.r_[taus, cand]
+
+    taus, a, rss, status = fit(taus0)
+    score = bic(rss, len(taus))
+    while len(taus) < max_echoes:
+        best = best_of(itertools.chain(splits(taus, a), additions(taus, a)), score)
+        if best is None:
+            break
+        score, taus, a, rss, status = best
+        capped = capped or len(taus) >= max_echoes
+    # backward: drop the echo whose removal improves the BIC most, while one does
+    while len(taus) > 1:
+        best = best_of((np.delete(taus, k) for k in range(len(taus))), score)
+        if best is None:
+            break
+        score, taus, a, rss, status = best
+    # prune the negligible, refit
+    while len(taus) > 1:
+        small = np.flatnonzero(np.abs(a) < rel_threshold * np.abs(a).max())
+        if not small.size:
+            break
+        taus, a, rss, status = fit(np.delete(taus, small[0]))
+    if not (np.all(np.isfinite(taus)) and np.all(np.isfinite(a))):
+        raise FloatingPointError("cbp-polar: non-finite result")
+    info.update(rss=rss, bic=bic(rss, len(taus)), evaluations=vp.evals)
+    return Echoes(taus, a, "cbp-polar", status, vp.evals, time.perf_counter() - t_start, info, capped=capped)

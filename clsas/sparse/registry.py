@@ -1,0 +1,179 @@
+"""One registry of the sparse methods. Each entry takes a dictionary and a signal and returns
+:class:`Echoes`, capped at ``max_echoes`` (reported in ``Echoes.capped``); BPDN's grid answer is
+read as one echo per run of neighbouring atoms everywhere (``superres``, imaging, benchmarks).
+
+Signature of an entry::
+
+    method(dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None, **options) -> Echoes
+
+``lam`` absolute or ``lam_frac`` of lam_max (exactly one is given; :func:`sparse_echoes` fills
+in :func:`lam_noise` when neither is). ``max_echoes=None`` is
+:func:`clsas.sparse.atoms.default_max_echoes` (two per pulse length over the dictionary's span).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from .. import _validate as v
+from .atoms import Dictionary, default_max_echoes
+from .bpdn import bpdn, group_atoms, lam_noise
+from .cbp import cbp_polar, cbp_taylor
+from .metrics import Echoes
+from .refined import _mainlobe_s, cbp_polar_refined
+
+__all__ = ["SPARSE_METHODS", "cap_echoes", "sparse_echoes", "succeeded", "superres"]
+
+SparseMethod = Callable[..., Echoes]
+
+# statuses of a usable answer: converged, or stopped with the best point kept (max_iter: BPDN's
+# gap not yet certified); anything else (a solver's "infeasible", an nlopt error) is not
+_SUCCESS = ("optimal", "roundoff", "stalled", "max_eval", "max_time", "max_iter")
+
+
+def _cap(max_echoes, dictionary) -> int:
+    return default_max_echoes(dictionary) if max_echoes is None else v.positive_int("max_echoes", max_echoes)
+
+
+def cap_echoes(echoes: Echoes, max_echoes: int, weights: np.ndarray | None = None) -> Echoes:
+    """Keep the ``max_echoes`` strongest echoes (by ``weights``, default ``|amplitude|``); sets
+    ``capped`` where some were dropped (``info["echoes_before_cap"]`` says how many there were)."""
+    max_echoes = v.positive_int("max_echoes", max_echoes)
+    if len(echoes) <= max_echoes:
+        return echoes
+    w = np.abs(echoes.amplitudes) if weights is None else np.asarray(weights, float)
+    keep = np.sort(np.argsort(w, kind="stable")[::-1][:max_echoes])
+    info = {**echoes.info, "echoes_before_cap": len(echoes), "max_echoes": max_echoes}
+    return Echoes(echoes.delays_s[keep], echoes.amplitudes[keep], echoes.method, echoes.status, echoes.iterations,
+                  echoes.time_s, info, echoes.fallback, True)
+
+
+def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None, tol: float = 1e-4,
+          max_inner: int = 5000, group: bool = True, rel_threshold: float = 0.0,
+          max_run: int | None = None) -> Echoes:
+    """BPDN on the grid (duality gap ``tol`` of the objective: 1e-4 is ample for an echo list,
+    the complex solver's tail to 1e-7 can take minutes on a coherent grid; ``max_inner``
+    FISTA steps per working set, status ``max_iter`` where that was not enough). ``group``:
+    one echo per run of neighbouring active atoms (:func:`group_atoms`; runs longer than the
+    matched filter's half-power width, or ``max_run`` atoms, are cut); else one per atom."""
+    cap = _cap(max_echoes, dictionary)
+    t = time.perf_counter()
+    res = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=tol, max_inner=max_inner)
+    info = {"lam": res.lam, "gap": res.gap, **res.info, "atoms": int(np.count_nonzero(res.x))}
+    if group:
+        if max_run is None:
+            max_run = max(1, int(np.ceil(2 * _mainlobe_s(dictionary.atom) / dictionary.delta)))
+        taus, amps, weights = group_atoms(dictionary, res.x, rel_threshold=rel_threshold, max_run=max_run)
+    else:
+        mag = np.abs(res.x)
+        on = np.flatnonzero(mag > max(rel_threshold * mag.max(initial=0.0), 0.0))
+        taus, amps, weights = dictionary.taus[on], res.x[on], mag[on]
+    e = Echoes(taus, amps, "bpdn", res.status, res.iterations, time.perf_counter() - t, info)
+    return cap_echoes(e, cap, weights[np.argsort(taus, kind="stable")])
+
+
+def _cbp_taylor(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
+                rel_threshold: float = 1e-3) -> Echoes:
+    """CBP-Taylor (cvxpy), the ``max_echoes`` strongest echoes."""
+    e = cbp_taylor(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold)
+    return cap_echoes(e, _cap(max_echoes, dictionary))
+
+
+def _cbp_polar_socp(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
+                    rel_threshold: float = 1e-3) -> Echoes:
+    """The convex CBP-Polar SOCP (positive amplitudes), the ``max_echoes`` strongest echoes."""
+    e = cbp_polar(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold)
+    return cap_echoes(e, _cap(max_echoes, dictionary))
+
+
+def _cbp_polar(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
+               rel_threshold: float = 0.02, bounds_s: tuple[float, float] | None = None) -> Echoes:
+    """Refined CBP-Polar (BPDN seeds, nlopt delays within ``bounds_s``, BIC order), capped inside."""
+    return cbp_polar_refined(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes,
+                             max_echoes=_cap(max_echoes, dictionary), rel_threshold=rel_threshold, bounds_s=bounds_s)
+
+
+SPARSE_METHODS: dict[str, SparseMethod] = {
+    "bpdn": _bpdn,
+    "cbp-taylor": _cbp_taylor,
+    "cbp-polar": _cbp_polar,
+    "cbp-polar-socp": _cbp_polar_socp,
+}
+
+
+def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = None, *,
+                  lam_frac: float | None = None, amplitudes: str = "complex", max_echoes: int | None = None,
+                  **options) -> Echoes:
+    """The echoes of ``b`` by one of :data:`SPARSE_METHODS`.
+
+    Parameters
+    ----------
+    method : {"bpdn", "cbp-taylor", "cbp-polar", "cbp-polar-socp"}
+    dictionary : Dictionary
+    b : (n_samples,) array
+        The signal (analytic for ``amplitudes="complex"``).
+    lam, lam_frac : float, optional
+        Absolute lam, or a fraction of lam_max; default :func:`lam_noise` of ``b``.
+    amplitudes : {"positive", "real", "complex"}
+    max_echoes : int, optional
+        Echo cap; default :func:`clsas.sparse.atoms.default_max_echoes`.
+    **options
+        Passed to the method: ``tol``, ``max_inner``, ``group``, ``rel_threshold``, ``max_run`` (bpdn);
+        ``rel_threshold`` (the CBPs); ``bounds_s`` (cbp-polar).
+    """
+    v.choice("method", method, tuple(SPARSE_METHODS))
+    if max_echoes is not None:
+        max_echoes = v.positive_int("max_echoes", max_echoes)
+    if lam is None and lam_frac is None:
+        lam = lam_noise(dictionary, b, amplitudes)
+    return SPARSE_METHODS[method](dictionary, b, lam, lam_frac, amplitudes, max_echoes=max_echoes, **options)
+
+
+def succeeded(echoes: Echoes) -> bool:
+    """Whether a method's answer is usable: a success status and finite delays and amplitudes."""
+    return (not echoes.fallback and echoes.status.startswith(_SUCCESS)
+            and bool(np.all(np.isfinite(echoes.delays_s)) and np.all(np.isfinite(echoes.amplitudes))))
+
+
+def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", delta_s: float | None = None,
+             lam: float | None = None, lam_frac: float | None = None, amplitudes: str = "complex",
+             tau0_s: float = 0.0, max_echoes: int | None = None, **options) -> Echoes:
+    """Super-resolve the echoes in one signal.
+
+    Parameters
+    ----------
+    signal : 1-D array
+        Real recording (for ``amplitudes="complex"`` its analytic signal is taken) or an
+        analytic signal.
+    atom_shape : callable or 1-D array
+        The pulse (see :class:`clsas.sparse.Atom`).
+    method : {"bpdn", "cbp-taylor", "cbp-polar", "cbp-polar-socp"}
+        See :data:`SPARSE_METHODS`; BPDN's atoms are grouped into echoes, one per run.
+    delta_s : float, optional
+        Grid spacing; default half a sample.
+    lam, lam_frac : float
+        Absolute lam, or a fraction of lam_max; default :func:`clsas.sparse.lam_noise`, the
+        noise level estimated from the signal.
+    max_echoes : int, optional
+        Echo cap (default two per pulse length over the signal); ``capped`` says it was hit.
+    **options
+        Passed to the method (see :func:`sparse_echoes`).
+    """
+    from ..signals import analytic
+    from .atoms import Atom
+
+    v.choice("method", method, tuple(SPARSE_METHODS))
+    fs = v.positive("fs_hz", fs_hz)
+    x = v.array("signal", signal, ndim=1, allow_complex=True)
+    if amplitudes == "complex" and not np.iscomplexobj(x):
+        x = analytic(x)
+    if amplitudes != "complex" and np.iscomplexobj(x):
+        raise ValueError("signal is complex: use amplitudes='complex'")
+    atom = Atom(atom_shape, fs, len(x), complex=amplitudes == "complex")
+    delta = 0.5 / fs if delta_s is None else v.positive("delta_s", delta_s)
+    d = Dictionary(atom, delta, tau0_s)
+    return sparse_echoes(method, d, x, lam, lam_frac=lam_frac, amplitudes=amplitudes, max_echoes=max_echoes,
+                         **options)
