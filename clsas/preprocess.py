@@ -233,7 +233,6 @@ def _on_time_axis(sig, t0_from, t0_to, fs, n, scale, waveform=None) -> np.ndarra
     waveform's, Wiener-regularised) then restores the waveform, so each echo is exactly the
     transmitted waveform at its new delay.
     """
-    import scipy.fft
 
     out = np.zeros((sig.shape[0], n))
     up = 8

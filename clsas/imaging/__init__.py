@@ -180,7 +180,12 @@ def reconstruct(
         The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one).
     progress : callable(done, total), optional
     sparse : dict, optional
-        Options for the sparse methods: ``delta_s``, ``lam``, ``lam_frac``, ``render_width_s``.
+        Options for the sparse methods: ``delta_s``, ``lam``, ``lam_frac``, ``render_width_s``,
+        ``max_echoes`` (cap per recording, reported in ``Echoes.capped``), ``guard_s`` (the
+        dictionary reaches this far past each end of the gate, so echoes straddling it are
+        fitted there and dropped), ``method_options`` (passed to the method). A recording whose
+        sparse recovery fails falls back to its matched-filter profile and says so in
+        ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
     """
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
