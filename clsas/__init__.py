@@ -22,3 +22,22 @@ __all__ = [
 ]
 __all__ += ["preprocess"]
 __all__ += ["aperture_from_csv", "circular_aperture", "compare", "helical_aperture", "tcr_db"]
+
+# the sparse-recovery entry points of the public contract, imported on first use (they bring
+# scipy.optimize; cvxpy and nlopt only when a method needs them), so `import clsas` stays light
+_LAZY = {"superres": "clsas.sparse", "delay_error": "clsas.sparse", "coherence": "clsas.sparse"}
+__all__ += sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'clsas' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

@@ -58,7 +58,8 @@ def _reconstruct(ds, grid, args, progress=True):
     with _bar("backproject", ds.n_meas, progress) as cb:
         return clsas.reconstruct(ds, grid, method=getattr(args, "method", "bp"),
                                  compression=getattr(args, "compression", "matched"),
-                                 backend=args.backend, device=getattr(args, "device", None), progress=cb)
+                                 backend=args.backend, device=getattr(args, "device", None), progress=cb,
+                                 force=getattr(args, "force", False))
 
 
 def cmd_demo(args) -> int:
@@ -229,11 +230,54 @@ def cmd_preprocess(args) -> int:
     return 0
 
 
+_LIMITS_DEFAULTS = {"f_start": 20e3, "f_stop": 30e3, "width": 1.0, "height": 1.0, "nx": 18, "ny": 12, "range": 1.5,
+                    "temperature": 20.0, "humidity": 50.0}
+
+
+def _limits_from_file(path: str) -> dict:
+    """The limits' inputs from a scene or rig file: [chirp], [aperture], [air], and the range
+    from the [grid]'s centre (else the reflectors' mean) to the aperture's plane."""
+    import tomllib
+
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"no scene or rig file at {p}")
+    try:
+        cfg = tomllib.loads(p.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{p} is not a TOML scene or rig file: {exc}") from None
+    out = {}
+    keys = {"chirp": {"f_start_hz": "f_start", "f_stop_hz": "f_stop"},
+            "aperture": {"width_m": "width", "height_m": "height", "nx": "nx", "ny": "ny"},
+            "air": {"temperature_c": "temperature", "humidity_pct": "humidity"}}
+    for table, names in keys.items():
+        t = cfg.get(table, {})
+        if not isinstance(t, dict):
+            raise ValueError(f"{p}: [{table}] must be a table")
+        for key, arg in names.items():
+            if key in t:
+                out[arg] = t[key]
+    z0 = (cfg.get("aperture", {}).get("center_m") or [0.0, 0.0, 0.0])[2]
+    grid = cfg.get("grid")
+    if isinstance(grid, dict) and "z_m" in grid:
+        out["range"] = abs(0.5 * (grid["z_m"][0] + grid["z_m"][1]) - z0)
+    elif cfg.get("points"):
+        out["range"] = abs(float(np.mean([pt["position_m"][2] for pt in cfg["points"]])) - z0)
+    return out
+
+
 def cmd_limits(args) -> int:
     import clsas
 
-    lim = clsas.resolution_limits(args.f_start, args.f_stop, args.width, args.height, args.nx, args.ny,
-                                  args.range, args.temperature, args.humidity)
+    values = dict(_LIMITS_DEFAULTS)
+    if args.config is not None:
+        values.update(_limits_from_file(args.config))
+    values.update({k: getattr(args, k) for k in _LIMITS_DEFAULTS if getattr(args, k) is not None})
+    if args.config is not None:
+        print(f"from {args.config} (flags override): " + ", ".join(f"{k}={values[k]:g}" for k in _LIMITS_DEFAULTS))
+    lim = clsas.resolution_limits(values["f_start"], values["f_stop"], values["width"], values["height"],
+                                  values["nx"], values["ny"], values["range"], values["temperature"],
+                                  values["humidity"])
     print(lim.report())
     return 0
 
@@ -465,6 +509,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="simulate and image the paper's two scenes")
     d.add_argument("--out", default="demo-out", help="output folder (default: demo-out)")
     d.add_argument("--spacing", type=float, default=0.01, help="voxel spacing in m (default 0.01)")
+    d.add_argument("--force", action="store_true", help="image even if the grid does not seem to fit in memory")
     common(d)
     d.set_defaults(func=cmd_demo)
 
@@ -484,6 +529,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="image file (default: <data>-image.h5)")
     r.add_argument("--png", action="store_true", help="also write maximum-intensity projections")
     r.add_argument("--peaks", type=int, default=3, help="peaks to print")
+    r.add_argument("--force", action="store_true", help="image even if the grid does not seem to fit in memory")
     r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
     r.add_argument("--preprocess", action="store_true",
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
@@ -499,15 +545,17 @@ def build_parser() -> argparse.ArgumentParser:
     pre.set_defaults(func=cmd_preprocess)
 
     lim = sub.add_parser("limits", help="resolution limits of a scan configuration")
-    lim.add_argument("--f-start", type=float, default=20e3, help="Hz")
-    lim.add_argument("--f-stop", type=float, default=30e3, help="Hz")
-    lim.add_argument("--width", type=float, default=1.0, help="aperture width, m")
-    lim.add_argument("--height", type=float, default=1.0, help="aperture height, m")
-    lim.add_argument("--nx", type=int, default=18)
-    lim.add_argument("--ny", type=int, default=12)
-    lim.add_argument("--range", type=float, default=1.5, help="target range, m")
-    lim.add_argument("--temperature", type=float, default=20.0, help="C")
-    lim.add_argument("--humidity", type=float, default=50.0, help="%% RH")
+    lim.add_argument("config", nargs="?", help="a scene or rig TOML file to take the chirp, aperture, air and "
+                     "range from (flags override it)")
+    lim.add_argument("--f-start", type=float, help="chirp start, Hz (default 20000)")
+    lim.add_argument("--f-stop", type=float, help="chirp stop, Hz (default 30000)")
+    lim.add_argument("--width", type=float, help="aperture width, m (default 1)")
+    lim.add_argument("--height", type=float, help="aperture height, m (default 1)")
+    lim.add_argument("--nx", type=int, help="stops along x (default 18)")
+    lim.add_argument("--ny", type=int, help="stops along y (default 12)")
+    lim.add_argument("--range", type=float, help="target range, m (default 1.5; from a file: the grid's centre)")
+    lim.add_argument("--temperature", type=float, help="air temperature, C (default 20)")
+    lim.add_argument("--humidity", type=float, help="relative humidity, %% (default 50)")
     lim.set_defaults(func=cmd_limits)
 
     cmp_ = sub.add_parser("compare", help="compare two images on the same grid: correlation, peak offsets, TCR")
@@ -558,11 +606,19 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.add_argument("-v", "--verbose", action="store_true", help="log details")
     b.set_defaults(func=cmd_bench)
+    for sp in sub.choices.values():  # what every command takes, before or after its name
+        opts = sp._option_string_actions
+        sp.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks")
+        if "-q" not in opts:
+            sp.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+        if "-v" not in opts:
+            sp.add_argument("-v", "--verbose", action="store_true", help="log what is computed")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.debug = getattr(args, "debug", False)
     logging.basicConfig(level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     if not getattr(args, "quiet", False):

@@ -163,6 +163,11 @@ def raster_aperture(
     return _per_mic(stage, stage + txo, stage[:, None, :] + rxo[None])
 
 
+# no machine images more than this many voxels along one axis; refusing here keeps a mistyped
+# spacing from allocating gigabytes of axis before the memory guard can speak
+MAX_AXIS_POINTS = 1_000_000
+
+
 @dataclass(frozen=True)
 class VoxelGrid:
     """A regular grid of voxel centres; axes in metres, values indexed ``[ix, iy, iz]``."""
@@ -201,8 +206,13 @@ class VoxelGrid:
             d = v.positive("spacing_m", d)
             if hi < lo:
                 raise ValueError(f"{name} bounds are inverted: ({lo:g}, {hi:g})")
-            n = int(np.floor((hi - lo) / d + 1e-9)) + 1
-            axes.append(lo + d * np.arange(n))
+            n = np.floor((hi - lo) / d + 1e-9) + 1
+            if n > MAX_AXIS_POINTS:
+                raise ValueError(
+                    f"spacing_m={d:g} gives {n:.3g} voxels along {name[0]} ({lo:g} to {hi:g} m); at most "
+                    f"{MAX_AXIS_POINTS:.0e} per axis: use a spacing of {(hi - lo) / MAX_AXIS_POINTS:.3g} m or more"
+                )
+            axes.append(lo + d * np.arange(int(n)))
         return cls(*axes)
 
     @classmethod

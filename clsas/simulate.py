@@ -6,7 +6,6 @@ import logging
 from collections.abc import Callable
 
 import numpy as np
-import scipy.fft
 
 from . import _validate as v
 from .dataset import Dataset
@@ -108,6 +107,8 @@ def simulate(
 
     # long enough that no echo (early or late) wraps around into the kept samples
     span = max(n_samples, delay.max(initial=0.0) * fs) + max(0.0, -delay.min(initial=0.0)) * fs
+    import scipy.fft
+
     n_fft = scipy.fft.next_fast_len(int(np.ceil(span)) + len(wave) + 16)
     spec = scipy.fft.rfft(wave, n_fft)
     freqs = scipy.fft.rfftfreq(n_fft, 1 / fs)

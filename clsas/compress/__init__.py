@@ -12,7 +12,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.fft
 
 from .. import _validate as v
 from .. import cl as _cl
@@ -136,8 +135,8 @@ class Profiles:
 
 def center_frequency(waveform: np.ndarray, fs_hz: float) -> float:
     """Power-weighted mean frequency of ``waveform``, Hz."""
-    spec = np.abs(scipy.fft.rfft(waveform)) ** 2
-    f = scipy.fft.rfftfreq(len(waveform), 1 / fs_hz)
+    spec = np.abs(np.fft.rfft(waveform)) ** 2
+    f = np.fft.rfftfreq(len(waveform), 1 / fs_hz)
     total = spec.sum()
     if total <= 0:
         raise ValueError("waveform is all zeros")
@@ -262,8 +261,8 @@ def profile_decimation(waveform: np.ndarray, fs_hz: float, fc_hz: float) -> int:
     kept around ``fc_hz`` holds the waveform's spectrum down to -60 dB.
     """
     n = 1 << int(np.ceil(np.log2(max(64, 8 * len(waveform)))))
-    spec = np.abs(scipy.fft.rfft(waveform, n))
-    f = scipy.fft.rfftfreq(n, 1 / fs_hz)
+    spec = np.abs(np.fft.rfft(waveform, n))
+    f = np.fft.rfftfreq(n, 1 / fs_hz)
     peak = spec.max()
     if peak <= 0:
         raise ValueError("waveform is all zeros")
@@ -408,6 +407,18 @@ def _fmcw(signals, fs, t0, fc, gate, chirp, sel) -> Profiles:
     n_mix = min(n_samples, int(np.floor((T - t00) * fs)))
     if n_mix < 2:
         raise ValueError("method='fmcw': the recording does not overlap the transmitted chirp")
+    # an echo at delay tau is mixed only while the chirp still plays: over [tau, T)
+    if gate[0] >= T:
+        raise ValueError(
+            f"method='fmcw': the gated echoes arrive {gate[0] * 1e3:.3g}-{gate[1] * 1e3:.3g} ms after the transmit "
+            f"start, after the {T * 1e3:.3g} ms chirp has ended, so there is nothing to mix. FMCW serves delays "
+            f"below {T * 1e3:.3g} ms (well below: half the chirp gives half the bandwidth); use "
+            "compression='matched' (or a longer chirp)"
+        )
+    if gate[1] > 0.5 * T:
+        log.warning("fmcw: echoes later than %.3g ms (half the %.3g ms chirp) overlap less than half the chirp; "
+                    "their range resolution is at least 2x coarser, and past %.3g ms they vanish; "
+                    "compression='matched' does not have this limit", 0.5e3 * T, 1e3 * T, 1e3 * T)
     slope = (f2 - f1) / T
     t = t00 + np.arange(n_mix) / fs
     ref = np.exp(-2j * np.pi * (f1 * t + 0.5 * slope * t**2)) * np.hanning(n_mix)

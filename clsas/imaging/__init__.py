@@ -15,6 +15,7 @@ from ..compress import Profiles, compress
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from . import numpy as twin
+from .guard import check_grid
 from .image import Image, Peak
 from .plan import ReconstructionPlan, path_bounds, plan_reconstruction
 
@@ -43,9 +44,13 @@ class Backprojector:
         The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one).
     chunk : int, optional
         Measurements per kernel launch.
+    force : bool
+        Go on even if the grid does not seem to fit in memory (otherwise a ``ValueError``
+        gives the numbers and a spacing that fits; see :func:`clsas.imaging.guard.check_grid`).
     """
 
-    def __init__(self, grid: VoxelGrid, *, backend: str | None = None, device: Any = None, chunk: int | None = None):
+    def __init__(self, grid: VoxelGrid, *, backend: str | None = None, device: Any = None, chunk: int | None = None,
+                 force: bool = False):
         if not isinstance(grid, VoxelGrid):
             raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
         if chunk is not None:
@@ -53,6 +58,8 @@ class Backprojector:
         self.grid = grid
         self.chunk = chunk
         self.selection = _cl.select(backend, device)
+        sel = self.selection
+        check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=force)
         self._plan = None
 
     @property
@@ -154,6 +161,7 @@ def reconstruct(
     device: Any = None,
     progress: Callable[[int, int], None] | None = None,
     sparse: dict | None = None,
+    force: bool = False,
 ) -> Image:
     """Image a dataset on a grid.
 
@@ -186,6 +194,8 @@ def reconstruct(
         fitted there and dropped), ``method_options`` (passed to the method). A recording whose
         sparse recovery fails falls back to its matched-filter profile and says so in
         ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
+    force : bool
+        Image a grid even if it does not seem to fit in memory (see :class:`Backprojector`).
     """
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
@@ -194,7 +204,7 @@ def reconstruct(
             raise ValueError(f"method={method!r} needs the recordings (a Dataset); range profiles are imaged "
                              "by method='bp'")
         t_start = time.perf_counter()
-        image = Backprojector(grid, backend=backend, device=device)(dataset, progress=progress)
+        image = Backprojector(grid, backend=backend, device=device, force=force)(dataset, progress=progress)
         image.method = f"bp ({dataset.method} profiles)"
         image.timings_s["total"] = time.perf_counter() - t_start
         return image
@@ -203,7 +213,7 @@ def reconstruct(
     v.choice("method", method, METHODS)
     v.choice("compression", compression, ("matched", "fmcw"))
     sel = _cl.select(backend, device)
-    bp = Backprojector(grid, backend=sel.requested if sel.opencl else "numpy", device=sel.queue)
+    bp = Backprojector(grid, backend=sel.requested if sel.opencl else "numpy", device=sel.queue, force=force)
     if method != "bp":
         return _reconstruct_sparse(dataset, grid, method, bp, progress, sparse or {})
     plan = plan_reconstruction(dataset, grid, [])
