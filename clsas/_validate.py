@@ -100,3 +100,14 @@ def speeds(name: str, value: Any, n: int) -> float | np.ndarray:
     if np.any(arr <= 0):
         raise ValueError(f"{name} must be > 0, got min {arr.min():g}")
     return arr
+
+
+def install_hint(extra: str) -> str:
+    """How to install an optional extra: from the source checkout when clsas runs from one
+    (``pip install 'clsas[rig]'`` would look for clsas on PyPI), else the package's name."""
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    if (root / "pyproject.toml").is_file():
+        return f"pip install -e '{root}[{extra}]'"
+    return f"pip install 'clsas[{extra}]'"

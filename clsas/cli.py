@@ -114,6 +114,9 @@ def cmd_reconstruct(args) -> int:
     from clsas.scenes import stored_grid_and_truth
 
     ds = clsas.load(args.data)
+    partial = _partial_scan(args.data)
+    if partial:
+        print(f"warning: {partial}", file=sys.stderr)
     stored_grid, truth = stored_grid_and_truth(ds.config)
     grid = _grid_arg(args.grid, args.spacing, stored_grid)
     if args.preprocess:
@@ -129,9 +132,16 @@ def cmd_reconstruct(args) -> int:
         print(image.plan.describe())
     peaks = image.peaks(args.peaks, min_separation_m=0.03)
     print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
-    for p in peaks:
+    from clsas.compress import center_frequency
+    from clsas.imaging.lobes import grating_lobe_notes
+
+    notes = grating_lobe_notes(peaks, ds.tx_positions, ds.rx_positions, center_frequency(ds.waveform, ds.fs_hz),
+                               float(np.mean(ds.c_mps)))
+    for p, note in zip(peaks, notes, strict=True):
         x, y, z = p.position_m
-        print(f"peak ({x:+.3f}, {y:+.3f}, {z:.3f}) m  |v| = {p.magnitude:.4g}")
+        print(f"peak ({x:+.3f}, {y:+.3f}, {z:.3f}) m  |v| = {p.magnitude:.4g}" + (f"  [{note}]" if note else ""))
+    if partial:
+        print(f"(imaged from a partial scan: {partial.split(':')[1].split(';')[0].strip()})")
     if args.box is not None:
         from clsas.quality import tcr_db
 
@@ -141,6 +151,19 @@ def cmd_reconstruct(args) -> int:
         print(f"wrote {out.with_suffix('.png')}")
     print(f"wrote {out}")
     return 0
+
+
+def _partial_scan(path) -> str:
+    """A warning for a scan file that ``clsas acquire`` did not finish, else ``""``."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if "complete" not in f.attrs or bool(f.attrs["complete"]):
+            return ""
+        planned = int(f.attrs.get("n_stops_planned", 0))
+        done = len(np.unique(f["stop_index"][()])) if "stop_index" in f else 0
+    return (f"partial scan: {done} of {planned} stops were taken; the image lacks the rest "
+            f"(continue it with: clsas acquire RIG.toml {path} --resume)")
 
 
 def _preprocess_table(ds, config_path: str | None) -> tuple[dict, str]:
@@ -403,7 +426,9 @@ def _print_rig_devices() -> None:
     try:
         from serial.tools import list_ports
     except ImportError:
-        print("serial ports: unavailable (pip install 'clsas[rig]' for pyserial)")
+        from clsas._validate import install_hint
+
+        print(f"serial ports: unavailable ({install_hint('rig')} for pyserial)")
         return
     ports = list_ports.comports()
     print("serial ports (for [stage] port):" if ports else "serial ports: none found")

@@ -131,3 +131,40 @@ def test_limits_reads_a_scene_file(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "B = 20000 Hz" in out and "nx=50" in out and "range=0.6" in out
     assert main(["limits", str(tmp_path / "nothere.toml")]) == 2
+
+
+def test_grating_lobes_of_an_undersampled_aperture_are_flagged():
+    from clsas.compress import center_frequency
+    from clsas.imaging.lobes import grating_lobe_notes
+
+    fs = 96e3
+    w = clsas.lfm_chirp(24e3, 26e3, 2e-3, fs, taper=0.1)  # narrow band: sharp lobes
+    ds = clsas.simulate(clsas.Scene([[0.0, 0.0, 1.0]]), clsas.raster_aperture(9, 1, 0.6, 0.0), w, fs)
+    grid = clsas.VoxelGrid.from_bounds((-0.4, 0.4), (0, 0), (0.95, 1.05), 0.005)
+    peaks = clsas.reconstruct(ds, grid, backend="numpy").peaks(5, min_separation_m=0.03)
+    notes = grating_lobe_notes(peaks, ds.tx_positions, ds.rx_positions, center_frequency(w, fs), ds.c_mps)
+    assert notes[0] == "" and all(n == "possibly a grating lobe of peak 1" for n in notes[1:])
+    fine = clsas.raster_aperture(9, 1, 0.02, 0.0)  # 2.5 mm < lambda / 4: no lobes to flag
+    assert grating_lobe_notes(peaks, fine.tx_positions, fine.rx_positions, 25e3, 343.0) == [""] * 5
+
+
+def test_a_partial_scan_is_flagged_when_imaged(tmp_path, capsys):
+    import h5py
+
+    ds = small_dataset([[0.0, 0.0, 0.6]], nx=3, ny=3)
+    path = ds.save(tmp_path / "scan.h5")
+    with h5py.File(path, "a") as f:  # as `clsas acquire` leaves a scan it did not finish
+        f.attrs["complete"] = False
+        f.attrs["n_stops_planned"] = 12
+        f.create_dataset("stop_index", data=np.arange(9, dtype=np.int32))
+    assert main(["reconstruct", str(path), "--grid=-0.1,0.1,-0.1,0.1,0.5,0.7", "-q", "--backend", "numpy"]) == 0
+    out = capsys.readouterr()
+    assert "partial scan: 9 of 12 stops" in out.err and "--resume" in out.err
+    assert "imaged from a partial scan" in out.out
+
+
+def test_install_hints_fit_a_source_checkout():
+    from clsas._validate import install_hint
+
+    hint = install_hint("rig")
+    assert hint.startswith("pip install -e '") and hint.endswith("[rig]'")  # tests run from the checkout

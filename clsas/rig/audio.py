@@ -22,6 +22,7 @@ import scipy.fft
 import scipy.signal
 
 from .. import _validate as v
+from .._validate import install_hint
 from ..geometry import Aperture, Scene
 from ..simulate import simulate
 
@@ -40,7 +41,7 @@ def import_sounddevice():
     try:
         import sounddevice
     except ImportError as exc:
-        raise ImportError("audio acquisition needs sounddevice: pip install 'clsas[rig]'") from exc
+        raise ImportError(f"audio acquisition needs sounddevice: {install_hint('rig')}") from exc
     except OSError as exc:  # sounddevice raises OSError when the PortAudio library is missing
         raise ImportError(
             f"sounddevice could not load PortAudio ({exc}): install the system package "

@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass
 
 from .. import _validate as v
+from .._validate import install_hint
 
 __all__ = ["GrblStage", "StageError", "GrblError", "GrblAlarm", "StageTimeout", "StageDisconnected",
            "Status", "ERRORS", "ALARMS"]
@@ -160,7 +161,7 @@ class GrblStage:
         try:
             import serial
         except ImportError as exc:
-            raise ImportError("the stage needs pyserial: pip install 'clsas[rig]'") from exc
+            raise ImportError(f"the stage needs pyserial: {install_hint('rig')}") from exc
         try:
             self._ser = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=0.05,
                                               write_timeout=self.timeout_s)

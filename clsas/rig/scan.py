@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._validate import install_hint
 from ..physics import speed_of_sound
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig
@@ -107,7 +108,7 @@ def acquire(
         from importlib.util import find_spec
 
         if find_spec("serial") is None:  # before any file is written
-            raise ImportError("the stage (and its emulator) needs pyserial: pip install 'clsas[rig]'")
+            raise ImportError(f"the stage (and its emulator) needs pyserial: {install_hint('rig')}")
     sim = config.simulate
     resuming = resume and out.exists()
     t_c, rh = _stored_air(out) if resuming else config.read_air()
