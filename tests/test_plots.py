@@ -1,0 +1,79 @@
+"""Pictures: files written for volumes and planes, sizes that follow the grid, no backend change."""
+
+import numpy as np
+import pytest
+
+import clsas
+from clsas.geometry import Scene, Wall
+from clsas.imaging.image import Image
+
+pytest.importorskip("matplotlib")
+
+
+def _blob(grid: clsas.VoxelGrid, centre=(0.0, 0.0, 1.5), width_m=0.05) -> Image:
+    p = grid.points() - np.asarray(centre)
+    vals = np.exp(-np.sum(p**2, axis=1) / (2 * width_m**2)).reshape(grid.shape).astype(complex)
+    return Image(vals + 1e-3, grid, method="bp")
+
+
+VOLUME = clsas.VoxelGrid.from_bounds((-0.4, 0.4), (-0.2, 0.2), (1.3, 1.7), 0.02)
+PLANE_WIDE = clsas.VoxelGrid.plane("z", at_m=1.5, u_m=(-0.6, 0.6), v_m=(-0.15, 0.15), spacing_m=0.02)
+PLANE_TALL = clsas.VoxelGrid.plane("y", at_m=0.0, u_m=(-0.15, 0.15), v_m=(1.0, 2.2), spacing_m=0.02)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".svg", ".pdf"])
+@pytest.mark.parametrize("grid", [VOLUME, PLANE_WIDE], ids=["volume", "plane"])
+def test_pictures_are_written(tmp_path, grid, suffix):
+    image = _blob(grid)
+    path = tmp_path / f"img{suffix}"
+    fig = image.plot(path, truth_m=np.array([[0.0, 0.0, 1.5]]), dynamic_range_db=30)
+    assert path.exists() and path.stat().st_size > 1000
+    head = path.read_bytes()[:8]
+    assert {".png": b"\x89PNG", ".pdf": b"%PDF", ".svg": b"<?xml"}[suffix] in head
+    assert fig.axes
+
+
+def test_figure_size_follows_the_grid(tmp_path):
+    wide = _blob(PLANE_WIDE).plot(tmp_path / "w.png").get_size_inches()
+    tall = _blob(PLANE_TALL, centre=(0.0, 0.0, 1.5)).plot(tmp_path / "t.png").get_size_inches()
+    assert wide[0] > 1.5 * wide[1]
+    assert tall[1] > 1.5 * tall[0]
+    # a plane gets one image panel (plus its colour bar), a volume six projections and slices
+    assert len(_blob(PLANE_WIDE).plot(tmp_path / "p.png").axes) == 2
+    images = [ax for ax in _blob(VOLUME).plot(tmp_path / "v.png").axes if ax.images]
+    assert len(images) == 6
+
+
+def test_backend_is_left_alone(tmp_path):
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    _blob(VOLUME).plot(tmp_path / "a.png")
+    clsas.plots.mip_png(_blob(VOLUME), tmp_path / "b.png", None, "t")
+    assert matplotlib.get_backend() == before
+
+
+def test_markers_outside_the_grid_do_not_stretch_the_axes(tmp_path):
+    image = _blob(VOLUME)
+    wall = Wall((0.0, 0.0, 2.0), (0.7071, 0.0, -0.7071))
+    scene = Scene(np.array([[0.0, 0.0, 1.5], [3.0, 0.0, 5.0]]), visible=np.array([True, False]), walls=(wall,))
+    ap = clsas.raster_aperture(4, 3, 1.0, 1.0)
+    fig = image.plot(tmp_path / "m.png", scene=scene, aperture=ap, truth_m=np.array([[0.0, 0.0, 1.5], [9, 9, 9]]))
+    front = fig.axes[0]
+    assert front.get_xlim() == pytest.approx((-0.41, 0.41))
+    assert front.get_ylim() == pytest.approx((-0.21, 0.21))
+    labels = {t for ax in fig.axes for t in ax.get_legend_handles_labels()[1]}
+    assert {"truth", "aperture", "wall"} <= labels
+
+
+def test_title_names_method_formation_and_spacing(tmp_path):
+    fig = _blob(VOLUME).plot(tmp_path / "t.png")
+    title = fig._suptitle.get_text()
+    assert "bp" in title and "formation" in title and "20 mm" in title
+
+
+def test_bad_arguments_are_refused(tmp_path):
+    with pytest.raises(ValueError, match="dynamic_range_db"):
+        _blob(VOLUME).plot(tmp_path / "a.png", dynamic_range_db=-3)
+    with pytest.raises(ValueError, match=r"\.png"):
+        _blob(VOLUME).plot(tmp_path / "a.gif")
