@@ -539,18 +539,21 @@ def build_parser() -> argparse.ArgumentParser:
     d.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("simulate", help="simulate a scan from a scene TOML file")
-    s.add_argument("scene")
-    s.add_argument("out")
+    s.add_argument("scene", help="scene file (TOML: [chirp], [aperture], [air], [noise], [[points]], [grid])")
+    s.add_argument("out", help="dataset file to write (HDF5)")
     common(s)
     s.set_defaults(func=cmd_simulate)
 
     r = sub.add_parser("reconstruct", help="image a dataset file")
-    r.add_argument("data")
+    r.add_argument("data", help="dataset file (HDF5, from clsas simulate, acquire, import or preprocess)")
     r.add_argument("--grid", help="x0,x1,y0,y1,z0,z1 in m, e.g. --grid=-0.5,0.5,-0.5,0.5,1,2 "
                    "(default: the dataset's [grid])")
     r.add_argument("--spacing", type=float, help="voxel spacing in m")
-    r.add_argument("--method", default="bp", choices=("bp", "bpdn", "cbp-taylor", "cbp-polar"))
-    r.add_argument("--compression", default="matched", choices=("matched", "fmcw"))
+    r.add_argument("--method", default="bp", choices=("bp", "bpdn", "cbp-taylor", "cbp-polar"),
+                   help="bp: matched filter + backprojection (default); bpdn, cbp-taylor, cbp-polar: each recording "
+                   "super-resolved first (needs the sparse extra)")
+    r.add_argument("--compression", default="matched", choices=("matched", "fmcw"),
+                   help="matched filter (default), or FMCW dechirp (only for echoes that arrive while the chirp plays)")
     r.add_argument("--out", help="image file (default: <data>-image.h5)")
     r.add_argument("--png", action="store_true", help="also write maximum-intensity projections")
     r.add_argument("--peaks", type=int, default=3, help="peaks to print")
