@@ -2,26 +2,33 @@
 
 A configuration holds the chirp, the aperture, the air, the reflectors and walls, the noise
 and the imaging grid; ``clsas simulate`` reads it and stores it in the dataset, so that
-``clsas reconstruct`` finds the grid again.
+``clsas reconstruct`` finds the grid again. Parsing and checking is :mod:`clsas.config`'s:
+unknown tables and keys are refused, and errors name the file, the table and the key.
 """
 
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import tomli_w
 
+from . import config as c
 from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
-from .signals import lfm_chirp
 
 __all__ = ["SceneConfig", "load_config", "parse_config", "mannequin_points", "demo_configs", "stored_grid_and_truth"]
+
+APERTURE_KEYS = ("nx", "ny", "width_m", "height_m", "center_m", "tx_offset_m", "rx_offset_m", "pattern")
+AIR_KEYS = ("temperature_c", "humidity_pct", "wall_echo")
+NOISE_KEYS = ("snr_db", "seed")
 
 
 @dataclass
 class SceneConfig:
+    """A parsed scene file; ``text`` is stored verbatim in the dataset."""
+
     scene: Scene
     aperture: Aperture
     waveform: np.ndarray
@@ -31,94 +38,97 @@ class SceneConfig:
     snr_db: float | None
     seed: int
     text: str
+    preprocess: dict = field(default_factory=dict)
 
 
-def _section(cfg: dict, name: str) -> dict:
-    sec = cfg.get(name, {})
-    if not isinstance(sec, dict):
-        raise ValueError(f"[{name}] must be a table")
-    return sec
+def parse_config(text: str, source: str = "scene configuration") -> SceneConfig:
+    """Build the scene, aperture, waveform and grid described by TOML ``text``.
 
+    Parameters
+    ----------
+    text : str
+        The scene file's text.
+    source : str
+        What to call the text in error messages (the file name).
 
-def _grid(cfg: dict) -> VoxelGrid | None:
-    """The ``[grid]`` table of a scene or rig configuration, if any."""
-    g = cfg.get("grid")
-    if g is None:
-        return None
-    return VoxelGrid.from_bounds(tuple(g["x_m"]), tuple(g["y_m"]), tuple(g["z_m"]), g.get("spacing_m", 0.01))
-
-
-def parse_config(text: str) -> SceneConfig:
-    """Build the scene, aperture, waveform and grid described by TOML ``text``."""
-    try:
-        cfg = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"scene configuration is not valid TOML: {exc}") from None
-    ch = _section(cfg, "chirp")
-    chirp = {
-        "f_start_hz": float(ch.get("f_start_hz", 20e3)),
-        "f_stop_hz": float(ch.get("f_stop_hz", 30e3)),
-        "duration_s": float(ch.get("duration_s", 5e-3)),
-        "taper": float(ch.get("taper", 0.1)),
-    }
-    fs = float(ch.get("fs_hz", 96e3))
-    waveform = lfm_chirp(chirp["f_start_hz"], chirp["f_stop_hz"], chirp["duration_s"], fs, chirp["taper"])
-    ap = _section(cfg, "aperture")
-    aperture = raster_aperture(
-        int(ap.get("nx", 18)), int(ap.get("ny", 12)), float(ap.get("width_m", 1.0)),
-        float(ap.get("height_m", 1.0)), center_m=tuple(ap.get("center_m", (0.0, 0.0, 0.0))),
-        tx_offset_m=tuple(ap.get("tx_offset_m", (-0.02, 0.0, 0.0))),
-        rx_offset_m=tuple(ap.get("rx_offset_m", (0.02, 0.0, 0.0))),
-        pattern=str(ap.get("pattern", "serpentine")),
+    Raises
+    ------
+    clsas.config.ConfigError
+        (a ``ValueError``) naming the file, the table and the key: invalid TOML, a rig file,
+        an unknown table or key, a value of the wrong type or out of range, or no reflector.
+    """
+    cfg = c.read_toml(text, source, "scene")
+    ch = c.Table(cfg.get("chirp", {}), source, "[chirp]", (*c.CHIRP_KEYS, "fs_hz"))
+    fs = float(ch.number("fs_hz", 96e3, above=0))
+    chirp, waveform = c.chirp_table(ch, fs)
+    ap = c.Table(cfg.get("aperture", {}), source, "[aperture]", APERTURE_KEYS)
+    aperture = ap.build(
+        raster_aperture, ap.integer("nx", 18, low=1), ap.integer("ny", 12, low=1),
+        float(ap.number("width_m", 1.0, low=0)), float(ap.number("height_m", 1.0, low=0)),
+        center_m=tuple(ap.vector("center_m", (0.0, 0.0, 0.0))),
+        tx_offset_m=tuple(ap.vector("tx_offset_m", (-0.02, 0.0, 0.0))),
+        rx_offset_m=tuple(ap.vector("rx_offset_m", (0.02, 0.0, 0.0))),
+        pattern=ap.string("pattern", "serpentine", choices=("serpentine", "raster")),
     )
-    air = _section(cfg, "air")
-    points = cfg.get("points", [])
+    air = c.Table(cfg.get("air", {}), source, "[air]", AIR_KEYS)
+    if "points" not in cfg:
+        raise c.ConfigError(f"{source}: the scene has no reflector: add one [[points]] table per reflector "
+                            "with position_m = [x, y, z]")
+    points = c.points_table(cfg["points"], source)
     if not points:
-        raise ValueError("the scene configuration has no [[points]]")
-    walls = tuple(
-        Wall(tuple(w["point_m"]), tuple(w["normal"]), float(w.get("reflectivity", 0.9)))
-        for w in cfg.get("walls", [])
-    )
-    scene = Scene(
-        np.array([p["position_m"] for p in points], float),
-        np.array([p.get("amplitude", 1.0) for p in points], float),
-        np.array([p.get("visible", True) for p in points], bool),
-        walls,
-        temperature_c=float(air.get("temperature_c", 20.0)),
-        humidity_pct=float(air.get("humidity_pct", 50.0)),
-        wall_echo=bool(air.get("wall_echo", False)),
-    )
-    grid = _grid(cfg)
-    noise = _section(cfg, "noise")
-    snr = noise.get("snr_db")
-    return SceneConfig(scene, aperture, waveform, fs, chirp, grid, None if snr is None else float(snr),
-                       int(noise.get("seed", 0)), text)
+        raise c.ConfigError(f"{source}: [[points]] is empty: give at least one reflector")
+    walls = c.walls_table(cfg.get("walls", []), source)
+    scene = air.build(c.build_scene, points, walls, float(air.number("temperature_c", 20.0, low=-273.15)),
+                      float(air.number("humidity_pct", 50.0, low=0, high=100)), air.boolean("wall_echo", False))
+    grid = c.grid_table(cfg, source)
+    noise = c.Table(cfg.get("noise", {}), source, "[noise]", NOISE_KEYS)
+    snr = noise.number("snr_db", None)
+    seed = noise.integer("seed", 0, low=0)
+    return SceneConfig(scene, aperture, waveform, fs, chirp, grid, None if snr is None else float(snr), seed, text,
+                       c.preprocess_table(cfg, source))
 
 
 def stored_grid_and_truth(text: str) -> tuple[VoxelGrid | None, np.ndarray | None]:
     """The ``[grid]`` and the true reflector (image) positions of a configuration stored in a dataset.
 
     Works for scene files (``clsas simulate``) and rig files (``clsas acquire``; the truth is its
-    ``[simulate]`` scene, if any).
+    ``[simulate]`` scene, if any); other stored settings (e.g. an ``import.toml``) give
+    ``(None, None)``.
     """
     if not text.strip():
         return None, None
-    cfg = tomllib.loads(text)
-    grid = _grid(cfg)
-    if "stage" in cfg or "audio" in cfg:
-        from .rig.config import parse_rig_config
-
-        rig = parse_rig_config(text)
-        truth = rig.scene().image_sources()[0] if rig.simulate.get("points") else None
-        return grid, truth
-    return grid, parse_config(text).scene.image_sources()[0]
+    source = "the dataset's stored configuration"
+    try:
+        cfg = tomllib.loads(text)
+    except ValueError as exc:
+        raise c.ConfigError(f"{source} is not valid TOML: {exc}") from None
+    kind = c.kind_of(cfg)
+    if kind == "scene":
+        scene = parse_config(text, source).scene
+        return c.grid_table(cfg, source), scene.image_sources()[0]
+    if kind != "rig":
+        return None, None
+    grid = c.grid_table(cfg, source)
+    sim = cfg.get("simulate", {})
+    if not isinstance(sim, dict) or not sim.get("points"):
+        return grid, None
+    points = c.points_table(sim["points"], source, "[simulate] points")
+    walls = c.walls_table(sim.get("walls", []), source, "[simulate] walls")
+    return grid, c.build_scene(points, walls, 20.0, 50.0).image_sources()[0]
 
 
 def load_config(path: str | Path) -> SceneConfig:
+    """Read and check a scene file; errors name the file."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no scene configuration at {path}")
-    return parse_config(path.read_text())
+    if path.is_dir():
+        raise c.ConfigError(f"{path} is a folder, not a scene file (TOML)")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise c.ConfigError(f"{path} is not a text (TOML) scene file") from None
+    return parse_config(text, str(path))
 
 
 def mannequin_points(center_m=(0.0, 0.0, 1.5), seed: int = 7) -> tuple[np.ndarray, np.ndarray]:

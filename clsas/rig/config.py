@@ -8,16 +8,14 @@ from __future__ import annotations
 
 import shlex
 import subprocess
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from .. import _validate as v
-from ..geometry import Scene, Wall, raster_aperture
-from ..scenes import _section as _table
-from ..signals import lfm_chirp
+from .. import config as c
+from ..geometry import Scene, VoxelGrid, raster_aperture
 
 __all__ = ["RigConfig", "parse_rig_config", "load_rig_config", "SAMPLE_RIG_TOML"]
 
@@ -117,7 +115,9 @@ class RigConfig:
     temperature_c: float
     humidity_pct: float
     sensor_command: str | None
-    simulate: dict = field(default_factory=dict)
+    simulate: dict = field(default_factory=dict)  # [simulate], checked: points, walls, numbers
+    preprocess: dict = field(default_factory=dict)  # [preprocess], checked by clsas.preprocess.from_table
+    grid: VoxelGrid | None = None  # [grid], where `clsas reconstruct` images by default
 
     @property
     def n_stops(self) -> int:
@@ -144,17 +144,12 @@ class RigConfig:
     def scene(self, temperature_c: float | None = None, humidity_pct: float | None = None) -> Scene:
         """The scene heard by ``--simulate`` (``[simulate]`` points and walls), in the given air
         (default: the file's)."""
-        sim = self.simulate
-        points = sim.get("points", [])
+        points = self.simulate.get("points", [])
         if not points:
             raise ValueError("--simulate needs [simulate] points = [{ position_m = [x, y, z] }, ...] in the rig file")
-        walls = tuple(Wall(tuple(w["point_m"]), tuple(w["normal"]), float(w.get("reflectivity", 0.9)))
-                      for w in sim.get("walls", []))
-        return Scene(np.array([p["position_m"] for p in points], float),
-                     np.array([p.get("amplitude", 1.0) for p in points], float),
-                     np.array([p.get("visible", True) for p in points], bool), walls,
-                     temperature_c=self.temperature_c if temperature_c is None else temperature_c,
-                     humidity_pct=self.humidity_pct if humidity_pct is None else humidity_pct)
+        return c.build_scene(points, self.simulate.get("walls", []),
+                             self.temperature_c if temperature_c is None else temperature_c,
+                             self.humidity_pct if humidity_pct is None else humidity_pct)
 
     def read_air(self) -> tuple[float, float]:
         """Temperature (C) and humidity (%) now: from ``sensor_command`` if set, else the file's."""
@@ -170,100 +165,153 @@ class RigConfig:
         return v.finite("temperature_c", t), v.non_negative("humidity_pct", h)
 
 
-_channel = v.positive_int  # a 1-based sound card channel
+STAGE_KEYS = ("port", "baudrate", "home", "feed_mm_min", "work_area_mm", "origin_mm", "settle_s", "timeout_s",
+              "poll_hz")
+APERTURE_KEYS = ("nx", "ny", "width_m", "height_m", "pattern", "tx_offset_m", "rx_offset_m")
+AUDIO_KEYS = ("device", "fs_hz", "output_channel", "loopback_channel", "mic_channels", "level", "record_s",
+              "max_latency_s", "repeats", "repeat_gap_s", "retries", "clip_level", "acoustic_delay_s")
+AIR_KEYS = ("temperature_c", "humidity_pct", "sensor_command")
+SIMULATE_KEYS = ("points", "walls", "noise_rms", "mic_gain", "latency_samples", "time_scale", "seed")
 
 
-def parse_rig_config(text: str) -> RigConfig:
-    """Parse and check the text of a ``rig.toml``; errors name the key."""
-    try:
-        cfg = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"rig configuration is not valid TOML: {exc}") from None
-    st, ap, au, ch, air = (_table(cfg, k) for k in ("stage", "aperture", "audio", "chirp", "air"))
+def _simulate_table(cfg: dict, source: str) -> dict:
+    """The ``[simulate]`` table, checked: points and walls parsed, numbers in range."""
+    sim = c.Table(cfg.get("simulate", {}), source, "[simulate]", SIMULATE_KEYS)
+    out: dict = {}
+    if "points" in sim:
+        out["points"] = c.points_table(sim.raw("points"), source, "[simulate] points")
+    if "walls" in sim:
+        out["walls"] = c.walls_table(sim.raw("walls"), source, "[simulate] walls")
+    for key, check in (("noise_rms", {"low": 0}), ("mic_gain", {"low": 0}), ("time_scale", {"above": 0})):
+        if key in sim:
+            out[key] = sim.number(key, **check)
+    for key in ("latency_samples", "seed"):
+        if key in sim:
+            out[key] = sim.integer(key, low=0)
+    return out
 
-    fs = v.positive("audio.fs_hz", au.get("fs_hz", 96000))
+
+def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
+    """Parse and check the text of a ``rig.toml``.
+
+    Parameters
+    ----------
+    text : str
+        The rig file's text.
+    source : str
+        What to call the text in error messages (the file name).
+
+    Raises
+    ------
+    clsas.config.ConfigError
+        (a ``ValueError``) naming the file, the table and the key: invalid TOML, a scene file,
+        an unknown table or key, a value of the wrong type or out of range, or keys that
+        disagree (one input channel per microphone, the aperture inside the work area, ...).
+    """
+    cfg = c.read_toml(text, source, "rig")
+    st = c.Table(cfg.get("stage", {}), source, "[stage]", STAGE_KEYS)
+    ap = c.Table(cfg.get("aperture", {}), source, "[aperture]", APERTURE_KEYS)
+    au = c.Table(cfg.get("audio", {}), source, "[audio]", AUDIO_KEYS)
+    ch = c.Table(cfg.get("chirp", {}), source, "[chirp]", c.CHIRP_KEYS)
+    air = c.Table(cfg.get("air", {}), source, "[air]", AIR_KEYS)
+
+    def fail(message: str) -> c.ConfigError:
+        return c.ConfigError(f"{source}: {message}")
+
+    fs = float(au.number("fs_hz", 96000.0, above=0))
     if fs not in (96000.0, 192000.0):
-        raise ValueError(f"audio.fs_hz must be 96000 or 192000 (a 20-30 kHz chirp needs them), got {fs:g}")
-    chirp = {k: float(ch.get(k, d)) for k, d in
-             (("f_start_hz", 20e3), ("f_stop_hz", 30e3), ("duration_s", 5e-3), ("taper", 0.1))}
-    waveform = lfm_chirp(chirp["f_start_hz"], chirp["f_stop_hz"], chirp["duration_s"], fs, chirp["taper"])
+        raise fail(f"audio.fs_hz must be 96000 or 192000 (a 20-30 kHz chirp needs them), got {fs:g}")
+    chirp, waveform = c.chirp_table(ch, fs)
 
-    rx = np.asarray(ap.get("rx_offset_m", [[0.02, 0.0, 0.0]]), float)
-    if rx.ndim == 1:
-        rx = rx[None, :]
-    rx = v.array("aperture.rx_offset_m", rx, shape=(None, 3))
-    mics = [_channel("audio.mic_channels", c) for c in au.get("mic_channels", [2])]
+    rx = ap.raw("rx_offset_m", [[0.02, 0.0, 0.0]])
+    if isinstance(rx, list) and rx and not isinstance(rx[0], list):
+        ap.data["rx_offset_m"] = rx = [rx]
+    rx = ap.vector("rx_offset_m", np.asarray(rx, float), shape=(None, 3))
+    mics = au.raw("mic_channels", [2])
+    if (not isinstance(mics, list) or not mics
+            or any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in mics)):
+        raise fail(f"audio.mic_channels must be a list of input channels (integers, 1-based), got {mics!r}")
     if len(mics) != len(rx):
-        raise ValueError(f"audio.mic_channels has {len(mics)} entries but aperture.rx_offset_m has {len(rx)}: "
-                         "give one input channel per microphone")
-    loop = _channel("audio.loopback_channel", au.get("loopback_channel", 1))
+        raise fail(f"audio.mic_channels has {len(mics)} entries but aperture.rx_offset_m has {len(rx)}: "
+                   "give one input channel per microphone")
+    loop = au.integer("loopback_channel", 1, low=1)
     if loop in mics:
-        raise ValueError(f"audio.loopback_channel {loop} is also a microphone channel")
-    tx_off = v.array("aperture.tx_offset_m", ap.get("tx_offset_m", (-0.02, 0.0, 0.0)), shape=(3,))
-    aperture = raster_aperture(
-        ap.get("nx", 18), ap.get("ny", 12), ap.get("width_m", 1.0), ap.get("height_m", 1.0),
+        raise fail(f"audio.loopback_channel {loop} is also a microphone channel")
+    tx_off = ap.vector("tx_offset_m", (-0.02, 0.0, 0.0))
+    aperture = ap.build(
+        raster_aperture, ap.integer("nx", 18, low=1), ap.integer("ny", 12, low=1),
+        float(ap.number("width_m", 1.0, low=0)), float(ap.number("height_m", 1.0, low=0)),
         center_m=(0.0, 0.0, 0.0), tx_offset_m=tuple(tx_off), rx_offset_m=tuple(rx[0]),
-        pattern=str(ap.get("pattern", "serpentine")),
+        pattern=ap.string("pattern", "serpentine", choices=("serpentine", "raster")),
     )
-    area = v.array("stage.work_area_mm", st.get("work_area_mm", [[0, 1000], [0, 1000]]), shape=(2, 2))
-    origin = v.array("stage.origin_mm", st.get("origin_mm", [500, 500]), shape=(2,))
+    area = st.vector("work_area_mm", [[0, 1000], [0, 1000]], shape=(2, 2))
+    origin = st.vector("origin_mm", [500, 500], shape=(2,))
     stops = aperture.stage_positions
     targets = origin + 1000.0 * stops[:, :2]
     for axis, name in ((0, "x"), (1, "y")):
         lo, hi = targets[:, axis].min(), targets[:, axis].max()
         if lo < area[axis, 0] or hi > area[axis, 1]:
-            raise ValueError(f"the aperture spans {name} = [{lo:g}, {hi:g}] mm on the stage, outside "
-                             f"stage.work_area_mm {area[axis].tolist()}: reduce the aperture or move stage.origin_mm")
-    feed = st.get("feed_mm_min", 3000.0)
-    device = au.get("device", "default")
+            raise fail(f"the aperture spans {name} = [{lo:g}, {hi:g}] mm on the stage, outside stage.work_area_mm "
+                       f"{area[axis].tolist()}: reduce the aperture or move stage.origin_mm")
+    feed = st.number("feed_mm_min", 3000.0, low=0)
+    device = au.raw("device", "default")
     if not isinstance(device, str | int) or isinstance(device, bool):
-        raise ValueError(f"audio.device must be a device name or index, got {device!r}")
-    level = v.positive("audio.level", au.get("level", 0.5))
+        raise fail(f"audio.device must be a device name or index, got {device!r}")
+    level = float(au.number("level", 0.5, above=0))
     if level > 1:
-        raise ValueError(f"audio.level must be at most 1 (full scale), got {level}")
-    record_s = v.positive("audio.record_s", au.get("record_s", 0.02))
+        raise fail(f"audio.level must be at most 1 (full scale), got {level:g}")
+    record_s = float(au.number("record_s", 0.02, above=0))
     if record_s * fs < len(waveform):
-        raise ValueError(f"audio.record_s = {record_s:g} s is shorter than the chirp ({chirp['duration_s']:g} s)")
-    clip = v.positive("audio.clip_level", au.get("clip_level", 0.99))
-    sim = _table(cfg, "simulate")
+        raise fail(f"audio.record_s = {record_s:g} s is shorter than the chirp ({chirp['duration_s']:g} s)")
+    port = st.string("port", None)
+    sensor = air.string("sensor_command", None)
     return RigConfig(
         text=text,
-        port=st.get("port"),
-        baudrate=v.positive_int("stage.baudrate", st.get("baudrate", 115200)),
-        home=bool(st.get("home", True)),
-        feed_mm_min=None if feed is None or feed == 0 else v.positive("stage.feed_mm_min", feed),
+        port=port,
+        baudrate=st.integer("baudrate", 115200, low=1),
+        home=st.boolean("home", True),
+        feed_mm_min=None if feed == 0 else float(feed),
         work_area_mm=area,
         origin_mm=origin,
-        settle_s=v.non_negative("stage.settle_s", st.get("settle_s", 0.5)),
-        stage_timeout_s=v.positive("stage.timeout_s", st.get("timeout_s", 5.0)),
-        poll_hz=v.positive("stage.poll_hz", st.get("poll_hz", 5.0)),
+        settle_s=float(st.number("settle_s", 0.5, low=0)),
+        stage_timeout_s=float(st.number("timeout_s", 5.0, above=0)),
+        poll_hz=float(st.number("poll_hz", 5.0, above=0)),
         stops_m=stops,
         tx_offset_m=tx_off,
         rx_offsets_m=rx,
         device=device,
         fs_hz=fs,
-        output_channel=_channel("audio.output_channel", au.get("output_channel", 1)),
+        output_channel=au.integer("output_channel", 1, low=1),
         loopback_channel=loop,
         mic_channels=mics,
         level=level,
         record_s=record_s,
-        max_latency_s=v.positive("audio.max_latency_s", au.get("max_latency_s", 0.1)),
-        repeats=v.positive_int("audio.repeats", au.get("repeats", 1)),
-        repeat_gap_s=v.non_negative("audio.repeat_gap_s", au.get("repeat_gap_s", 0.05)),
-        retries=v.positive_int("audio.retries", au.get("retries", 3)),
-        clip_level=min(clip, 1.0),
-        acoustic_delay_s=v.finite("audio.acoustic_delay_s", au.get("acoustic_delay_s", 0.0)),
+        max_latency_s=float(au.number("max_latency_s", 0.1, above=0)),
+        repeats=au.integer("repeats", 1, low=1),
+        repeat_gap_s=float(au.number("repeat_gap_s", 0.05, low=0)),
+        retries=au.integer("retries", 3, low=1),
+        clip_level=min(float(au.number("clip_level", 0.99, above=0)), 1.0),
+        acoustic_delay_s=float(au.number("acoustic_delay_s", 0.0)),
         chirp=chirp,
         waveform=waveform,
-        temperature_c=v.finite("air.temperature_c", air.get("temperature_c", 20.0)),
-        humidity_pct=v.non_negative("air.humidity_pct", air.get("humidity_pct", 50.0)),
-        sensor_command=air.get("sensor_command"),
-        simulate=sim,
+        temperature_c=float(air.number("temperature_c", 20.0, low=-273.15)),
+        humidity_pct=float(air.number("humidity_pct", 50.0, low=0, high=100)),
+        sensor_command=sensor,
+        simulate=_simulate_table(cfg, source),
+        preprocess=c.preprocess_table(cfg, source),
+        grid=c.grid_table(cfg, source),
     )
 
 
 def load_rig_config(path: str | Path) -> RigConfig:
+    """Read and check a ``rig.toml``; errors name the file."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no rig configuration at {path} (`clsas acquire --sample-config` prints one)")
-    return parse_rig_config(path.read_text())
+    if path.is_dir():
+        raise c.ConfigError(f"{path} is a folder, not a rig file (TOML)")
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise c.ConfigError(f"{path} is not a text (TOML) rig file") from None
+    return parse_rig_config(text, str(path))
