@@ -208,11 +208,57 @@ def _write_arrays(f, ds: Dataset) -> None:
     for k in _AIR:
         if np.ndim(getattr(ds, k)):
             arrays[k] = getattr(ds, k)
+    written = {}
     for name, arr in arrays.items():
         if arr is None:
             continue
         d = f.create_dataset(name, data=arr)
         d.attrs["units"] = _UNITS[name]
+        written[name] = d
+    _attach_scales(f, written, ds)
+
+
+# the named dimensions of each array (HDF5 dimension scales, so that netCDF readers such as
+# xarray's h5netcdf engine see named dimensions instead of phony_dim_*)
+_DIMS = {
+    "signals": ("measurement", "sample"),
+    "background": ("measurement", "sample"),
+    "tx_positions": ("measurement", "xyz"),
+    "rx_positions": ("measurement", "xyz"),
+    "stage_positions": ("measurement", "xyz"),
+    "t0_s": ("measurement",),
+    "timestamps": ("measurement",),
+    "c_mps": ("measurement",),
+    "temperature_c": ("measurement",),
+    "humidity_pct": ("measurement",),
+    "waveform": ("waveform_sample",),
+    "loopback": ("loopback_measurement", "loopback_sample"),
+}
+
+
+def _attach_scales(f, written: dict, ds: Dataset) -> None:
+    """Create one dimension-scale dataset per named dimension and attach it to the arrays."""
+    import h5py
+
+    lengths: dict[str, int] = {}
+    for name, d in written.items():
+        for dim, n in zip(_DIMS.get(name, ()), d.shape, strict=False):
+            lengths.setdefault(dim, n)
+    scales = {}
+    for dim, n in lengths.items():
+        if dim == "xyz":
+            s = f.create_dataset(dim, data=["x", "y", "z"], dtype=h5py.string_dtype())
+            s.attrs["long_name"] = "position component"
+        else:
+            s = f.create_dataset(dim, data=np.arange(n, dtype=np.int64))
+            s.attrs["long_name"] = f"{dim.replace('_', ' ')} index"
+        s.attrs["units"] = "1"
+        s.make_scale(dim)
+        scales[dim] = s
+    for name, d in written.items():
+        for i, dim in enumerate(_DIMS.get(name, ())[: d.ndim]):
+            if d.shape[i] == lengths[dim]:
+                d.dims[i].attach_scale(scales[dim])
 
 
 def load(path: str | Path) -> Dataset:
