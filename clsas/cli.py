@@ -110,9 +110,10 @@ def cmd_simulate(args) -> int:
 
 def cmd_reconstruct(args) -> int:
     import clsas
-    from clsas.plots import mip_png
     from clsas.scenes import stored_grid_and_truth
 
+    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise ValueError(f"--plot: the file must end in .png, .svg or .pdf, got {args.plot!r}")
     ds = clsas.load(args.data)
     partial = _partial_scan(args.data)
     if partial:
@@ -126,6 +127,9 @@ def cmd_reconstruct(args) -> int:
             raise ValueError("--preprocess: no steps given and no [preprocess] table in the dataset or --config")
         print(f"preprocessed with the steps from {source}: {', '.join(p['step'] for p in ds.provenance[n_before:])}")
     image = _reconstruct(ds, grid, args, not args.quiet)
+    from clsas.imaging.image import source_provenance
+
+    image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
     out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
     image.save(out)
     if args.verbose and image.plan is not None:
@@ -146,9 +150,13 @@ def cmd_reconstruct(args) -> int:
         from clsas.quality import tcr_db
 
         print(f"target-to-clutter ratio in {args.box}: {tcr_db(image, _box_arg('--box', args.box)):.1f} dB")
-    if args.png:
-        mip_png(image, out.with_suffix(".png"), truth, Path(args.data).name)
-        print(f"wrote {out.with_suffix('.png')}")
+    if args.png or args.plot:
+        from clsas.plots import stored_scene
+
+        kw = dict(truth_m=truth, scene=stored_scene(ds.config), aperture=ds, dynamic_range_db=args.dynamic_range)
+        for pic in ([out.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else []):
+            image.plot(pic, **kw)
+            print(f"wrote {pic}")
     print(f"wrote {out}")
     return 0
 
@@ -480,6 +488,15 @@ def _preprocess_options(sp) -> None:
     g.add_argument("--config", metavar="FILE.toml", help="take the steps from this file's [preprocess] table")
 
 
+def cmd_export(args) -> int:
+    from clsas.export import export
+    from clsas.imaging.image import Image
+
+    for path in export(Image.load(args.image), args.out):
+        print(f"wrote {path}")
+    return 0
+
+
 def cmd_import(args) -> int:
     import clsas.io
 
@@ -555,7 +572,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--compression", default="matched", choices=("matched", "fmcw"),
                    help="matched filter (default), or FMCW dechirp (only for echoes that arrive while the chirp plays)")
     r.add_argument("--out", help="image file (default: <data>-image.h5)")
-    r.add_argument("--png", action="store_true", help="also write maximum-intensity projections")
+    r.add_argument("--png", action="store_true", help="also write the picture as <out>.png")
+    r.add_argument("--plot", metavar="FILE",
+                   help="write the picture (projections and slices through the peak) to FILE: .png, .svg or .pdf")
+    r.add_argument("--dynamic-range", type=float, default=40.0, metavar="DB",
+                   help="the picture's floor, dB below the peak (default 40)")
     r.add_argument("--peaks", type=int, default=3, help="peaks to print")
     r.add_argument("--force", action="store_true", help="image even if the grid does not seem to fit in memory")
     r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
@@ -624,6 +645,12 @@ def build_parser() -> argparse.ArgumentParser:
     im.add_argument("--background", metavar="FOLDER", help="the empty-scene scan, same layout and stops")
     im.add_argument("--waveform-index", type=int, help="airsas: which interleaved waveform (0-based)")
     im.set_defaults(func=cmd_import)
+    ex = sub.add_parser("export", help="write an image file as VTK image data (.vti, ParaView) "
+                        "or .npy with a JSON sidecar (napari)")
+    ex.add_argument("image", help="image file (HDF5) written by `clsas reconstruct`")
+    ex.add_argument("out", help="output file: .vti or .npy")
+    ex.set_defaults(func=cmd_export)
+
     b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time")
     b.add_argument("--full", action="store_true", help="the full set (tens of minutes on a 2-core CPU)")
     b.add_argument("--out", default="bench/results", help="results folder (default: bench/results)")

@@ -151,7 +151,9 @@ def _default_title(image: Image) -> str:
           enumerate(zip(image.grid.spacing(), (image.grid.x_m, image.grid.y_m, image.grid.z_m), strict=True))
           if len(a) > 1]
     src = image.provenance.get("source_path")
-    parts = [f"method {image.method}", f"formation {formation}", f"spacing {', '.join(sp)} mm" if sp else ""]
+    comp = image.provenance.get("compression")
+    parts = [f"method {image.method}", f"formation {formation}", f"compression {comp}" if comp else "",
+             f"spacing {', '.join(sp)} mm" if sp else ""]
     head = f"{src}: " if src else ""
     return head + " | ".join(p for p in parts if p) + f" | {image.device}"
 

@@ -91,3 +91,43 @@ def test_npy_with_sidecar(tmp_path, image):
     meta = json.loads(side.read_text())
     assert meta["scale"] == pytest.approx([0.02, 0.02, 0.02])
     assert meta["translate"] == pytest.approx([-0.1, -0.05, 1.0])
+
+
+def test_cli_reconstruct_plot_and_export(tmp_path, capsys):
+    from clsas.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text("""
+[chirp]
+f_start_hz = 20000.0
+f_stop_hz = 30000.0
+duration_s = 0.002
+fs_hz = 96000.0
+
+[aperture]
+nx = 5
+ny = 4
+width_m = 0.3
+height_m = 0.2
+
+[[points]]
+position_m = [0.02, -0.01, 0.6]
+
+[grid]
+x_m = [-0.06, 0.06]
+y_m = [-0.04, 0.04]
+z_m = [0.56, 0.64]
+spacing_m = 0.01
+""")
+    data = tmp_path / "scan.h5"
+    assert main(["simulate", str(scene), str(data), "-q", "--backend", "numpy"]) == 0
+    assert main(["reconstruct", str(data), "-q", "--backend", "numpy", "--plot", str(tmp_path / "p.svg"),
+                 "--dynamic-range", "25"]) == 0
+    assert (tmp_path / "p.svg").stat().st_size > 1000
+    image = Image.load(tmp_path / "scan-image.h5")
+    assert image.provenance["source_path"] == "scan.h5" and len(image.provenance["source_sha256"]) == 64
+    assert main(["export", str(tmp_path / "scan-image.h5"), str(tmp_path / "out.vti")]) == 0
+    np.testing.assert_allclose(read_vti(tmp_path / "out.vti")["magnitude"], np.abs(image.values), rtol=1e-5)
+    assert main(["export", str(tmp_path / "scan-image.h5"), str(tmp_path / "out.npy")]) == 0
+    assert (tmp_path / "out.json").exists()
+    assert main(["reconstruct", str(data), "-q", "--backend", "numpy", "--plot", str(tmp_path / "p.gif")]) == 2
