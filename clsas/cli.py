@@ -81,7 +81,8 @@ def cmd_demo(args) -> int:
         image.save(out / f"{name}-image.h5")
         truth = cfg.scene.image_sources()[0]
         label = "mannequin in front" if name == "front" else "mannequin around the corner (mirror image)"
-        mip_png(image, out / f"{name}.png", truth, f"{label}: {ds.n_meas} stops, 20-30 kHz, {image.device}")
+        mip_png(image, out / f"{name}.png", truth, f"{label}: {ds.n_meas} stops, 20-30 kHz, {image.device}",
+                scene=cfg.scene, aperture=ds)
         peak = image.peaks(1)[0].position_m
         nearest = np.min(np.linalg.norm(truth - peak, axis=1))
         ts = image.timings_s
