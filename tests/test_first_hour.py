@@ -168,3 +168,19 @@ def test_install_hints_fit_a_source_checkout():
 
     hint = install_hint("rig")
     assert hint.startswith("pip install -e '") and hint.endswith("[rig]'")  # tests run from the checkout
+
+
+def test_the_readme_python_api_in_ten_lines_runs_as_written(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    section = text.split("## Python API in ten lines", 1)[1]
+    code = section.split("```python", 1)[1].split("```", 1)[0]
+    monkeypatch.chdir(tmp_path)
+    env: dict = {}
+    exec(compile(code, "README.md (Python API in ten lines)", "exec"), env)  # noqa: S102 - our own README
+    peaks = env["image"].peaks(2, min_separation_m=0.05)
+    truth = np.array([[0.1, 0.05, 1.2], [-0.2, 0.1, 1.5]])
+    for p in peaks:
+        assert np.min(np.linalg.norm(truth - p.position_m, axis=1)) < 0.015
+    assert (tmp_path / "scan.h5").exists() and (tmp_path / "image.h5").exists()
