@@ -31,7 +31,7 @@ if TYPE_CHECKING:
     from .geometry import Scene
     from .imaging.image import Image
 
-__all__ = ["plot_image", "mip_png", "stored_scene", "FORMATS"]
+__all__ = ["plot_image", "plot_slices", "mip_png", "stored_scene", "FORMATS"]
 
 log = logging.getLogger(__name__)
 
@@ -109,6 +109,61 @@ def plot_image(
         path = Path(path)
         fig.savefig(path, dpi=dpi)
         log.info("wrote %s", path)
+    return fig
+
+
+def plot_slices(
+    image: Image,
+    path: str | Path | None = None,
+    *,
+    axis: str = "z",
+    n: int = 12,
+    dynamic_range_db: float = 40.0,
+    truth_m: np.ndarray | None = None,
+    title: str | None = None,
+    dpi: int = 150,
+    cmap: str = "inferno",
+) -> Figure:
+    """A montage of ``n`` evenly spaced slices through the volume along ``axis``, in dB.
+
+    Each slice is scaled to the volume's peak; truth within half a slice step is marked.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    if axis not in _NAMES:
+        raise ValueError(f"axis must be one of 'x', 'y', 'z', got {axis!r}")
+    if int(n) < 1:
+        raise ValueError(f"n must be >= 1, got {n}")
+    if path is not None and Path(path).suffix.lower() not in FORMATS:
+        raise ValueError(f"path must end in one of {', '.join(FORMATS)}, got {str(path)!r}")
+    dr = float(dynamic_range_db)
+    if not np.isfinite(dr) or dr <= 0:
+        raise ValueError(f"dynamic_range_db must be a positive number of dB, got {dynamic_range_db!r}")
+    g = image.grid
+    axes_m = (g.x_m, g.y_m, g.z_m)
+    k = _NAMES.index(axis)
+    i, j = [d for d in range(3) if d != k]
+    idx = np.unique(np.linspace(0, len(axes_m[k]) - 1, min(int(n), len(axes_m[k]))).round().astype(int))
+    cols = int(np.ceil(np.sqrt(len(idx))))
+    rows = int(np.ceil(len(idx) / cols))
+    lu, lv = np.ptp(_extent(axes_m[i])), np.ptp(_extent(axes_m[j]))
+    fig = _new_figure(path)
+    fig.set_size_inches(*_size(cols * lu, rows * lv, 1.5, 0.8))
+    db = np.moveaxis(image.db(-dr), (i, j, k), (0, 1, 2))
+    step = float(np.ptp(axes_m[k])) / max(len(axes_m[k]) - 1, 1)
+    marks = _Marks.build(truth_m, None, None, g)
+    im = None
+    for n_ax, ik in enumerate(idx):
+        ax = fig.add_subplot(rows, cols, n_ax + 1)
+        at = float(axes_m[k][ik])
+        im = _panel(ax, db[:, :, ik].T, axes_m[i], axes_m[j], i, j, dr, cmap, f"{axis} = {at:.3f} m")
+        marks.draw(ax, i, j, (k, at), step / 2 + 1e-12)
+    fig.colorbar(im, ax=fig.axes, shrink=0.7, label="dB re peak")
+    fig.suptitle(_default_title(image) if title is None else title, fontsize=10)
+    if path is not None:
+        fig.savefig(Path(path), dpi=dpi)
     return fig
 
 

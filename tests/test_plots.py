@@ -77,3 +77,17 @@ def test_bad_arguments_are_refused(tmp_path):
         _blob(VOLUME).plot(tmp_path / "a.png", dynamic_range_db=-3)
     with pytest.raises(ValueError, match=r"\.png"):
         _blob(VOLUME).plot(tmp_path / "a.gif")
+
+
+def test_slice_montage_and_figure_without_path(tmp_path):
+    import matplotlib
+    import matplotlib.pyplot as plt
+
+    before = matplotlib.get_backend()
+    fig = clsas.plots.plot_slices(_blob(VOLUME), tmp_path / "s.png", axis="z", n=6)
+    assert (tmp_path / "s.png").stat().st_size > 1000
+    assert len([ax for ax in fig.axes if ax.images]) == 6
+    fig = _blob(PLANE_WIDE).plot()  # no file: a pyplot figure in the caller's backend
+    assert plt.fignum_exists(fig.number)
+    plt.close(fig)
+    assert matplotlib.get_backend() == before
