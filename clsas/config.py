@@ -13,6 +13,7 @@ import difflib
 import math
 import tomllib
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import numpy as np
@@ -21,7 +22,7 @@ from .geometry import Scene, VoxelGrid, Wall
 from .signals import lfm_chirp
 
 __all__ = [
-    "ConfigError", "Table", "SCENE_TABLES", "RIG_TABLES", "read_toml", "kind_of", "suggestion",
+    "ConfigError", "Table", "SCENE_TABLES", "RIG_TABLES", "read_text", "read_toml", "kind_of", "suggestion",
     "chirp_table", "points_table", "walls_table", "grid_table", "preprocess_table", "build_scene",
     "CHIRP_KEYS", "POINT_KEYS", "WALL_KEYS", "GRID_KEYS",
 ]
@@ -37,6 +38,7 @@ WALL_KEYS = ("point_m", "normal", "reflectivity")
 GRID_KEYS = ("x_m", "y_m", "z_m", "spacing_m")
 
 _REQUIRED: Any = object()
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 _RIG_ONLY = ("stage", "audio", "simulate")
 _SCENE_ONLY = ("points", "walls", "noise")
 
@@ -61,6 +63,8 @@ def _show(value: Any) -> str:
         return "true" if value else "false"
     if isinstance(value, dict):
         return "a table"
+    if isinstance(value, list) and any(isinstance(x, dict) for x in value):
+        return "an array of tables ([[...]])"
     return str(value)
 
 
@@ -80,15 +84,21 @@ class Table:
     prefix : str, optional
         How a key is named in messages about its value: ``prefix + key``, e.g. ``"audio.repeats"``
         or ``"points[2].position_m"``; default: the label without brackets and a dot.
+    hints : dict, optional
+        ``{key: text}``: what to say instead of a suggestion when ``key`` is found here (a key
+        that belongs in another table).
     """
 
-    def __init__(self, data: Any, source: str, label: str, keys: Iterable[str], prefix: str | None = None) -> None:
+    def __init__(self, data: Any, source: str, label: str, keys: Iterable[str], prefix: str | None = None,
+                 hints: dict[str, str] | None = None) -> None:
         self.source, self.label, self.keys = source, label, tuple(keys)
         self.prefix = _dotted(label) + "." if prefix is None else prefix
         if not isinstance(data, dict):
             raise self.error(f"{label} must be a table, got {_show(data)}")
         self.data = data
         for key in data:
+            if key in (hints or {}):
+                raise self.error(f"{label} unknown key {key!r}: {hints[key]}")
             if key not in self.keys:
                 raise self.error(f"{label} unknown key {key!r}{suggestion(key, self.keys)}; "
                                  f"known keys: {', '.join(self.keys)}")
@@ -229,18 +239,34 @@ def kind_of(cfg: dict) -> str:
     return "scene"
 
 
-def read_toml(text: str, source: str, kind: str) -> dict:
+def read_text(path: Path, kind: str) -> str:
+    """The text of the ``kind`` (``"scene"`` or ``"rig"``) file at ``path``, which exists;
+    a folder, an HDF5 file or another binary file is refused, saying what it is."""
+    if path.is_dir():
+        raise ConfigError(f"{path} is a folder, not a {kind} file (TOML)")
+    data = path.read_bytes()
+    if data.startswith(_HDF5_SIGNATURE):
+        raise ConfigError(f"{path} is an HDF5 file (a dataset or an image), not a {kind} file (TOML): "
+                          "`clsas reconstruct` reads datasets")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path} is not a text (TOML) {kind} file") from None
+
+
+def read_toml(text: str, source: str, kind: str, keys: dict[str, tuple[str, ...]] | None = None) -> dict:
     """Parse ``text`` as a ``kind`` (``"scene"`` or ``"rig"``) configuration.
 
-    Refuses invalid TOML, a file of the other kind (saying which command reads it), and
-    unknown top-level tables or keys (with a suggestion).
+    Refuses invalid TOML, a file of another kind (saying which command reads it), and
+    unknown top-level tables or keys (with a suggestion). ``keys`` ({table: its keys}) lets a
+    key written outside its table be told where it belongs.
     """
     if not isinstance(text, str):
         raise TypeError(f"a {kind} configuration must be TOML text (str), got {type(text).__name__}")
     try:
         cfg = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{source}: {kind} configuration is not valid TOML: {exc}") from None
+        raise ConfigError(f"{source} is not valid TOML: {exc}") from None
     found = kind_of(cfg)
     if kind == "scene" and found == "rig":
         tables = ", ".join(f"[{t}]" for t in _RIG_ONLY if t in cfg)
@@ -252,12 +278,20 @@ def read_toml(text: str, source: str, kind: str) -> dict:
         raise ConfigError(f"{source} is a scene configuration ({tables}), not a rig file: simulate it with "
                           "`clsas simulate SCENE.toml OUT.h5`, or write a rig file with "
                           "`clsas acquire --sample-config > rig.toml`")
+    if found == "other":
+        raise ConfigError(f"{source} holds import settings ([recording], [delay]) for `clsas import`, "
+                          f"not a {kind} file")
     known = SCENE_TABLES if kind == "scene" else RIG_TABLES
-    for name in cfg:
-        if name not in known:
-            what = "table" if isinstance(cfg[name], dict | list) else "key"
-            raise ConfigError(f"{source}: unknown {what} {name!r}{suggestion(name, known)} in a {kind} "
-                              f"configuration; known tables: {', '.join(known)}")
+    for name, value in cfg.items():
+        if name in known:
+            continue
+        if not isinstance(value, dict | list):
+            home = [t for t, k in (keys or {}).items() if name in k]
+            if home:
+                raise ConfigError(f"{source}: key {name!r} is outside any table: put it under [{home[0]}]")
+        what = "table" if isinstance(value, dict | list) else "key"
+        raise ConfigError(f"{source}: unknown {what} {name!r}{suggestion(name, known)} in a {kind} "
+                          f"configuration; known tables: {', '.join(known)}")
     return cfg
 
 

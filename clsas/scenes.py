@@ -57,7 +57,8 @@ def parse_config(text: str, source: str = "scene configuration") -> SceneConfig:
         (a ``ValueError``) naming the file, the table and the key: invalid TOML, a rig file,
         an unknown table or key, a value of the wrong type or out of range, or no reflector.
     """
-    cfg = c.read_toml(text, source, "scene")
+    cfg = c.read_toml(text, source, "scene", {"chirp": (*c.CHIRP_KEYS, "fs_hz"), "aperture": APERTURE_KEYS,
+                                               "air": AIR_KEYS, "noise": NOISE_KEYS, "grid": c.GRID_KEYS})
     ch = c.Table(cfg.get("chirp", {}), source, "[chirp]", (*c.CHIRP_KEYS, "fs_hz"))
     fs = float(ch.number("fs_hz", 96e3, above=0))
     chirp, waveform = c.chirp_table(ch, fs)
@@ -122,13 +123,7 @@ def load_config(path: str | Path) -> SceneConfig:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no scene configuration at {path}")
-    if path.is_dir():
-        raise c.ConfigError(f"{path} is a folder, not a scene file (TOML)")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise c.ConfigError(f"{path} is not a text (TOML) scene file") from None
-    return parse_config(text, str(path))
+    return parse_config(c.read_text(path, "scene"), str(path))
 
 
 def mannequin_points(center_m=(0.0, 0.0, 1.5), seed: int = 7) -> tuple[np.ndarray, np.ndarray]:

@@ -216,3 +216,32 @@ def test_scenes_do_not_import_the_rig():
     code = "import sys, clsas.scenes, clsas.config; print('clsas.rig' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_a_key_outside_its_table_is_told_where_it_belongs(tmp_path):
+    message = _scene_error(tmp_path, "[chirp]", "nx = 5\n[chirp]")
+    assert message.endswith("key 'nx' is outside any table: put it under [aperture]")
+    with pytest.raises(ConfigError, match=r"rig\.toml: \[chirp\] unknown key 'fs_hz': a rig's sample rate is "
+                       r"\[audio\] fs_hz"):
+        rig.parse_rig_config(rig.SAMPLE_RIG_TOML.replace("taper = 0.1", "taper = 0.1\nfs_hz = 96000"), "rig.toml")
+
+
+def test_files_of_another_kind_are_named(tmp_path):
+    h5 = tmp_path / "scan.h5"
+    h5.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(100))
+    with pytest.raises(ConfigError, match=r"scan\.h5 is an HDF5 file .* not a scene file"):
+        load_config(h5)
+    with pytest.raises(ConfigError, match=r"scan\.h5 is an HDF5 file .* not a rig file"):
+        rig.load_rig_config(h5)
+    with pytest.raises(ConfigError, match="is a folder"):
+        load_config(tmp_path)
+    with pytest.raises(ConfigError, match=r"import\.toml holds import settings .* `clsas import`"):
+        parse_config("[recording]\nfs_hz = 96000.0\n", "import.toml")
+    with pytest.raises(FileNotFoundError, match="no scene configuration"):
+        load_config(tmp_path / "missing.toml")
+
+
+def test_a_table_written_as_an_array_of_tables_is_named(tmp_path):
+    message = _scene_error(tmp_path, "[aperture]", "[[aperture]]")
+    assert message.endswith("[aperture] must be a table, got an array of tables ([[...]])")
+    assert "scene.toml is not valid TOML: Expected ']'" in _scene_error(tmp_path, "[grid]", "[grid\n")

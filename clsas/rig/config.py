@@ -208,11 +208,15 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         an unknown table or key, a value of the wrong type or out of range, or keys that
         disagree (one input channel per microphone, the aperture inside the work area, ...).
     """
-    cfg = c.read_toml(text, source, "rig")
+    cfg = c.read_toml(text, source, "rig", {"stage": STAGE_KEYS, "aperture": APERTURE_KEYS, "audio": AUDIO_KEYS,
+                                             "chirp": c.CHIRP_KEYS, "air": AIR_KEYS, "grid": c.GRID_KEYS,
+                                             "simulate": SIMULATE_KEYS})
     st = c.Table(cfg.get("stage", {}), source, "[stage]", STAGE_KEYS)
     ap = c.Table(cfg.get("aperture", {}), source, "[aperture]", APERTURE_KEYS)
-    au = c.Table(cfg.get("audio", {}), source, "[audio]", AUDIO_KEYS)
-    ch = c.Table(cfg.get("chirp", {}), source, "[chirp]", c.CHIRP_KEYS)
+    au = c.Table(cfg.get("audio", {}), source, "[audio]", AUDIO_KEYS,
+                 hints={"snr_db": "the emulated microphone's noise is [simulate] noise_rms"})
+    ch = c.Table(cfg.get("chirp", {}), source, "[chirp]", c.CHIRP_KEYS,
+                 hints={"fs_hz": "a rig's sample rate is [audio] fs_hz"})
     air = c.Table(cfg.get("air", {}), source, "[air]", AIR_KEYS)
 
     def fail(message: str) -> c.ConfigError:
@@ -308,10 +312,4 @@ def load_rig_config(path: str | Path) -> RigConfig:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"no rig configuration at {path} (`clsas acquire --sample-config` prints one)")
-    if path.is_dir():
-        raise c.ConfigError(f"{path} is a folder, not a rig file (TOML)")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise c.ConfigError(f"{path} is not a text (TOML) rig file") from None
-    return parse_rig_config(text, str(path))
+    return parse_rig_config(c.read_text(path, "rig"), str(path))
