@@ -304,9 +304,9 @@ def _wall_line(ax: Axes, wall, i: int, j: int, k: int, at: float, bounds: np.nda
 
 
 def _panel(ax: Axes, img: np.ndarray, ha: np.ndarray, va: np.ndarray, i: int, j: int, dr: float, cmap: str,
-           name: str):
+           name: str, aspect: str = "equal"):
     ex = (*_extent(ha), *_extent(va))
-    im = ax.imshow(img, origin="lower", extent=ex, aspect="equal", cmap=cmap, vmin=-dr, vmax=0,
+    im = ax.imshow(img, origin="lower", extent=ex, aspect=aspect, cmap=cmap, vmin=-dr, vmax=0,
                    interpolation="nearest")
     ax.set_xlim(ex[0], ex[1])
     ax.set_ylim(ex[2], ex[3])
@@ -319,7 +319,10 @@ def _panel(ax: Axes, img: np.ndarray, ha: np.ndarray, va: np.ndarray, i: int, j:
 
 
 def _volume(fig: Figure, db: np.ndarray, axes_m, marks: _Marks, dr: float, cmap: str) -> None:
-    lx, ly, lz = (np.ptp(_extent(a)) for a in axes_m)
+    true = [float(np.ptp(_extent(a))) for a in axes_m]
+    # a thin axis gets at least a quarter of the longest one (stretched: aspect no longer equal)
+    lx, ly, lz = (max(t, 0.25 * max(true)) for t in true)
+    aspect = "equal" if [lx, ly, lz] == true else "auto"
     peak = np.unravel_index(int(np.argmax(db)), db.shape)
     width, height = 2 * (lx + lz), ly + lz
     fig.set_size_inches(*_size(width, height, 3.5, 1.6))
@@ -340,7 +343,7 @@ def _volume(fig: Figure, db: np.ndarray, axes_m, marks: _Marks, dr: float, cmap:
         for spec, img, ha, va, i, j, k, name in views:
             ax = fig.add_subplot(spec)
             where = f"MIP {name}" if at is None else f"{name} at {_NAMES[k]} = {axes_m[k][at[k]]:.3f} m"
-            im = _panel(ax, img, ha, va, i, j, dr, cmap, where)
+            im = _panel(ax, img, ha, va, i, j, dr, cmap, where, aspect)
             marks.draw(ax, i, j, None if at is None else (k, float(axes_m[k][at[k]])), tol)
             if legend_ax is None:
                 legend_ax = ax

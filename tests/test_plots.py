@@ -42,6 +42,19 @@ def test_figure_size_follows_the_grid(tmp_path):
     assert len(_blob(PLANE_WIDE).plot(tmp_path / "p.png").axes) == 2
     images = [ax for ax in _blob(VOLUME).plot(tmp_path / "v.png").axes if ax.images]
     assert len(images) == 6
+    # volumes too: tall in y gives a taller figure than wide in x; a thin axis is not a sliver
+    tall_v = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.6, 0.6), (1.4, 1.6), 0.02)
+    w_in, h_in = _blob(tall_v).plot(tmp_path / "tv.png").get_size_inches()
+    assert h_in / w_in > _volume_ratio(tmp_path)
+    thin = clsas.VoxelGrid.from_bounds((-0.5, 0.5), (-0.5, 0.5), (1.49, 1.51), 0.01)
+    fig = _blob(thin).plot(tmp_path / "thin.png")
+    top = fig.axes[1].get_window_extent()
+    assert top.height > 0.1 * fig.bbox.height
+
+
+def _volume_ratio(tmp_path) -> float:
+    w_in, h_in = _blob(VOLUME).plot(tmp_path / "v2.png").get_size_inches()
+    return h_in / w_in
 
 
 def test_backend_is_left_alone(tmp_path):
