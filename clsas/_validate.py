@@ -8,14 +8,21 @@ from typing import Any
 import numpy as np
 
 
+def _show(value: Any) -> str:
+    """A value as a user wrote it: ``-0.01``, not ``np.float64(-0.01)``."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    return repr(value)
+
+
 def positive(name: str, value: Any) -> float:
     """Return ``value`` as a finite float > 0, or raise ``ValueError`` naming ``name``."""
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a number, got {value!r}") from None
+        raise TypeError(f"{name} must be a number, got {_show(value)}") from None
     if not math.isfinite(v) or v <= 0:
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        raise ValueError(f"{name} must be a finite number > 0, got {_show(value)}")
     return v
 
 
@@ -24,24 +31,24 @@ def finite(name: str, value: Any) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a number, got {value!r}") from None
+        raise TypeError(f"{name} must be a number, got {_show(value)}") from None
     if not math.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {value!r}")
+        raise ValueError(f"{name} must be finite, got {_show(value)}")
     return v
 
 
 def non_negative(name: str, value: Any) -> float:
     v = finite(name, value)
     if v < 0:
-        raise ValueError(f"{name} must be >= 0, got {value!r}")
+        raise ValueError(f"{name} must be >= 0, got {_show(value)}")
     return v
 
 
 def positive_int(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer):
-        raise TypeError(f"{name} must be an integer, got {value!r}")
+        raise TypeError(f"{name} must be an integer, got {_show(value)}")
     if value <= 0:
-        raise ValueError(f"{name} must be >= 1, got {value!r}")
+        raise ValueError(f"{name} must be >= 1, got {_show(value)}")
     return int(value)
 
 
@@ -88,7 +95,7 @@ def array(
 
 def choice(name: str, value: Any, options: tuple[str, ...]) -> str:
     if value not in options:
-        raise ValueError(f"{name} must be one of {', '.join(map(repr, options))}, got {value!r}")
+        raise ValueError(f"{name} must be one of {', '.join(map(repr, options))}, got {_show(value)}")
     return value
 
 
