@@ -245,3 +245,10 @@ def test_a_table_written_as_an_array_of_tables_is_named(tmp_path):
     message = _scene_error(tmp_path, "[aperture]", "[[aperture]]")
     assert message.endswith("[aperture] must be a table, got an array of tables ([[...]])")
     assert "scene.toml is not valid TOML: Expected ']'" in _scene_error(tmp_path, "[grid]", "[grid\n")
+
+
+def test_a_stored_configuration_refused_today_costs_only_grid_or_truth(caplog):
+    grid, truth = stored_grid_and_truth(SCENE.replace("nx = 5", "n_x = 5").replace("spacing_m = 0.05", "spacing = 1"))
+    assert grid is None
+    np.testing.assert_allclose(truth[0], [0.02, -0.01, 0.6])
+    assert "no stored grid" in caplog.text
