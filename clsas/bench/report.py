@@ -156,12 +156,11 @@ def _f(v):
 
 
 def _plot(res: dict, path: Path) -> None:
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(2, 2, figsize=(12, 9))
+    # a Figure of its own (saved through its canvas): the caller's pyplot backend is untouched
+    fig = Figure(figsize=(12, 9))
+    ax = fig.subplots(2, 2)
     a = ax[0, 0]
     labels, vals = [], []
     for r in res["backprojection"]:
@@ -213,4 +212,3 @@ def _plot(res: dict, path: Path) -> None:
     a.set_title("Delta x lam grid: every cell, Pareto front per method", fontsize=9)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
-    plt.close(fig)
