@@ -19,9 +19,11 @@ import tomli_w
 from . import config as c
 from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
 
-__all__ = ["SceneConfig", "load_config", "parse_config", "mannequin_points", "demo_configs", "stored_grid_and_truth"]
+__all__ = ["SceneConfig", "load_config", "parse_config", "mannequin_points", "demo_configs", "stored_grid_and_truth",
+           "stored_scene"]
 
 log = logging.getLogger(__name__)
+_STORED = "the dataset's stored configuration"
 
 APERTURE_KEYS = ("nx", "ny", "width_m", "height_m", "center_m", "tx_offset_m", "rx_offset_m", "pattern")
 AIR_KEYS = ("temperature_c", "humidity_pct", "wall_echo")
@@ -92,42 +94,62 @@ def parse_config(text: str, source: str = "scene configuration") -> SceneConfig:
                        c.preprocess_table(cfg, source))
 
 
+def _stored(text: str) -> tuple[dict, str]:
+    """The tables of a configuration stored in a dataset and its kind (see :func:`clsas.config.kind_of`)."""
+    if not text.strip():
+        return {}, "other"
+    try:
+        cfg = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise c.ConfigError(f"{_STORED} is not valid TOML: {exc}") from None
+    return cfg, c.kind_of(cfg)
+
+
+def stored_scene(text: str) -> Scene | None:
+    """The scene (reflectors and walls) of a configuration stored in a dataset, or None.
+
+    A scene file gives its ``[[points]]`` and ``[[walls]]`` in its ``[air]``; a rig file its
+    ``[simulate]`` points and walls (20 C, 50 %); anything else (no reflectors, an
+    ``import.toml``, a text that today's checks refuse: logged as a warning) gives None.
+    """
+    cfg, kind = _stored(text)
+    table = cfg if kind == "scene" else cfg.get("simulate", {}) if kind == "rig" else {}
+    if not isinstance(table, dict) or not table.get("points"):
+        return None
+    label = "[[{}]]" if kind == "scene" else "[simulate] {}"
+    # the file was checked when the dataset was written; a stored text that the checks of this
+    # version refuse costs the truth markers, with a warning, not the image
+    try:
+        points = c.points_table(table["points"], _STORED, label.format("points"))
+        walls = c.walls_table(table.get("walls", []), _STORED, label.format("walls"))
+        air = cfg.get("air", {}) if kind == "scene" else {}
+        air = c.Table(air, _STORED, "[air]", AIR_KEYS if kind == "scene" else ())
+        return c.build_scene(points, walls, float(air.number("temperature_c", 20.0, low=-273.15)),
+                             float(air.number("humidity_pct", 50.0, low=0, high=100)),
+                             air.boolean("wall_echo", False))
+    except ValueError as exc:
+        log.warning("%s; no true positions", exc)
+        return None
+
+
 def stored_grid_and_truth(text: str) -> tuple[VoxelGrid | None, np.ndarray | None]:
     """The ``[grid]`` and the true reflector (image) positions of a configuration stored in a dataset.
 
     Works for scene files (``clsas simulate``) and rig files (``clsas acquire``; the truth is its
     ``[simulate]`` scene, if any); other stored settings (e.g. an ``import.toml``) give
-    ``(None, None)``.
+    ``(None, None)``. A stored ``[grid]`` that today's checks refuse gives no grid, with a
+    warning.
     """
-    if not text.strip():
-        return None, None
-    source = "the dataset's stored configuration"
-    try:
-        cfg = tomllib.loads(text)
-    except ValueError as exc:
-        raise c.ConfigError(f"{source} is not valid TOML: {exc}") from None
-    kind = c.kind_of(cfg)
+    cfg, kind = _stored(text)
     if kind not in ("scene", "rig"):
         return None, None
-    # the file was checked when the dataset was written; a stored text that the checks of this
-    # version refuse costs the default grid or the truth markers, with a warning, not the image
     try:
-        grid = c.grid_table(cfg, source)
+        grid = c.grid_table(cfg, _STORED)
     except c.ConfigError as exc:
         log.warning("%s; no stored grid", exc)
         grid = None
-    table = cfg if kind == "scene" else cfg.get("simulate", {})
-    label = "[[{}]]" if kind == "scene" else "[simulate] {}"
-    if not isinstance(table, dict) or not table.get("points"):
-        return grid, None
-    try:
-        points = c.points_table(table["points"], source, label.format("points"))
-        walls = c.walls_table(table.get("walls", []), source, label.format("walls"))
-        truth = c.build_scene(points, walls, 20.0, 50.0).image_sources()[0]
-    except (c.ConfigError, ValueError) as exc:
-        log.warning("%s; no true positions", exc)
-        truth = None
-    return grid, truth
+    scene = stored_scene(text)
+    return grid, None if scene is None else scene.image_sources()[0]
 
 
 def load_config(path: str | Path) -> SceneConfig:

@@ -252,3 +252,14 @@ def test_a_stored_configuration_refused_today_costs_only_grid_or_truth(caplog):
     assert grid is None
     np.testing.assert_allclose(truth[0], [0.02, -0.01, 0.6])
     assert "no stored grid" in caplog.text
+
+
+def test_stored_scene_of_scene_and_rig_files():
+    from clsas.scenes import stored_scene
+
+    scene = stored_scene(SCENE)
+    assert len(scene.points_m) == 1 and len(scene.walls) == 1
+    wall = '\nwalls = [{ point_m = [0.0, 0.0, 2.0], normal = [0.0, 0.0, -1.0] }]\n'
+    scene = stored_scene(rig.SAMPLE_RIG_TOML.replace("time_scale = 0.01", "time_scale = 0.01" + wall))
+    assert len(scene.points_m) == 1 and len(scene.walls) == 1
+    assert stored_scene("") is None and stored_scene("[recording]\nfs_hz = 1.0\n") is None
