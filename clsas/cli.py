@@ -183,10 +183,14 @@ def _preprocess_table(ds, config_path: str | None) -> tuple[dict, str]:
         path = Path(config_path)
         if not path.exists():
             raise FileNotFoundError(f"no preprocessing file at {path}")
+        from clsas.config import preprocess_table, read_text
+
         try:
-            cfg = tomllib.loads(path.read_text())
+            cfg = tomllib.loads(read_text(path, "preprocessing"))
         except tomllib.TOMLDecodeError as exc:
             raise ValueError(f"{path} is not valid TOML: {exc}") from None
+        if "preprocess" in cfg:
+            cfg["preprocess"] = preprocess_table(cfg, str(path))  # its keys checked, with a suggestion
         where = f"{path}"
         bg = cfg.get("preprocess", {}).get("background") if isinstance(cfg.get("preprocess"), dict) else None
         # a background file named in the table is relative to the table's file
@@ -271,13 +275,25 @@ def _limits_from_file(path: str) -> dict:
     from the [grid]'s centre (else the reflectors' mean) to the aperture's plane."""
     import tomllib
 
+    from clsas.config import kind_of, read_text
+
     p = Path(path)
     if not p.exists():
         raise FileNotFoundError(f"no scene or rig file at {p}")
+    text = read_text(p, "scene or rig")
     try:
-        cfg = tomllib.loads(p.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        cfg = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{p} is not a TOML scene or rig file: {exc}") from None
+    # the whole file is checked as what it is (unknown keys refused, with a suggestion)
+    if kind_of(cfg) == "rig":
+        from clsas.rig import parse_rig_config
+
+        parse_rig_config(text, source=str(p))
+    else:
+        from clsas.scenes import parse_config
+
+        parse_config(text, source=str(p))
     out = {}
     keys = {"chirp": {"f_start_hz": "f_start", "f_stop_hz": "f_stop"},
             "aperture": {"width_m": "width", "height_m": "height", "nx": "nx", "ny": "ny"},
