@@ -184,3 +184,11 @@ def test_the_readme_python_api_in_ten_lines_runs_as_written(tmp_path, monkeypatc
     for p in peaks:
         assert np.min(np.linalg.norm(truth - p.position_m, axis=1)) < 0.015
     assert (tmp_path / "scan.h5").exists() and (tmp_path / "image.h5").exists()
+
+
+def test_delay_error_refuses_a_signal_without_its_atom():
+    from clsas.sparse import Echoes
+
+    truth = Echoes([1e-3], [1.0])
+    with pytest.raises(ValueError, match="signal was given without atom"):
+        clsas.delay_error(truth, truth, np.zeros(10))

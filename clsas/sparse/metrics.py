@@ -71,10 +71,15 @@ def delay_error(estimate: Echoes, truth: Echoes, signal=None, atom=None, *, tol_
     """The paper's error (eq. 5) with the optimal (Hungarian) matching of estimated to true delays.
 
     ``signal`` (the measured b) and ``atom`` give the fit term ||b - b~||^2; without them it is 0.
+    One without the other is refused (it used to drop the fit term silently).
     When the counts differ, each unmatched echo adds ``(window_s |a|)^2``, the delay term of an
     echo placed a whole window away (``window_s`` defaults to the atom's window, else the span
     of all delays). ``success`` needs every true echo matched within ``tol_s`` and no extra one.
     """
+    if (signal is None) != (atom is None):
+        given, missing = ("signal", "atom") if atom is None else ("atom", "signal")
+        raise ValueError(f"delay_error: {given} was given without {missing}; the fit term ||b - b~||^2 needs "
+                         "both (the measured signal and the atom that models it), or neither")
     est_t, tru_t = estimate.delays_s, truth.delays_s
     if window_s is None:
         if atom is not None:
