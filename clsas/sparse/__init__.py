@@ -2,7 +2,18 @@
 and one registry of the methods (:data:`SPARSE_METHODS`), all returning :class:`Echoes`."""
 
 from .atoms import Atom, Dictionary, PolarTriple, coherence, decaying_exponential, default_max_echoes, pulse_length_s
-from .bpdn import BpdnResult, ShiftOperator, bpdn, bpdn_cvxpy, group_atoms, lam_max, lam_noise, noise_sigma
+from .bpdn import (
+                   BpdnResult,
+                   ShiftOperator,
+                   bpdn,
+                   bpdn_cvxpy,
+                   correlation_sigma,
+                   group_atoms,
+                   lam_max,
+                   lam_noise,
+                   noise_lam,
+                   noise_sigma,
+)
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import DelayError, Echoes, crb_delays, delay_error
 from .refined import cbp_polar_refined
@@ -10,7 +21,7 @@ from .registry import SPARSE_METHODS, cap_echoes, sparse_echoes, succeeded, supe
 
 __all__ = [
     "Atom", "BpdnResult", "DelayError", "Dictionary", "Echoes", "PolarTriple", "SPARSE_METHODS", "ShiftOperator",
-    "bpdn", "bpdn_cvxpy", "cap_echoes", "cbp_polar", "cbp_polar_refined", "cbp_taylor", "coherence", "crb_delays",
-    "decaying_exponential", "default_max_echoes", "delay_error", "group_atoms", "lam_max", "lam_noise",
-    "noise_sigma", "pulse_length_s", "sparse_echoes", "succeeded", "superres",
+    "bpdn", "bpdn_cvxpy", "cap_echoes", "cbp_polar", "cbp_polar_refined", "cbp_taylor", "coherence",
+    "correlation_sigma", "crb_delays", "decaying_exponential", "default_max_echoes", "delay_error", "group_atoms",
+    "lam_max", "lam_noise", "noise_lam", "noise_sigma", "pulse_length_s", "sparse_echoes", "succeeded", "superres",
 ]

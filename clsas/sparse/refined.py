@@ -13,7 +13,7 @@ import numpy as np
 
 from .. import _validate as v
 from .atoms import Dictionary, default_max_echoes, pulse_length_s
-from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_noise
+from .bpdn import ShiftOperator, _check, _threshold, bpdn, group_atoms, lam_noise
 from .metrics import Echoes
 
 __all__ = ["cbp_polar_refined"]
@@ -232,7 +232,9 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
        three that cost the least with only the amplitudes refit are refit in full); echoes
        below ``rel_threshold`` of the largest are pruned.
        Neighbouring delays stay at least 1/16 of the matched filter's half-power half-width
-       apart; a trial fit that fails is skipped.
+       apart; a trial fit that fails is skipped, and so is one whose echoes hold more than four
+       times the signal's energy (cancelling pairs). The BIC counts no residual below the noise
+       level ``lam`` stands for (a noise-free signal is not fitted down to rounding errors).
 
     ``max_echoes`` defaults to :func:`clsas.sparse.atoms.default_max_echoes` (two per pulse
     length over the span); ``capped`` on the result says that the seeds were more than it or
@@ -263,8 +265,16 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
     vp = _VarPro(atom, b, amplitudes)
     min_gap = half / 16
 
+    # the noise level lam stands for (lam = 2 t s_g, s_g the noise's rms correlation with an atom):
+    # the BIC does not reward a fit below it (noise-free or mis-modelled signals are not chased
+    # to their rounding errors by cancelling pairs)
+    s_g = seed.lam / (2 * max(_threshold(dictionary.k, amplitudes, 0.01), 1e-3))
+    rss_floor = max(n_real * (s_g / ((2.0 if amplitudes == "complex" else 1.0) * atom.norm)) ** 2, 1e-300)
+    info["rss_floor"] = rss_floor
+    energy_cap = 4.0 * float(np.vdot(b, b).real)
+
     def bic(rss, k):
-        return n_real * np.log(max(rss, 1e-300) / n_real) + penalty * k
+        return n_real * np.log(max(rss, rss_floor) / n_real) + penalty * k
 
     def fit(taus):
         return vp.fit(taus, t_lo, t_hi, min_gap)
@@ -288,6 +298,8 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
             except RuntimeError as exc:
                 log.debug("cbp-polar: a trial fit failed (%s)", exc)
                 continue
+            if energy(a2) > energy_cap:
+                continue  # cancelling pairs: echoes far stronger than the signal they explain
             s2 = bic(rss2, len(t2))
             if s2 < score - 1e-9 and (best is None or s2 < best[0]):
                 best = (s2, t2, a2, rss2, st2)
@@ -322,6 +334,13 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
             yield np.r_[taus, cand]
 
     taus, a, rss, status = fit(taus0)
+
+    def energy(amps):
+        return float(np.sum(np.abs(amps) ** 2)) * atom.norm**2
+
+    # seeds that fit as cancelling pairs: drop the echo the fit misses least, until they do not
+    while len(taus) > 1 and energy(a) > energy_cap:
+        taus, a, rss, status = min((fit(np.delete(taus, k)) for k in range(len(taus))), key=lambda f: f[2])
     score = bic(rss, len(taus))
     while len(taus) < max_echoes:
         best = best_of(itertools.chain(splits(taus, a), additions(taus, a)), score)

@@ -20,7 +20,7 @@ import numpy as np
 
 from .. import _validate as v
 from .atoms import Dictionary, default_max_echoes
-from .bpdn import bpdn, group_atoms, lam_noise
+from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max, lam_noise, noise_lam
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import Echoes
 from .refined import _mainlobe_s, cbp_polar_refined
@@ -104,10 +104,36 @@ SPARSE_METHODS: dict[str, SparseMethod] = {
 }
 
 
+def _nothing(method: str, reason: str, t_start: float, info: dict) -> Echoes:
+    """No echo, answered without a solve (``status`` ``"optimal"``, ``info["trivial"]`` the reason)."""
+    return Echoes([], [], method, "optimal", 0, time.perf_counter() - t_start, {**info, "trivial": reason})
+
+
+def _rescaled(e: Echoes, scale: float) -> Echoes:
+    """``e`` found on ``b / scale``, in the units of ``b``: amplitudes and lam times ``scale``."""
+    info = dict(e.info)
+    for key in ("lam", "lam_max"):
+        if key in info:
+            info[key] = info[key] * scale
+    for key in ("rss", "rss_floor"):
+        if key in info:
+            info[key] = float(info[key]) * scale * scale
+    info["scale"] = scale
+    return Echoes(e.delays_s, e.amplitudes * scale, e.method, e.status, e.iterations, e.time_s, info, e.fallback,
+                  e.capped)
+
+
 def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = None, *,
                   lam_frac: float | None = None, amplitudes: str = "complex", max_echoes: int | None = None,
-                  **options) -> Echoes:
+                  noise_sigma: float | None = None, **options) -> Echoes:
     """The echoes of ``b`` by one of :data:`SPARSE_METHODS`.
+
+    Every method sees ``b / max|b|`` and its amplitudes are scaled back, so the answer (echo
+    count and delays) does not depend on the units of ``b`` (1e-200 to 1e200 alike). The trivial
+    cases are answered without a solve, with no echo (``info["trivial"]`` says why): an all-zero
+    or constant ``b`` (a DC level is no echo), and ``lam >= lam_max`` (or ``lam_frac >= 1``),
+    where the convex problems' answer is exactly zero; so is the default ``lam`` on a profile
+    of pure noise, whose largest correlation with an atom rarely reaches the noise threshold.
 
     Parameters
     ----------
@@ -116,20 +142,49 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
     b : (n_samples,) array
         The signal (analytic for ``amplitudes="complex"``).
     lam, lam_frac : float, optional
-        Absolute lam, or a fraction of lam_max; default :func:`lam_noise` of ``b``.
+        Absolute lam (in the units of ``b``), or a fraction of lam_max; default the noise
+        threshold (:func:`noise_lam`) at ``noise_sigma``.
     amplitudes : {"positive", "real", "complex"}
     max_echoes : int, optional
         Echo cap; default :func:`clsas.sparse.atoms.default_max_echoes`.
+    noise_sigma : float, optional
+        The noise level per sample (units of ``b``), where it is known (e.g. from a noise-only
+        recording); default estimated from ``b`` (:func:`clsas.sparse.noise_sigma`). Only used
+        when neither ``lam`` nor ``lam_frac`` is given.
     **options
         Passed to the method: ``tol``, ``max_inner``, ``group``, ``rel_threshold``, ``max_run`` (bpdn);
-        ``rel_threshold`` (the CBPs); ``bounds_s`` (cbp-polar).
+        ``rel_threshold``, ``max_memory_gib`` (the convex CBPs); ``bounds_s`` (cbp-polar).
     """
+    t_start = time.perf_counter()
     v.choice("method", method, tuple(SPARSE_METHODS))
     if max_echoes is not None:
         max_echoes = v.positive_int("max_echoes", max_echoes)
-    if lam is None and lam_frac is None:
-        lam = lam_noise(dictionary, b, amplitudes)
-    return SPARSE_METHODS[method](dictionary, b, lam, lam_frac, amplitudes, max_echoes=max_echoes, **options)
+    if lam is not None and lam_frac is not None:
+        raise ValueError("give at most one of lam (absolute) and lam_frac (a fraction of lam_max)")
+    lam = None if lam is None else v.non_negative("lam", lam)
+    lam_frac = None if lam_frac is None else v.non_negative("lam_frac", lam_frac)
+    if noise_sigma is not None and (lam is not None or lam_frac is not None):
+        raise ValueError("noise_sigma sets lam: give it instead of lam and lam_frac, not with them")
+    b = _check(dictionary, b, amplitudes)
+    scale = float(np.max(np.abs(b), initial=0.0))
+    if scale == 0.0:
+        return _nothing(method, "zero input", t_start, {"lam_max": 0.0})
+    if np.all(b == b[0]):
+        return _nothing(method, "constant input", t_start, {})
+    bn = b / scale
+    lmax = lam_max(ShiftOperator(dictionary), bn, amplitudes)
+    if lam_frac is not None:
+        lam_n = lam_frac * lmax
+    elif lam is not None:
+        lam_n = lam / scale
+    elif noise_sigma is not None:
+        lam_n = noise_lam(dictionary, noise_sigma / scale, amplitudes)
+    else:
+        lam_n = lam_noise(dictionary, bn, amplitudes)
+    if lam_n >= lmax or (lam_frac is not None and lam_frac >= 1):
+        return _nothing(method, "lam >= lam_max", t_start, {"lam": lam_n * scale, "lam_max": lmax * scale})
+    e = SPARSE_METHODS[method](dictionary, bn, lam_n, None, amplitudes, max_echoes=max_echoes, **options)
+    return _rescaled(e, scale)
 
 
 def succeeded(echoes: Echoes) -> bool:
@@ -140,7 +195,8 @@ def succeeded(echoes: Echoes) -> bool:
 
 def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", delta_s: float | None = None,
              lam: float | None = None, lam_frac: float | None = None, amplitudes: str = "complex",
-             tau0_s: float = 0.0, max_echoes: int | None = None, **options) -> Echoes:
+             tau0_s: float = 0.0, max_echoes: int | None = None, noise_sigma: float | None = None,
+             remove_dc: bool = True, **options) -> Echoes:
     """Super-resolve the echoes in one signal.
 
     Parameters
@@ -159,6 +215,11 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
         noise level estimated from the signal.
     max_echoes : int, optional
         Echo cap (default two per pulse length over the signal); ``capped`` says it was hit.
+    noise_sigma : float, optional
+        Known noise level per sample, in the signal's units (sets the default ``lam``).
+    remove_dc : bool
+        Subtract the signal's mean first (a DC offset is no echo; a band-pass pulse has
+        almost no mean of its own).
     **options
         Passed to the method (see :func:`sparse_echoes`).
     """
@@ -168,12 +229,16 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
     v.choice("method", method, tuple(SPARSE_METHODS))
     fs = v.positive("fs_hz", fs_hz)
     x = v.array("signal", signal, ndim=1, allow_complex=True)
+    if remove_dc:
+        x = x - np.mean(x)
     if amplitudes == "complex" and not np.iscomplexobj(x):
-        x = analytic(x)
+        peak = float(np.max(np.abs(x), initial=0.0))  # the transform at unit scale (no overflow at 1e200)
+        x = analytic(x / peak) * peak if peak > 0 else x.astype(complex)
     if amplitudes != "complex" and np.iscomplexobj(x):
         raise ValueError("signal is complex: use amplitudes='complex'")
     atom = Atom(atom_shape, fs, len(x), complex=amplitudes == "complex")
     delta = 0.5 / fs if delta_s is None else v.positive("delta_s", delta_s)
     d = Dictionary(atom, delta, tau0_s)
     return sparse_echoes(method, d, x, lam, lam_frac=lam_frac, amplitudes=amplitudes, max_echoes=max_echoes,
+                         noise_sigma=noise_sigma,
                          **options)
