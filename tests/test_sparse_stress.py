@@ -140,3 +140,39 @@ def test_single_nonzero_sample(pulse, method, amplitudes):
     assert len(e) <= 12
     if len(e):
         assert np.abs(e.amplitudes).max() * np.linalg.norm(pulse) <= 3.0
+
+
+@pytest.mark.parametrize("method", ["cbp-taylor", "cbp-polar-socp"])
+@pytest.mark.parametrize("case", ["tiny-delta", "long-signal"])
+def test_cvxpy_memory_is_refused_up_front(pulse, method, case):
+    """A problem too large for memory is a ValueError with the numbers, before cvxpy builds it."""
+    import time
+
+    rng = np.random.default_rng(5)
+    n, delta = (N, 1e-4 / FS) if case == "tiny-delta" else (100_000, 0.5 / FS)
+    x = _profile(pulse, [40 / FS], [1.0], n=n) + 0.01 * rng.normal(size=n)
+    t = time.perf_counter()
+    with pytest.raises(ValueError, match=r"GiB.*max_memory_gib"):
+        superres(x, pulse, FS, method=method, amplitudes="positive", delta_s=delta, lam_frac=0.1)
+    assert time.perf_counter() - t < 10
+
+
+def test_weak_echo_at_ratio_one_tenth_is_kept(pulse):
+    """The noise threshold drops noise, not an echo a tenth of its neighbour's at 30 dB."""
+    rng = np.random.default_rng(11)
+    found = 0
+    for _ in range(10):
+        x = _profile(pulse, [40 / FS, 100.4 / FS], [1.0, 0.1]) + 0.003 * rng.normal(size=N)
+        e = _run("cbp-polar", "complex", x, pulse)
+        found += len(e) == 2 and np.min(np.abs(e.delays_s - 100.4 / FS)) < 0.5 / FS
+    assert found >= 8
+
+
+def test_known_noise_sigma_sets_the_threshold(pulse):
+    """noise_sigma= (the real recording's per-sample level) gives the same answer on pure noise
+    (nothing) and keeps both echoes of a clean pair."""
+    rng = np.random.default_rng(2)
+    assert len(_run("bpdn", "complex", rng.normal(size=N), pulse, noise_sigma=1.0)) == 0
+    x = _profile(pulse, [40 / FS, 90 / FS], [1.0, 0.5]) + 0.01 * rng.normal(size=N)
+    e = _run("bpdn", "complex", x, pulse, noise_sigma=0.01)
+    assert len(e) == 2 and np.allclose(e.delays_s * FS, [40, 90], atol=0.1)

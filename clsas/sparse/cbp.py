@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 
+from .. import _validate as v
 from .atoms import Dictionary
 from .bpdn import ShiftOperator, _check, _resolve_lam
 from .metrics import Echoes
@@ -26,6 +27,25 @@ def _positive_only(amplitudes, name):
             f"{name} is the convex method of Ekanadham et al., which assumes positive amplitudes; "
             f"use method='cbp-polar' (the refined one) for amplitudes={amplitudes!r}"
         )
+
+
+def cvxpy_memory_gib(n_rows: int, n_cols: int) -> float:
+    """A rough bound on the memory (GiB) cvxpy and Clarabel take for ``|b - M z|^2 + ...`` with a
+    dense ``(n_rows, n_cols)`` M: the matrix and its sparse canonical copies (about 4 of it) and
+    the quadratic form ``M^T M`` with its factorisation (about 3 of it), float64."""
+    return 8.0 * (4.0 * n_rows * n_cols + 3.0 * float(n_cols) ** 2) / 2**30
+
+
+def _check_memory(name: str, n_rows: int, n_cols: int, max_memory_gib: float) -> float:
+    """Refuse a problem whose estimate exceeds ``max_memory_gib``, with the numbers."""
+    limit = v.positive("max_memory_gib", max_memory_gib)
+    need = cvxpy_memory_gib(n_rows, n_cols)
+    if need > limit:
+        raise ValueError(
+            f"{name}: the cvxpy problem would take about {need:.1f} GiB ({n_rows} rows x {n_cols} variables), "
+            f"more than max_memory_gib={limit:g}: coarsen delta_s, shorten the signal, raise max_memory_gib, "
+            f"or use method='bpdn' or 'cbp-polar' (matrix-free)")
+    return need
 
 
 def _solve(prob, name):
@@ -48,7 +68,7 @@ def _echoes_from(taus, amps, rel_threshold, method, status, iters, t_start, info
 
 
 def cbp_taylor(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes="positive",
-               rel_threshold: float = 1e-3) -> Echoes:
+               rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
     """CBP-Taylor: ``min |b - F c - G d|^2 + lam sum c`` s.t. ``|d_i| <= c_i`` (G = Delta/2 f').
 
     ``amplitudes="positive"`` is Ekanadham et al.'s convex program. For signed or complex
@@ -62,6 +82,8 @@ def cbp_taylor(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes
     t_start = time.perf_counter()
     b = _check(dictionary, b, amplitudes)
     lam, lmax = _resolve_lam(ShiftOperator(dictionary), b, amplitudes, lam, lam_frac)
+    cplx = amplitudes == "complex"
+    _check_memory("cbp-taylor", (2 if cplx else 1) * len(b), (4 if cplx else 2) * dictionary.k, max_memory_gib)
     F, G = dictionary.taylor()
     k = dictionary.k
     if amplitudes == "positive":
@@ -98,15 +120,17 @@ def cbp_taylor(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes
 
 
 def cbp_polar(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes="positive",
-              rel_threshold: float = 1e-3) -> Echoes:
+              rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
     """Convex CBP-Polar (SOCP): ``|(u_i, v_i)| <= r c_i``, ``u_i >= r cos(theta) c_i``;
-    delay = grid + (Delta/2) atan2(v, u) / theta."""
+    delay = grid + (Delta/2) atan2(v, u) / theta. Refused before it is built where its memory
+    estimate exceeds ``max_memory_gib`` (see :func:`cbp_taylor`)."""
     import cvxpy as cp
 
     t_start = time.perf_counter()
     _positive_only(amplitudes, "cbp-polar (convex)")
     b = _check(dictionary, b, amplitudes)
     lam, lmax = _resolve_lam(ShiftOperator(dictionary), b, amplitudes, lam, lam_frac)
+    _check_memory("cbp-polar (convex)", len(b), 3 * dictionary.k, max_memory_gib)
     P = dictionary.polar()
     k = dictionary.k
     c, u, w = cp.Variable(k, nonneg=True), cp.Variable(k), cp.Variable(k)

@@ -76,16 +76,18 @@ def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=No
 
 
 def _cbp_taylor(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
-                rel_threshold: float = 1e-3) -> Echoes:
-    """CBP-Taylor (cvxpy), the ``max_echoes`` strongest echoes."""
-    e = cbp_taylor(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold)
+                rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
+    """CBP-Taylor (cvxpy), the ``max_echoes`` strongest echoes; refused up front beyond ``max_memory_gib``."""
+    e = cbp_taylor(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold,
+                   max_memory_gib=max_memory_gib)
     return cap_echoes(e, _cap(max_echoes, dictionary))
 
 
 def _cbp_polar_socp(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
-                    rel_threshold: float = 1e-3) -> Echoes:
+                    rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
     """The convex CBP-Polar SOCP (positive amplitudes), the ``max_echoes`` strongest echoes."""
-    e = cbp_polar(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold)
+    e = cbp_polar(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold,
+                  max_memory_gib=max_memory_gib)
     return cap_echoes(e, _cap(max_echoes, dictionary))
 
 
