@@ -237,7 +237,7 @@ def _resolve_lam(op, b, amplitudes, lam, lam_frac):
     return lam, lmax
 
 
-def _fista_gram(G, c, bb, lam, amplitudes, x, tol, max_iter):
+def _fista_gram(G, c, bb, lam, amplitudes, x, tol, max_iter, deadline=np.inf):
     """FISTA with restart on ``|b - D x|^2 + lam |x|_1`` written with the Gram matrix of a small
     working set (``G = D^H D``, ``c = D^H b``, ``bb = |b|^2``); stops at a restricted duality gap
     <= tol x the objective."""
@@ -269,12 +269,12 @@ def _fista_gram(G, c, bb, lam, amplitudes, x, tol, max_iter):
         t_next = 0.5 * (1 + np.sqrt(1 + 4 * t_mom**2))
         y = x_new + ((t_mom - 1) / t_next) * (x_new - x)
         x, f_prev, t_mom = x_new, f_new, t_next
-        if it % 25 == 0 and gap(x) <= tol * max(f_prev, 1e-300):
+        if it % 25 == 0 and (gap(x) <= tol * max(f_prev, 1e-300) or time.perf_counter() > deadline):
             break
     return x, it
 
 
-def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter):
+def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter, deadline=np.inf):
     """Exact BPDN for real or positive amplitudes by feature-sign search (Lee et al., NIPS 2006).
 
     The active set grows from the atom that most violates optimality (found with the FFT
@@ -287,7 +287,7 @@ def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter):
     theta = np.zeros(0)
     it = 0
     r = b.copy()
-    while it < max_iter:
+    while it < max_iter and time.perf_counter() <= deadline:
         it += 1
         g = op.adjoint(r).real  # D^T r: lam / 2 * sign(x) on the support at the optimum
         g_off = g.copy()
@@ -347,6 +347,7 @@ def bpdn(
     tol: float = 1e-7,
     max_outer: int = 30,
     max_inner: int = 100000,
+    max_time_s: float | None = None,
 ) -> BpdnResult:
     """Fast BPDN, stopped at a certified duality gap <= ``tol`` x the objective.
 
@@ -355,9 +356,12 @@ def bpdn(
     adaptive restart) on its Gram matrix; the atoms that violate optimality join the set. Either
     way the duality gap over all atoms certifies the end.
     ``lam`` is absolute, or ``lam_frac`` a fraction of lam_max (at or above lam_max the answer
-    is exactly zero). ``status`` is ``"optimal"`` or ``"max_iter"``.
+    is exactly zero). ``max_time_s``: a time budget; where it runs out the best point so far is
+    returned with its certified gap (``gap``), status ``"max_time"``. ``status`` is
+    ``"optimal"``, ``"max_iter"`` or ``"max_time"``.
     """
     t_start = time.perf_counter()
+    deadline = np.inf if max_time_s is None else t_start + v.positive("max_time_s", max_time_s)
     b = _check(dictionary, b, amplitudes)
     op = ShiftOperator(dictionary)
     lam, lmax = _resolve_lam(op, b, amplitudes, lam, lam_frac)
@@ -367,11 +371,13 @@ def bpdn(
     if lam >= lmax:
         return BpdnResult(x, _objective(b, x, lam), lam, "optimal", 0, 0.0, time.perf_counter() - t_start, info)
     if amplitudes != "complex":
-        x, n_it = _feature_sign(dictionary, op, b, lam, amplitudes, max_iter=20 * dictionary.k + 100)
+        x, n_it = _feature_sign(dictionary, op, b, lam, amplitudes, max_iter=20 * dictionary.k + 100,
+                                  deadline=deadline)
         r = b - op.forward(x)
         f = _objective(r, x, lam)
         gap = _gap(op, b, r, x, lam, amplitudes)
-        status = "optimal" if gap <= tol * max(f, 1e-300) else "max_iter"
+        status = ("optimal" if gap <= tol * max(f, 1e-300)
+                  else "max_time" if time.perf_counter() > deadline else "max_iter")
         if status != "optimal":
             log.warning("bpdn: feature-sign search ended with relative gap %.2g", gap / max(f, 1e-300))
         info.update(algorithm="feature-sign", support=int(np.count_nonzero(x)))
@@ -389,7 +395,7 @@ def bpdn(
         Dw = dictionary.atom.matrix(dictionary.taus[work])
         Gw = Dw.conj().T @ Dw
         cw = Dw.conj().T @ b
-        xw, n_in = _fista_gram(Gw, cw, bb, lam, amplitudes, x[work], tol / 10, max_inner)
+        xw, n_in = _fista_gram(Gw, cw, bb, lam, amplitudes, x[work], tol / 10, max_inner, deadline)
         inner += n_in
         x[:] = 0
         x[work] = xw
@@ -399,12 +405,15 @@ def bpdn(
         if gap <= tol * max(f, 1e-300):
             status = "optimal"
             break
+        if time.perf_counter() > deadline:
+            status = "max_time"
+            break
         g = op.adjoint(r)
         score = np.abs(g)
         viol = np.setdiff1d(np.flatnonzero(score > lp * (1 + tol)), work)
         if viol.size == 0:  # the set is right, the restricted solve was not tight enough
             tol_inner = tol_inner / 10
-            xw, n_in = _fista_gram(Gw, cw, bb, lam, amplitudes, xw, tol_inner, max_inner)
+            xw, n_in = _fista_gram(Gw, cw, bb, lam, amplitudes, xw, tol_inner, max_inner, deadline)
             inner += n_in
             x[work] = xw
             r = b - op.forward(x)

@@ -53,15 +53,17 @@ def cap_echoes(echoes: Echoes, max_echoes: int, weights: np.ndarray | None = Non
 
 def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None, tol: float = 1e-4,
           max_inner: int = 5000, group: bool = True, rel_threshold: float = 0.0,
-          max_run: int | None = None) -> Echoes:
+          max_run: int | None = None, max_time_s: float | None = None) -> Echoes:
     """BPDN on the grid (duality gap ``tol`` of the objective: 1e-4 is ample for an echo list,
     the complex solver's tail to 1e-7 can take minutes on a coherent grid; ``max_inner``
     FISTA steps per working set, status ``max_iter`` where that was not enough). ``group``:
     one echo per run of neighbouring active atoms (:func:`group_atoms`; runs longer than the
-    matched filter's half-power width, or ``max_run`` atoms, are cut); else one per atom."""
+    matched filter's half-power width, or ``max_run`` atoms, are cut); else one per atom.
+    ``max_time_s``: a time budget (the best point kept, status ``max_time``, its gap in ``info``)."""
     cap = _cap(max_echoes, dictionary)
     t = time.perf_counter()
-    res = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=tol, max_inner=max_inner)
+    res = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=tol, max_inner=max_inner,
+               max_time_s=max_time_s)
     info = {"lam": res.lam, "gap": res.gap, **res.info, "atoms": int(np.count_nonzero(res.x))}
     if group:
         if max_run is None:
@@ -154,7 +156,8 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
         recording); default estimated from ``b`` (:func:`clsas.sparse.noise_sigma`). Only used
         when neither ``lam`` nor ``lam_frac`` is given.
     **options
-        Passed to the method: ``tol``, ``max_inner``, ``group``, ``rel_threshold``, ``max_run`` (bpdn);
+        Passed to the method: ``tol``, ``max_inner``, ``max_time_s``, ``group``, ``rel_threshold``,
+        ``max_run`` (bpdn);
         ``rel_threshold``, ``max_memory_gib`` (the convex CBPs); ``bounds_s`` (cbp-polar).
     """
     t_start = time.perf_counter()
