@@ -211,3 +211,17 @@ def test_bpdn_time_budget_returns_the_best_point_with_its_gap(pulse, amplitudes)
     assert clsas.sparse.succeeded(e)
     if e.status == "max_time":
         assert e.info["gap"] > 0
+
+
+@pytest.mark.parametrize(("method", "amplitudes"), CASES, ids=IDS)
+def test_echo_before_the_window_with_a_margin_is_one_truncated_echo(pulse, method, amplitudes):
+    """Atoms from a pulse length before the window (``tau0_s < 0``): the early echo is modelled
+    as one truncated echo at its true delay, no cancelling swarm."""
+    early = -len(pulse) / 2 / FS
+    x = _profile(pulse, [early, 90 / FS], [1.0, 0.8])
+    e = _run(method, amplitudes, x, pulse, tau0_s=-len(pulse) / FS)
+    assert clsas.sparse.succeeded(e)
+    mag = np.abs(e.amplitudes)
+    strong = e.delays_s[mag > 0.2 * mag.max()]
+    assert len(strong) == 2
+    assert abs(strong[0] - early) < 1 / FS and abs(strong[1] - 90 / FS) < 0.5 / FS

@@ -218,6 +218,10 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
     lam, lam_frac : float
         Absolute lam, or a fraction of lam_max; default :func:`clsas.sparse.lam_noise`, the
         noise level estimated from the signal.
+    tau0_s : float
+        The first atom's delay. Negative (e.g. minus a pulse length) is a margin for echoes that
+        start before the window: they are then modelled as truncated echoes at their true
+        delays, not as a swarm of cancelling echoes at the window's start.
     max_echoes : int, optional
         Echo cap (default two per pulse length over the signal); ``capped`` says it was hit.
     noise_sigma : float, optional
