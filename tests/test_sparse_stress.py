@@ -225,3 +225,20 @@ def test_echo_before_the_window_with_a_margin_is_one_truncated_echo(pulse, metho
     strong = e.delays_s[mag > 0.2 * mag.max()]
     assert len(strong) == 2
     assert abs(strong[0] - early) < 1 / FS and abs(strong[1] - 90 / FS) < 0.5 / FS
+
+
+def test_absorbed_pulse_matches_iso_9613_attenuation(pulse):
+    from clsas.physics import air_absorption_db_per_m
+    from clsas.sparse import absorbed_pulse
+
+    np.testing.assert_allclose(absorbed_pulse(pulse, FS, 0.0), pulse, atol=1e-12)
+    path = 20.0
+    out = absorbed_pulse(pulse, FS, path, temperature_c=20.0, humidity_pct=50.0)
+    n = 4096
+    f = np.fft.rfftfreq(n, 1 / FS)
+    ratio = np.abs(np.fft.rfft(out, n)) / np.maximum(np.abs(np.fft.rfft(pulse, n)), 1e-12)
+    band = (f > 21e3) & (f < 29e3)
+    want = 10 ** (-air_absorption_db_per_m(f[band], 20.0, 50.0) * path / 20)
+    np.testing.assert_allclose(ratio[band], want, rtol=0.02)
+    with pytest.raises(ValueError, match="path_m"):
+        absorbed_pulse(pulse, FS, -1.0)

@@ -1,7 +1,16 @@
 """Sparse super-resolution of range profiles: dictionaries, BPDN, CBP-Taylor, CBP-Polar, metrics,
 and one registry of the methods (:data:`SPARSE_METHODS`), all returning :class:`Echoes`."""
 
-from .atoms import Atom, Dictionary, PolarTriple, coherence, decaying_exponential, default_max_echoes, pulse_length_s
+from .atoms import (
+                   Atom,
+                   Dictionary,
+                   PolarTriple,
+                   absorbed_pulse,
+                   coherence,
+                   decaying_exponential,
+                   default_max_echoes,
+                   pulse_length_s,
+)
 from .bpdn import (
                    BpdnResult,
                    ShiftOperator,
@@ -21,6 +30,7 @@ from .registry import SPARSE_METHODS, cap_echoes, sparse_echoes, succeeded, supe
 
 __all__ = [
     "Atom", "BpdnResult", "DelayError", "Dictionary", "Echoes", "PolarTriple", "SPARSE_METHODS", "ShiftOperator",
+    "absorbed_pulse",
     "bpdn", "bpdn_cvxpy", "cap_echoes", "cbp_polar", "cbp_polar_refined", "cbp_taylor", "coherence",
     "correlation_sigma", "crb_delays", "decaying_exponential", "default_max_echoes", "delay_error", "group_atoms",
     "lam_max", "lam_noise", "noise_lam", "noise_sigma", "pulse_length_s", "sparse_echoes", "succeeded", "superres",

@@ -16,7 +16,7 @@ import numpy as np
 
 from .. import _validate as v
 
-__all__ = ["Atom", "Dictionary", "decaying_exponential", "coherence", "PolarTriple", "pulse_length_s",
+__all__ = ["Atom", "absorbed_pulse", "Dictionary", "decaying_exponential", "coherence", "PolarTriple", "pulse_length_s",
            "default_max_echoes"]
 
 
@@ -292,3 +292,32 @@ def default_max_echoes(dictionary: Dictionary) -> int:
     extended target would otherwise add echoes without end)."""
     span = dictionary.taus[-1] - dictionary.taus[0]
     return int(np.clip(np.ceil(2 * span / pulse_length_s(dictionary.atom)), 8, 32))
+
+
+def absorbed_pulse(pulse, fs_hz: float, path_m: float, *, temperature_c: float = 20.0,
+                   humidity_pct: float = 50.0) -> np.ndarray:
+    """The pulse after ``path_m`` of air: each frequency attenuated by ISO 9613-1 absorption
+    (:func:`clsas.physics.air_absorption_db_per_m`), as :func:`clsas.simulate` applies it
+    (``exp(-beta(f) L)``, no delay). Used as an atom (``superres(..., absorbed_pulse(...))``)
+    it matches echoes from about that range, which the unabsorbed pulse fits as a pair.
+
+    Parameters
+    ----------
+    pulse : 1-D array
+        The transmitted pulse, sampled at ``fs_hz``.
+    path_m : float
+        The two-way path (m), e.g. the gate's mean path.
+    temperature_c, humidity_pct : float
+        The air.
+    """
+    import scipy.fft
+
+    from ..physics import air_absorption_db_per_m
+
+    x = v.array("pulse", pulse, ndim=1)
+    fs = v.positive("fs_hz", fs_hz)
+    path = v.non_negative("path_m", path_m)
+    n_fft = scipy.fft.next_fast_len(2 * len(x))
+    f = scipy.fft.rfftfreq(n_fft, 1 / fs)
+    beta = air_absorption_db_per_m(f, temperature_c, humidity_pct) * np.log(10) / 20
+    return scipy.fft.irfft(scipy.fft.rfft(x, n_fft) * np.exp(-beta * path), n_fft)[: len(x)]
