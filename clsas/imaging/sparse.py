@@ -132,6 +132,7 @@ def superres_profiles(
     guard_s: float | None = None,
     method_options: dict | None = None,
     progress: Callable[[int, int], None] | None = None,
+    absorption: bool = False,
 ) -> tuple[Profiles, list]:
     """Super-resolve every recording of ``dataset`` within its delay gate.
 
@@ -162,6 +163,10 @@ def superres_profiles(
         mistaken for echoes inside it; default the waveform's length.
     method_options : dict, optional
         Passed to the method (see :func:`clsas.sparse.sparse_echoes`).
+    absorption : bool
+        Model air absorption in the atom: the waveform after the gate's mean two-way path
+        (``c`` x its mean delay) of the recording's air (:func:`clsas.sparse.absorbed_pulse`,
+        ISO 9613-1, as :func:`clsas.simulate` applies it); ``info["path_m"]`` says which path.
 
     Returns
     -------
@@ -171,7 +176,8 @@ def superres_profiles(
         inside its gate). A recording the method failed on has ``fallback=True``, its
         reason in ``status``, no echoes, and its matched-filter profile in the rows.
     """
-    from ..sparse import Atom, Echoes
+    from ..physics import speed_of_sound
+    from ..sparse import Atom, Echoes, absorbed_pulse
 
     v.choice("method", method, SPARSE_METHODS)
     fs = dataset.fs_hz
@@ -199,6 +205,9 @@ def superres_profiles(
     width = v.positive("render_width_s", render_width_s)
     t0 = np.zeros(n) if dataset.t0_s is None else np.broadcast_to(np.asarray(dataset.t0_s, float), (n,))
     n_wave = len(wave)
+    air_t = np.broadcast_to(np.asarray(dataset.temperature_c, float), (n,))
+    air_h = np.broadcast_to(np.asarray(dataset.humidity_pct, float), (n,))
+    air_c = None if dataset.c_mps is None else np.broadcast_to(np.asarray(dataset.c_mps, float), (n,))
     # the common delay grid of the rendered profiles: every gate, and room for a pulse's tails
     dtau = width / 4
     lo, hi = float(gates[:, 0].min()) - 4 * width, float(gates[:, 1].max()) + 4 * width
@@ -216,7 +225,15 @@ def superres_profiles(
                                  info={"gate_s": (float(gates[m, 0]), float(gates[m, 1]))}))
             continue
         x = analytic(np.asarray(dataset.signals[m, s_lo:s_hi], float))
-        atom = Atom(wave, fs, s_hi - s_lo, complex=True)
+        path_m = None
+        if absorption:
+            temp, hum = float(air_t[m]), float(air_h[m])
+            c = speed_of_sound(temp) if air_c is None else float(air_c[m])
+            path_m = c * 0.5 * float(gates[m, 0] + gates[m, 1])
+            atom = Atom(absorbed_pulse(wave, fs, path_m, temperature_c=temp, humidity_pct=hum), fs, s_hi - s_lo,
+                        complex=True)
+        else:
+            atom = Atom(wave, fs, s_hi - s_lo, complex=True)
         offset = t0[m] + s_lo / fs  # delay after the transmit start of the window's first sample
         gate_rel = (gates[m, 0] - offset, gates[m, 1] - offset)
         tau0 = gate_rel[0] - guard
@@ -226,6 +243,8 @@ def superres_profiles(
             data[m] = _matched_row(x, atom, fc, offset, gate_rel, grid)
         e.delays_s = e.delays_s + offset  # after the transmit start
         e.info["gate_s"] = (float(gates[m, 0]), float(gates[m, 1]))
+        if path_m is not None:
+            e.info["path_m"] = path_m
         echoes.append(e)
         if progress is not None:
             progress(m + 1, n)
