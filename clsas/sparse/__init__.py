@@ -11,20 +11,10 @@ from .atoms import (
                    default_max_echoes,
                    pulse_length_s,
 )
-from .bpdn import (
-                   BpdnResult,
-                   ShiftOperator,
-                   bpdn,
-                   bpdn_cvxpy,
-                   correlation_sigma,
-                   group_atoms,
-                   lam_max,
-                   lam_noise,
-                   noise_lam,
-                   noise_sigma,
-)
+from .bpdn import BpdnResult, ShiftOperator, bpdn, bpdn_cvxpy, group_atoms, lam_max
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import DelayError, Echoes, crb_delays, delay_error
+from .noise import correlation_sigma, lam_noise, noise_lam, noise_sigma
 from .refined import cbp_polar_refined
 from .registry import SPARSE_METHODS, cap_echoes, sparse_echoes, succeeded, superres
 

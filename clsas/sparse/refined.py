@@ -13,8 +13,9 @@ import numpy as np
 
 from .. import _validate as v
 from .atoms import Dictionary, default_max_echoes, pulse_length_s
-from .bpdn import ShiftOperator, _check, _threshold, bpdn, group_atoms, lam_noise
+from .bpdn import ShiftOperator, _check, bpdn, group_atoms
 from .metrics import Echoes
+from .noise import _threshold, lam_noise
 
 __all__ = ["cbp_polar_refined"]
 

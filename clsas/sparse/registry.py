@@ -20,9 +20,10 @@ import numpy as np
 
 from .. import _validate as v
 from .atoms import Dictionary, default_max_echoes
-from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max, lam_noise, noise_lam
+from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import Echoes
+from .noise import lam_noise, noise_lam
 from .refined import _mainlobe_s, cbp_polar_refined
 
 __all__ = ["SPARSE_METHODS", "cap_echoes", "sparse_echoes", "succeeded", "superres"]

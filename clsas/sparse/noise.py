@@ -1,0 +1,98 @@
+"""The noise level of a range profile and the BPDN lam it sets: a detection threshold with a
+stated false-alarm rate (pure noise gives no echo), from the signal itself or a known sigma."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .. import _validate as v
+from .atoms import Dictionary, pulse_length_s
+from .bpdn import MODES, ShiftOperator, _check, bpdn, lam_max
+
+__all__ = ["correlation_sigma", "lam_noise", "noise_lam", "noise_sigma"]
+
+
+def noise_sigma(b) -> float:
+    """Robust noise level of a signal mostly made of noise: the median absolute value scaled to
+    the Gaussian's sigma (real: |n| median 0.6745 sigma; complex circular, E|n|^2 = sigma^2:
+    median sqrt(ln 2) sigma). Echoes covering less than half the window barely move it."""
+    b = np.asarray(b)
+    med = float(np.median(np.abs(b)))
+    return med / np.sqrt(np.log(2.0)) if np.iscomplexobj(b) else med / 0.6744897501960817
+
+
+def _threshold(k: int, amplitudes: str, false_alarm: float) -> float:
+    """The multiple ``t`` of the noise's correlation scale that pure noise's largest correlation
+    over ``k`` atoms exceeds with probability at most ``false_alarm`` (a union bound: complex
+    circular, P(|g| > t s) = exp(-t^2); real two-sided, positive one-sided Gaussian tails)."""
+    from scipy.stats import norm
+
+    p = v.positive("false_alarm", false_alarm)
+    if p >= 1:
+        raise ValueError(f"false_alarm must be in (0, 1), got {false_alarm!r}")
+    k = max(int(k), 1)
+    if amplitudes == "complex":
+        return float(np.sqrt(np.log(k / p))) if k > p else 0.0
+    return float(norm.isf(p / (k if amplitudes == "positive" else 2 * k)))
+
+
+def correlation_sigma(dictionary: Dictionary, b, amplitudes: str = "real") -> float:
+    """Robust scale of the noise in the matched filter ``D^H b`` (its rms per atom for complex
+    amplitudes, its standard deviation for real ones): the median of ``|D^H b|`` over the atoms
+    that lie whole inside the window, scaled to the Gaussian's. The echoes are compressed there
+    to a mainlobe each, so they move it far less than they move the samples' median
+    (:func:`noise_sigma`), and coloured or analytic noise is measured as the atoms see it."""
+    b = _check(dictionary, b, amplitudes)
+    g = ShiftOperator(dictionary).adjoint(b)
+    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    if np.count_nonzero(whole) >= 8:
+        g = g[whole]
+    if amplitudes == "complex":
+        return float(np.median(np.abs(g)) / np.sqrt(np.log(2.0)))
+    return float(np.median(np.abs(g.real)) / 0.6744897501960817)
+
+
+def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alarm: float = 0.01,
+              refine: int = 2, floor: float = 0.01) -> float:
+    """lam at the noise level: twice the correlation that pure noise exceeds on any of the K
+    atoms with probability at most ``false_alarm`` (default 1 %), so that BPDN keeps echoes
+    and drops noise.
+
+    The noise's correlation scale is :func:`correlation_sigma` of ``b``, then (``refine``
+    times) of the residual where the signal is not: BPDN at the current lam, its atoms refit
+    by least squares, their fit removed. Echoes whose chirps cover most of the window inflate
+    the first estimate many times; the residual's does not. On pure noise lam stays at or
+    above lam_max, so the answer is no echo ("nothing here"). At least ``floor`` x lam_max
+    (a dynamic range of 40 dB by default: a noise-free signal, or one the model does not fit
+    (an impulse, a pulse cut by the window), is not fitted down to its rounding errors).
+    """
+    b = _check(dictionary, b, amplitudes)
+    lmax = lam_max(ShiftOperator(dictionary), b, amplitudes)
+    t = _threshold(dictionary.k, amplitudes, false_alarm)
+    lam = 2 * correlation_sigma(dictionary, b, amplitudes) * t
+    if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
+        raise ValueError(f"refine must be an integer >= 0, got {refine!r}")
+    for _ in range(int(refine)):
+        if lam >= lmax:
+            break
+        x = bpdn(dictionary, b, lam, amplitudes=amplitudes, tol=1e-3, max_inner=2000).x
+        on = np.flatnonzero(x)
+        if not on.size or on.size > dictionary.atom.n // 4:
+            break
+        A = dictionary.atom.matrix(dictionary.taus[on], fast=True)
+        r = b - A @ np.linalg.lstsq(A, b, rcond=None)[0]
+        new = 2 * correlation_sigma(dictionary, r, amplitudes) * t
+        if new >= 0.9 * lam:
+            break
+        lam = new
+    return float(max(lam, v.non_negative("floor", floor) * lmax))
+
+
+def noise_lam(dictionary: Dictionary, sigma: float, amplitudes: str = "real", *, false_alarm: float = 0.01) -> float:
+    """lam at a known noise level: ``sigma`` is the standard deviation per sample of the white
+    noise in the real recording (for ``amplitudes="complex"`` the signal is its analytic signal,
+    whose correlation with an analytic atom ``a`` has rms ``2 sigma |a|``). See :func:`lam_noise`."""
+    sigma = v.non_negative("noise_sigma", sigma)
+    v.choice("amplitudes", amplitudes, MODES)
+    s_g = (2.0 if amplitudes == "complex" else 1.0) * sigma * dictionary.atom.norm
+    return float(2 * s_g * _threshold(dictionary.k, amplitudes, false_alarm))
