@@ -241,3 +241,14 @@ def test_cli_preprocess_and_reconstruct_with_a_box(tmp_path, capsys):
     assert main(["preprocess", str(tmp_path / "scan.h5"), str(tmp_path / "x.h5"), "--config",
                  str(sub / "bad.toml")]) == 2
     assert "bandpas" in capsys.readouterr().err
+
+
+def test_reconstruct_passes_absorption_to_the_sparse_atom():
+    from conftest import small_dataset
+
+    ds = small_dataset([[0.02, -0.01, 0.6]], nx=3, ny=3)
+    grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.05, 0.05), (0.55, 0.65), 0.01)
+    img = clsas.reconstruct(ds, grid, method="bpdn", sparse={"absorption": True}, backend="numpy")
+    assert img.peaks(1)[0].index == grid.index_of([0.02, -0.01, 0.6])
+    with pytest.raises(ValueError, match="absorbtion"):
+        clsas.reconstruct(ds, grid, method="bpdn", sparse={"absorbtion": True}, backend="numpy")

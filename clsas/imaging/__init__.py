@@ -191,7 +191,8 @@ def reconstruct(
         Options for the sparse methods: ``delta_s``, ``lam``, ``lam_frac``, ``render_width_s``,
         ``max_echoes`` (cap per recording, reported in ``Echoes.capped``), ``guard_s`` (the
         dictionary reaches this far past each end of the gate, so echoes straddling it are
-        fitted there and dropped), ``method_options`` (passed to the method). A recording whose
+        fitted there and dropped), ``method_options`` (passed to the method), ``absorption``
+        (model ISO 9613-1 air absorption in the atom at each gate's mean path). A recording whose
         sparse recovery fails falls back to its matched-filter profile and says so in
         ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
     force : bool

@@ -31,7 +31,8 @@ log = logging.getLogger(__name__)
 
 SPARSE_METHODS = ("bpdn", "cbp-taylor", "cbp-polar")
 # the options reconstruct(..., sparse={...}) accepts
-SPARSE_OPTIONS = ("delta_s", "lam", "lam_frac", "render_width_s", "max_echoes", "guard_s", "method_options")
+SPARSE_OPTIONS = ("delta_s", "lam", "lam_frac", "render_width_s", "max_echoes", "guard_s", "method_options",
+                  "absorption")
 
 
 def _failure_kind(exc: BaseException) -> str:
