@@ -25,7 +25,7 @@ def rig_toml(nx=4, ny=3, mics=1, repeats=1, timeout_s=1.0, extra=""):
     return f"""
 [stage]
 port = "unused"
-origin_mm = [300, 300]
+origin_mm = [-300, -300]
 settle_s = 0
 timeout_s = {timeout_s}
 feed_mm_min = 6000
@@ -69,7 +69,7 @@ def emulator():
 
 @pytest.fixture
 def stage(emulator):
-    st = GrblStage(emulator.port, timeout_s=1.0, reset_wait_s=1.0, work_area_mm=((0, 900), (0, 900)))
+    st = GrblStage(emulator.port, timeout_s=1.0, reset_wait_s=1.0, work_area_mm=((-900, 0), (-900, 0)))
     with st:
         yield st
 
@@ -87,27 +87,27 @@ def test_banner_after_boot_noise_and_alarm_lock(emulator, stage):
     with pytest.raises(rig.GrblError, match="error:9 .*alarm"):
         stage.command("G0 X10")
     stage.home()
-    assert stage.status() == rig.Status("Idle", (0.0, 0.0, 0.0))
-    assert emulator.received[:2] == ["G0 X10", "$H"]
+    assert stage.status() == rig.Status("Idle", (-1.0, -1.0, -1.0))  # GRBL 1.1: -pulloff after $H
+    assert emulator.received[:3] == ["$$", "G0 X10", "$H"]  # settings read on connect
 
 
 def test_move_runs_then_idles_at_target_and_polls_at_most_5hz():
     with GrblEmulator(time_scale=1.0, homing=False) as emu, GrblStage(emu.port, feed_mm_min=3000) as st:
         st.unlock()
-        st.command("G1 X20 Y0 F3000")  # 20 mm at 50 mm/s: 0.4 s
+        st.command("G1 X-20 Y0 F3000")  # 20 mm at 50 mm/s: 0.4 s
         time.sleep(0.15)
         mid = st.status()
-        assert mid.state == "Run" and 2.0 < mid.position_mm[0] < 18.0  # the position advances
+        assert mid.state == "Run" and -18.0 < mid.position_mm[0] < -2.0  # the position advances
         emu.status_times.clear()
-        end = st.move_to(40.0, 10.0)
-        assert end.state == "Idle" and end.position_mm[:2] == (40.0, 10.0)
+        end = st.move_to(-40.0, -10.0)
+        assert end.state == "Idle" and end.position_mm[:2] == (-40.0, -10.0)
         gaps = np.diff(emu.status_times)
         assert len(gaps) >= 2 and gaps.min() >= 0.19  # '?' no faster than 5 Hz
-        assert "G21 G90" in emu.received and "G1 X40.000 Y10.000 F3000" in emu.received
+        assert "G21 G90" in emu.received and "G53 G1 X-40.000 Y-10.000 F3000" in emu.received
 
 
 def test_error_reply_names_code_and_meaning(stage):
-    stage.unlock()
+    stage.home()
     with pytest.raises(rig.GrblError, match=r"error:20 \(unsupported or invalid g-code") as exc:
         stage.command("G99")
     assert exc.value.code == 20
@@ -115,18 +115,50 @@ def test_error_reply_names_code_and_meaning(stage):
 
 def test_target_outside_work_area_is_refused_before_sending(emulator, stage):
     stage.home()
-    with pytest.raises(ValueError, match="x_mm = 950.000 is outside the stage's work area"):
-        stage.move_to(950, 10)
+    with pytest.raises(ValueError, match="x_mm = -950.000 is outside the stage's work area"):
+        stage.move_to(-950, -10)
     assert not any(line.startswith("G1") for line in emulator.received)
 
 
-def test_soft_limit_alarm_from_the_controller():
+def test_soft_limit_alarm_resets_and_drops_the_late_ok():
     with GrblEmulator(time_scale=0.01, travel_mm=(100, 100, 10)) as emu:
-        with GrblStage(emu.port, work_area_mm=((0, 500), (0, 500))) as st:
+        with GrblStage(emu.port, work_area_mm=((-100, 0), (-100, 0))) as st:
             st.home()
-            with pytest.raises(rig.GrblAlarm, match="ALARM:2 .soft limit") as exc:
-                st.move_to(200, 0)
+            with pytest.raises(rig.GrblAlarm, match=r"ALARM:2 .soft limit.*soft reset \(Ctrl-X\)") as exc:
+                st.command("G53 G1 X-200 F3000")
             assert exc.value.code == 2
+            assert st.status().state == "Alarm"  # reset done: GRBL answers again, locked until $H/$X
+            # the refused line's late 'ok' came after the banner: it must not answer the next command
+            assert any(line.startswith("$130=") for line in st.command("$$"))
+            st.home()
+            assert st.move_to(-50, -50).position_mm[:2] == (-50.0, -50.0)
+
+
+def test_work_area_outside_soft_limits_is_refused_on_connect():
+    with GrblEmulator(time_scale=0.01, travel_mm=(100, 100, 10)) as emu:
+        with pytest.raises(rig.StageError, match=r"outside GRBL's soft limits \(\$20=1, \$130=100\).*\[-100, 0\]"):
+            GrblStage(emu.port, work_area_mm=((0, 500), (0, 500))).open()
+
+
+def test_wpos_reports_are_refused_naming_10():
+    with GrblEmulator(time_scale=0.01, report_mpos=False) as emu:
+        with pytest.raises(rig.StageError, match=r"\$10=0.*'\$10=1'"):
+            GrblStage(emu.port).open()
+
+
+def test_stored_work_offset_does_not_shift_moves():
+    with GrblEmulator(time_scale=0.01, work_offset_mm=(5.0, 0.0, 0.0)) as emu, GrblStage(emu.port) as st:
+        st.home()
+        assert st.move_to(-100, -20).position_mm[:2] == (-100.0, -20.0)
+        assert emu.position_mm[0] == pytest.approx(-100.0)
+
+
+def test_timeouts_default_from_grbl_settings():
+    with GrblEmulator(time_scale=0.01) as emu, GrblStage(emu.port, feed_mm_min=6000) as st:
+        # $25=500 mm/min seek over 1.5 x 1000 mm, twice, plus 30 s
+        assert st.home_timeout() == pytest.approx(2 * 1.5 * 1000 / 500 * 60 + 30)
+        assert st.move_timeout(1000.0) == pytest.approx(3 * 1000 / 6000 * 60 + 10)
+    assert GrblStage("unused", home_timeout_s=7, move_timeout_s=3).home_timeout() == 7
 
 
 @pytest.mark.parametrize("fault,error", [
@@ -139,31 +171,31 @@ def test_injected_faults_raise(fault, error):
     with GrblEmulator(time_scale=0.01, faults=fault) as emu, GrblStage(emu.port, timeout_s=0.5) as st:
         st.home()
         with pytest.raises(error):
-            st.move_to(100, 100)
+            st.move_to(-100, -100)
 
 
 def test_alarm_stops_the_machine_part_way():
     with GrblEmulator(time_scale=0.05, faults=Faults(alarm_at_move=1)) as emu, GrblStage(emu.port) as st:
         st.home()
         with pytest.raises(rig.GrblAlarm, match="hard limit"):
-            st.move_to(200, 0)
+            st.move_to(-201, -1)
         assert emu.state == "Alarm"
-        assert emu.position_mm[0] == pytest.approx(100.0)
+        assert emu.position_mm[0] == pytest.approx(-101.0)
 
 
 def test_feed_hold_stops_motion():
     with GrblEmulator(time_scale=1.0, homing=False) as emu, GrblStage(emu.port) as st:
         st.unlock()
-        st.command("G1 X50 F3000")  # 1 s
+        st.command("G1 X-50 F3000")  # 1 s
         time.sleep(0.2)
         assert st.feed_hold()
         time.sleep(0.05)
         held = st.status()
         time.sleep(0.2)
         assert held.state == "Hold" and st.status().position_mm == held.position_mm
-        assert 0.0 < held.position_mm[0] < 50.0
+        assert -50.0 < held.position_mm[0] < 0.0
         st.cycle_start()  # the rest of the move runs from where it was held
-        assert st.wait_idle(5.0).position_mm == (50.0, 0.0, 0.0)
+        assert st.wait_idle(5.0).position_mm == (-50.0, 0.0, 0.0)
 
 
 def test_no_controller_on_the_port_says_so():
@@ -275,7 +307,7 @@ def test_import_clsas_stays_light():
     ("record_s = 0.016", "record_s = 0.016\nfs_hz = 44100", "audio.fs_hz must be 96000 or 192000"),
     ("mic_channels = [2]", "mic_channels = [2, 3]", "one input channel per microphone"),
     ("mic_channels = [2]", "mic_channels = [1]", "loopback_channel 1 is also a microphone"),
-    ("origin_mm = [300, 300]", "origin_mm = [50, 300]", "outside stage.work_area_mm"),
+    ("origin_mm = [-300, -300]", "origin_mm = [-50, -300]", "outside stage.work_area_mm"),
     ("repeats = 1", "repeats = 0", "audio.repeats"),
     ("record_s = 0.016", "record_s = 0.001", "shorter than the chirp"),
     ("[stage]", "[stage\n", "not valid TOML"),
@@ -288,7 +320,7 @@ def test_rig_config_errors_name_the_key(old, new, match):
 def test_sample_config_parses():
     cfg = rig.parse_rig_config(rig.SAMPLE_RIG_TOML)
     assert cfg.n_stops == 18 * 12 and cfg.n_mics == 1 and cfg.fs_hz == 96000
-    assert cfg.stage_target_mm(0) == (0.0, 0.0) and cfg.stage_target_mm(17) == (1000.0, 0.0)
+    assert cfg.stage_target_mm(0) == (-1000.0, -1000.0) and cfg.stage_target_mm(17) == (0.0, -1000.0)
 
 
 # -- scans: faults, resume, equality ------------------------------------------------------------
@@ -561,3 +593,19 @@ def test_a_port_lost_in_tcdrain_is_a_disconnect_not_a_crash():
     stage._ser = DeadPort()
     with pytest.raises(StageDisconnected, match="lost while writing"):
         stage._write(b"?")
+
+
+def test_unlock_with_soft_limits_and_home_without_homing_name_the_setting():
+    with GrblEmulator(time_scale=0.01) as emu, GrblStage(emu.port) as st:
+        with pytest.raises(rig.StageError, match=r"soft limits are on \(\$20=1\)"):
+            st.unlock()
+    with GrblEmulator(time_scale=0.01, homing=False) as emu, GrblStage(emu.port) as st:
+        with pytest.raises(rig.StageError, match=r"homing is disabled in GRBL \(\$22=0\)"):
+            st.home()
+
+
+def test_import_clsas_rig_needs_no_posix_terminal_modules():
+    code = ("import sys; import clsas.rig; "
+            "print(sorted(m for m in ('tty', 'termios', 'pty') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"  # Windows has none of them

@@ -26,8 +26,11 @@ port = "/dev/ttyUSB0"          # any pyserial URL: COM3, socket://host:2000, ...
 baudrate = 115200
 home = true                    # $H before the scan (false: $X unlock only)
 feed_mm_min = 3000             # G1 feed rate between stops
-work_area_mm = [[0, 1000], [0, 1000]]   # machine travel a move may reach
-origin_mm = [500, 500]         # machine position of the scan centre
+work_area_mm = [[-1000, 0], [-1000, 0]]   # machine coordinates a move may reach: after $H, GRBL's
+                               # machine space is [-travel, 0] ($130/$131) with soft limits on
+origin_mm = [-500, -500]       # machine position of the scan centre
+# homing_timeout_s = 300       # default: from GRBL's $25 seek rate and $130-$132 travel
+# move_timeout_s = 60          # default: from feed_mm_min and the work area
 settle_s = 0.5                 # wait after each move before the chirp (vibration)
 
 [aperture]
@@ -115,6 +118,8 @@ class RigConfig:
     temperature_c: float
     humidity_pct: float
     sensor_command: str | None
+    homing_timeout_s: float | None = None  # None: from GRBL's $25 and travel
+    move_timeout_s: float | None = None  # None: from the feed rate and the work area
     simulate: dict = field(default_factory=dict)  # [simulate], checked: points, walls, numbers
     preprocess: dict = field(default_factory=dict)  # [preprocess], checked by clsas.preprocess.from_table
     grid: VoxelGrid | None = None  # [grid], where `clsas reconstruct` images by default
@@ -166,12 +171,16 @@ class RigConfig:
 
 
 STAGE_KEYS = ("port", "baudrate", "home", "feed_mm_min", "work_area_mm", "origin_mm", "settle_s", "timeout_s",
-              "poll_hz")
+              "poll_hz", "homing_timeout_s", "move_timeout_s")
 APERTURE_KEYS = ("nx", "ny", "width_m", "height_m", "pattern", "tx_offset_m", "rx_offset_m")
 AUDIO_KEYS = ("device", "fs_hz", "output_channel", "loopback_channel", "mic_channels", "level", "record_s",
               "max_latency_s", "repeats", "repeat_gap_s", "retries", "clip_level", "acoustic_delay_s")
 AIR_KEYS = ("temperature_c", "humidity_pct", "sensor_command")
 SIMULATE_KEYS = ("points", "walls", "noise_rms", "mic_gain", "latency_samples", "time_scale", "seed")
+
+
+def _optional_seconds(st: c.Table, key: str) -> float | None:
+    return float(st.number(key, above=0)) if key in st else None
 
 
 def _simulate_table(cfg: dict, source: str) -> dict:
@@ -248,8 +257,8 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         center_m=(0.0, 0.0, 0.0), tx_offset_m=tuple(tx_off), rx_offset_m=tuple(rx[0]),
         pattern=ap.string("pattern", "serpentine", choices=("serpentine", "raster")),
     )
-    area = st.vector("work_area_mm", [[0, 1000], [0, 1000]], shape=(2, 2))
-    origin = st.vector("origin_mm", [500, 500], shape=(2,))
+    area = st.vector("work_area_mm", [[-1000, 0], [-1000, 0]], shape=(2, 2))
+    origin = st.vector("origin_mm", [-500, -500], shape=(2,))
     stops = aperture.stage_positions
     targets = origin + 1000.0 * stops[:, :2]
     for axis, name in ((0, "x"), (1, "y")):
@@ -280,6 +289,8 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         settle_s=float(st.number("settle_s", 0.5, low=0)),
         stage_timeout_s=float(st.number("timeout_s", 5.0, above=0)),
         poll_hz=float(st.number("poll_hz", 5.0, above=0)),
+        homing_timeout_s=_optional_seconds(st, "homing_timeout_s"),
+        move_timeout_s=_optional_seconds(st, "move_timeout_s"),
         stops_m=stops,
         tx_offset_m=tx_off,
         rx_offsets_m=rx,

@@ -20,7 +20,6 @@ import re
 import select
 import threading
 import time
-import tty
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -81,7 +80,12 @@ class GrblEmulator:
     faults : Faults
     time_scale : float
         Multiplies every duration (moves, homing, boot); 0.01 makes a 1 s move take 10 ms.
-    travel_mm : machine travel per axis; with homing the machine spans [0, travel] from home at 0.
+    travel_mm : machine travel per axis (``$130``-``$132``). As on GRBL 1.1, homing ends at
+        ``-pulloff_mm`` on each axis and soft limits allow ``[-travel, 0]``.
+    pulloff_mm : homing pull-off (``$27``).
+    report_mpos : ``$10=1`` (status reports carry ``MPos``); False reports ``WPos``.
+    work_offset_mm : a G54 work offset stored in EEPROM; ``G0``/``G1`` without ``G53`` are shifted
+        by it, as on the real controller.
     max_rate_mm_min : rapid (G0) rate per the ``$110`` setting.
     homing : starts locked in Alarm until ``$H`` or ``$X`` (``$22=1``).
     soft_limits : a target outside the travel raises ALARM:2 (``$20=1``).
@@ -97,6 +101,10 @@ class GrblEmulator:
     homing_s: float = 3.0
     soft_limits: bool = True
     banner_delay_s: float = 1.5
+    pulloff_mm: float = 1.0
+    report_mpos: bool = True
+    work_offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    seek_rate_mm_min: float = 500.0
 
     def __post_init__(self) -> None:
         self.received: list[str] = []  # every line received, for the tests
@@ -108,8 +116,12 @@ class GrblEmulator:
         self._feed = 0.0
         self._relative = False
         self._line = b""
+        self._locked_until_reset = False  # after ALARM:1/2 only Ctrl-X is answered
+        self._late_ok = False  # the refused line's ok, sent after the reset
         self._stop = threading.Event()
         self._lock = threading.Lock()
+        import tty  # POSIX only: imported here so that `import clsas.rig` works on Windows
+
         self._master, slave = os.openpty()
         tty.setraw(slave)
         self.port = os.ttyname(slave)
@@ -234,10 +246,11 @@ class GrblEmulator:
             self.status_times.append(time.monotonic())
             with self._lock:
                 self._advance(time.monotonic())
-                x, y, z = self._pos
+                x, y, z = self._pos if self.report_mpos else self._pos - np.asarray(self.work_offset_mm)
                 state = "Hold:0" if self._state == "Hold" else self._state
                 feed = self._feed if self._state == "Run" else 0
-            self._send(f"<{state}|MPos:{x:.3f},{y:.3f},{z:.3f}|FS:{feed:.0f},0>")
+            kind = "MPos" if self.report_mpos else "WPos"
+            self._send(f"<{state}|{kind}:{x:.3f},{y:.3f},{z:.3f}|FS:{feed:.0f},0>")
         elif ch == b"!":
             with self._lock:
                 self._advance(time.monotonic())
@@ -253,13 +266,19 @@ class GrblEmulator:
             with self._lock:
                 moving = self._state in ("Run", "Hold", "Home")
                 self._queue.clear()
-                self._state = "Alarm" if (self.homing or moving) else "Idle"
+                self._state = "Alarm" if (self.homing or moving or self._locked_until_reset) else "Idle"
+                self._locked_until_reset = False
+                late, self._late_ok = self._late_ok, False
             if moving:
                 self._send("ALARM:3")
             self._banner()
+            if late:
+                self._send("ok")
         elif ch in (b"\n", b"\r"):
             line, self._line = self._line.decode("ascii", "replace").strip(), b""
-            if line:
+            if line and self._locked_until_reset:
+                self.received.append(line)  # GRBL reads it but answers nothing until Ctrl-X
+            elif line:
                 self.received.append(line)
                 self._command(line)
         else:
@@ -279,6 +298,8 @@ class GrblEmulator:
                 self._queue.clear()
                 self._state = "Alarm"
                 self._send("ALARM:1")
+                self._send("[MSG:Reset to continue]")
+                self._locked_until_reset = True
                 return
             if frac < 1.0:
                 self._pos = mv.start + frac * (mv.end - mv.start)
@@ -314,6 +335,7 @@ class GrblEmulator:
             return self._send("error:1")  # not a sequence of letter-number words
         vals: dict[str, float] = {}
         motion = None
+        machine = False
         for letter, num in words:
             if letter == "G":
                 g = float(num)
@@ -321,6 +343,8 @@ class GrblEmulator:
                     motion = int(g)
                 elif g == 21:
                     pass
+                elif g == 53:
+                    machine = True
                 elif g == 90:
                     self._relative = False
                 elif g == 91:
@@ -350,9 +374,9 @@ class GrblEmulator:
             return self._send("ok")
         if motion is None:
             return self._send("ok")
-        return self._move(motion, vals)
+        return self._move(motion, vals, machine)
 
-    def _move(self, motion: int, vals: dict[str, float]) -> None:
+    def _move(self, motion: int, vals: dict[str, float], machine: bool = False) -> None:
         self.moves += 1
         n, f = self.moves, self.faults
         if f.disconnect_at_move == n:
@@ -363,13 +387,18 @@ class GrblEmulator:
         with self._lock:
             last = self._queue[-1].end if self._queue else self._pos
             target = last.copy()
+            offset = np.zeros(3) if machine else np.asarray(self.work_offset_mm, float)
             for i, axis in enumerate("XYZ"):
                 if axis in vals:
-                    target[i] = (last[i] + vals[axis]) if self._relative else vals[axis]
-            if self.soft_limits and (np.any(target < -1e-9) or np.any(target > np.asarray(self.travel_mm) + 1e-9)):
+                    target[i] = (last[i] + vals[axis]) if self._relative else vals[axis] + offset[i]
+            outside = np.any(target > 1e-9) or np.any(target < -np.asarray(self.travel_mm) - 1e-9)
+            if self.soft_limits and self.homing and outside:
                 self._queue.clear()
                 self._state = "Alarm"
                 self._send("ALARM:2")
+                self._send("[MSG:Reset to continue]")
+                self._locked_until_reset = True
+                self._late_ok = True
                 return
             rate = self.max_rate_mm_min if motion == 0 else self._feed
             if rate <= 0:
@@ -393,7 +422,7 @@ class GrblEmulator:
                 self._state = "Home"
             time.sleep(self.homing_s * self.time_scale)
             with self._lock:
-                self._pos = np.zeros(3)
+                self._pos = -self.pulloff_mm * np.ones(3)
                 self._queue.clear()
                 self._state = "Idle"
             return self._send("ok")
@@ -404,7 +433,9 @@ class GrblEmulator:
                     self._send("[MSG:Caution: Unlocked]")
             return self._send("ok")
         if up == "$$":
-            settings = {20: int(self.soft_limits), 21: 0, 22: int(self.homing), 110: self.max_rate_mm_min,
+            settings = {10: int(self.report_mpos), 20: int(self.soft_limits and self.homing), 21: 0,
+                        22: int(self.homing),
+                        25: self.seek_rate_mm_min, 27: self.pulloff_mm, 110: self.max_rate_mm_min,
                         111: self.max_rate_mm_min, 130: self.travel_mm[0], 131: self.travel_mm[1],
                         132: self.travel_mm[2]}
             for k, val in settings.items():

@@ -17,6 +17,8 @@ import re
 import time
 from dataclasses import dataclass
 
+import numpy as np
+
 from .. import _validate as v
 from .._validate import install_hint
 
@@ -43,7 +45,7 @@ ERRORS = {
 }
 ALARMS = {
     1: "hard limit triggered; machine position is likely lost, re-homing is recommended",
-    2: "soft limit: the target exceeds machine travel; position kept, unlock with $X",
+    2: "soft limit: the target exceeds machine travel; position kept",
     3: "reset while in motion; position is likely lost, re-homing is recommended",
     4: "probe fail",
     5: "probe fail",
@@ -54,7 +56,10 @@ ALARMS = {
     10: "homing fail: second switch not found (dual axis)",
 }
 
-_STATUS = re.compile(r"<([A-Za-z]+)(?::\d)?\|(?:MPos|WPos):([-\d.]+),([-\d.]+),([-\d.]+)")
+_STATUS = re.compile(r"<([A-Za-z]+)(?::\d)?\|(MPos|WPos):([-\d.]+),([-\d.]+),([-\d.]+)")
+_SETTING = re.compile(r"^\$(\d+)=([-\d.]+)")
+#: alarms after which GRBL answers nothing but Ctrl-X ("[MSG:Reset to continue]")
+_RESET_ALARMS = (1, 2)
 
 
 class StageError(RuntimeError):
@@ -68,9 +73,10 @@ class GrblError(StageError):
 
 
 class GrblAlarm(StageError):
-    def __init__(self, code: int):
+    def __init__(self, code: int, advice: str = ""):
         self.code = code
-        super().__init__(f"GRBL raised ALARM:{code} ({ALARMS.get(code, 'unknown alarm')})")
+        text = f"GRBL raised ALARM:{code} ({ALARMS.get(code, 'unknown alarm')})"
+        super().__init__(f"{text}; {advice}" if advice else text)
 
 
 class StageTimeout(StageError):
@@ -100,14 +106,18 @@ class GrblStage:
         115200 for GRBL 1.1.
     work_area_mm : ((x_min, x_max), (y_min, y_max))
         Machine coordinates a move may reach; a target outside is refused before it is sent.
+        After ``$H`` GRBL's machine space is ``[-travel, 0]`` on each axis (``$130``, ``$131``);
+        with soft limits on (``$20=1``) an area outside it is refused on connect.
     feed_mm_min : float
         Feed rate of ``G1`` moves; ``None`` moves with ``G0`` (the machine's rapid rate).
     timeout_s : float
         How long to wait for the answer to one line.
-    home_timeout_s : float
-        How long ``$H`` may take.
-    move_timeout_s : float
-        How long one move may take to reach ``Idle``.
+    home_timeout_s : float, optional
+        How long ``$H`` may take; by default twice the search (1.5 x the longest ``$13x``
+        travel) at the ``$25`` seek rate plus 30 s, or 300 s where GRBL does not report them.
+    move_timeout_s : float, optional
+        How long one move may take to reach ``Idle``; by default three times the work area's
+        diagonal at the feed rate (``$110``/``$111`` for ``G0``) plus 10 s.
     poll_hz : float
         Rate of ``?`` status polling while a move runs (GRBL recommends at most 5 Hz).
     reset_wait_s : float
@@ -122,11 +132,11 @@ class GrblStage:
         port: str,
         *,
         baudrate: int = 115200,
-        work_area_mm: tuple[tuple[float, float], tuple[float, float]] = ((0.0, 1000.0), (0.0, 1000.0)),
+        work_area_mm: tuple[tuple[float, float], tuple[float, float]] = ((-1000.0, 0.0), (-1000.0, 0.0)),
         feed_mm_min: float | None = 3000.0,
         timeout_s: float = 5.0,
-        home_timeout_s: float = 120.0,
-        move_timeout_s: float = 120.0,
+        home_timeout_s: float | None = None,
+        move_timeout_s: float | None = None,
         poll_hz: float = 5.0,
         reset_wait_s: float = 2.5,
         position_tol_mm: float = 0.02,
@@ -142,8 +152,8 @@ class GrblStage:
         self.work_area_mm = area
         self.feed_mm_min = None if feed_mm_min is None else v.positive("feed_mm_min", feed_mm_min)
         self.timeout_s = v.positive("timeout_s", timeout_s)
-        self.home_timeout_s = v.positive("home_timeout_s", home_timeout_s)
-        self.move_timeout_s = v.positive("move_timeout_s", move_timeout_s)
+        self.home_timeout_s = None if home_timeout_s is None else v.positive("home_timeout_s", home_timeout_s)
+        self.move_timeout_s = None if move_timeout_s is None else v.positive("move_timeout_s", move_timeout_s)
         poll_hz = v.positive("poll_hz", poll_hz)
         if poll_hz > 5.0:
             raise ValueError(f"poll_hz must be at most 5 (GRBL's advice for '?' polling), got {poll_hz}")
@@ -151,6 +161,7 @@ class GrblStage:
         self.reset_wait_s = v.non_negative("reset_wait_s", reset_wait_s)
         self.position_tol_mm = v.positive("position_tol_mm", position_tol_mm)
         self.version = ""
+        self.settings: dict[int, float] = {}
         self._ser = None
         self._buf = b""
 
@@ -178,7 +189,58 @@ class GrblStage:
                                "is a GRBL 1.1 controller connected there?")
         self.version = banner
         log.info("connected to %s on %s", banner, self.port)
+        try:
+            self.settings = self.read_settings()
+            self._check_settings()
+        except StageError:
+            self.close()
+            raise
         return self
+
+    def read_settings(self) -> dict[int, float]:
+        """GRBL's ``$$`` settings as ``{number: value}``."""
+        out: dict[int, float] = {}
+        for line in self.command("$$"):
+            m = _SETTING.match(line)
+            if m:
+                out[int(m.group(1))] = float(m.group(2))
+        return out
+
+    def _check_settings(self) -> None:
+        """Refuse settings the scan cannot work with, naming the setting."""
+        st = self.settings
+        if 10 in st and not int(st[10]) & 1:
+            raise StageError(f"GRBL's $10={st[10]:g} makes status reports carry the work position (WPos), "
+                             "but clsas checks and records the machine position: send '$10=1' once "
+                             "(it is kept in EEPROM)")
+        if st.get(20, 0) and 130 in st and 131 in st:
+            for axis, (lo, hi) in zip("xy", self.work_area_mm, strict=True):
+                travel = st[130 + "xy".index(axis)]
+                if lo < -travel - 1e-6 or hi > 1e-6:
+                    raise StageError(
+                        f"work_area_mm {axis} = [{lo:g}, {hi:g}] mm is outside GRBL's soft limits ($20=1, "
+                        f"${130 + 'xy'.index(axis)}={travel:g}): after homing ($H) GRBL's machine "
+                        f"coordinates run from -{travel:g} to 0 mm, so set work_area_mm within "
+                        f"[-{travel:g}, 0] and origin_mm inside it")
+
+    def home_timeout(self) -> float:
+        """Seconds ``$H`` may take (``home_timeout_s``, or from ``$25`` and ``$130``-``$132``)."""
+        if self.home_timeout_s is not None:
+            return self.home_timeout_s
+        st = self.settings
+        travel = max((st[k] for k in (130, 131, 132) if k in st), default=0.0)
+        if st.get(25, 0) > 0 and travel > 0:
+            return 2.0 * 1.5 * travel / st[25] * 60.0 + 30.0
+        return 300.0
+
+    def move_timeout(self, distance_mm: float) -> float:
+        """Seconds a move of ``distance_mm`` may take (``move_timeout_s``, or from the feed rate)."""
+        if self.move_timeout_s is not None:
+            return self.move_timeout_s
+        rate = self.feed_mm_min or min((self.settings.get(k, 0.0) for k in (110, 111)), default=0.0)
+        if not rate:
+            return 120.0
+        return 3.0 * distance_mm / rate * 60.0 + 10.0
 
     def close(self) -> None:
         if self._ser is not None:
@@ -254,7 +316,10 @@ class GrblStage:
     def _push(self, line: str) -> str | None:
         """Handle a line GRBL may send at any time; return it if it is something else."""
         if line.startswith("ALARM:"):
-            raise GrblAlarm(_code(line))
+            code = _code(line)
+            if code in _RESET_ALARMS:
+                raise GrblAlarm(code, self._reset_after_alarm(code))
+            raise GrblAlarm(code)
         if line.startswith("[MSG:") or line.startswith("[GC:") or line.startswith("[echo:"):
             log.info("GRBL: %s", line)
             return None
@@ -262,6 +327,31 @@ class GrblStage:
             raise StageError(f"the controller on {self.port!r} reset unexpectedly ({line}); "
                              "its position is lost and it must be homed again")
         return line
+
+    def _reset_after_alarm(self, code: int) -> str:
+        """After ALARM:1/2 GRBL answers only Ctrl-X: soft-reset, wait for the banner and discard
+        the late ``ok`` of the refused line. Returns what the user should do next."""
+        log.info("ALARM:%d: sending a soft reset (Ctrl-X), as GRBL asks", code)
+        try:
+            self._write(b"\x18")
+            deadline = time.monotonic() + max(self.reset_wait_s, 2.0)
+            banner = False
+            while time.monotonic() < deadline and not banner:
+                line = self._readline()
+                banner = line is not None and line.startswith("Grbl ")
+            quiet = time.monotonic() + 0.3
+            while time.monotonic() < quiet:  # the [MSG:...] lines and a late 'ok' of the refused line
+                line = self._readline()
+                if line is not None:
+                    log.debug("< %s (discarded after the reset)", line)
+        except StageError as exc:
+            return f"the soft reset (Ctrl-X) failed ({exc}): reset the controller by hand"
+        if code == 1:
+            return ("clsas sent a soft reset (Ctrl-X); the position is lost: move the carriage off the "
+                    "limit switch with hard limits off ('$21=0', then '$X' and a jog, then '$21=1'), "
+                    "and home again ($H) before scanning")
+        return ("clsas sent a soft reset (Ctrl-X); the position is kept but GRBL is locked: check "
+                "stage.work_area_mm against the soft limits, then home ($H) or unlock ($X)")
 
     def command(self, line: str, timeout_s: float | None = None) -> list[str]:
         """Send one line and wait for ``ok``; return the lines GRBL sent before it.
@@ -305,7 +395,10 @@ class GrblStage:
                 continue
             m = _STATUS.match(reply)
             if m:
-                return Status(m.group(1), (float(m.group(2)), float(m.group(3)), float(m.group(4))))
+                if m.group(2) == "WPos":
+                    raise StageError("GRBL reports the work position (WPos, $10=0); clsas needs the machine "
+                                     "position: send '$10=1' once")
+                return Status(m.group(1), (float(m.group(3)), float(m.group(4)), float(m.group(5))))
             log.debug("ignored while waiting for a status report: %r", reply)
         raise StageTimeout(f"no status report from GRBL within {self.timeout_s:g} s")
 
@@ -313,12 +406,21 @@ class GrblStage:
 
     def home(self) -> Status:
         """Run the homing cycle (``$H``) and set millimetres, absolute (``G21 G90``)."""
-        self.command("$H", timeout_s=self.home_timeout_s)
+        if self.settings.get(22, 1) == 0:
+            raise StageError("stage.home = true but homing is disabled in GRBL ($22=0): enable it with "
+                             "'$22=1' (with limit switches fitted), or set stage.home = false")
+        t0 = time.monotonic()
+        self.command("$H", timeout_s=self.home_timeout())
+        log.info("homed in %.1f s", time.monotonic() - t0)
         self.command("G21 G90")
-        return self.wait_idle(self.home_timeout_s)
+        return self.wait_idle(self.home_timeout())
 
     def unlock(self) -> Status:
         """Clear an alarm lock without homing (``$X``) and set ``G21 G90``."""
+        if self.settings.get(20, 0):
+            raise StageError("stage.home = false but GRBL's soft limits are on ($20=1): they check targets "
+                             "against the position homing sets, so set stage.home = true or turn them off "
+                             "with '$20=0'")
         self.command("$X")
         self.command("G21 G90")
         return self.status()
@@ -331,12 +433,17 @@ class GrblStage:
                 raise ValueError(f"{name} = {val:.3f} is outside the stage's work area [{lo:g}, {hi:g}] mm")
 
     def move_to(self, x_mm: float, y_mm: float) -> Status:
-        """Move to machine position (x, y) in mm and wait until GRBL reports ``Idle`` there."""
+        """Move to machine position (x, y) in mm and wait until GRBL reports ``Idle`` there.
+
+        The move is sent in machine coordinates (``G53``), so a work offset stored in the
+        controller (``G54``-``G59``, ``G92``) cannot shift it.
+        """
         self.check_target(x_mm, y_mm)
         word = "G0" if self.feed_mm_min is None else "G1"
         feed = "" if self.feed_mm_min is None else f" F{self.feed_mm_min:.0f}"
-        self.command(f"{word} X{x_mm:.3f} Y{y_mm:.3f}{feed}")
-        st = self.wait_idle(self.move_timeout_s)
+        dist = float(np.hypot(*np.ptp(self.work_area_mm, axis=1)))  # the longest move the area allows
+        self.command(f"G53 {word} X{x_mm:.3f} Y{y_mm:.3f}{feed}")
+        st = self.wait_idle(self.move_timeout(dist))
         err = max(abs(st.position_mm[0] - x_mm), abs(st.position_mm[1] - y_mm))
         if err > self.position_tol_mm:
             raise StageError(f"the stage reports Idle at ({st.position_mm[0]:.3f}, {st.position_mm[1]:.3f}) mm, "

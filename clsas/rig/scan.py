@@ -51,7 +51,8 @@ class ScanResult:
 
 def _stage_for(config: RigConfig, port: str) -> GrblStage:
     return GrblStage(port, baudrate=config.baudrate, work_area_mm=tuple(map(tuple, config.work_area_mm)),
-                     feed_mm_min=config.feed_mm_min, timeout_s=config.stage_timeout_s, poll_hz=config.poll_hz)
+                     feed_mm_min=config.feed_mm_min, timeout_s=config.stage_timeout_s, poll_hz=config.poll_hz,
+                     home_timeout_s=config.homing_timeout_s, move_timeout_s=config.move_timeout_s)
 
 
 def acquire(
@@ -147,9 +148,9 @@ def acquire(
             return ScanResult(out, config.n_stops, start_done, 0, 0.0, 0)
         if stage is None:
             if simulate:
+                travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
                 emulator = GrblEmulator(faults=faults or Faults(), time_scale=float(sim.get("time_scale", 0.01)),
-                                        travel_mm=(float(config.work_area_mm[0, 1]), float(config.work_area_mm[1, 1]),
-                                                   100.0)).start()
+                                        travel_mm=travel).start()
                 stage = _stage_for(config, emulator.port)
             else:
                 stage = _stage_for(config, config.port)
