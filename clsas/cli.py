@@ -386,13 +386,14 @@ def cmd_acquire(args) -> int:
     if not args.config or not args.out:
         raise ValueError("clsas acquire needs a rig configuration and an output file: clsas acquire rig.toml out.h5 "
                          "(clsas acquire --sample-config > rig.toml writes a commented example)")
-    if args.fault and not args.simulate:
-        raise ValueError("--fault injects faults into the emulated rig: use it with --simulate")
+    if args.fault and args.simulate not in ("all", "stage"):
+        raise ValueError("--fault injects faults into the emulated stage: use it with --simulate or --simulate stage")
     cfg = rig.load_rig_config(args.config)
     faults = rig.Faults.parse(args.fault) if args.fault else None
-    flags = " --simulate" if args.simulate else ""
+    flags = "" if not args.simulate else " --simulate" if args.simulate == "all" else f" --simulate {args.simulate}"
     hint = f"resume with: clsas acquire {args.config} {args.out} --resume{flags}"
-    print(f"{'emulated ' if args.simulate else ''}scan: {cfg.n_stops} stops x {cfg.n_mics} microphone(s), "
+    kind = {"all": "emulated ", "stage": "emulated-stage ", "audio": "simulated-audio "}.get(args.simulate, "")
+    print(f"{kind}scan: {cfg.n_stops} stops x {cfg.n_mics} microphone(s), "
           f"{cfg.repeats} chirp(s) per stop at {cfg.fs_hz:g} Hz -> {args.out}")
     from tqdm import tqdm
 
@@ -402,7 +403,7 @@ def cmd_acquire(args) -> int:
             bar.refresh()
 
         try:
-            res = rig.acquire(cfg, args.out, resume=args.resume, simulate=args.simulate, faults=faults,
+            res = rig.acquire(cfg, args.out, resume=args.resume, simulate=args.simulate or False, faults=faults,
                               progress=progress, resume_hint=hint)
         except rig.ScanInterrupted as exc:
             bar.close()
@@ -646,8 +647,10 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("config", nargs="?", help="rig configuration (TOML)")
     a.add_argument("out", nargs="?", help="dataset file to write (HDF5)")
     a.add_argument("--resume", action="store_true", help="continue the file at its first missing stop")
-    a.add_argument("--simulate", action="store_true",
-                   help="emulated GRBL stage and simulated microphone hearing the [simulate] scene")
+    a.add_argument("--simulate", nargs="?", const="all", default=None, choices=("all", "stage", "audio"),
+                   help="all (the default when given alone): emulated GRBL stage and simulated microphone hearing "
+                   "the [simulate] scene; stage: the emulated stage with the real sound card; audio: the real "
+                   "stage (stage.port) with the simulated microphone")
     a.add_argument("--fault", help="with --simulate: inject faults, e.g. alarm@5, error@3, drop-ok@2, disconnect@4 "
                    "(at the N-th move)")
     a.add_argument("--sample-config", action="store_true", help="print a commented rig.toml and exit")

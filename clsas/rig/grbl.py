@@ -333,17 +333,14 @@ class GrblStage:
         the late ``ok`` of the refused line. Returns what the user should do next."""
         log.info("ALARM:%d: sending a soft reset (Ctrl-X), as GRBL asks", code)
         try:
-            self._write(b"\x18")
-            deadline = time.monotonic() + max(self.reset_wait_s, 2.0)
-            banner = False
-            while time.monotonic() < deadline and not banner:
-                line = self._readline()
-                banner = line is not None and line.startswith("Grbl ")
-            quiet = time.monotonic() + 0.3
-            while time.monotonic() < quiet:  # the [MSG:...] lines and a late 'ok' of the refused line
-                line = self._readline()
-                if line is not None:
-                    log.debug("< %s (discarded after the reset)", line)
+            # GRBL discards a reset that comes before its "[MSG:Reset to continue]": wait for it
+            self._read_until(lambda line: "Reset to continue" in line, 2.0)
+            for _ in range(2):
+                self._write(b"\x18")
+                if self._read_until(lambda line: line.startswith("Grbl "), max(self.reset_wait_s, 2.0)):
+                    break
+            # the [MSG:...] lines after the banner and a late 'ok' of the refused line
+            self._read_until(lambda line: False, 0.3)
         except StageError as exc:
             return f"the soft reset (Ctrl-X) failed ({exc}): reset the controller by hand"
         if code == 1:
@@ -352,6 +349,17 @@ class GrblStage:
                     "and home again ($H) before scanning")
         return ("clsas sent a soft reset (Ctrl-X); the position is kept but GRBL is locked: check "
                 "stage.work_area_mm against the soft limits, then home ($H) or unlock ($X)")
+
+    def _read_until(self, done, wait_s: float) -> bool:
+        """Read and discard lines until ``done(line)`` (True) or ``wait_s`` passes (False)."""
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            line = self._readline()
+            if line is not None:
+                log.debug("< %s (while recovering from an alarm)", line)
+                if done(line):
+                    return True
+        return False
 
     def command(self, line: str, timeout_s: float | None = None) -> list[str]:
         """Send one line and wait for ``ok``; return the lines GRBL sent before it.

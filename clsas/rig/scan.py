@@ -60,7 +60,7 @@ def acquire(
     out: str | Path,
     *,
     resume: bool = False,
-    simulate: bool = False,
+    simulate: bool | str = False,
     faults: Faults | None = None,
     audio_io=None,
     stage: GrblStage | None = None,
@@ -77,9 +77,11 @@ def acquire(
         The dataset file. It must not exist unless ``resume``.
     resume : bool
         Continue ``out`` at its first missing stop (the configuration must be the same).
-    simulate : bool
-        Drive a GRBL emulator on a pseudo-terminal instead of ``stage.port``, and record what
-        the simulator says the microphones hear for the ``[simulate]`` scene.
+    simulate : bool or {"all", "stage", "audio"}
+        ``True`` or ``"all"``: drive a GRBL emulator on a pseudo-terminal instead of
+        ``stage.port``, and record what the simulator says the microphones hear for the
+        ``[simulate]`` scene. ``"stage"``: the emulator with the real sound card; ``"audio"``:
+        the real stage with the simulated microphone.
     faults : Faults, optional
         Faults the emulator injects (``simulate`` only).
     audio_io, stage : optional
@@ -99,11 +101,15 @@ def acquire(
         raise TypeError(f"config must be a RigConfig (clsas.rig.load_rig_config), got {type(config).__name__}")
     out = Path(out)
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
-    if faults is not None and not simulate:
-        raise ValueError("faults can only be injected into a simulated scan (simulate=True)")
+    if simulate not in (False, True, "all", "stage", "audio"):
+        raise ValueError(f"simulate must be True, False, 'all', 'stage' or 'audio', got {simulate!r}")
+    sim_stage = simulate in (True, "all", "stage")
+    sim_audio = simulate in (True, "all", "audio")
+    if faults is not None and not sim_stage:
+        raise ValueError("faults can only be injected into an emulated stage (simulate=True, 'all' or 'stage')")
     if out.exists() and not resume:
         raise FileExistsError(f"{out} exists: resume it (--resume) or choose another file name")
-    if not simulate and stage is None and not config.port:
+    if not sim_stage and stage is None and not config.port:
         raise ValueError("stage.port is not set in the rig configuration (or run with --simulate)")
     if stage is None:
         from importlib.util import find_spec
@@ -114,7 +120,7 @@ def acquire(
     resuming = resume and out.exists()
     t_c, rh = _stored_air(out) if resuming else config.read_air()
     if audio_io is None:
-        if simulate:
+        if sim_audio:
             audio_io = SimulatedIO(config.scene(t_c, rh), config.fs_hz,
                                    latency_samples=int(sim.get("latency_samples", 300)),
                                    noise_rms=float(sim.get("noise_rms", 1e-4)),
@@ -137,7 +143,7 @@ def acquire(
                                 config_text=config.text)
     start_done = store.stops_done
     emulator = None
-    settle_s = config.settle_s * (float(sim.get("time_scale", 0.01)) if simulate else 1.0)
+    settle_s = config.settle_s * (float(sim.get("time_scale", 0.01)) if sim_stage else 1.0)
     t_start = time.monotonic()
     retried = 0
     i = start_done
@@ -147,7 +153,7 @@ def acquire(
             store.close(complete=True)
             return ScanResult(out, config.n_stops, start_done, 0, 0.0, 0)
         if stage is None:
-            if simulate:
+            if sim_stage:
                 travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
                 emulator = GrblEmulator(faults=faults or Faults(), time_scale=float(sim.get("time_scale", 0.01)),
                                         travel_mm=travel).start()

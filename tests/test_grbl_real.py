@@ -1,0 +1,165 @@
+"""The rig client against the real GRBL 1.1h firmware (grbl-sim on a pseudo-terminal).
+
+The firmware is built from the kit in ``../shared/grbl-sim`` (or ``$CLSAS_GRBL_SIM``) with gcc
+and make; without them, or without the kit, these tests skip and say why.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from clsas import rig
+from clsas.rig import GrblStage
+
+serial = pytest.importorskip("serial", reason="the rig tests need pyserial (pip install 'clsas[rig]')")
+
+pytestmark = pytest.mark.hw
+
+KIT = Path(os.environ.get("CLSAS_GRBL_SIM", Path(__file__).resolve().parents[2] / "shared" / "grbl-sim"))
+STEP_MM = 1 / 250  # $100/$101 steps per mm: one motor step
+# fast but real settings: homing on with soft limits, travel 1000 mm as in the sample rig.toml
+SETUP = ["$22=1", "$20=1", "$130=1000", "$131=1000", "$132=100", "$25=3000", "$24=500", "$27=1",
+         "$110=6000", "$111=6000", "$120=1000", "$121=1000"]
+
+
+@pytest.fixture(scope="session")
+def grbl_exe(tmp_path_factory) -> Path:
+    if sys.platform.startswith("win"):
+        pytest.skip("grbl-sim runs on POSIX only")
+    if not (KIT / "build.sh").is_file() or not list((KIT / "src").glob("*.tar.gz")):
+        pytest.skip(f"the grbl-sim kit is not at {KIT} (set CLSAS_GRBL_SIM)")
+    missing = [t for t in ("gcc", "make") if shutil.which(t) is None]
+    if missing:
+        pytest.skip(f"building the real GRBL firmware needs {' and '.join(missing)}")
+    root = tmp_path_factory.mktemp("grbl_real")
+    res = subprocess.run(["bash", str(KIT / "build.sh")], env=dict(os.environ, GRBL_REAL_DIR=str(root)),
+                         capture_output=True, text=True, timeout=300)
+    if res.returncode != 0:
+        pytest.fail(f"grbl-sim build failed:\n{res.stdout}\n{res.stderr}")
+    return root / "build" / "grbl" / "grbl-sim" / "grbl_sim.exe"
+
+
+def _read_until(port, done, timeout_s: float) -> bytes:
+    got = b""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not done(got):
+        got += port.read(4096)
+    return got
+
+
+class RealGrbl:
+    """grbl_pty.py running the firmware; ``port`` is the pty's link."""
+
+    def __init__(self, exe: Path, workdir: Path, start_mm: float = 5.0, reset_on_open: bool = False):
+        self.port = str(workdir / "ttyGRBL")
+        self.log = workdir / "transcript.log"
+        args = [sys.executable, str(KIT / "grbl_pty.py"), "--link", self.port, "--exe", str(exe),
+                "--workdir", str(workdir), "--start-mm", str(start_mm), "--log", str(self.log)]
+        if reset_on_open:
+            args.append("--reset-on-open")
+        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 10
+        while not os.path.exists(self.port):
+            if time.monotonic() > deadline or self.proc.poll() is not None:
+                self.stop()
+                pytest.fail(f"grbl_pty.py did not start: {self.proc.stderr.read().decode()}")
+            time.sleep(0.05)
+
+    def raw(self, *lines: str) -> str:
+        """Send lines with plain pyserial (no clsas checks); each must be answered ``ok``."""
+        with serial.serial_for_url(self.port, 115200, timeout=0.1) as s:
+            s.write(b"\x18")
+            out = _read_until(s, lambda got: b"Grbl 1.1" in got, 10.0)
+            out += _read_until(s, lambda got: False, 0.5)  # the boot's own lines (a fresh EEPROM's error:7)
+            for line in lines:
+                s.write(line.encode() + b"\n")
+                got = _read_until(s, lambda got: b"ok" in got or b"error" in got, 5.0)
+                assert got.strip().endswith(b"ok"), f"GRBL answered {got!r} to {line!r}"
+                out += got
+        return out.decode(errors="replace")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(5)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+
+
+@pytest.fixture
+def grbl(grbl_exe, tmp_path):
+    g = RealGrbl(grbl_exe, tmp_path)
+    g.raw(*SETUP)
+    yield g
+    g.stop()
+
+
+def test_homing_ends_in_negative_space_and_moves_land_within_a_step(grbl):
+    with GrblStage(grbl.port, feed_mm_min=6000) as st:
+        assert st.settings[22] == 1 and st.settings[130] == 1000
+        t0 = time.monotonic()
+        home = st.home()
+        print(f"homing took {time.monotonic() - t0:.1f} s")
+        assert home.position_mm[:2] == pytest.approx((-1.0, -1.0), abs=STEP_MM)  # the pull-off
+        end = st.move_to(-40.0, -25.5)
+        assert end.position_mm[:2] == pytest.approx((-40.0, -25.5), abs=STEP_MM)
+
+
+def test_stored_work_offset_does_not_shift_moves(grbl):
+    with GrblStage(grbl.port, feed_mm_min=6000) as st:
+        st.home()
+        st.command("G10 L2 P1 X5")  # as other CNC software leaves it in EEPROM
+        end = st.move_to(-30.0, -10.0)
+        assert end.position_mm[:2] == pytest.approx((-30.0, -10.0), abs=STEP_MM)
+
+
+def test_wpos_reports_are_refused_naming_10(grbl):
+    grbl.raw("$10=0")
+    with pytest.raises(rig.StageError, match=r"\$10=0"):
+        GrblStage(grbl.port).open()
+
+
+def test_positive_work_area_is_refused_naming_the_soft_limits(grbl):
+    with pytest.raises(rig.StageError, match=r"\$20=1, \$130=1000.*\[-1000, 0\]"):
+        GrblStage(grbl.port, work_area_mm=((0, 1000), (0, 1000))).open()
+
+
+def test_soft_limit_alarm_resets_and_the_late_ok_is_not_taken_for_the_next_answer(grbl):
+    with GrblStage(grbl.port, feed_mm_min=6000) as st:
+        st.home()
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:2 .*soft reset \(Ctrl-X\)") as exc:
+            st.command("G53 G1 X-1200 F3000")
+        assert exc.value.code == 2
+        assert any(line.startswith("$130=") for line in st.command("$$"))  # a real answer, not a stale ok
+        st.home()
+        assert st.move_to(-20.0, -20.0).position_mm[:2] == pytest.approx((-20.0, -20.0), abs=STEP_MM)
+
+
+def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(grbl, tmp_path):
+    text = rig.SAMPLE_RIG_TOML.replace('port = "/dev/ttyUSB0"', f'port = "{grbl.port}"')
+    # a small, fast grid near the sample's origin (positions, not speed, are what is checked)
+    text = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 1.0", "width_m = 0.06")
+            .replace("height_m = 1.0", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
+            .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
+    cfg = rig.parse_rig_config(text)
+    out = tmp_path / "scan.h5"
+    res = rig.acquire(cfg, out, simulate="audio")
+    assert res.complete and res.stops_this_run == cfg.n_stops
+    with h5py.File(out, "r") as f:
+        assert f.attrs["complete"]
+        stops = f["stop_index"][()]
+        stage_m = f["stage_positions"][()]
+    np.testing.assert_array_equal(stops, np.arange(cfg.n_stops))  # every stop written once, in order
+    targets = np.array([cfg.carriage_m(cfg.stage_target_mm(i)) for i in range(cfg.n_stops)])
+    np.testing.assert_allclose(stage_m[:, :2], targets[:, :2], atol=STEP_MM / 1000)  # within a motor step
