@@ -609,3 +609,17 @@ def test_import_clsas_rig_needs_no_posix_terminal_modules():
             "print(sorted(m for m in ('tty', 'termios', 'pty') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"  # Windows has none of them
+
+
+def test_moving_off_a_limit_switch_turns_hard_limits_off_then_on():
+    with GrblEmulator(time_scale=0.01, faults=Faults(alarm_at_move=1)) as emu, GrblStage(emu.port) as st:
+        emu.written[21] = 1.0  # hard limits on
+        st.settings = st.read_settings()
+        st.home()
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 .*'\$21=0'"):
+            st.move_to(-201, -1)
+        st.move_off_limit(5.0, 0.0)
+        sent = emu.received
+        i = sent.index("$21=0")
+        assert sent[i + 1] == "$X" and sent[i + 2].startswith("G91 G1 X5.000") and sent[-1] == "$21=1"
+        assert emu.written[21] == 1.0 and emu.state == "Idle"

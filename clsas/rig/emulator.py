@@ -108,6 +108,7 @@ class GrblEmulator:
 
     def __post_init__(self) -> None:
         self.received: list[str] = []  # every line received, for the tests
+        self.written: dict[int, float] = {}  # settings written with $N=value
         self.status_times: list[float] = []  # when each '?' arrived (monotonic s)
         self.moves = 0
         self._pos = np.zeros(3)
@@ -432,12 +433,17 @@ class GrblEmulator:
                     self._state = "Idle"
                     self._send("[MSG:Caution: Unlocked]")
             return self._send("ok")
+        m = re.fullmatch(r"\$(\d+)=([-+]?\d*\.?\d+)", up)
+        if m:  # a setting write, kept for `$$` (only $21 changes the emulation's answers)
+            self.written[int(m.group(1))] = float(m.group(2))
+            return self._send("ok")
         if up == "$$":
             settings = {10: int(self.report_mpos), 20: int(self.soft_limits and self.homing), 21: 0,
                         22: int(self.homing),
                         25: self.seek_rate_mm_min, 27: self.pulloff_mm, 110: self.max_rate_mm_min,
                         111: self.max_rate_mm_min, 130: self.travel_mm[0], 131: self.travel_mm[1],
                         132: self.travel_mm[2]}
+            settings.update(self.written)
             for k, val in settings.items():
                 self._send(f"${k}={val:g}")
             return self._send("ok")

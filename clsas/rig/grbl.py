@@ -433,6 +433,28 @@ class GrblStage:
         self.command("G21 G90")
         return self.status()
 
+    def move_off_limit(self, dx_mm: float, dy_mm: float) -> Status:
+        """Move the carriage off a limit switch after ``ALARM:1`` (and the reset).
+
+        With hard limits on (``$21=1``) the switch re-trips the alarm as soon as the carriage
+        moves, so ``$21=0`` is sent first and ``$21=1`` restored after the relative move
+        (``G91``) by (``dx_mm``, ``dy_mm``). The position is not trusted afterwards: home again.
+        """
+        dx_mm, dy_mm = v.finite("dx_mm", dx_mm), v.finite("dy_mm", dy_mm)
+        hard = int(self.settings.get(21, 0)) == 1
+        if hard:
+            self.command("$21=0")
+        try:
+            self.command("$X")
+            feed = self.feed_mm_min or 500.0
+            self.command(f"G91 G1 X{dx_mm:.3f} Y{dy_mm:.3f} F{feed:.0f}")
+            st = self.wait_idle(self.move_timeout(float(np.hypot(dx_mm, dy_mm))))
+            self.command("G90")
+        finally:
+            if hard:
+                self.command("$21=1")
+        return st
+
     def check_target(self, x_mm: float, y_mm: float) -> None:
         """Refuse a target outside the work area (before anything is sent)."""
         for name, val, (lo, hi) in (("x_mm", x_mm, self.work_area_mm[0]), ("y_mm", y_mm, self.work_area_mm[1])):
