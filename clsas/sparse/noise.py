@@ -61,8 +61,10 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     The noise's correlation scale is :func:`correlation_sigma` of ``b``, then (``refine``
     times) of the residual where the signal is not: BPDN at the current lam, its atoms refit
     by least squares, their fit removed. Echoes whose chirps cover most of the window inflate
-    the first estimate many times; the residual's does not. On pure noise lam stays at or
-    above lam_max, so the answer is no echo ("nothing here"). At least ``floor`` x lam_max
+    the first estimate many times; the residual's does not. Where the first estimate is at or
+    above lam_max (pure noise, or a gate covered by echoes), the residual of a fit at
+    lam_max / 2 is tried once more: on pure noise its level stays near the first, so lam stays
+    at or above lam_max and the answer is no echo ("nothing here"). At least ``floor`` x lam_max
     (a dynamic range of 40 dB by default: a noise-free signal, or one the model does not fit
     (an impulse, a pulse cut by the window), is not fitted down to its rounding errors).
     """
@@ -72,19 +74,22 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     lam = 2 * correlation_sigma(dictionary, b, amplitudes) * t
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
         raise ValueError(f"refine must be an integer >= 0, got {refine!r}")
+    trial = lam
+    if refine and lam >= lmax:  # the gate may be all echoes: try the residual below lam_max too
+        trial, refine = 0.5 * lmax, refine + 1
     for _ in range(int(refine)):
-        if lam >= lmax:
+        if trial >= lmax:
             break
-        x = bpdn(dictionary, b, lam, amplitudes=amplitudes, tol=1e-3, max_inner=2000).x
+        x = bpdn(dictionary, b, trial, amplitudes=amplitudes, tol=1e-3, max_inner=2000).x
         on = np.flatnonzero(x)
         if not on.size or on.size > dictionary.atom.n // 4:
             break
         A = dictionary.atom.matrix(dictionary.taus[on], fast=True)
         r = b - A @ np.linalg.lstsq(A, b, rcond=None)[0]
         new = 2 * correlation_sigma(dictionary, r, amplitudes) * t
-        if new >= 0.9 * lam:
+        if new >= 0.9 * trial:
             break
-        lam = new
+        lam = trial = new
     return float(max(lam, v.non_negative("floor", floor) * lmax))
 
 
