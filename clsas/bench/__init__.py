@@ -42,6 +42,7 @@ QUICK = {
     "plan_spacing_m": 0.02,
     "two_echo": {"methods": ("matched", "fmcw", "bpdn", "cbp-polar", "ml2"), "separations_b": (0.25, 1.0),
                  "snrs_db": (10, 30), "trials": 2},
+    "k_echo": {"ks": (2, 3, 5, 10), "ratios": (1.0, 0.5, 0.1), "trials": 1},
     "grid": {"methods": ("bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar"), "deltas": (0.025, 0.05),
              "lam_fracs": (0.01, 0.03)},
     "tiles": None,
@@ -59,6 +60,7 @@ FULL = {
     "two_echo_convex": {"methods": ("matched", "bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar", "ml2"),
                         "separations_b": (0.25, 0.5, 1.0, 2.0), "snrs_db": (20,), "trials": 3,
                         "amplitudes": "positive"},
+    "k_echo": {"ks": (2, 3, 5, 10), "ratios": (1.0, 0.5, 0.1), "trials": 20},
     "grid": {"methods": ("bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar"),
              "deltas": (0.0125, 0.025, 0.05, 0.1, 0.2), "lam_fracs": (0.001, 0.003, 0.01, 0.03, 0.1, 0.3)},
     "tiles": {"grid": ((-0.45, 0.45), (-0.55, 0.7), (1.0, 2.0), 0.01), "n_tiles": 4},
@@ -153,6 +155,8 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     if "two_echo_convex" in cfg:
         say("error against run time: the two-echo task with positive amplitudes (the convex CBPs' model)")
         res["two_echo_convex"] = accuracy.two_echo(**cfg["two_echo_convex"])
+    say("success against the bound: K echoes x amplitude ratio")
+    res["k_echo"] = accuracy.k_echo(**cfg["k_echo"])
     say("error against run time: the paper's Delta x lam grid")
     res["delta_lambda"] = accuracy.delta_lambda(**cfg["grid"])
 

@@ -123,6 +123,11 @@ def markdown(res: dict, png: Path | None = None) -> str:
                       f"{_f(p['rmse_over_crb'])} | {p['median_time_s'] * 1e3:.1f} ms | {b['separation_b']:g}, "
                       f"{b['snr_db']:g} dB ({100 * b['success_rate']:.0f} %) |")
         md.append("")
+    if "k_echo" in res:
+        from .kecho import k_markdown
+
+        t = res["k_echo"]
+        md += [f"K-echo table ({t['task']}); {t['trials']} trial(s) per cell.", "", *k_markdown(t["table"]), ""]
     g = res["delta_lambda"]
     md += [f"Paper's Delta x lam grid ({g['task']}); Delta in {g['deltas_s']} s, lam in {g['lam_fracs']} x lam_max.",
            "", "| method | best Delta | best lam / lam_max | error there | time there | median error | "
