@@ -118,3 +118,18 @@ def install_hint(extra: str) -> str:
     if (root / "pyproject.toml").is_file():
         return f"pip install -e '{root}[{extra}]'"
     return f"pip install 'clsas[{extra}]'"
+
+
+def cell_number(text: str, where: str) -> float:
+    """A table cell read as a finite number; ``where`` ("file, line L, column 'c'") leads the
+    error (an empty cell, not a number, NaN or infinite)."""
+    s = text.strip()
+    if not s:
+        raise ValueError(f"{where}: the field is empty")
+    try:
+        x = float(s)
+    except ValueError:
+        raise ValueError(f"{where}: {s!r} is not a number") from None
+    if not math.isfinite(x):
+        raise ValueError(f"{where}: {s!r} is NaN or infinite")
+    return x

@@ -272,14 +272,5 @@ def _csv_rows(path: Path):
 
 
 def _number(path: Path, line: int, column: str, text: str) -> float:
-    s = text.strip()
-    if not s:
-        raise ValueError(f"{path}, line {line}, column {column!r}: the field is empty")
-    try:
-        x = float(s)
-    except ValueError:
-        raise ValueError(f"{path}, line {line}, column {column!r}: {s!r} is not a number") from None
-    if not np.isfinite(x):
-        raise ValueError(f"{path}, line {line}, column {column!r}: {s!r} is NaN or infinite")
-    return x
+    return v.cell_number(text, f"{path}, line {line}, column {column!r}")
 

@@ -236,6 +236,7 @@ def _on_time_axis(sig, t0_from, t0_to, fs, n, scale, waveform=None) -> np.ndarra
 
     out = np.zeros((sig.shape[0], n))
     up = 8
+    wave_fine = None if waveform is None else _upsampled(waveform, up)[0]  # the same for every row
     for m in range(sig.shape[0]):
         k = (t0_to[m] - t0_from[m]) * fs  # sample of sig at our sample 0
         if abs(scale[m] - 1) < 1e-12 and abs(k - round(k)) < 1e-6:
@@ -249,15 +250,15 @@ def _on_time_axis(sig, t0_from, t0_to, fs, n, scale, waveform=None) -> np.ndarra
         out[m] = np.interp(want, np.arange(nf * up), fine, left=0.0, right=0.0)
         out[m, want > (sig.shape[1] - 1) * up] = 0.0
         if waveform is not None and abs(scale[m] - 1) >= 1e-12:
-            out[m] = _unsqueeze(out[m], waveform, scale[m], up)
+            out[m] = _unsqueeze(out[m], waveform, wave_fine, scale[m], up)
     return out
 
 
-def _unsqueeze(x: np.ndarray, waveform: np.ndarray, scale: float, up: int) -> np.ndarray:
-    """Filter ``x``, whose echoes are ``w(scale t)``, so that they become ``w(t)``."""
+def _unsqueeze(x: np.ndarray, waveform: np.ndarray, fine: np.ndarray, scale: float, up: int) -> np.ndarray:
+    """Filter ``x``, whose echoes are ``w(scale t)``, so that they become ``w(t)`` (``fine``:
+    the waveform upsampled ``up`` times)."""
     import scipy.fft
 
-    fine, _ = _upsampled(waveform, up)
     k = np.arange(int(np.ceil(len(waveform) / scale)) + 1)
     squeezed = np.interp(k * scale * up, np.arange(len(fine)), fine, left=0.0, right=0.0)
     nf = scipy.fft.next_fast_len(len(x) + 2 * len(squeezed) + 16)

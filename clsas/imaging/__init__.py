@@ -243,9 +243,7 @@ def _reconstruct_sparse(dataset, grid, method, bp, progress, options) -> Image:
     if unknown:
         raise ValueError(f"sparse: unknown option(s) {sorted(unknown)}")
     plan = plan_reconstruction(dataset, grid, [])
-    b = grid.bounds()
-    pmin, pmax = path_bounds(b[:, 0], b[:, 1], dataset.tx_positions, dataset.rx_positions)
-    gates = np.stack([pmin, pmax], axis=1) / dataset.c_per_meas[:, None]
+    gates = plan.gates_s
     plan.notes.append(f"{method}: each recording super-resolved within its own gate, echoes rendered as pulses")
     t_start = time.perf_counter()
     prof, echoes = superres_profiles(dataset, gates, method, progress=progress, **options)

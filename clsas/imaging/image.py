@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..dataset import _json_default
 from ..geometry import VoxelGrid
 
 if TYPE_CHECKING:
@@ -208,10 +209,3 @@ def source_provenance(dataset, path: str | Path | None = None) -> dict:
         out.update(source_sha256=h.hexdigest(), source_path=Path(path).name)
     return out
 
-
-def _json_default(obj):
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)

@@ -68,6 +68,7 @@ class ReconstructionPlan:
     lag_step: int = 1  # recording samples per profile sample (the profiles' decimation)
     kernels: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    gates_s: np.ndarray | None = None  # (n_meas, 2) each measurement's own delay gate, s
 
     def describe(self) -> str:
         nx, ny, nz = self.grid_shape
@@ -89,6 +90,8 @@ def plan_reconstruction(dataset: Dataset, grid: VoxelGrid, kernels: list[str]) -
     b = grid.bounds()
     pmin, pmax = path_bounds(b[:, 0], b[:, 1], dataset.tx_positions, dataset.rx_positions)
     c = dataset.c_per_meas
-    gate = (float((pmin / c).min()), float((pmax / c).max()))
+    gates = np.stack([pmin / c, pmax / c], axis=1)
+    gate = (float(gates[:, 0].min()), float(gates[:, 1].max()))
     full = dataset.n_samples + len(dataset.waveform) - 1
-    return ReconstructionPlan(grid.shape, float(pmin.min()), float(pmax.max()), gate, full, kernels=list(kernels))
+    return ReconstructionPlan(grid.shape, float(pmin.min()), float(pmax.max()), gate, full, kernels=list(kernels),
+                              gates_s=gates)

@@ -72,6 +72,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import cell_number
 from ..dataset import Dataset
 from ..signals import lfm_chirp
 from ._common import attach_background, is_number, read_numbers, stack_padded
@@ -315,14 +316,7 @@ def _read_coordinates(path: Path) -> dict[str, np.ndarray | None]:
         for name, i in cols.items():
             if i >= len(cells):
                 raise ValueError(f"{path}, line {line}: {len(cells)} cells, no {labels[i]!r} column")
-            try:
-                val = float(cells[i])
-            except ValueError:
-                what = "an empty cell" if cells[i] == "" else f"{cells[i]!r} is not a number"
-                raise ValueError(f"{path}, line {line}, column {labels[i]!r}: {what}") from None
-            if not math.isfinite(val):
-                raise ValueError(f"{path}, line {line}, column {labels[i]!r}: {cells[i]!r} is not finite")
-            values[name].append(val)
+            values[name].append(cell_number(cells[i], f"{path}, line {line}, column {labels[i]!r}"))
     missing = [k for k in ("flight", "angle", "height", "temp") if k not in values]
     if missing:
         raise ValueError(f"{path}: needs the columns flight, angle, height, temperature; lacks {missing}")

@@ -81,6 +81,7 @@ from typing import Any
 
 import numpy as np
 
+from .._validate import cell_number
 from ..dataset import Dataset
 from ..signals import lfm_chirp
 from ._common import attach_background, read_numbers, read_settings, read_wav, sniff_delimiter, stack_padded
@@ -290,14 +291,7 @@ def _read_positions(path: Path) -> list[_Row]:
             cell = _cells[idx]
             if cell == "" and optional:
                 return None
-            try:
-                val = float(cell)
-            except ValueError:
-                what = "an empty cell" if cell == "" else f"{cell!r} is not a number"
-                raise ValueError(f"{path}, line {_line}, column {name!r}: {what}") from None
-            if not math.isfinite(val):
-                raise ValueError(f"{path}, line {_line}, column {name!r}: {cell!r} is not a finite number")
-            return val
+            return cell_number(cell, f"{path}, line {_line}, column {name!r}")
 
         name = cells[cols["file"]]
         if not name:

@@ -1,0 +1,72 @@
+"""``clsas devices``: OpenCL devices and their kernel variants, audio devices, serial ports."""
+
+from __future__ import annotations
+
+
+def cmd_devices(args) -> int:
+    from clsas import cl
+
+    if args.clear_cache:
+        n = cl.clear_cache()
+        print(f"removed {n} kernel-variant verdict(s) from {cl.cache_dir()}")
+    rows = cl.list_devices()
+    if not rows:
+        print("no OpenCL platform found: install pyopencl[pocl] for the PoCL CPU device; "
+              "the NumPy backend works without one")
+    for r in rows:
+        mark = "*" if r.selected else " "
+        print(f"{mark} {r.index}  {r.platform} | {r.device} | {r.kind} | {r.compute_units} CUs | "
+              f"{r.global_mem_mib} MiB | fp64 {'yes' if r.fp64 else 'no'} | driver {r.driver} | "
+              f"preferred float width {r.preferred_vec}")
+    if rows:
+        print("(* = used by backend='auto'; choose with --device P:D or PYOPENCL_CTX=P:D)")
+    if args.variants and rows:
+        _print_variants(cl, [r for r in rows if r.selected] if args.device is None else
+                        [r for r in rows if r.index == args.device])
+    if not args.opencl_only:
+        _print_rig_devices()
+    return 0
+
+
+def _print_variants(cl, rows) -> None:
+    """The kernel width each kernel gets on each device, and why wider ones were refused."""
+    if not rows:
+        print("--variants: no such device (see the P:D numbers above)")
+    for r in rows:
+        q = cl.get_queue(r.index)
+        print(f"kernel variants on {r.index} {r.device} (verdicts in {cl.cache_dir()}):")
+        for name in cl.KERNELS:
+            for w in cl.candidate_widths(q.device):
+                v = cl.check(q, name, w)
+                print(f"  {name:15s} VEC={w:<2d} {'ok  ' if v.ok else 'NO  '} {v.reason} [{v.source}]")
+                if v.ok:
+                    break
+
+
+def _print_rig_devices() -> None:
+    from clsas.rig.audio import list_audio_devices
+
+    print()
+    try:
+        rows = list_audio_devices()
+    except ImportError as exc:
+        print(f"audio devices: unavailable ({exc})")
+        rows = None
+    if rows is not None:
+        print("audio devices (for [audio] device in rig.toml):" if rows else "audio devices: none found")
+        for r in rows:
+            rates = ", ".join(f"{fs // 1000} kHz" for fs in r["rates_hz"]) or "neither 96 nor 192 kHz"
+            print(f"  {r['index']:2d} {r['name']} | {r['hostapi']} | {r['inputs']} in, {r['outputs']} out | "
+                  f"default {r['default_hz']:g} Hz | {rates}")
+    print()
+    try:
+        from serial.tools import list_ports
+    except ImportError:
+        from clsas._validate import install_hint
+
+        print(f"serial ports: unavailable ({install_hint('rig')} for pyserial)")
+        return
+    ports = list_ports.comports()
+    print("serial ports (for [stage] port):" if ports else "serial ports: none found")
+    for p in ports:
+        print(f"  {p.device} | {p.description} | {p.hwid}")
