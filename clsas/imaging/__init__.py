@@ -162,6 +162,8 @@ def reconstruct(
     progress: Callable[[int, int], None] | None = None,
     sparse: dict | None = None,
     force: bool = False,
+    formation: str = "bp",
+    formation_options: dict | None = None,
 ) -> Image:
     """Image a dataset on a grid.
 
@@ -197,7 +199,29 @@ def reconstruct(
         ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
     force : bool
         Image a grid even if it does not seem to fit in memory (see :class:`Backprojector`).
+    formation : str
+        How the profiles become an image (:data:`clsas.formation.FORMATIONS`): ``"bp"`` (exact
+        backprojection, the default and the reference), ``"omega-k"`` (planar uniform apertures),
+        ``"ffbp"`` (fast factorized backprojection, any trajectory). Works with every method.
+    formation_options : dict, optional
+        Passed to the formation (see its module).
     """
+    from ..formation import FORMATIONS
+    from ..formation import form as _form
+
+    v.choice("formation", formation, tuple(FORMATIONS))
+    if formation_options is not None and not isinstance(formation_options, dict):
+        raise TypeError(f"formation_options must be a dict, got {type(formation_options).__name__}")
+    fopts = dict(formation_options or {})
+    if formation == "bp" and fopts:
+        raise ValueError(f"formation_options: formation 'bp' takes none, got {sorted(fopts)}")
+
+    def image_of(bp, prof):
+        if formation == "bp":
+            return bp(prof, progress=progress)
+        return _form(prof, grid, formation, backend=bp.backend, device=bp.selection.queue, progress=progress,
+                     force=force, **fopts)
+
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
@@ -205,7 +229,7 @@ def reconstruct(
             raise ValueError(f"method={method!r} needs the recordings (a Dataset); range profiles are imaged "
                              "by method='bp'")
         t_start = time.perf_counter()
-        image = Backprojector(grid, backend=backend, device=device, force=force)(dataset, progress=progress)
+        image = image_of(Backprojector(grid, backend=backend, device=device, force=force), dataset)
         image.method = f"bp ({dataset.method} profiles)"
         image.timings_s["total"] = time.perf_counter() - t_start
         return image
@@ -216,7 +240,7 @@ def reconstruct(
     sel = _cl.select(backend, device)
     bp = Backprojector(grid, backend=sel.requested if sel.opencl else "numpy", device=sel.queue, force=force)
     if method != "bp":
-        return _reconstruct_sparse(dataset, grid, method, bp, progress, sparse or {})
+        return _reconstruct_sparse(dataset, grid, method, bp, progress, sparse or {}, image_of)
     plan = plan_reconstruction(dataset, grid, [])
     if compression == "fmcw":
         plan.notes.append("fmcw: delays are gated; the mixed window is the whole chirp overlap")
@@ -225,7 +249,7 @@ def reconstruct(
                     device=sel.queue)
     plan.lags = prof.n_lags
     plan.lag_step = int(round(prof.dtau_s * dataset.fs_hz))
-    image = bp(prof, progress=progress)
+    image = image_of(bp, prof)
     plan.kernels = [k for k, b in ((f"compress ({compression})", prof.backend), ("backproject", image.backend))
                     if b == "opencl"]
     for line in plan.describe().splitlines():
@@ -236,7 +260,7 @@ def reconstruct(
     return image
 
 
-def _reconstruct_sparse(dataset, grid, method, bp, progress, options) -> Image:
+def _reconstruct_sparse(dataset, grid, method, bp, progress, options, image_of) -> Image:
     from .sparse import SPARSE_OPTIONS, superres_profiles
 
     unknown = set(options) - set(SPARSE_OPTIONS)
@@ -248,7 +272,7 @@ def _reconstruct_sparse(dataset, grid, method, bp, progress, options) -> Image:
     t_start = time.perf_counter()
     prof, echoes = superres_profiles(dataset, gates, method, progress=progress, **options)
     plan.lags = prof.n_lags
-    image = bp(prof, progress=progress)
+    image = image_of(bp, prof)
     plan.kernels = ["backproject"] if image.backend == "opencl" else []
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)

@@ -1,0 +1,93 @@
+"""Image formation: how range profiles become an image.
+
+``"bp"`` is exact bistatic backprojection (:mod:`clsas.imaging`), the reference every fast
+formation is measured against. The fast ones trade a stated error for run time:
+
+- ``"omega-k"``: wavenumber-domain range migration for planar, uniform apertures
+  (:mod:`clsas.formation.omega_k`);
+- ``"ffbp"``: 3-D fast factorized backprojection for any trajectory (:mod:`clsas.formation.ffbp`).
+
+Each formation is a function ``form(profiles, grid, *, backend, device, progress, force, **options)
+-> Image`` registered in :data:`FORMATIONS` as ``"module:function"`` (imported on first use).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .. import _validate as v
+from ..compress import Profiles
+from ..geometry import VoxelGrid
+
+__all__ = ["FORMATIONS", "form", "error_to_signal_db"]
+
+# name -> "module:function"; each takes (profiles, grid, *, backend, device, progress, force, **options)
+FORMATIONS: dict[str, str] = {
+    "bp": "clsas.formation:_form_bp",
+}
+
+
+def _form_bp(profiles: Profiles, grid: VoxelGrid, *, backend=None, device=None, progress=None, force=False,
+             **options):
+    from ..imaging import Backprojector
+
+    if options:
+        raise ValueError(f"formation_options: formation 'bp' takes none, got {sorted(options)}")
+    return Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
+
+
+def resolve(formation: str) -> Callable[..., Any]:
+    """The function behind ``formation`` (a :class:`ValueError` names the known ones)."""
+    v.choice("formation", formation, tuple(FORMATIONS))
+    module, func = FORMATIONS[formation].split(":")
+    return getattr(importlib.import_module(module), func)
+
+
+def form(profiles: Profiles, grid: VoxelGrid, formation: str = "bp", *, backend: str | None = None,
+         device: Any = None, progress: Callable[[int, int], None] | None = None, force: bool = False,
+         **options):
+    """Form an image of ``profiles`` on ``grid`` with ``formation`` (see :data:`FORMATIONS`)."""
+    if not isinstance(profiles, Profiles):
+        raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    image = resolve(formation)(profiles, grid, backend=backend, device=device, progress=progress, force=force,
+                               **options)
+    image.provenance = {**image.provenance, "formation": formation}
+    if options:
+        image.provenance["formation_options"] = dict(options)
+    return image
+
+
+def error_to_signal_db(image, reference, mask: np.ndarray | None = None) -> float:
+    """Complex error of ``image`` against ``reference``: 20·log10(‖a − b‖ / ‖b‖), in dB.
+
+    Parameters
+    ----------
+    image, reference : Image or ndarray
+        Same shape; values compared as they are (no rescaling).
+    mask : ndarray of bool, optional
+        Voxels to compare (e.g. the aperture's well-sampled cone); default all.
+    """
+    a = np.asarray(getattr(image, "values", image))
+    b = np.asarray(getattr(reference, "values", reference))
+    if a.shape != b.shape:
+        raise ValueError(f"image: shape {a.shape} differs from reference's {b.shape}")
+    if mask is not None:
+        mask = np.asarray(mask, bool)
+        if mask.shape != b.shape:
+            raise ValueError(f"mask: shape {mask.shape} differs from the images' {b.shape}")
+        if not mask.any():
+            raise ValueError("mask: selects no voxel")
+        a, b = a[mask], b[mask]
+    a = a.astype(np.complex128).ravel()
+    b = b.astype(np.complex128).ravel()
+    ref = float(np.linalg.norm(b))
+    if ref == 0:
+        raise ValueError("reference: all zero, the ratio is undefined")
+    err = float(np.linalg.norm(a - b))
+    return 20 * np.log10(max(err / ref, 1e-300))
