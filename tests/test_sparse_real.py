@@ -249,7 +249,9 @@ def test_grouping_bpdn_atoms_sharpens_the_image():
     atoms = clsas.reconstruct(ds, grid, "bpdn", backend="numpy",
                               sparse={"max_echoes": 16, "method_options": {"group": False}})
     assert np.mean([len(e) for e in runs.echoes]) < np.mean([len(e) for e in atoms.echoes])
-    assert np.all(tcr_db(runs) > tcr_db(atoms) + 1.0)  # measured: +1.9 dB and +2.8 dB
+    # measured: +0.7 dB and +0.8 dB (+1.9 and +2.8 before lam_noise read the residual with the fitted
+    # span deflated: its lam is higher, BPDN leaves fewer stray atoms for grouping to merge)
+    assert np.all(tcr_db(runs) > tcr_db(atoms) + 0.3)
     assert np.linalg.norm(runs.peaks(1)[0].position_m - pts[0]) <= 0.01
 
 

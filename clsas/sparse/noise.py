@@ -64,26 +64,55 @@ def _independent(dictionary: Dictionary) -> float:
     return max(n * dictionary.delta * dictionary.atom.fs / max(length, 1.0), 1.0)
 
 
+def _deflated_sigma(dictionary: Dictionary, b, A: np.ndarray, amplitudes: str) -> float | None:
+    """:func:`correlation_sigma` of ``b`` with the span of ``A``'s columns (fitted atoms) removed,
+    each atom's correlation rescaled for what the removal took from it: with ``P`` the projector
+    off that span, ``a^H P n`` has the variance ``sigma^2 a^H P a``, not ``sigma^2 |a|^2``, so
+    ``|a^H P b| / sqrt(a^H P a / |a|^2)`` has pure noise's scale again. Without the rescaling the
+    median falls with every atom fitted (twenty atoms in a 1000-sample gate: 0.3-0.5 of the true
+    scale) and a noise level read from the residual is too low. Atoms that the span covers by 80 %
+    or more are left out; None if fewer than 8 whole atoms remain."""
+    op = ShiftOperator(dictionary)
+    q, _ = np.linalg.qr(A)
+    r = b - q @ (q.conj().T @ b)
+    g = op.adjoint(r)
+    cover = np.zeros(dictionary.k)
+    for col in q.T:
+        cover += np.abs(op.adjoint(col)) ** 2
+    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    n2 = dictionary.atom.norm ** 2
+    keep = whole & (n2 - cover > 0.2 * n2)
+    if np.count_nonzero(keep) < 8:
+        return None
+    z = g[keep] / np.sqrt((n2 - cover[keep]) / n2)
+    if amplitudes == "complex":
+        return float(np.median(np.abs(z)) / np.sqrt(np.log(2.0)))
+    return float(np.median(np.abs(z.real)) / 0.6744897501960817)
+
+
 def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alarm: float = 0.01,
-              refine: int = 2, floor: float = 0.01) -> float:
+              refine: int = 5, floor: float = 0.01) -> float:
     """lam at the noise level: twice the correlation that pure noise exceeds on any of the K
     atoms with probability at most ``false_alarm`` (default 1 %), so that BPDN keeps echoes
     and drops noise.
 
-    The noise's correlation scale is :func:`correlation_sigma` of ``b``, then (``refine``
-    times) of the residual where the signal is not: BPDN at the current lam, its atoms refit
-    by least squares, their fit removed. Echoes whose chirps cover most of the window inflate
-    the first estimate many times; the residual's does not. Where the first estimate is at or
-    above lam_max (pure noise, or a gate covered by echoes), the residual of a fit at
-    lam_max / 2 is tried once more, kept only if its level is under a fifth of that trial's
-    (ten echoes filling the gate: about a thirtieth; pure noise, 160 samples: 0.75 or more):
-    on pure noise lam stays at or above lam_max and the answer is no echo ("nothing here").
-    The threshold is raised by one standard deviation of the median's relative error,
-    ``0.72 / sqrt(n_eff)`` (Rayleigh), ``n_eff`` the independent correlations in the window
-    (:func:`_independent`): a scale estimated from a short window is often low, and pure
-    noise then crossed a threshold set for 1 % in 2-3 % of profiles. At least ``floor`` x lam_max
-    (a dynamic range of 40 dB by default: a noise-free signal, or one the model does not fit
-    (an impulse, a pulse cut by the window), is not fitted down to its rounding errors).
+    The noise's correlation scale is :func:`correlation_sigma` of ``b``, then (up to ``refine``
+    times) of the residual where the signal is not: BPDN at the current lam, the span of its
+    atoms removed and each correlation rescaled for what the removal took
+    (:func:`_deflated_sigma`), taken while it falls by a tenth or more (usually one to three fits). Echoes whose chirps
+    cover most of the window inflate the first estimate many times; the residual's does not.
+    Where the first estimate is at or above lam_max (pure noise, or a gate covered by echoes),
+    the fit starts at lam_max / 2 and goes on down while the
+    residual's level is under the lam it was fitted at: ten echoes filling the gate reach
+    their noise level in three or four fits; on pure noise the first residual's level is still
+    above lam_max / 2 (the rescaling keeps it near the first estimate), lam stays at or above
+    lam_max and the answer is no echo ("nothing here"). The threshold is raised by one
+    standard deviation of the median's relative error, ``0.72 / sqrt(n_eff)`` (Rayleigh),
+    ``n_eff`` the independent correlations in the window (:func:`_independent`): a scale
+    estimated from a short window is often low, and pure noise then crossed a threshold set for
+    1 % in 2-3 % of profiles. At least ``floor`` x lam_max (a dynamic range of 40 dB by default:
+    a noise-free signal, or one the model does not fit (an impulse, a pulse cut by the window),
+    is not fitted down to its rounding errors).
     """
     b = _check(dictionary, b, amplitudes)
     lmax = lam_max(ShiftOperator(dictionary), b, amplitudes)
@@ -92,8 +121,8 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
         raise ValueError(f"refine must be an integer >= 0, got {refine!r}")
     trial, need = lam, 0.9
-    if refine and lam >= lmax:  # the gate may be all echoes: try the residual below lam_max too
-        trial, need, refine = 0.5 * lmax, 0.2, refine + 1
+    if refine and lam >= lmax:  # the gate may be all echoes: go down from lam_max / 2
+        trial, need = 0.5 * lmax, 1.0
     for _ in range(int(refine)):
         if trial >= lmax:
             break
@@ -101,9 +130,10 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
         on = np.flatnonzero(x)
         if not on.size or on.size > dictionary.atom.n // 4:
             break
-        A = dictionary.atom.matrix(dictionary.taus[on], fast=True)
-        r = b - A @ np.linalg.lstsq(A, b, rcond=None)[0]
-        new = 2 * correlation_sigma(dictionary, r, amplitudes) * t
+        s = _deflated_sigma(dictionary, b, dictionary.atom.matrix(dictionary.taus[on], fast=True), amplitudes)
+        if s is None:
+            break
+        new = 2 * s * t
         if new >= need * trial:
             break
         lam, trial, need = new, new, 0.9

@@ -19,6 +19,7 @@ from .noise import _threshold, lam_noise
 
 __all__ = ["cbp_polar_refined"]
 
+RSS_FLOOR = 0.25  # of the noise RSS that lam stands for (see cbp_polar_refined)
 log = logging.getLogger(__name__)
 
 _W_MIN = 1e-9  # lower bound of a slack fraction: 0 would let every weight vanish at once
@@ -269,8 +270,11 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
     # the noise level lam stands for (lam = 2 t s_g, s_g the noise's rms correlation with an atom):
     # the BIC does not reward a fit below it (noise-free or mis-modelled signals are not chased
     # to their rounding errors by cancelling pairs)
+    # Half the noise RSS that lam stands for: lam is set above the noise (lam_noise raises its
+    # threshold for the scale's estimation error), and a floor at the noise RSS itself hid weak
+    # echoes (ratio 0.1: their fit lowers the RSS by a few per cent, all of it under the floor)
     s_g = seed.lam / (2 * max(_threshold(dictionary.k, amplitudes, 0.01), 1e-3))
-    rss_floor = max(n_real * (s_g / ((2.0 if amplitudes == "complex" else 1.0) * atom.norm)) ** 2, 1e-300)
+    rss_floor = max(RSS_FLOOR * n_real * (s_g / ((2.0 if amplitudes == "complex" else 1.0) * atom.norm)) ** 2, 1e-300)
     info["rss_floor"] = rss_floor
     energy_cap = 4.0 * float(np.vdot(b, b).real)
 
