@@ -115,6 +115,10 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
 
         d_temp, m_t, n_ev = _bounded_search(f_temp, -temperature_range_c, temperature_range_c,
                                             step=min(1.0, temperature_range_c / 2), tol=0.01)
+        if abs(d_temp) >= temperature_range_c - 0.05 * temperature_range_c:
+            rep.notes.append(f"temperature: the sharpest image is at the edge of the search ({d_temp:+.2f} C): "
+                             "not determined by this scan and grid (a narrow aperture for its range?); stated kept")
+            d_temp = 0.0
         rep.stages.append({"step": "temperature", "metric": m_t, "evaluations": n_ev,
                            "offset_c": d_temp, "time_s": time.perf_counter() - t})
         log.info("autofocus temperature: %+.3f C from the stated one (metric %.5g, %d images)", d_temp, m_t, n_ev)
