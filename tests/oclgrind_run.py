@@ -1,7 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [vec=N ...]. Checks each result against its NumPy
-twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [vec=N ...]. Checks each result against
+its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
 
@@ -11,9 +11,9 @@ import numpy as np
 import pyopencl as cl
 
 import clsas
+from clsas.autofocus.opencl import FocusGradientPlan
 from clsas.compress import fft_layout
 from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
-from clsas.autofocus.opencl import FocusGradientPlan
 from clsas.imaging.opencl import BackprojectPlan
 
 FS = 96e3

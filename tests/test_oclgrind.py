@@ -27,7 +27,8 @@ def _oclgrind_available() -> str | None:
 # first run, and VEC 4 and 8 (the same code with narrower vectors) for uninitialised values.
 WIDTHS = ("vec=4", "vec=8", "vec=16")
 CHECKS = [
-    pytest.param({"OCLGRIND_DATA_RACES": "1"}, ["compress", "fft", "backproject", "gradient", *WIDTHS], id="memcheck+races-all"),
+    pytest.param({"OCLGRIND_DATA_RACES": "1"}, ["compress", "fft", "backproject", "gradient", *WIDTHS],
+                 id="memcheck+races-all"),
 ] + [
     pytest.param({"OCLGRIND_UNINITIALIZED": "1"}, [kernels, f"vec={vec}"], id=f"uninitialized-{kernels}-vec{vec}")
     for kernels, vecs in [("compress", (4, 8, 16)), ("fft", (4, 8, 16)), ("backproject", (4, 8)),

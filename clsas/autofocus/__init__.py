@@ -114,8 +114,9 @@ class AutofocusReport:
         lines = [f"autofocus ({', '.join(self.methods)}; metric {self.metric}) on {self.device}: "
                  f"{self.metric_before:.4g} -> {self.metric_after:.4g} in {self.time_s:.1f} s"
                  + ("" if self.improved else " (not sharper: the input is returned)"),
-                 f"  group delay {self.group_delay_s * 1e6:+.2f} us, timing jitter {self.timing_jitter_rms_s * 1e6:.2f} "
-                 f"us RMS; air {self.temperature_c:.2f} C ({self.temperature_offset_c:+.2f} C), c {self.c_mps:.2f} m/s"]
+                 f"  group delay {self.group_delay_s * 1e6:+.2f} us, "
+                 f"timing jitter {self.timing_jitter_rms_s * 1e6:.2f} us RMS; air {self.temperature_c:.2f} C "
+                 f"({self.temperature_offset_c:+.2f} C), c {self.c_mps:.2f} m/s"]
         if self.los_path_m is not None:
             lines.append(f"  line-of-sight corrections: {self.n_basis} functions, "
                          f"{np.sqrt(np.mean(self.los_path_m ** 2)) / 2 * 1e3:.2f} mm RMS (one way)")

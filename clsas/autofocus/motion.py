@@ -20,7 +20,7 @@ def stops_of(ds) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     the dataset's ``timestamps`` where it has them, else the stop order."""
     stop = stop_index(ds.tx_positions, ds.stage_positions)
     first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
-    t = ds.timestamps[first] - ds.timestamps[first[0]] if ds.timestamps is not None else np.arange(len(first), dtype=float)
+    t = np.arange(len(first), dtype=float) if ds.timestamps is None else ds.timestamps[first] - ds.timestamps[first[0]]
     ref = ds.stage_positions if ds.stage_positions is not None else 0.5 * (ds.tx_positions + ds.rx_positions)
     return stop, np.asarray(t, float), ref[first, :2]
 

@@ -135,7 +135,8 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
 
         dd, m_d, n_ev = _bounded_search(f_delay, -max_delay_s, max_delay_s, step=max_delay_s / 10, tol=2e-7)
         t0_est = t0_est + dd
-        rep.notes.append(f"delay from sharpness alone (weakly determined: it mostly shifts the image): {dd * 1e6:+.1f} us")
+        rep.notes.append(f"delay from sharpness alone (weakly determined: it mostly shifts the image): "
+                         f"{dd * 1e6:+.1f} us")
         rep.stages.append({"step": "delay", "metric": m_d, "evaluations": n_ev, "delay_s": dd,
                            "time_s": time.perf_counter() - t})
 
@@ -154,8 +155,9 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
             stages = sorted({min(s, rep.n_basis) for s in (4, 12, rep.n_basis // 2, rep.n_basis) if s > 0})
             p_stop, info = optimise_los(engine, shift, c_est, stop, basis, stages, max_iter, history,
                                         callback=progress)
-            rep.stages.append({"step": "los", "metric": info["stages"][-1]["metric"], "evaluations": info["evaluations"],
-                               "stages": info["stages"], "time_s": time.perf_counter() - t})
+            rep.stages.append({"step": "los", "metric": info["stages"][-1]["metric"],
+                               "evaluations": info["evaluations"], "stages": info["stages"],
+                               "time_s": time.perf_counter() - t})
 
     # the corrected dataset: t0 and air as estimated, positions moved along the line of sight
     values = engine.image(shift - p_stop[stop] / c_est, c_est)
