@@ -201,3 +201,18 @@ def test_input_validation_of_dataset_and_grid():
         autofocus(ds.subset(slice(0, 3)), GRID)
     with pytest.raises(ValueError, match="no truth"):
         score(autofocus(ds, GRID, methods=("direct",))[1], ds)
+
+
+def test_cli_autofocus_writes_the_corrected_scan_and_pictures(tmp_path, capsys):
+    from clsas.cli import main
+
+    scan(group_delay_s=10e-6).save(tmp_path / "s.h5")
+    rc = main(["autofocus", str(tmp_path / "s.h5"), str(tmp_path / "o.h5"), "--grid=-0.09,0.09,-0.08,0.07,0.55,0.69",
+               "--spacing", "0.006", "--methods", "direct", "--png", str(tmp_path / "ba.png"), "-q"])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "group delay +10.0" in text and "against the stored truth" in text
+    assert (tmp_path / "ba.png").stat().st_size > 0
+    assert clsas.load(tmp_path / "o.h5").provenance[-1]["step"] == "autofocus"
+    assert main(["autofocus", str(tmp_path / "s.h5"), str(tmp_path / "x.h5"), "--methods", "pga", "-q",
+                 "--grid=-0.09,0.09,-0.08,0.07,0.55,0.69"]) == 2
