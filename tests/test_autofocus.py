@@ -113,6 +113,7 @@ def test_simulated_errors_keep_the_truth(tmp_path):
         scan(position_error=np.zeros((5, 3)))
 
 
+@pytest.mark.slow
 def test_error_free_scan_changes_nothing_beyond_tolerance():
     ds = scan(width=0.6, height=0.4)
     out, rep = autofocus(ds, GRID, temperature_range_c=2.0, n_basis=8, max_iter=10)
@@ -143,6 +144,7 @@ def test_never_returns_a_less_sharp_image(monkeypatch):
     assert any("did not get sharper" in n for n in rep.notes)
 
 
+@pytest.mark.slow
 def test_jitter_is_reduced_on_a_partial_scan():
     ds = scan(nx=15, ny=11, width=0.3, height=0.24, position_error=HandMotion(0.0008, seed=2))
     part = ds.subset(slice(0, 120))  # a scan stopped early
