@@ -6,6 +6,10 @@ __version__ = "0.1.0"
 
 from . import preprocess  # a module: clsas.preprocess.apply(ds, ...)
 from .apertures import aperture_from_csv, circular_aperture, helical_aperture
+
+# the function, not its package: clsas.autofocus(dataset, grid) (the package's other names are
+# imported from it: from clsas.autofocus import AutofocusReport, score)
+from .autofocus import autofocus
 from .compress import Profiles, compress
 from .dataset import Dataset, load
 from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
@@ -20,7 +24,7 @@ __all__ = [
     "Wall", "air_absorption_db_per_m", "analytic", "backproject", "compress", "lfm_chirp",
     "load", "raster_aperture", "reconstruct", "resolution_limits", "simulate", "speed_of_sound",
 ]
-__all__ += ["preprocess"]
+__all__ += ["preprocess", "autofocus"]
 __all__ += ["aperture_from_csv", "circular_aperture", "compare", "helical_aperture", "tcr_db"]
 
 # the sparse-recovery entry points of the public contract, imported on first use (they bring

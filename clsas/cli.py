@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import _cli_autofocus as _autofocus
 from ._cli_data import (
     _apply_preprocessing,
     _box_arg,
@@ -140,6 +141,10 @@ def cmd_reconstruct(args) -> int:
         if not source:
             raise ValueError("--preprocess: no steps given and no [preprocess] table in the dataset or --config")
         print(f"preprocessed with the steps from {source}: {', '.join(p['step'] for p in ds.provenance[n_before:])}")
+    if args.autofocus:
+        from ._cli_autofocus import run_autofocus
+
+        ds, _ = run_autofocus(ds, grid, args)
     image = _reconstruct(ds, grid, args, not args.quiet)
     from clsas.imaging.image import source_provenance
 
@@ -367,8 +372,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--preprocess", action="store_true",
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
     _preprocess_options(r)
+    r.add_argument("--autofocus", action="store_true",
+                   help="estimate motion, sound speed and delay from the scan first (see clsas autofocus)")
+    _autofocus.add_autofocus_options(r)
     common(r)
     r.set_defaults(func=cmd_reconstruct)
+    _autofocus.add_parser(sub, common)
 
     pre = sub.add_parser("preprocess", help="DC, band-pass, background subtraction, direct-path blanking, "
                          "group delay: write a new dataset file")

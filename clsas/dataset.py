@@ -59,6 +59,11 @@ class Dataset:
     provenance : list of dict
         What made these recordings what they are, oldest first: an importer, each
         preprocessing step with its parameters (stored as JSON in the file).
+    truth : dict
+        What a simulation knows and the dataset does not state (true positions, air, delays;
+        see :func:`clsas.simulate`), for scoring estimates such as :func:`clsas.autofocus`.
+        Values are numbers, strings or arrays; arrays whose first axis has ``n_meas`` rows
+        are per measurement (``subset`` selects them). Stored in the file's ``truth`` group.
     """
 
     signals: np.ndarray
@@ -77,6 +82,7 @@ class Dataset:
     config: str = ""
     background: np.ndarray | None = None
     provenance: list = field(default_factory=list)
+    truth: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.fs_hz = v.positive("fs_hz", self.fs_hz)
@@ -107,6 +113,8 @@ class Dataset:
             self.background = v.array("background", self.background, shape=sig.shape, dtype=None)
         if not isinstance(self.provenance, list) or not all(isinstance(p, dict) for p in self.provenance):
             raise TypeError("provenance must be a list of dicts (one per processing step)")
+        if not isinstance(self.truth, dict) or not all(isinstance(k, str) for k in self.truth):
+            raise TypeError("truth must be a dict with str keys")
         for name, shape in (("stage_positions", (n, 3)), ("timestamps", (n,))):
             val = getattr(self, name)
             if val is not None:
@@ -140,6 +148,7 @@ class Dataset:
         fields.update(changes)
         fields["chirp"] = dict(fields["chirp"])
         fields["provenance"] = list(fields["provenance"])
+        fields["truth"] = dict(fields["truth"])
         return Dataset(**fields)
 
     def subset(self, index: slice | np.ndarray) -> Dataset:
@@ -149,10 +158,12 @@ class Dataset:
             for k in ("stage_positions", "timestamps", "loopback", "background")
         }
         air = {k: (getattr(self, k)[index] if np.ndim(getattr(self, k)) else getattr(self, k)) for k in _AIR}
+        truth = {k: (val[index] if isinstance(val, np.ndarray) and val.ndim and len(val) == self.n_meas else val)
+                 for k, val in self.truth.items()}
         return Dataset(
             self.signals[index], self.tx_positions[index], self.rx_positions[index], self.fs_hz,
             self.waveform, self.t0_s[index], chirp=dict(self.chirp), config=self.config,
-            provenance=list(self.provenance), **air, **opt,
+            provenance=list(self.provenance), truth=truth, **air, **opt,
         )
 
     def save(self, path: str | Path) -> Path:
@@ -165,6 +176,7 @@ class Dataset:
         with h5py.File(path, "w") as f:
             _write_arrays(f, self)
             f.attrs.update(_attrs(self, __version__))
+            _write_truth(f, self.truth)
         return path
 
 
@@ -174,6 +186,37 @@ def _per_meas(name: str, value, n: int) -> float | np.ndarray:
         return v.finite(name, value)
     arr = v.array(name, value, shape=(n,))
     return float(arr[0]) if np.all(arr == arr[0]) else arr
+
+
+def _write_truth(f, truth: dict) -> None:
+    """The ``truth`` group: arrays as datasets, everything else as attributes (JSON if not a
+    number or a string)."""
+    if not truth:
+        return
+    g = f.create_group("truth")
+    g.attrs["about"] = "what the simulation knows and the dataset does not state (for scoring estimates)"
+    for k, val in truth.items():
+        if isinstance(val, np.ndarray):
+            g.create_dataset(k, data=val)
+        elif isinstance(val, int | float | str | np.generic) and not isinstance(val, bool):
+            g.attrs[k] = val
+        else:
+            g.attrs[f"{k}__json"] = json.dumps(val, default=_json_default)
+
+
+def _read_truth(f) -> dict:
+    if "truth" not in f:
+        return {}
+    g = f["truth"]
+    out: dict = {k: g[k][()] for k in g}
+    for k, val in g.attrs.items():
+        if k == "about":
+            continue
+        if k.endswith("__json"):
+            out[k[:-6]] = json.loads(val)
+        else:
+            out[k] = val.item() if isinstance(val, np.generic) else val
+    return out
 
 
 def _attrs(ds: Dataset, version: str) -> dict:
@@ -305,6 +348,8 @@ def load(path: str | Path) -> Dataset:
             chirp=json.loads(a.get("chirp_json", "{}")),
             config=str(a.get("config_toml", "")),
             provenance=json.loads(a.get("provenance_json", "[]")),
+            truth={k: (trim(val) if isinstance(val, np.ndarray) and val.ndim and len(val) > n else val)
+                   for k, val in _read_truth(f).items()},
         )
 
 

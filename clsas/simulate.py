@@ -11,6 +11,7 @@ from . import _validate as v
 from .dataset import Dataset
 from .geometry import Aperture, Scene
 from .physics import air_absorption_db_per_m, speed_of_sound
+from .scan_errors import HandMotion
 
 __all__ = ["simulate"]
 
@@ -32,6 +33,11 @@ def simulate(
     config: str = "",
     temperature_c: float | np.ndarray | None = None,
     progress: Callable[[int, int], None] | None = None,
+    position_error: float | HandMotion | np.ndarray | None = None,
+    temperature_error_c: float = 0.0,
+    group_delay_s: float = 0.0,
+    timing_jitter_s: float = 0.0,
+    direct_gain: float | None = None,
 ) -> Dataset:
     """Simulate the recordings of a scan.
 
@@ -66,6 +72,27 @@ def simulate(
         mean temperature. The dataset records it (and so its ``c_mps`` per measurement).
     progress : callable(done, total), optional
         Called after each block of measurements.
+    position_error : float, HandMotion or array, optional
+        The carriage was not where the dataset says (:mod:`clsas.scan_errors`): a
+        :class:`~clsas.scan_errors.HandMotion` (band-limited 3-D jitter in time), a float (its
+        RMS in m with the default band and dwell, seeded by ``seed``), or the true-minus-stated
+        displacements, (n_stops, 3) or (n_meas, 3) m. Speaker and microphones move together.
+        The dataset states the aperture's positions and gets the stop times as ``timestamps``.
+    temperature_error_c : float
+        The air was this much warmer than the dataset states (``temperature_c``), °C.
+    group_delay_s : float
+        A delay of the sound the dataset does not know about (transducers, converters), s:
+        the true ``t0_s`` is the stated one minus this.
+    timing_jitter_s : float
+        RMS of a random extra delay per stop (seeded by ``seed``), s.
+    direct_gain : float, optional
+        Add the direct speaker-to-microphone sound, with amplitude ``direct_gain / |tx - rx|``
+        (a reflector of amplitude a at ranges r1, r2 returns ``a / (r1 r2)``); None: none.
+
+    Any of the errors above stores the truth in ``Dataset.truth``: ``tx_positions``,
+    ``rx_positions``, ``position_error_m`` (true minus stated, per measurement), ``t0_s``,
+    ``group_delay_s``, ``timing_jitter_s`` (per measurement), ``temperature_c``, ``c_mps``,
+    ``stop_time_s`` and ``stop_index``.
 
     Returns
     -------
@@ -86,11 +113,16 @@ def simulate(
         temperature_c = scene.temperature_c
     elif np.ndim(temperature_c):
         temperature_c = v.array("temperature_c", temperature_c, shape=(n_meas,))
-    c = np.broadcast_to(np.asarray(speed_of_sound(temperature_c), float), (n_meas,))
-    t_mean = float(np.mean(temperature_c))
+    err = _errors(aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s)
+    true_temp = np.asarray(temperature_c, float) + err["temperature_error_c"]
+    c = np.broadcast_to(np.asarray(speed_of_sound(true_temp), float), (n_meas,))
+    t_mean = float(np.mean(true_temp))
+    t0_true = t0 - err["group_delay_s"] - err["timing_jitter_s"]
+    if direct_gain is not None:
+        direct_gain = v.non_negative("direct_gain", direct_gain)
 
     src, amp = scene.image_sources()
-    tx, rx = aperture.tx_positions, aperture.rx_positions
+    tx, rx = aperture.tx_positions + err["position_error_m"], aperture.rx_positions + err["position_error_m"]
     r_tx = np.linalg.norm(src[None, :, :] - tx[:, None, :], axis=2)  # (n_meas, k)
     r_rx = np.linalg.norm(src[None, :, :] - rx[:, None, :], axis=2)
     path = r_tx + r_rx
@@ -100,7 +132,11 @@ def simulate(
             p = np.linalg.norm(wall.mirror(tx) - rx, axis=1)[:, None]
             path = np.concatenate([path, p], axis=1)
             gain = np.concatenate([gain, wall.reflectivity / np.maximum(p, 1e-6)], axis=1)
-    delay = path / c[:, None] - t0[:, None]  # delay into the recording, s
+    if direct_gain:
+        p = np.linalg.norm(tx - rx, axis=1)[:, None]
+        path = np.concatenate([path, p], axis=1)
+        gain = np.concatenate([gain, direct_gain / np.maximum(p, 1e-6)], axis=1)
+    delay = path / c[:, None] - t0_true[:, None]  # delay into the recording, s
     if n_samples is None:
         n_samples = int(np.ceil((delay.max(initial=0.0) * fs) + len(wave))) + 16
     n_samples = v.positive_int("n_samples", n_samples)
@@ -140,10 +176,17 @@ def simulate(
         sigma = np.sqrt(p_sig / 10 ** (snr_db / 10)) if p_sig > 0 else 0.0
         signals += rng.normal(0.0, sigma, signals.shape)
 
+    truth = {}
+    if err["any"]:
+        truth = {"tx_positions": tx, "rx_positions": rx, "position_error_m": err["position_error_m"],
+                 "t0_s": t0_true, "group_delay_s": err["group_delay_s"], "timing_jitter_s": err["timing_jitter_s"],
+                 "temperature_c": true_temp if np.ndim(true_temp) else float(true_temp),
+                 "c_mps": c.copy(), "stop_time_s": err["stop_time_s"], "stop_index": err["stop_index"],
+                 "errors": err["spec"]}
     return Dataset(
         signals=signals,
-        tx_positions=tx,
-        rx_positions=rx,
+        tx_positions=aperture.tx_positions,
+        rx_positions=aperture.rx_positions,
         fs_hz=fs,
         waveform=wave,
         t0_s=t0,
@@ -152,4 +195,45 @@ def simulate(
         stage_positions=aperture.stage_positions,
         chirp=chirp or {},
         config=config,
+        timestamps=err["stop_time_s"] if err["moved"] else None,
+        truth=truth,
     )
+
+
+def _errors(aperture: Aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s) -> dict:
+    """The true-minus-stated errors per measurement (see :func:`simulate`)."""
+    n, k = aperture.n_meas, aperture.mics_per_stop
+    n_stops = n // k
+    stops = np.repeat(np.arange(n_stops), k)
+    spec: dict = {}
+    motion = HandMotion(float(position_error), seed=0 if seed is None else int(seed)) \
+        if isinstance(position_error, int | float) and not isinstance(position_error, bool) else position_error
+    if motion is None:
+        disp = np.zeros((n_stops, 3))
+        times = np.arange(n_stops) * HandMotion().dwell_s
+    elif isinstance(motion, HandMotion):
+        disp = motion.displacements(n_stops)
+        times = motion.stop_times(n_stops)
+        spec["position_error"] = {"rms_m": motion.rms_m, "band_hz": list(motion.band_hz), "dwell_s": motion.dwell_s,
+                                  "seed": motion.seed, "per_axis": motion.per_axis, "weights": list(motion.weights)}
+    else:
+        disp = v.array("position_error", motion, shape=(None, 3))
+        if len(disp) == n and k > 1:
+            if np.any(disp.reshape(n_stops, k, 3) != disp[::k, None, :]):
+                raise ValueError("position_error: the microphones of one stop must move with it (one rigid carriage)")
+            disp = disp[::k]
+        if len(disp) != n_stops:
+            raise ValueError(f"position_error must have shape ({n_stops}, 3) or ({n}, 3), got {disp.shape}")
+        times = np.arange(n_stops) * HandMotion().dwell_s
+        spec["position_error"] = {"given": True}
+    dt = v.finite("temperature_error_c", temperature_error_c)
+    gd = v.finite("group_delay_s", group_delay_s)
+    tj = v.non_negative("timing_jitter_s", timing_jitter_s)
+    jitter = np.zeros(n_stops)
+    if tj > 0:
+        jitter = np.random.default_rng([0 if seed is None else int(seed), 14]).normal(0.0, tj, n_stops)
+    spec.update(temperature_error_c=dt, group_delay_s=gd, timing_jitter_s=tj)
+    moved = motion is not None
+    return {"position_error_m": disp[stops], "stop_time_s": times[stops], "stop_index": stops,
+            "temperature_error_c": dt, "group_delay_s": gd, "timing_jitter_s": jitter[stops], "spec": spec,
+            "moved": moved, "any": moved or dt != 0 or gd != 0 or tj > 0}

@@ -1,7 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [vec=N ...]. Checks each result against its NumPy
-twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [vec=N ...]. Checks each result against
+its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
 
@@ -11,6 +11,7 @@ import numpy as np
 import pyopencl as cl
 
 import clsas
+from clsas.autofocus.opencl import FocusGradientPlan
 from clsas.compress import fft_layout
 from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 from clsas.imaging.opencl import BackprojectPlan
@@ -58,6 +59,12 @@ def check_backproject(queue, rng, vec):
     assert BackprojectPlan.selftest(queue, vec) < 1e-4, "backproject"
 
 
+def check_gradient(queue, rng, vec):
+    # the plan's selftest: 5 x 2 x 3 voxels, two chunks of measurements, two work-items per
+    # measurement over three blocks, voxels in and out of the window
+    assert FocusGradientPlan.selftest(queue, vec) < 1e-4, "focus_gradient"
+
+
 def main(kernels: set[str]) -> int:
     plats = [p for p in cl.get_platforms() if "Oclgrind" in p.name]
     if not plats:
@@ -74,9 +81,11 @@ def main(kernels: set[str]) -> int:
             check_fft(queue, rng, vec)
         if "backproject" in kernels:
             check_backproject(queue, rng, vec)
+        if "gradient" in kernels:
+            check_gradient(queue, rng, vec)
     print("oclgrind run ok")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient"}))

@@ -46,6 +46,7 @@ QUICK = {
     "grid": {"methods": ("bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar"), "deltas": (0.025, 0.05),
              "lam_fracs": (0.01, 0.03)},
     "tiles": None,
+    "autofocus": "quick",
 }
 FULL = {
     "repeats": 5,
@@ -64,6 +65,7 @@ FULL = {
     "grid": {"methods": ("bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar"),
              "deltas": (0.0125, 0.025, 0.05, 0.1, 0.2), "lam_fracs": (0.001, 0.003, 0.01, 0.03, 0.1, 0.3)},
     "tiles": {"grid": ((-0.45, 0.45), (-0.55, 0.7), (1.0, 2.0), 0.01), "n_tiles": 4},
+    "autofocus": "full",
 }
 
 
@@ -159,6 +161,13 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     res["k_echo"] = accuracy.k_echo(**cfg["k_echo"])
     say("error against run time: the paper's Delta x lam grid")
     res["delta_lambda"] = accuracy.delta_lambda(**cfg["grid"])
+
+    if cfg.get("autofocus"):
+        from . import autofocus as af
+
+        say("autofocus: focus restored against the size of the error (demo mannequin)")
+        rows = af.run_cases(af.CASES_FULL if cfg["autofocus"] == "full" else af.CASES_QUICK, status=say)
+        res["autofocus"] = {"rows": rows, "markdown": af.markdown(rows)}
 
     if use_dask:
         res["dask"] = _dask_part(cfg, res, scheduler, say)

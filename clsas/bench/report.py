@@ -128,6 +128,9 @@ def markdown(res: dict, png: Path | None = None) -> str:
 
         t = res["k_echo"]
         md += [f"K-echo table ({t['task']}); {t['trials']} trial(s) per cell.", "", *k_markdown(t["table"]), ""]
+    if "autofocus" in res:
+        md += ["Autofocus on the demo mannequin (216 stops, 1 cm grid): focus restored against the error.", "",
+               res["autofocus"]["markdown"], ""]
     g = res["delta_lambda"]
     md += [f"Paper's Delta x lam grid ({g['task']}); Delta in {g['deltas_s']} s, lam in {g['lam_fracs']} x lam_max.",
            "", "| method | best Delta | best lam / lam_max | error there | time there | median error | "

@@ -1,0 +1,98 @@
+"""``clsas autofocus`` and ``clsas reconstruct --autofocus``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def add_autofocus_options(sp) -> None:
+    """The autofocus options shared by ``autofocus`` and ``reconstruct --autofocus``."""
+    sp.add_argument("--methods", default="direct,temperature,delay,los",
+                    help="steps, comma-separated, from direct, temperature, delay, los (default: all)")
+    sp.add_argument("--metric", default="sharpness", choices=("sharpness", "entropy"), help="focus metric")
+    sp.add_argument("--n-basis", type=int, default=None, help="smooth functions for the line-of-sight motion")
+    sp.add_argument("--temperature-range", type=float, default=15.0, metavar="C",
+                    help="temperature search: stated +- this, degC (default 15)")
+    sp.add_argument("--max-delay", type=float, default=5e-4, metavar="S",
+                    help="largest delay error looked for, s (default 5e-4)")
+    sp.add_argument("--max-iter", type=int, default=40, help="L-BFGS iterations per stage (default 40)")
+
+
+def run_autofocus(ds, grid, args):
+    from clsas.autofocus import autofocus
+
+    def say(step, n, metric):
+        if not args.quiet and n % 10 == 0:
+            print(f"  autofocus {step}: image {n}, metric {metric:.5g}", flush=True)
+
+    out, rep = autofocus(ds, grid, methods=tuple(m.strip() for m in args.methods.split(",") if m.strip()),
+                         metric=args.metric, n_basis=args.n_basis, temperature_range_c=args.temperature_range,
+                         max_delay_s=args.max_delay, max_iter=args.max_iter, backend=args.backend,
+                         device=getattr(args, "device", None), progress=say, force=getattr(args, "force", False))
+    print(rep.summary())
+    return out, rep
+
+
+def before_after_png(before, after, path, title: str) -> None:
+    """Maximum-intensity projections (x-y and x-z, dB of the common peak) before and after."""
+    import matplotlib.pyplot as plt
+
+    peak = max(np.abs(before.values).max(), np.abs(after.values).max(), 1e-300)
+    g = before.grid
+    fig, axes = plt.subplots(2, 2, figsize=(9, 8), squeeze=False)
+    for col, (name, im) in enumerate((("before", before), ("after", after))):
+        db = 20 * np.log10(np.maximum(np.abs(im.values) / peak, 1e-6))
+        for row, (axis, (a, b), lab) in enumerate(((2, (g.x_m, g.y_m), "y (m)"), (1, (g.x_m, g.z_m), "z (m)"))):
+            ax = axes[row][col]
+            ax.imshow(db.max(axis=axis).T, origin="lower", vmin=-40, vmax=0, cmap="inferno", aspect="auto",
+                      extent=(a[0], a[-1], b[0], b[-1]))
+            ax.set_xlabel("x (m)")
+            ax.set_ylabel(lab)
+            ax.set_title(f"{name}: peak {20 * np.log10(np.abs(im.values).max() / peak):.1f} dB")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def cmd_autofocus(args) -> int:
+    import clsas
+    from clsas.scenes import stored_grid_and_truth
+
+    from .cli import _grid_arg
+
+    ds = clsas.load(args.data)
+    stored_grid, _ = stored_grid_and_truth(ds.config)
+    grid = _grid_arg(args.grid, args.spacing, stored_grid)
+    out, rep = run_autofocus(ds, grid, args)
+    out.save(args.out)
+    print(f"wrote {args.out}" + ("" if rep.improved else " (the input, unchanged: it did not get sharper)"))
+    if ds.truth:
+        from clsas.autofocus import score
+
+        s = score(rep, ds)
+        print("against the stored truth: " + ", ".join(f"{k} {val:.3g}" for k, val in s.items()))
+    if args.png:
+        kw = dict(backend=args.backend, device=getattr(args, "device", None))
+        before = clsas.reconstruct(ds, grid, **kw)
+        after = clsas.reconstruct(out, grid, **kw)
+        before_after_png(before, after, args.png, f"{Path(args.data).name}: autofocus ({', '.join(rep.methods)})")
+        print(f"wrote {args.png}")
+    return 0
+
+
+def add_parser(sub, common) -> None:
+    af = sub.add_parser("autofocus", help="estimate motion, sound speed and delay from the scan; write the "
+                        "corrected dataset")
+    af.add_argument("data", help="dataset file (HDF5)")
+    af.add_argument("out", help="corrected dataset file to write (HDF5)")
+    af.add_argument("--grid", help="x0,x1,y0,y1,z0,z1 in m where the focus is measured (default: the dataset's "
+                    "[grid])")
+    af.add_argument("--spacing", type=float, help="voxel spacing in m")
+    af.add_argument("--png", metavar="FILE", help="write the images before and after to FILE (PNG)")
+    af.add_argument("--force", action="store_true", help="go on even if the grid does not seem to fit in memory")
+    add_autofocus_options(af)
+    common(af)
+    af.set_defaults(func=cmd_autofocus)

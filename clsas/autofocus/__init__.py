@@ -1,0 +1,267 @@
+"""Autofocus: motion, sound speed and delay estimated from the scan itself.
+
+A hand-held aperture is not where the dataset says, the air is not the temperature it states,
+and the transducers add a delay nobody measured; each defocuses the image. :func:`autofocus`
+estimates, in this order (each step selectable in ``methods``):
+
+1. ``"direct"``: the delay of each recording from the direct speaker-to-microphone sound
+   (:mod:`.direct`): group delay and per-stop timing jitter (and ``c`` where the rig has
+   several speaker-to-microphone distances);
+2. ``"temperature"``: the air temperature (so ``c``) that makes the image sharpest, a scan then
+   a bounded 1-D search; the direct-path delays follow each candidate ``c``;
+3. ``"delay"``: where no direct sound is found, a global delay from sharpness (weakly
+   determined: a delay mostly shifts the image);
+4. ``"los"``: per-stop line-of-sight path corrections in a smooth basis over the stop times
+   (:mod:`.motion`), maximising sharpness with analytic gradients through backprojection
+   (``kernels/autofocus.cl`` and its NumPy twin), coarse to fine.
+
+It returns the corrected dataset and an :class:`AutofocusReport`, and never an image less
+sharp than the input's: if the final metric is not above the input's, the input comes back
+(``report.improved`` False, and a note says so).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .. import _validate as v
+from ..dataset import Dataset
+from ..geometry import VoxelGrid
+from ..physics import speed_of_sound
+from .metrics import METRICS
+
+__all__ = ["AutofocusReport", "METHODS", "autofocus", "score"]
+
+log = logging.getLogger(__name__)
+
+METHODS = ("direct", "temperature", "delay", "los")
+
+
+@dataclass
+class AutofocusReport:
+    """What :func:`autofocus` estimated and whether the image got sharper.
+
+    Attributes
+    ----------
+    improved : bool
+        The corrected image is sharper than the input's (else the input was returned).
+    metric, metric_before, metric_after : str, float, float
+        The focus metric and its value on the input and on the returned dataset.
+    history : list of float
+        The metric at every image the search formed, in order.
+    methods : list of str
+        What was tried; ``notes`` says what was found or skipped and why.
+    t0_s : (n_meas,) array
+        The estimated time of sample 0 (stated ``t0_s`` where no delay was estimated), s.
+    group_delay_s : float
+        Stated minus estimated ``t0_s``, median over measurements (the unknown delay), s.
+    timing_jitter_rms_s : float
+        RMS of the per-measurement delay about that median, s.
+    temperature_c, c_mps : float
+        Estimated air temperature (°C) and speed of sound (m/s, mean over measurements).
+    temperature_offset_c : float
+        Estimated minus stated temperature, °C.
+    los_path_m : (n_stops,) array
+        Estimated true-minus-stated bistatic path per stop at the focus centre, m.
+    position_correction_m : (n_meas, 3) array
+        What was added to the positions: half the path correction along the line of sight.
+    stop_index : (n_meas,) array
+        The stop of each measurement.
+    focus_centre_m : (3,) array
+        Where the lines of sight point (the image's intensity centroid), m.
+    n_basis : int
+        Functions of the motion basis (after the unobservable ones were removed).
+    direct_snr_db : float
+        Median level of the direct sound over the matched filter's RMS elsewhere (NaN: none).
+    time_s : float
+    stages : list of dict
+        Per step: name, metric after, evaluations, time.
+    notes : list of str
+    """
+
+    improved: bool = False
+    metric: str = "sharpness"
+    metric_before: float = float("nan")
+    metric_after: float = float("nan")
+    history: list = field(default_factory=list)
+    methods: list = field(default_factory=list)
+    t0_s: np.ndarray | None = None
+    group_delay_s: float = 0.0
+    timing_jitter_rms_s: float = 0.0
+    temperature_c: float = float("nan")
+    c_mps: float = float("nan")
+    temperature_offset_c: float = 0.0
+    los_path_m: np.ndarray | None = None
+    position_correction_m: np.ndarray | None = None
+    stop_index: np.ndarray | None = None
+    focus_centre_m: np.ndarray | None = None
+    n_basis: int = 0
+    direct_snr_db: float = float("nan")
+    time_s: float = 0.0
+    backend: str = ""
+    device: str = ""
+    stages: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+
+    def summary(self) -> str:
+        """A few lines for people."""
+        lines = [f"autofocus ({', '.join(self.methods)}; metric {self.metric}) on {self.device}: "
+                 f"{self.metric_before:.4g} -> {self.metric_after:.4g} in {self.time_s:.1f} s"
+                 + ("" if self.improved else " (not sharper: the input is returned)"),
+                 f"  group delay {self.group_delay_s * 1e6:+.2f} us, "
+                 f"timing jitter {self.timing_jitter_rms_s * 1e6:.2f} us RMS; air {self.temperature_c:.2f} C "
+                 f"({self.temperature_offset_c:+.2f} C), c {self.c_mps:.2f} m/s"]
+        if self.los_path_m is not None:
+            lines.append(f"  line-of-sight corrections: {self.n_basis} functions, "
+                         f"{np.sqrt(np.mean(self.los_path_m ** 2)) / 2 * 1e3:.2f} mm RMS (one way)")
+        lines += [f"  {n}" for n in self.notes]
+        return "\n".join(lines)
+
+    def as_dict(self) -> dict:
+        """JSON-friendly summary (no per-measurement arrays)."""
+        keep = ("improved", "metric", "metric_before", "metric_after", "methods", "group_delay_s",
+                "timing_jitter_rms_s", "temperature_c", "c_mps", "temperature_offset_c", "n_basis", "direct_snr_db",
+                "time_s", "backend", "device", "stages", "notes")
+        out = {k: getattr(self, k) for k in keep}
+        if self.los_path_m is not None:
+            out["los_rms_m"] = float(np.sqrt(np.mean(self.los_path_m ** 2)) / 2)
+        return out
+
+
+def autofocus(
+    dataset: Dataset,
+    grid: VoxelGrid,
+    *,
+    methods: tuple[str, ...] | list[str] = ("direct", "temperature", "delay", "los"),
+    metric: str = "sharpness",
+    n_basis: int | None = None,
+    motion_bandwidth_hz: float = 5.0,
+    temperature_range_c: float = 15.0,
+    max_delay_s: float = 5e-4,
+    per_stop_delay: bool = True,
+    max_iter: int = 40,
+    backend: str | None = None,
+    device: Any = None,
+    progress: Callable[[str, int, float], None] | None = None,
+    force: bool = False,
+) -> tuple[Dataset, AutofocusReport]:
+    """Estimate motion, sound speed and delay from the scan, and correct the dataset.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    grid : VoxelGrid
+        Where the focus is measured: the scene, not much more (empty voxels add nothing but
+        time). Spacing about a third of the wavelength or finer.
+    methods : sequence of {"direct", "temperature", "delay", "los"}
+        The steps to run (see the module docstring); order is fixed.
+    metric : {"sharpness", "entropy"}
+        See :func:`clsas.autofocus.metrics.metric_and_weight`.
+    n_basis : int, optional
+        Smooth functions for the line-of-sight motion; default enough for motion up to
+        ``motion_bandwidth_hz`` over the scan's duration (from ``timestamps``), else a quarter
+        of the stops.
+    motion_bandwidth_hz : float
+        Highest frequency of the motion to correct, Hz (used with ``timestamps``).
+    temperature_range_c : float
+        The temperature search covers the stated value ± this, °C.
+    max_delay_s : float
+        The largest delay error looked for (direct sound search window, delay search), s.
+    per_stop_delay : bool
+        Keep each recording's own direct-path delay (timing jitter) rather than their median.
+    max_iter : int
+        L-BFGS iterations per stage of the line-of-sight search.
+    backend, device, force : as for :func:`clsas.reconstruct`.
+    progress : callable(step, n_images, metric), optional
+        Called after every image the search forms.
+
+    Returns
+    -------
+    (Dataset, AutofocusReport)
+        The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions moved
+        along the line of sight; a provenance record ``autofocus``), or the input itself when
+        the image did not get sharper.
+    """
+    if not isinstance(dataset, Dataset):
+        raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    if isinstance(methods, str) or not all(isinstance(m, str) for m in methods):
+        raise TypeError(f"methods must be a sequence of names from {METHODS}, got {methods!r}")
+    for m in methods:
+        v.choice("methods", m, METHODS)
+    if not methods:
+        raise ValueError(f"methods must name at least one of {METHODS}")
+    v.choice("metric", metric, METRICS)
+    if n_basis is not None:
+        n_basis = v.positive_int("n_basis", n_basis)
+    bw = v.positive("motion_bandwidth_hz", motion_bandwidth_hz)
+    t_range = v.non_negative("temperature_range_c", temperature_range_c)
+    max_delay = v.non_negative("max_delay_s", max_delay_s)
+    max_iter = v.positive_int("max_iter", max_iter)
+    if progress is not None and not callable(progress):
+        raise TypeError("progress must be callable(step, n_images, metric)")
+    if dataset.n_meas < 4:
+        raise ValueError(f"dataset: autofocus needs at least 4 measurements, got {dataset.n_meas}")
+    from .run import run
+
+    return run(dataset, grid, methods=tuple(methods), metric=metric, n_basis=n_basis, bandwidth_hz=bw,
+               temperature_range_c=t_range, max_delay_s=max_delay, per_stop_delay=bool(per_stop_delay),
+               max_iter=max_iter, backend=backend, device=device, progress=progress, force=force,
+               started=time.perf_counter())
+
+
+def score(report: AutofocusReport, dataset: Dataset) -> dict:
+    """Estimates against the truth that a simulation stored in ``dataset.truth``.
+
+    Returns a dict with (where the truth has them): ``group_delay_error_s`` (estimated minus
+    true group delay), ``t0_error_rms_s`` (per measurement), ``temperature_error_c``,
+    ``los_residual_rms_m`` (one-way line-of-sight error left after the corrections, at the
+    focus centre, with the constant and the part linear in x and y, which no focus metric
+    sees, removed from both), ``los_error_rms_m`` (the same before correction) and
+    ``los_residual_raw_rms_m`` (nothing removed).
+    """
+    truth = dataset.truth
+    if not truth:
+        raise ValueError("dataset has no truth (simulate(..., position_error=...) and the other errors store it)")
+    out: dict = {}
+    if "t0_s" in truth and report.t0_s is not None:
+        t0 = np.asarray(truth["t0_s"], float)
+        out["t0_error_rms_s"] = float(np.sqrt(np.mean((report.t0_s - t0) ** 2)))
+        true_gd = float(np.median(dataset.t0_s - t0))
+        out["group_delay_error_s"] = report.group_delay_s - true_gd
+    if "temperature_c" in truth:
+        out["temperature_error_c"] = float(report.temperature_c - np.mean(truth["temperature_c"]))
+    if "tx_positions" in truth and report.focus_centre_m is not None:
+        from .motion import stops_of
+
+        stop, _, xy = stops_of(dataset)
+        first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
+        vc = report.focus_centre_m
+
+        def path(tx, rx):
+            return np.linalg.norm(vc - tx, axis=1) + np.linalg.norm(vc - rx, axis=1)
+
+        true_dp = (path(truth["tx_positions"], truth["rx_positions"]) - path(dataset.tx_positions,
+                                                                           dataset.rx_positions))[first]
+        est = report.los_path_m if report.los_path_m is not None else np.zeros(len(first))
+        nuis = np.c_[np.ones(len(first)), xy - xy.mean(axis=0)]
+
+        def detrend(x):
+            coef, *_ = np.linalg.lstsq(nuis, x, rcond=None)
+            return x - nuis @ coef
+
+        out["los_error_rms_m"] = float(np.sqrt(np.mean(detrend(true_dp) ** 2)) / 2)
+        out["los_residual_rms_m"] = float(np.sqrt(np.mean(detrend(est - true_dp) ** 2)) / 2)
+        out["los_residual_raw_rms_m"] = float(np.sqrt(np.mean((est - true_dp) ** 2)) / 2)
+    return out
+
+
+def _speed(temperature_c) -> np.ndarray:
+    return np.asarray(speed_of_sound(temperature_c), float)

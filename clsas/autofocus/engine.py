@@ -1,0 +1,113 @@
+"""The image and the focus gradient as functions of per-measurement delay shifts and c.
+
+Range profiles are computed once (over the grid's delay gate widened by a margin); a shift
+``delta_m`` reads measurement m's analytic profile ``delta_m`` later (``s_m(tau - delta_m)``,
+what raising its ``t0_s`` by ``delta_m`` does), by moving the profile's time axis and turning
+its baseband phase, so the image and its gradient come from the backprojection kernel and the
+gradient kernel (or their NumPy twins) without recompressing.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from .. import cl as _cl
+from ..compress import Profiles, compress
+from ..dataset import Dataset
+from ..geometry import VoxelGrid
+from ..imaging import Backprojector
+from ..imaging.plan import plan_reconstruction
+from . import numpy as twin
+from .metrics import metric_and_weight
+
+__all__ = ["FocusEngine"]
+
+log = logging.getLogger(__name__)
+
+
+class FocusEngine:
+    """Images and focus gradients of one dataset on one grid.
+
+    Parameters
+    ----------
+    dataset : Dataset
+    grid : VoxelGrid
+    margin_s : float
+        How far beyond the grid's delay gate the profiles reach, s (the largest delay change
+        the search may make: group delay, motion).
+    rel_margin : float
+        And this fraction of the gate's delays (the largest relative change of c).
+    metric : str
+        See :func:`clsas.autofocus.metrics.metric_and_weight`.
+    backend, device : as for :func:`clsas.reconstruct`.
+    """
+
+    def __init__(self, dataset: Dataset, grid: VoxelGrid, *, margin_s: float = 5e-4, rel_margin: float = 0.0,
+                 metric: str = "sharpness",
+                 backend: str | None = None, device: Any = None, force: bool = False):
+        self.ds, self.grid, self.metric = dataset, grid, metric
+        sel = _cl.select(backend, device)
+        kind = sel.requested if sel.opencl else "numpy"
+        plan = plan_reconstruction(dataset, grid, [])
+        gate = (max(0.0, plan.gate_s[0] * (1 - rel_margin) - margin_s), plan.gate_s[1] * (1 + rel_margin) + margin_s)
+        self.prof: Profiles = compress(dataset, gate_s=gate, backend=kind, device=sel.queue)
+        self.bp = Backprojector(grid, backend=kind, device=sel.queue, force=force)
+        self._grad_plan = None
+        self._grad_opencl = self.bp.backend == "opencl"
+        self.n_images = 0
+        self.n_gradients = 0
+
+    @property
+    def backend(self) -> str:
+        return "opencl" if (self.bp.backend == "opencl" and self._grad_opencl) else self.bp.backend
+
+    @property
+    def device(self) -> str:
+        return self.bp.selection.device
+
+    def _shifted(self, shift_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        p = self.prof
+        rot = np.exp(-2j * np.pi * ((p.fc_hz * shift_s) % 1.0))
+        return p.data * rot[:, None], p.tau0_s + shift_s
+
+    def image(self, shift_s: np.ndarray, c_mps: np.ndarray, tx: np.ndarray | None = None,
+              rx: np.ndarray | None = None) -> np.ndarray:
+        """(n_vox,) complex image with per-measurement shifts (s), speeds (m/s) and positions."""
+        p = self.prof
+        data, tau0 = self._shifted(shift_s)
+        prof = Profiles(data, tau0, p.dtau_s, p.fc_hz, p.method, p.backend,
+                        tx_positions=self.ds.tx_positions if tx is None else tx,
+                        rx_positions=self.ds.rx_positions if rx is None else rx, c_mps=c_mps)
+        self.n_images += 1
+        return np.asarray(self.bp(prof).values).ravel()
+
+    def sums(self, shift_s: np.ndarray, c_mps: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """(n_meas, 5) gradient sums (see :func:`clsas.autofocus.numpy.focus_gradient`)."""
+        p = self.prof
+        data, tau0 = self._shifted(shift_s)
+        args = (data, tau0, p.dtau_s, p.fc_hz, self.ds.tx_positions, self.ds.rx_positions, c_mps)
+        self.n_gradients += 1
+        if self._grad_opencl:
+            if self._grad_plan is None:
+                from .opencl import FocusGradientPlan
+
+                try:
+                    self._grad_plan = FocusGradientPlan(self.grid, p.n_meas, p.n_lags, queue=self.bp.selection.queue)
+                except _cl.BuildError as exc:
+                    if self.bp.selection.requested == "opencl":
+                        raise
+                    log.warning("autofocus: the gradient kernel cannot be built on %s (%s); its NumPy twin "
+                                "runs instead", self.device, exc.reason)
+                    self._grad_opencl = False
+            if self._grad_plan is not None:
+                return self._grad_plan(*args, weight)
+        return twin.focus_gradient(*args, self.grid.points(), weight)
+
+    def evaluate(self, shift_s: np.ndarray, c_mps: np.ndarray, gradient: bool = True):
+        """``(M, sums or None, image)`` at these shifts and speeds."""
+        values = self.image(shift_s, c_mps)
+        m, g = metric_and_weight(values, self.metric)
+        return m, (self.sums(shift_s, c_mps, g) if gradient else None), values

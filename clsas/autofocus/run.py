@@ -1,0 +1,203 @@
+"""The autofocus pipeline behind :func:`clsas.autofocus` (inputs already checked there)."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from ..physics import speed_of_sound
+from . import AutofocusReport
+from .direct import direct_arrivals
+from .engine import FocusEngine
+from .metrics import metric_and_weight
+from .motion import default_basis_size, los_directions, motion_basis, optimise_los, stops_of
+
+log = logging.getLogger("clsas.autofocus")
+
+
+def _bounded_search(f, lo: float, hi: float, step: float, tol: float) -> tuple[float, float, int]:
+    """Maximise a 1-D ``f`` on ``[lo, hi]``: a scan at ``step``, then golden-section search
+    in the bracket around the best point, to ``tol``. Returns ``(x, f(x), evaluations)``."""
+    n = max(3, int(np.ceil((hi - lo) / step)) + 1)
+    xs = np.linspace(lo, hi, n)
+    fs = np.array([f(x) for x in xs])
+    k = int(np.argmax(fs))
+    a, b = xs[max(k - 1, 0)], xs[min(k + 1, n - 1)]
+    best_x, best_f = float(xs[k]), float(fs[k])
+    g = (np.sqrt(5) - 1) / 2
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(c), f(d)
+    evals = n + 2
+    while b - a > tol:
+        if fc >= fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = f(d)
+        evals += 1
+    for x, fx in ((c, fc), (d, fd)):
+        if fx > best_f:
+            best_x, best_f = float(x), float(fx)
+    return best_x, best_f, evals
+
+
+def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
+        max_iter, backend, device, progress, force, started) -> tuple:
+    rep = AutofocusReport(metric=metric, methods=list(methods))
+    history = rep.history
+    temp0 = np.broadcast_to(np.asarray(ds.temperature_c, float), (ds.n_meas,)).copy()
+    c_stated = ds.c_per_meas
+
+    def c_at(dt):  # the stated c scaled as a temperature offset dt scales it
+        return c_stated * np.asarray(speed_of_sound(temp0 + dt), float) / np.asarray(speed_of_sound(temp0), float)
+
+    # profiles reach past the grid's gate by the largest delay change searched: the delay, the
+    # motion (0.1 ms: 34 mm of path) and c (|dc / c| <= dT / (2 (273.15 + T)))
+    rel = 0.5 * temperature_range_c / (273.15 + float(temp0.min()) - temperature_range_c) if "temperature" in methods \
+        else 0.0
+    engine = FocusEngine(ds, grid, margin_s=max_delay_s + 1e-4, rel_margin=rel, metric=metric, backend=backend,
+                         device=device, force=force)
+    rep.backend, rep.device = engine.backend, engine.device
+
+    def image_metric(shift, c, step):
+        m = metric_and_weight(engine.image(shift, c), metric)[0]
+        history.append(m)
+        if progress is not None:
+            progress(step, len(history), m)
+        return m
+
+    zero = np.zeros(ds.n_meas)
+    m0 = image_metric(zero, c_stated, "input")
+    rep.metric_before = m0
+    stop, t_stop, xy = stops_of(ds)
+
+    # 1. the direct sound: each recording's t0 at a given c
+    direct = None
+    if "direct" in methods:
+        t = time.perf_counter()
+        direct = direct_arrivals(ds, max_delay_s=max(max_delay_s, 1e-4))
+        rep.direct_snr_db = float(np.median(direct.snr_db[np.isfinite(direct.snr_db)])) \
+            if np.isfinite(direct.snr_db).any() else float("nan")
+        if direct.found:
+            fit = direct.fit_c()
+            if fit is not None:
+                rep.notes.append(f"direct sound: speaker-to-microphone distances differ, c = {fit[0]:.2f} m/s "
+                                 "from the direct arrivals alone")
+            rep.notes.append(f"direct sound found in {int(direct.detected.sum())} of {ds.n_meas} recordings "
+                             f"(median {rep.direct_snr_db:.0f} dB above the filter's RMS)")
+        else:
+            rep.notes.append(f"direct sound not found (detected in {int(direct.detected.sum())} of {ds.n_meas} "
+                             "recordings): delays not estimated from it")
+            direct = None
+        rep.stages.append({"step": "direct", "found": direct is not None, "time_s": time.perf_counter() - t})
+
+    def t0_at(c):
+        if direct is None:
+            return ds.t0_s.copy()
+        t0 = direct.t0_s(c, ds.t0_s)
+        if not per_stop_delay:
+            t0 = ds.t0_s + float(np.median(t0 - ds.t0_s))
+        return t0
+
+    # 2. temperature (c) from sharpness; the direct-path delays follow c
+    d_temp = 0.0
+    if "temperature" in methods and temperature_range_c > 0:
+        t = time.perf_counter()
+
+        def f_temp(dt):
+            c = c_at(dt)
+            return image_metric(t0_at(c) - ds.t0_s, c, "temperature")
+
+        d_temp, m_t, n_ev = _bounded_search(f_temp, -temperature_range_c, temperature_range_c,
+                                            step=min(1.0, temperature_range_c / 2), tol=0.01)
+        if abs(d_temp) >= temperature_range_c - 0.05 * temperature_range_c:
+            rep.notes.append(f"temperature: the sharpest image is at the edge of the search ({d_temp:+.2f} C): "
+                             "not determined by this scan and grid (a narrow aperture for its range?); stated kept")
+            d_temp = 0.0
+        rep.stages.append({"step": "temperature", "metric": m_t, "evaluations": n_ev,
+                           "offset_c": d_temp, "time_s": time.perf_counter() - t})
+        log.info("autofocus temperature: %+.3f C from the stated one (metric %.5g, %d images)", d_temp, m_t, n_ev)
+    c_est = c_at(d_temp)
+    t0_est = t0_at(c_est)
+
+    # 3. a global delay from sharpness, where the direct sound gave none
+    if "delay" in methods and direct is None and max_delay_s > 0:
+        t = time.perf_counter()
+        base = t0_est - ds.t0_s
+
+        def f_delay(dd):
+            return image_metric(base + dd, c_est, "delay")
+
+        dd, m_d, n_ev = _bounded_search(f_delay, -max_delay_s, max_delay_s, step=max_delay_s / 10, tol=2e-7)
+        t0_est = t0_est + dd
+        rep.notes.append(f"delay from sharpness alone (weakly determined: it mostly shifts the image): "
+                         f"{dd * 1e6:+.1f} us")
+        rep.stages.append({"step": "delay", "metric": m_d, "evaluations": n_ev, "delay_s": dd,
+                           "time_s": time.perf_counter() - t})
+
+    # 4. line-of-sight motion
+    shift = t0_est - ds.t0_s
+    p_stop = np.zeros(len(t_stop))
+    if "los" in methods:
+        t = time.perf_counter()
+        k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, ds.timestamps is not None)
+        k = min(k, max(len(t_stop) - 3, 1))
+        basis = motion_basis(t_stop, xy, k)
+        rep.n_basis = basis.shape[1]
+        if rep.n_basis == 0:
+            rep.notes.append("line of sight: too few stops for a motion basis; not estimated")
+        else:
+            stages = sorted({min(s, rep.n_basis) for s in (4, 12, rep.n_basis // 2, rep.n_basis) if s > 0})
+            p_stop, info = optimise_los(engine, shift, c_est, stop, basis, stages, max_iter, history,
+                                        callback=progress)
+            rep.stages.append({"step": "los", "metric": info["stages"][-1]["metric"],
+                               "evaluations": info["evaluations"], "stages": info["stages"],
+                               "time_s": time.perf_counter() - t})
+
+    # the corrected dataset: t0 and air as estimated, positions moved along the line of sight
+    values = engine.image(shift - p_stop[stop] / c_est, c_est)
+    mag2 = np.abs(values) ** 2
+    pts = grid.points()
+    centre = (pts * mag2[:, None]).sum(axis=0) / max(mag2.sum(), 1e-300)
+    rep.focus_centre_m = centre
+    u = los_directions(ds, centre)
+    move = (-0.5 * p_stop[stop])[:, None] * u  # a path shorter by p: the pair was p/2 nearer
+    tx, rx = ds.tx_positions + move, ds.rx_positions + move
+    m_final = metric_and_weight(engine.image(t0_est - ds.t0_s, c_est, tx, rx), metric)[0]
+    history.append(m_final)
+
+    rep.t0_s = t0_est
+    rep.group_delay_s = float(np.median(ds.t0_s - t0_est))
+    rep.timing_jitter_rms_s = float(np.sqrt(np.mean((ds.t0_s - t0_est - rep.group_delay_s) ** 2)))
+    rep.temperature_offset_c = float(d_temp)
+    rep.temperature_c = float(np.mean(temp0) + d_temp)
+    rep.c_mps = float(np.mean(c_est))
+    rep.los_path_m = p_stop if "los" in methods else None
+    rep.position_correction_m = move
+    rep.stop_index = stop
+    rep.metric_after = m_final
+    rep.improved = bool(m_final > m0)
+    rep.time_s = time.perf_counter() - started
+    if not rep.improved:
+        rep.metric_after = m0
+        rep.notes.append(f"the image did not get sharper ({metric} {m_final:.5g} against {m0:.5g} as given): "
+                         "the input is returned unchanged; the estimates above are not applied")
+        log.warning("autofocus: no improvement (%s %.5g <= %.5g); returning the input", metric, m_final, m0)
+        return ds, rep
+    new_temp = temp0 + d_temp
+    out = ds.replace(t0_s=t0_est, tx_positions=tx, rx_positions=rx, c_mps=c_est,
+                     temperature_c=new_temp if np.ndim(ds.temperature_c) else float(new_temp[0]),
+                     provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
+    log.info("%s", rep.summary())
+    return out, rep
+
+
+def _record(rep) -> dict:
+    d = rep.as_dict()
+    d.pop("stages", None)
+    return d
