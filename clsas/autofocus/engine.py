@@ -56,6 +56,7 @@ class FocusEngine:
         self.prof: Profiles = compress(dataset, gate_s=gate, backend=kind, device=sel.queue)
         self.bp = Backprojector(grid, backend=kind, device=sel.queue, force=force)
         self._grad_plan = None
+        self._stop_bp: Backprojector | None = None
         self._grad_opencl = self.bp.backend == "opencl"
         self.n_images = 0
         self.n_gradients = 0
@@ -84,11 +85,41 @@ class FocusEngine:
         self.n_images += 1
         return np.asarray(self.bp(prof).values).ravel()
 
-    def sums(self, shift_s: np.ndarray, c_mps: np.ndarray, weight: np.ndarray) -> np.ndarray:
-        """(n_meas, 5) gradient sums (see :func:`clsas.autofocus.numpy.focus_gradient`)."""
+    def stop_images(self, shift_s: np.ndarray, c_mps: np.ndarray, stop: np.ndarray, voxels: np.ndarray | None = None,
+                    tx: np.ndarray | None = None, rx: np.ndarray | None = None) -> np.ndarray:
+        """(n_stops, n) complex64: each stop's own image (the sum of its measurements'
+        backprojections) at the grid's voxels ``voxels`` (flat indices; default all).
+
+        The image at these shifts, speeds and positions is the sum of the rows. The stops'
+        images come from the backprojection kernel (or its twin), one stop at a time.
+        """
         p = self.prof
         data, tau0 = self._shifted(shift_s)
-        args = (data, tau0, p.dtau_s, p.fc_hz, self.ds.tx_positions, self.ds.rx_positions, c_mps)
+        tx = self.ds.tx_positions if tx is None else tx
+        rx = self.ds.rx_positions if rx is None else rx
+        c = np.broadcast_to(np.asarray(c_mps, float), (p.n_meas,))
+        n_stops = int(stop.max()) + 1
+        out = np.empty((n_stops, self.grid.size if voxels is None else len(voxels)), np.complex64)
+        if self._stop_bp is None:
+            self._stop_bp = Backprojector(self.grid, backend=self.bp.backend, device=self.bp.selection.queue,
+                                          force=True)
+        for s in range(n_stops):
+            rows = np.flatnonzero(stop == s)
+            prof = Profiles(data[rows], tau0[rows], p.dtau_s, p.fc_hz, p.method, p.backend,
+                            tx_positions=tx[rows], rx_positions=rx[rows], c_mps=c[rows])
+            values = np.asarray(self._stop_bp(prof).values).ravel()
+            out[s] = values if voxels is None else values[voxels]
+        self.n_images += n_stops
+        return out
+
+    def sums(self, shift_s: np.ndarray, c_mps: np.ndarray, weight: np.ndarray, tx: np.ndarray | None = None,
+             rx: np.ndarray | None = None) -> np.ndarray:
+        """(n_meas, 5) gradient sums (see :func:`clsas.autofocus.numpy.focus_gradient`) at these
+        shifts, speeds and positions (default: the dataset's)."""
+        p = self.prof
+        data, tau0 = self._shifted(shift_s)
+        args = (data, tau0, p.dtau_s, p.fc_hz, self.ds.tx_positions if tx is None else tx,
+                self.ds.rx_positions if rx is None else rx, c_mps)
         self.n_gradients += 1
         if self._grad_opencl:
             if self._grad_plan is None:
@@ -106,8 +137,9 @@ class FocusEngine:
                 return self._grad_plan(*args, weight)
         return twin.focus_gradient(*args, self.grid.points(), weight)
 
-    def evaluate(self, shift_s: np.ndarray, c_mps: np.ndarray, gradient: bool = True):
-        """``(M, sums or None, image)`` at these shifts and speeds."""
-        values = self.image(shift_s, c_mps)
+    def evaluate(self, shift_s: np.ndarray, c_mps: np.ndarray, gradient: bool = True, tx: np.ndarray | None = None,
+                 rx: np.ndarray | None = None):
+        """``(M, sums or None, image)`` at these shifts, speeds and positions."""
+        values = self.image(shift_s, c_mps, tx, rx)
         m, g = metric_and_weight(values, self.metric)
-        return m, (self.sums(shift_s, c_mps, g) if gradient else None), values
+        return m, (self.sums(shift_s, c_mps, g, tx, rx) if gradient else None), values
