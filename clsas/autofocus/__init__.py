@@ -40,7 +40,7 @@ __all__ = ["AutofocusReport", "METHODS", "autofocus", "score"]
 
 log = logging.getLogger(__name__)
 
-METHODS = ("direct", "temperature", "delay", "phase", "los")
+METHODS = ("direct", "temperature", "delay", "phase", "los", "3d")
 
 
 @dataclass

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..scan_errors import stop_index
 
-__all__ = ["motion_basis", "optimise_los", "los_directions", "stops_of"]
+__all__ = ["motion_basis", "optimise_los", "optimise_xyz", "los_directions", "stops_of"]
 
 log = logging.getLogger(__name__)
 
@@ -106,3 +106,36 @@ def default_basis_size(t: np.ndarray, n_stops: int, bandwidth_hz: float, timed: 
     stops), else a quarter of the stops; at least 2, at most n_stops - 3."""
     k = math.ceil(2 * bandwidth_hz * float(t.max() - t.min())) + 1 if timed else n_stops // 4
     return int(max(2, min(k, n_stops - 3)))
+
+
+def optimise_xyz(engine, shift_s: np.ndarray, c_mps: np.ndarray, stop: np.ndarray, start_m: np.ndarray,
+                 max_iter: int, history: list, callback: Callable | None = None) -> tuple[np.ndarray, dict]:
+    """Maximise the focus metric over a 3-D carriage displacement per stop (m).
+
+    ``start_m`` (n_stops, 3) is where the search begins (e.g. the line-of-sight estimate); the
+    speaker and microphones of a stop move together. L-BFGS-B with the analytic gradient
+    (``dM/d(carriage shift of m) = sums[m, 1:4] / c_m``, summed over each stop's measurements).
+    Returns ``(displacement (n_stops, 3), info)``.
+    """
+    from scipy.optimize import minimize
+
+    scale = 1e-3  # parameters in mm
+    n_stops = start_m.shape[0]
+    tx0, rx0 = engine.ds.tx_positions, engine.ds.rx_positions
+    evals = {"n": 0}
+
+    def fun(x):
+        d = x.reshape(n_stops, 3) * scale
+        m, sums, _ = engine.evaluate(shift_s, c_mps, True, tx0 + d[stop], rx0 + d[stop])
+        g = np.stack([np.bincount(stop, sums[:, 1 + k] / c_mps, minlength=n_stops) for k in range(3)], axis=1)
+        evals["n"] += 1
+        history.append(m)
+        if callback is not None:
+            callback("3d", len(history), m)
+        return -m, -g.ravel() * scale
+
+    res = minimize(fun, np.asarray(start_m, float).ravel() / scale, jac=True, method="L-BFGS-B",
+                   options={"maxiter": max_iter, "gtol": 1e-9, "ftol": 1e-10})
+    log.info("autofocus 3d: metric %.5g after %d evaluations (%s)", -res.fun, evals["n"], res.message)
+    return res.x.reshape(n_stops, 3) * scale, {"metric": float(-res.fun), "evaluations": evals["n"],
+                                                "message": str(res.message)}

@@ -12,7 +12,7 @@ from . import AutofocusReport
 from .direct import direct_arrivals
 from .engine import FocusEngine
 from .metrics import metric_and_weight
-from .motion import default_basis_size, los_directions, motion_basis, optimise_los, stops_of
+from .motion import default_basis_size, los_directions, motion_basis, optimise_los, optimise_xyz, stops_of
 from .phases import phase_to_path, stop_phase_search
 
 log = logging.getLogger("clsas.autofocus")
@@ -174,6 +174,19 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     rep.focus_centre_m = centre
     u = los_directions(ds, centre)
     move = (-0.5 * p_stop[stop])[:, None] * u  # a path shorter by p: the pair was p/2 nearer
+    if "3d" in methods:  # 6. the carriage's 3-D displacement per stop, from the line of sight on
+        t = time.perf_counter()
+        first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
+        start = np.stack([np.bincount(stop, move[:, k]) / np.bincount(stop) for k in range(3)], axis=1)
+        d, info = optimise_xyz(engine, t0_est - ds.t0_s, c_est, stop, start, max_iter, history, callback=progress)
+        move = d[stop]
+        # the line-of-sight path at the focus centre that this displacement makes, per stop
+        path = np.linalg.norm(centre - ds.tx_positions, axis=1) + np.linalg.norm(centre - ds.rx_positions, axis=1)
+        moved = np.linalg.norm(centre - ds.tx_positions - move, axis=1) \
+            + np.linalg.norm(centre - ds.rx_positions - move, axis=1)
+        p_stop = (moved - path)[first]
+        rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
+                           "time_s": time.perf_counter() - t})
     tx, rx = ds.tx_positions + move, ds.rx_positions + move
     m_final = metric_and_weight(engine.image(t0_est - ds.t0_s, c_est, tx, rx), metric)[0]
     history.append(m_final)
@@ -184,7 +197,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     rep.temperature_offset_c = float(d_temp)
     rep.temperature_c = float(np.mean(temp0) + d_temp)
     rep.c_mps = float(np.mean(c_est))
-    rep.los_path_m = p_stop if ("los" in methods or "phase" in methods) else None
+    rep.los_path_m = p_stop if {"los", "phase", "3d"} & set(methods) else None
     rep.position_correction_m = move
     rep.stop_index = stop
     rep.metric_after = m_final
