@@ -109,33 +109,38 @@ def default_basis_size(t: np.ndarray, n_stops: int, bandwidth_hz: float, timed: 
 
 
 def optimise_xyz(engine, shift_s: np.ndarray, c_mps: np.ndarray, stop: np.ndarray, start_m: np.ndarray,
-                 max_iter: int, history: list, callback: Callable | None = None) -> tuple[np.ndarray, dict]:
+                 max_iter: int, history: list, callback: Callable | None = None, basis: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, dict]:
     """Maximise the focus metric over a 3-D carriage displacement per stop (m).
 
     ``start_m`` (n_stops, 3) is where the search begins (e.g. the line-of-sight estimate); the
-    speaker and microphones of a stop move together. L-BFGS-B with the analytic gradient
-    (``dM/d(carriage shift of m) = sums[m, 1:4] / c_m``, summed over each stop's measurements).
+    speaker and microphones of a stop move together. The change from the start is
+    ``basis @ a`` per axis (``basis`` (n_stops, k), e.g. :func:`motion_basis`; None: one free
+    displacement per stop). L-BFGS-B with the analytic gradient (``dM/d(carriage shift of m)
+    = sums[m, 1:4] / c_m``, summed over each stop's measurements).
     Returns ``(displacement (n_stops, 3), info)``.
     """
     from scipy.optimize import minimize
 
     scale = 1e-3  # parameters in mm
-    n_stops = start_m.shape[0]
+    start = np.asarray(start_m, float)
+    n_stops = start.shape[0]
+    b = np.eye(n_stops) if basis is None else np.asarray(basis, float)
     tx0, rx0 = engine.ds.tx_positions, engine.ds.rx_positions
     evals = {"n": 0}
 
     def fun(x):
-        d = x.reshape(n_stops, 3) * scale
+        d = start + (b @ x.reshape(-1, 3)) * scale
         m, sums, _ = engine.evaluate(shift_s, c_mps, True, tx0 + d[stop], rx0 + d[stop])
         g = np.stack([np.bincount(stop, sums[:, 1 + k] / c_mps, minlength=n_stops) for k in range(3)], axis=1)
         evals["n"] += 1
         history.append(m)
         if callback is not None:
             callback("3d", len(history), m)
-        return -m, -g.ravel() * scale
+        return -m, -(b.T @ g).ravel() * scale
 
-    res = minimize(fun, np.asarray(start_m, float).ravel() / scale, jac=True, method="L-BFGS-B",
+    res = minimize(fun, np.zeros(3 * b.shape[1]), jac=True, method="L-BFGS-B",
                    options={"maxiter": max_iter, "gtol": 1e-9, "ftol": 1e-10})
     log.info("autofocus 3d: metric %.5g after %d evaluations (%s)", -res.fun, evals["n"], res.message)
-    return res.x.reshape(n_stops, 3) * scale, {"metric": float(-res.fun), "evaluations": evals["n"],
-                                                "message": str(res.message)}
+    return start + (b @ res.x.reshape(-1, 3)) * scale, {"metric": float(-res.fun), "evaluations": evals["n"],
+                                                          "functions": b.shape[1], "message": str(res.message)}

@@ -178,7 +178,10 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
         t = time.perf_counter()
         first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
         start = np.stack([np.bincount(stop, move[:, k]) / np.bincount(stop) for k in range(3)], axis=1)
-        d, info = optimise_xyz(engine, t0_est - ds.t0_s, c_est, stop, start, max_iter, history, callback=progress)
+        k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, ds.timestamps is not None)
+        basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) - 3, 1))) if k < len(t_stop) else None
+        d, info = optimise_xyz(engine, t0_est - ds.t0_s, c_est, stop, start, max_iter, history, callback=progress,
+                               basis=basis)
         move = d[stop]
         # the line-of-sight path at the focus centre that this displacement makes, per stop
         path = np.linalg.norm(centre - ds.tx_positions, axis=1) + np.linalg.norm(centre - ds.rx_positions, axis=1)
