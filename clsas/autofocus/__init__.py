@@ -11,9 +11,16 @@ estimates, in this order (each step selectable in ``methods``):
    a bounded 1-D search; the direct-path delays follow each candidate ``c``;
 3. ``"delay"``: where no direct sound is found, a global delay from sharpness (weakly
    determined: a delay mostly shifts the image);
-4. ``"los"``: per-stop line-of-sight path corrections in a smooth basis over the stop times
+4. ``"phase"``: one phase per stop by exact coordinate ascent of the sharpness over the
+   stops' own images (:mod:`.phases`), read as a line-of-sight path per stop: the global
+   start that large motion (a radian of two-way phase or more) needs;
+5. ``"los"``: per-stop line-of-sight path corrections in a smooth basis over the stop times
    (:mod:`.motion`), maximising sharpness with analytic gradients through backprojection
-   (``kernels/autofocus.cl`` and its NumPy twin), coarse to fine.
+   (``kernels/autofocus.cl`` and its NumPy twin), coarse to fine, from the ``"phase"``
+   estimate where there is one;
+6. ``"3d"``: the carriage's 3-D displacement per stop (the line of sight differs between
+   reflectors seen at different angles), from the line-of-sight estimate on, its change in the
+   same smooth basis per axis, by the same analytic gradient.
 
 It returns the corrected dataset and an :class:`AutofocusReport`, and never an image less
 sharp than the input's: if the final metric is not above the input's, the input comes back
@@ -36,11 +43,12 @@ from ..geometry import VoxelGrid
 from ..physics import speed_of_sound
 from .metrics import METRICS
 
-__all__ = ["AutofocusReport", "METHODS", "autofocus", "score"]
+__all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"]
 
 log = logging.getLogger(__name__)
 
 METHODS = ("direct", "temperature", "delay", "phase", "los", "3d")
+DEFAULT_METHODS = ("direct", "temperature", "delay", "phase", "3d")
 
 
 @dataclass
@@ -118,7 +126,7 @@ class AutofocusReport:
                  f"timing jitter {self.timing_jitter_rms_s * 1e6:.2f} us RMS; air {self.temperature_c:.2f} C "
                  f"({self.temperature_offset_c:+.2f} C), c {self.c_mps:.2f} m/s"]
         if self.los_path_m is not None:
-            lines.append(f"  line-of-sight corrections: {self.n_basis} functions, "
+            lines.append(f"  line-of-sight corrections: {f'{self.n_basis} functions' if self.n_basis else 'per stop'}, "
                          f"{np.sqrt(np.mean(self.los_path_m ** 2)) / 2 * 1e3:.2f} mm RMS (one way)")
         lines += [f"  {n}" for n in self.notes]
         return "\n".join(lines)
@@ -138,7 +146,7 @@ def autofocus(
     dataset: Dataset,
     grid: VoxelGrid,
     *,
-    methods: tuple[str, ...] | list[str] = ("direct", "temperature", "delay", "los"),
+    methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
     metric: str = "sharpness",
     n_basis: int | None = None,
     motion_bandwidth_hz: float = 5.0,
@@ -146,6 +154,8 @@ def autofocus(
     max_delay_s: float = 5e-4,
     per_stop_delay: bool = True,
     max_iter: int = 40,
+    phase_sweeps: int = 4,
+    max_stop_bytes: int = 1 << 30,
     backend: str | None = None,
     device: Any = None,
     progress: Callable[[str, int, float], None] | None = None,
@@ -159,12 +169,13 @@ def autofocus(
     grid : VoxelGrid
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
-    methods : sequence of {"direct", "temperature", "delay", "los"}
-        The steps to run (see the module docstring); order is fixed.
+    methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d"}
+        The steps to run (see the module docstring); order is fixed. The default leaves out
+        ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.autofocus.metrics.metric_and_weight`.
     n_basis : int, optional
-        Smooth functions for the line-of-sight motion; default enough for motion up to
+        Smooth functions for the line-of-sight and 3-D motion; default enough for motion up to
         ``motion_bandwidth_hz`` over the scan's duration (from ``timestamps``), else a quarter
         of the stops.
     motion_bandwidth_hz : float
@@ -176,7 +187,12 @@ def autofocus(
     per_stop_delay : bool
         Keep each recording's own direct-path delay (timing jitter) rather than their median.
     max_iter : int
-        L-BFGS iterations per stage of the line-of-sight search.
+        L-BFGS iterations per stage of the line-of-sight search, and of the 3-D search.
+    phase_sweeps : int
+        Most sweeps of the per-stop phase search (``"phase"``).
+    max_stop_bytes : int
+        Memory for the per-stop images of ``"phase"`` (complex64, stops x voxels), bytes; past
+        it, only the brightest voxels of the image are kept.
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -205,6 +221,8 @@ def autofocus(
     t_range = v.non_negative("temperature_range_c", temperature_range_c)
     max_delay = v.non_negative("max_delay_s", max_delay_s)
     max_iter = v.positive_int("max_iter", max_iter)
+    phase_sweeps = v.positive_int("phase_sweeps", phase_sweeps)
+    max_stop_bytes = v.positive_int("max_stop_bytes", max_stop_bytes)
     if progress is not None and not callable(progress):
         raise TypeError("progress must be callable(step, n_images, metric)")
     if dataset.n_meas < 4:
@@ -214,7 +232,7 @@ def autofocus(
     return run(dataset, grid, methods=tuple(methods), metric=metric, n_basis=n_basis, bandwidth_hz=bw,
                temperature_range_c=t_range, max_delay_s=max_delay, per_stop_delay=bool(per_stop_delay),
                max_iter=max_iter, backend=backend, device=device, progress=progress, force=force,
-               started=time.perf_counter())
+               started=time.perf_counter(), phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes)
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:

@@ -188,6 +188,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
         moved = np.linalg.norm(centre - ds.tx_positions - move, axis=1) \
             + np.linalg.norm(centre - ds.rx_positions - move, axis=1)
         p_stop = (moved - path)[first]
+        rep.n_basis = info["functions"]
         rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
                            "time_s": time.perf_counter() - t})
     tx, rx = ds.tx_positions + move, ds.rx_positions + move
