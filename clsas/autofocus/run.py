@@ -13,7 +13,7 @@ from .direct import direct_arrivals
 from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, los_directions, motion_basis, optimise_los, optimise_xyz, stops_of
-from .phases import phase_to_path, stop_phase_search
+from .phases import PHASE_MIN_GAIN, phase_to_path, stop_phase_search
 
 log = logging.getLogger("clsas.autofocus")
 
@@ -242,12 +242,12 @@ def _phase_step(engine, ds, grid, shift, c, stop, sweeps, max_bytes, image_metri
     p = phase_to_path(phi, c[first], engine.prof.fc_hz)
     m_before = image_metric(shift, c, "phase")
     m_after = image_metric(shift - p[stop] / c, c, "phase")
-    kept = m_after > m_before
+    kept = m_after > m_before + PHASE_MIN_GAIN
     rep.stages.append({"step": "phase", "metric": m_after, "sweeps": info["sweeps"], "kept": kept,
                        "time_s": time.perf_counter() - t})
     if not kept:
-        rep.notes.append(f"phase: the per-stop phases did not sharpen the image ({m_after:.5g} against "
-                         f"{m_before:.5g}); not used")
+        rep.notes.append(f"phase: the per-stop phases did not sharpen the image by more than fitting the noise "
+                         f"does ({m_after:.5g} against {m_before:.5g}); not used")
         return zero
     log.info("autofocus phase: %d sweeps, %.2f mm RMS of path, metric %.5g", info["sweeps"],
              float(np.sqrt(np.mean(p**2))) * 1e3, m_after)
