@@ -48,7 +48,8 @@ def _bounded_search(f, lo: float, hi: float, step: float, tol: float) -> tuple[f
 
 
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
-        max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30) -> tuple:
+        max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
+        smooth_start=True) -> tuple:
     rep = AutofocusReport(metric=metric, methods=list(methods))
     history = rep.history
     temp0 = np.broadcast_to(np.asarray(ds.temperature_c, float), (ds.n_meas,)).copy()
@@ -180,6 +181,12 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
         start = np.stack([np.bincount(stop, move[:, k]) / np.bincount(stop) for k in range(3)], axis=1)
         k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, ds.timestamps is not None)
         basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) - 3, 1))) if k < len(t_stop) else None
+        if basis is not None and smooth_start:
+            # the carriage moves smoothly: the start keeps the line-of-sight move's part in the basis
+            # and in the unseen constant and tilt; what is left is the per-stop estimates' noise
+            # and the line of sight's own turn from stop to stop, not motion
+            nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
+            start = basis @ (basis.T @ start) + nuis @ (nuis.T @ start)
         d, info = optimise_xyz(engine, t0_est - ds.t0_s, c_est, stop, start, max_iter, history, callback=progress,
                                basis=basis)
         move = d[stop]
