@@ -1,22 +1,18 @@
 """The rig client against the real GRBL 1.1h firmware (grbl-sim on a pseudo-terminal).
 
 The firmware is built from the kit in ``../shared/grbl-sim`` (or ``$CLSAS_GRBL_SIM``) with gcc
-and make; without them, or without the kit, these tests skip and say why.
+and make (tests/grbl_kit.py, the ``grbl_exe`` fixture); without them, or without the kit, these
+tests skip and say why. The fault matrix on it is in tests/test_rig_faults.py.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from grbl_kit import SETUP, STEP_MM, RealGrbl
 
 from clsas import rig
 from clsas.rig import GrblStage
@@ -24,77 +20,6 @@ from clsas.rig import GrblStage
 serial = pytest.importorskip("serial", reason="the rig tests need pyserial (pip install 'clsas[rig]')")
 
 pytestmark = pytest.mark.hw
-
-KIT = Path(os.environ.get("CLSAS_GRBL_SIM", Path(__file__).resolve().parents[2] / "shared" / "grbl-sim"))
-STEP_MM = 1 / 250  # $100/$101 steps per mm: one motor step
-# fast but real settings: homing on with soft limits, travel 1000 mm as in the sample rig.toml
-SETUP = ["$22=1", "$20=1", "$130=1000", "$131=1000", "$132=100", "$25=3000", "$24=500", "$27=1",
-         "$110=6000", "$111=6000", "$120=1000", "$121=1000"]
-
-
-@pytest.fixture(scope="session")
-def grbl_exe(tmp_path_factory) -> Path:
-    if sys.platform.startswith("win"):
-        pytest.skip("grbl-sim runs on POSIX only")
-    if not (KIT / "build.sh").is_file() or not list((KIT / "src").glob("*.tar.gz")):
-        pytest.skip(f"the grbl-sim kit is not at {KIT} (set CLSAS_GRBL_SIM)")
-    missing = [t for t in ("gcc", "make") if shutil.which(t) is None]
-    if missing:
-        pytest.skip(f"building the real GRBL firmware needs {' and '.join(missing)}")
-    root = tmp_path_factory.mktemp("grbl_real")
-    res = subprocess.run(["bash", str(KIT / "build.sh")], env=dict(os.environ, GRBL_REAL_DIR=str(root)),
-                         capture_output=True, text=True, timeout=300)
-    if res.returncode != 0:
-        pytest.fail(f"grbl-sim build failed:\n{res.stdout}\n{res.stderr}")
-    return root / "build" / "grbl" / "grbl-sim" / "grbl_sim.exe"
-
-
-def _read_until(port, done, timeout_s: float) -> bytes:
-    got = b""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not done(got):
-        got += port.read(4096)
-    return got
-
-
-class RealGrbl:
-    """grbl_pty.py running the firmware; ``port`` is the pty's link."""
-
-    def __init__(self, exe: Path, workdir: Path, start_mm: float = 5.0, reset_on_open: bool = False):
-        self.port = str(workdir / "ttyGRBL")
-        self.log = workdir / "transcript.log"
-        args = [sys.executable, str(KIT / "grbl_pty.py"), "--link", self.port, "--exe", str(exe),
-                "--workdir", str(workdir), "--start-mm", str(start_mm), "--log", str(self.log)]
-        if reset_on_open:
-            args.append("--reset-on-open")
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        deadline = time.monotonic() + 10
-        while not os.path.exists(self.port):
-            if time.monotonic() > deadline or self.proc.poll() is not None:
-                self.stop()
-                pytest.fail(f"grbl_pty.py did not start: {self.proc.stderr.read().decode()}")
-            time.sleep(0.05)
-
-    def raw(self, *lines: str) -> str:
-        """Send lines with plain pyserial (no clsas checks); each must be answered ``ok``."""
-        with serial.serial_for_url(self.port, 115200, timeout=0.1) as s:
-            s.write(b"\x18")
-            out = _read_until(s, lambda got: b"Grbl 1.1" in got, 10.0)
-            out += _read_until(s, lambda got: False, 0.5)  # the boot's own lines (a fresh EEPROM's error:7)
-            for line in lines:
-                s.write(line.encode() + b"\n")
-                got = _read_until(s, lambda got: b"ok" in got or b"error" in got, 5.0)
-                assert got.strip().endswith(b"ok"), f"GRBL answered {got!r} to {line!r}"
-                out += got
-        return out.decode(errors="replace")
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
 
 
 @pytest.fixture

@@ -60,6 +60,9 @@ _STATUS = re.compile(r"<([A-Za-z]+)(?::\d)?\|(MPos|WPos):([-\d.]+),([-\d.]+),([-
 _SETTING = re.compile(r"^\$(\d+)=([-\d.]+)")
 #: alarms after which GRBL answers nothing but Ctrl-X ("[MSG:Reset to continue]")
 _RESET_ALARMS = (1, 2)
+#: alarms raised by a reset (ALARM:3, the reset button or Ctrl-X mid-move) or a failed homing
+#: cycle, after which GRBL prints its banner without being asked
+_SELF_RESET_ALARMS = (3, 6, 7, 8, 9, 10)
 
 
 class StageError(RuntimeError):
@@ -121,8 +124,14 @@ class GrblStage:
     poll_hz : float
         Rate of ``?`` status polling while a move runs (GRBL recommends at most 5 Hz).
     reset_wait_s : float
-        How long to wait for the start-up banner after opening the port (an Arduino resets
-        when its port is opened and boots for about 1.5 s).
+        How long to wait for GRBL's start-up banner: an Arduino Uno resets when its port is
+        opened and boots for about 1.5 s (and bytes sent meanwhile are lost).
+    reset_on_open : bool, optional
+        Whether opening the port reboots the controller. True (an Uno, a Nano): wait for the
+        boot banner without sending anything, then soft-reset (Ctrl-X) only if none came.
+        False (boards without auto-reset, 32-bit boards): soft-reset at once. None: wait for a
+        banner, then soft-reset. In every case the lines of a second banner that follows (a
+        reset crossing the boot) are read and dropped, not taken for an answer.
     position_tol_mm : float
         How close the reported position must come to the target.
     """
@@ -139,6 +148,7 @@ class GrblStage:
         move_timeout_s: float | None = None,
         poll_hz: float = 5.0,
         reset_wait_s: float = 2.5,
+        reset_on_open: bool | None = None,
         position_tol_mm: float = 0.02,
     ) -> None:
         if not isinstance(port, str) or not port:
@@ -159,6 +169,9 @@ class GrblStage:
             raise ValueError(f"poll_hz must be at most 5 (GRBL's advice for '?' polling), got {poll_hz}")
         self.poll_s = 1.0 / poll_hz
         self.reset_wait_s = v.non_negative("reset_wait_s", reset_wait_s)
+        if reset_on_open not in (None, True, False):
+            raise TypeError(f"reset_on_open must be True, False or None, got {reset_on_open!r}")
+        self.reset_on_open = reset_on_open
         self.position_tol_mm = v.positive("position_tol_mm", position_tol_mm)
         self.version = ""
         self.settings: dict[int, float] = {}
@@ -178,15 +191,17 @@ class GrblStage:
                                               write_timeout=self.timeout_s)
         except (serial.SerialException, ValueError) as exc:
             raise StageDisconnected(f"cannot open the stage port {self.port!r}: {exc}") from exc
-        banner = self._wait_banner(self.reset_wait_s)
+        banner = None if self.reset_on_open is False else self._wait_banner(self.reset_wait_s)
         if banner is None:
-            log.info("no banner from %s within %.1f s; sending a soft reset", self.port, self.reset_wait_s)
+            if self.reset_on_open:
+                log.warning("no boot banner from %s within %.1f s of opening it although stage.reset_on_open is "
+                            "true; sending a soft reset", self.port, self.reset_wait_s)
             self._write(b"\x18")
-            banner = self._wait_banner(max(self.reset_wait_s, 1.0))
+            banner = self._wait_banner(self.reset_wait_s)
         if banner is None:
             self.close()
-            raise StageTimeout(f"no GRBL start-up banner on {self.port!r} at {self.baudrate} baud: "
-                               "is a GRBL 1.1 controller connected there?")
+            raise StageTimeout(f"no GRBL start-up banner on {self.port!r} at {self.baudrate} baud within "
+                               f"{self.reset_wait_s:g} s: is a GRBL 1.1 controller connected there (and booted)?")
         self.version = banner
         log.info("connected to %s on %s", banner, self.port)
         try:
@@ -256,21 +271,30 @@ class GrblStage:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _wait_banner(self, wait_s: float) -> str | None:
+    def _wait_banner(self, wait_s: float, quiet_s: float = 0.25) -> str | None:
+        """The first banner within ``wait_s``; then lines are read until ``quiet_s`` passes without
+        one: the banner's ``[MSG:...]`` lines, and a second banner (a Ctrl-X that crossed the
+        boot, a reset button pressed just before), which is dropped rather than taken later
+        for an unexpected reset or an answer."""
         deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
             line = self._readline()
-            if line is None:
-                continue
-            if line.startswith("Grbl "):
-                time.sleep(0.05)
-                self._drain()  # the [MSG:...] lines that follow the banner
-                return line.split("[")[0].strip()
+            if line is None or not line.startswith("Grbl "):
+                continue  # boot-loader noise, a stale 'ok' or status report from before
+            quiet = time.monotonic() + quiet_s
+            while time.monotonic() < quiet:
+                more = self._readline()
+                if more is None:
+                    continue
+                if more.startswith("Grbl "):
+                    log.info("a second GRBL banner on %s (dropped): %s", self.port, more)
+                    quiet = time.monotonic() + quiet_s
+                elif more.startswith(("[", "ALARM:")):
+                    self._push(more)
+                else:
+                    log.debug("dropped after the banner: %r", more)
+            return line.split("[")[0].strip()
         return None
-
-    def _drain(self) -> None:
-        while (line := self._readline()) is not None:
-            self._push(line)
 
     # -- low level ------------------------------------------------------------------------
 
@@ -319,6 +343,10 @@ class GrblStage:
             code = _code(line)
             if code in _RESET_ALARMS:
                 raise GrblAlarm(code, self._reset_after_alarm(code))
+            if code in _SELF_RESET_ALARMS:  # GRBL resets itself: its banner follows
+                banner = self._read_until(lambda line: line.startswith("Grbl "), max(self.reset_wait_s, 2.0))
+                raise GrblAlarm(code, "GRBL reset itself" + ("" if banner else " (no banner came)")
+                                + ": its position is lost; home again ($H) before moving")
             raise GrblAlarm(code)
         if line.startswith("[MSG:") or line.startswith("[GC:") or line.startswith("[echo:"):
             log.info("GRBL: %s", line)

@@ -18,7 +18,7 @@ from .emulator import Faults, GrblEmulator
 from .grbl import GrblStage, StageError
 from .store import ScanFile
 
-__all__ = ["acquire", "ScanResult", "ScanAborted", "ScanInterrupted"]
+__all__ = ["acquire", "stage_for", "ScanResult", "ScanAborted", "ScanInterrupted"]
 
 log = logging.getLogger(__name__)
 
@@ -49,10 +49,13 @@ class ScanResult:
         return self.stops_done == self.n_stops
 
 
-def _stage_for(config: RigConfig, port: str) -> GrblStage:
-    return GrblStage(port, baudrate=config.baudrate, work_area_mm=tuple(map(tuple, config.work_area_mm)),
-                     feed_mm_min=config.feed_mm_min, timeout_s=config.stage_timeout_s, poll_hz=config.poll_hz,
-                     home_timeout_s=config.homing_timeout_s, move_timeout_s=config.move_timeout_s)
+def stage_for(config: RigConfig, port: str | None = None, cls: type[GrblStage] = GrblStage, **kwargs) -> GrblStage:
+    """The stage ``config`` describes (``cls(**[stage])``), on ``port`` if given; ``kwargs``
+    override or add constructor arguments."""
+    args = dict(baudrate=config.baudrate, work_area_mm=tuple(map(tuple, config.work_area_mm)),
+                feed_mm_min=config.feed_mm_min, timeout_s=config.stage_timeout_s, poll_hz=config.poll_hz,
+                home_timeout_s=config.homing_timeout_s, move_timeout_s=config.move_timeout_s)
+    return cls(port or config.port, **{**args, **kwargs})
 
 
 def acquire(
@@ -157,9 +160,9 @@ def acquire(
                 travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
                 emulator = GrblEmulator(faults=faults or Faults(), time_scale=float(sim.get("time_scale", 0.01)),
                                         travel_mm=travel).start()
-                stage = _stage_for(config, emulator.port)
+                stage = stage_for(config, emulator.port)
             else:
-                stage = _stage_for(config, config.port)
+                stage = stage_for(config, config.port)
         try:
             stage.open()
             if config.home:
