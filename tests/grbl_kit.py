@@ -99,6 +99,12 @@ class RealGrbl:
                 got = read_until(s, lambda got: b"ok" in got or b"error" in got, 5.0)
                 assert got.strip().endswith(b"ok"), f"GRBL answered {got!r} to {line!r}"
                 out += got
+        # the kit notices a close only when it next polls the pty: let it, so that the next open
+        # is seen as one (and, with reset_on_open, reboots GRBL)
+        closes = self.transcript().count("client closed the port")
+        deadline = time.monotonic() + 2.0
+        while self.transcript().count("client closed the port") == closes and time.monotonic() < deadline:
+            time.sleep(0.01)
         return out.decode(errors="replace")
 
     def press_reset(self) -> None:

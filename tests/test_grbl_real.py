@@ -88,3 +88,29 @@ def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(grbl, tmp
     np.testing.assert_array_equal(stops, np.arange(cfg.n_stops))  # every stop written once, in order
     targets = np.array([cfg.carriage_m(cfg.stage_target_mm(i)) for i in range(cfg.n_stops)])
     np.testing.assert_allclose(stage_m[:, :2], targets[:, :2], atol=STEP_MM / 1000)  # within a motor step
+
+
+@pytest.fixture
+def uno(grbl_exe, tmp_path):
+    """The firmware behind a port that reboots it when opened, as an Arduino Uno's does."""
+    g = RealGrbl(grbl_exe, tmp_path, reset_on_open=True)
+    g.raw(*SETUP)
+    yield g
+    g.stop()
+
+
+@pytest.mark.parametrize("reset_wait_s,banners", [(3.0, 1), (0.3, 2)], ids=["waits-for-boot", "reset-crosses-boot"])
+def test_uno_reset_on_open_banner_is_waited_for_and_not_taken_for_an_answer(uno, reset_wait_s, banners):
+    """``reset_on_open``: the boot banner is waited for; when the wait is shorter than the boot,
+    the Ctrl-X sent meanwhile makes GRBL print a second banner, which must be dropped (not taken
+    for an answer to ``$$`` or for an unexpected reset)."""
+    start = len(uno.transcript())
+    with GrblStage(uno.port, feed_mm_min=6000, reset_on_open=True, reset_wait_s=reset_wait_s) as st:
+        assert st.version == "Grbl 1.1h" and st.settings[130] == 1000  # $$ answered by its own lines
+        assert any(line.startswith("$130=") for line in st.command("$$"))
+        st.home()
+        assert st.move_to(-30.0, -20.0).position_mm[:2] == pytest.approx((-30.0, -20.0), abs=STEP_MM)
+    log = uno.transcript()[start:]
+    assert "reset on open (DTR): restarting the simulator" in log  # the kit rebooted GRBL as the port opened
+    assert log.count("Grbl 1.1h") == banners
+    assert ("\\x18" in log) == (banners == 2)  # Ctrl-X only when the boot outlasted the wait

@@ -28,11 +28,12 @@ pytestmark = pytest.mark.hw
 RIG = """
 [stage]
 port = "set by the test"
-origin_mm = [-60, -60]
 work_area_mm = [[-1000, 0], [-1000, 0]]
-settle_s = 0
-timeout_s = 2
 feed_mm_min = 6000
+
+[scan]
+origin_mm = [-60, -60]
+settle_s = 0
 
 [aperture]
 nx = 2
@@ -40,7 +41,7 @@ ny = 2
 width_m = 0.04
 height_m = 0.04
 
-[audio]
+[recorder]
 record_s = 0.012
 repeat_gap_s = 0
 
@@ -170,31 +171,50 @@ def _arrays(path):
     return arrays, attrs
 
 
-@pytest.fixture(scope="module")
-def backend(request, tmp_path_factory):
-    """(name, rig, config, reference file): an uninterrupted scan on the same backend."""
-    if request.param == "emulator":
-        rig_ = EmulatedRig()
-    else:
-        rig_ = RealRig(request.getfixturevalue("grbl_exe"), tmp_path_factory.mktemp("grbl_faults"))
+def _reference(rig_, tmp_path_factory):
+    """The config and an uninterrupted scan on ``rig_``."""
     cfg = rig.parse_rig_config(RIG)
     ref = tmp_path_factory.mktemp("ref") / "ref.h5"
+    res = _scan(cfg, rig_, ref)
+    assert res.complete and res.stops_this_run == N_STOPS
+    return cfg, ref
+
+
+@pytest.fixture(scope="module")
+def emulated(tmp_path_factory):
+    rig_ = EmulatedRig()
     try:
-        res = _scan(cfg, rig_, ref)
-        assert res.complete and res.stops_this_run == N_STOPS
-        yield request.param, rig_, cfg, ref
+        yield (rig_, *_reference(rig_, tmp_path_factory))
     finally:
         rig_.stop()
 
 
-CASES = [pytest.param(name, kind, at, id=f"{name}-{kind}@{at}",
-                      marks=[pytest.mark.slow] if name == "grbl" and (kind, at) not in DEFAULT else [])
-         for name in ("emulator", "grbl") for kind in KINDS for at in AT]
+@pytest.fixture(scope="module")
+def real(grbl_exe, tmp_path_factory):
+    rig_ = RealRig(grbl_exe, tmp_path_factory.mktemp("grbl_faults"))
+    try:
+        yield (rig_, *_reference(rig_, tmp_path_factory))
+    finally:
+        rig_.stop()
 
 
-@pytest.mark.parametrize("backend,kind,at", CASES, indirect=["backend"])
-def test_fault_keeps_the_stops_before_and_resume_completes_the_scan(backend, kind, at, tmp_path):
-    name, rig_, cfg, ref = backend
+CASES = [pytest.param(kind, at, id=f"{kind}@{at}") for kind in KINDS for at in AT]
+REAL_CASES = [pytest.param(kind, at, id=f"{kind}@{at}", marks=[] if (kind, at) in DEFAULT else [pytest.mark.slow])
+              for kind in KINDS for at in AT]
+
+
+@pytest.mark.parametrize("kind,at", CASES)
+def test_fault_on_the_emulator_keeps_the_stops_before_and_resume_completes_the_scan(emulated, kind, at, tmp_path):
+    _fault_then_resume(emulated, kind, at, tmp_path)
+
+
+@pytest.mark.parametrize("kind,at", REAL_CASES)
+def test_fault_on_the_real_firmware_keeps_the_stops_before_and_resume_completes_the_scan(real, kind, at, tmp_path):
+    _fault_then_resume(real, kind, at, tmp_path)
+
+
+def _fault_then_resume(backend, kind, at, tmp_path):
+    rig_, cfg, ref = backend
     path = tmp_path / "scan.h5"
     rig_.at = at
     rig_.prepare(kind)
