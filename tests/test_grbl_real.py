@@ -114,3 +114,26 @@ def test_uno_reset_on_open_banner_is_waited_for_and_not_taken_for_an_answer(uno,
     assert "reset on open (DTR): restarting the simulator" in log  # the kit rebooted GRBL as the port opened
     assert log.count("Grbl 1.1h") == banners
     assert ("\\x18" in log) == (banners == 2)  # Ctrl-X only when the boot outlasted the wait
+
+
+def test_hard_limit_alarm_then_jogging_off_retrips_unless_hard_limits_are_off(grbl):
+    """``$21=1``: driving onto a home switch raises ALARM:1 (clsas resets); a jog off the switch
+    after ``$X`` trips it again (GRBL reacts to any change of the pin), ``move_off_limit`` turns
+    hard limits off for the jog, and ``$H`` homes from the pressed switch."""
+    grbl.raw("$20=0", "$21=1")
+    with GrblStage(grbl.port, feed_mm_min=6000, reset_on_open=False) as st:
+        st.home()
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 \(hard limit.*'\$21=0'"):
+            st.command("G53 G1 X5 F3000")
+            st.wait_idle(10.0)
+        st.command("$X")
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 "):
+            st.command("G91 G1 X-5 F1000")
+            st.wait_idle(10.0)
+        off = st.move_off_limit(-5.0, 0.0)
+        assert off.state == "Idle" and st.read_settings()[21] == 1  # hard limits on again
+        assert st.home().position_mm[:2] == pytest.approx((-1.0, -1.0), abs=STEP_MM)
+        st.command("G53 G1 X5 F3000")  # onto the switch again, and home from there
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 "):
+            st.wait_idle(10.0)
+        assert st.home().position_mm[:2] == pytest.approx((-1.0, -1.0), abs=STEP_MM)
