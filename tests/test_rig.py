@@ -693,3 +693,19 @@ def test_moving_off_a_limit_switch_turns_hard_limits_off_then_on():
         i = sent.index("$21=0")
         assert sent[i + 1] == "$X" and sent[i + 2].startswith("G91 G1 X5.000") and sent[-1] == "$21=1"
         assert emu.written[21] == 1.0 and emu.state == "Idle"
+
+
+def test_hard_limit_then_jogging_off_retrips_as_on_the_real_firmware():
+    """As tests/test_grbl_real.py checks on GRBL 1.1h: the switch trips on the way onto it and off it."""
+    with GrblEmulator(time_scale=0.01, soft_limits=False, hard_limits=True) as emu, GrblStage(emu.port) as st:
+        st.home()
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 \(hard limit.*'\$21=0'"):
+            st.command("G53 G1 X5 F3000")
+            st.wait_idle(5.0)
+        assert emu.position_mm[0] == pytest.approx(0.0)  # stopped on the switch
+        st.command("$X")
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 "):
+            st.command("G91 G1 X-5 F1000")
+            st.wait_idle(5.0)
+        assert st.move_off_limit(-5.0, 0.0).state == "Idle" and st.read_settings()[21] == 1
+        assert st.home().position_mm[:2] == (-1.0, -1.0)

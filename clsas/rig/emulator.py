@@ -97,8 +97,8 @@ class GrblEmulator:
     homing : starts locked in Alarm until ``$H`` or ``$X`` (``$22=1``).
     soft_limits : a target outside the travel raises ALARM:2 (``$20=1``).
     hard_limits : limit switches at the home end of each axis, at machine coordinate 0 (where
-        ``$H`` finds them, before the pull-off), trip ALARM:1 when the carriage reaches one
-        (``$21=1``). ``$20=`` and ``$21=`` writes switch both.
+        ``$H`` finds them, before the pull-off), trip ALARM:1 when the carriage reaches one, or
+        moves off the one it stopped on (``$21=1``). ``$20=`` and ``$21=`` writes switch both.
     banner_delay_s : boot time after the port opens, before the banner (an Arduino's boot loader
         takes ~1.5 s); scaled by ``time_scale`` but never under 50 ms.
     reset_on_open : like an Arduino Uno, the controller reboots whenever its port is opened
@@ -133,6 +133,7 @@ class GrblEmulator:
         self._relative = False
         self._line = b""
         self._locked_until_reset = False  # after ALARM:1/2 only Ctrl-X is answered
+        self._on_switch = False  # a hard limit left the carriage on a switch
         self._late_ok = False  # the refused line's ok, sent after the reset
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -310,6 +311,7 @@ class GrblEmulator:
                 self._queue.clear()
                 self._state = "Alarm"
                 self._send("ALARM:1")
+                self._on_switch = True
                 self._send("[MSG:Reset to continue]")
                 self._locked_until_reset = True
                 return
@@ -322,6 +324,7 @@ class GrblEmulator:
                 return
             self._pos = mv.end.copy()
             self._queue.pop(0)
+            self._on_switch = False  # it moved off (hard limits were off, or it would have tripped)
             if self._queue:
                 self._queue[0].t_start = mv.t_start + mv.duration_s
                 self._queue[0].start = self._pos.copy()
@@ -446,6 +449,8 @@ class GrblEmulator:
                 return
             dist = float(np.linalg.norm(target - last))
             alarm_at = 0.5 if f.alarm_at_move == n else None
+            if self.hard_limits and self._on_switch:
+                alarm_at = 0.0  # GRBL trips on any change of a switch's pin: moving off it too
             if self.hard_limits and np.any(target > 0):  # the carriage reaches a home switch at 0
                 hit = [(0.0 - last[i]) / (target[i] - last[i]) for i in range(3) if target[i] > 0 >= last[i]]
                 alarm_at = min([*hit, *([] if alarm_at is None else [alarm_at])], default=0.0)
@@ -467,6 +472,7 @@ class GrblEmulator:
             time.sleep(self.homing_s * self.time_scale)
             with self._lock:
                 self._pos = -self.pulloff_mm * np.ones(3)
+                self._on_switch = False
                 self._queue.clear()
                 self._state = "Idle"
             return self._send("ok")
