@@ -71,16 +71,23 @@ def test_soft_limit_alarm_resets_and_the_late_ok_is_not_taken_for_the_next_answe
         assert st.move_to(-20.0, -20.0).position_mm[:2] == pytest.approx((-20.0, -20.0), abs=STEP_MM)
 
 
-def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(grbl, tmp_path):
-    text = rig.SAMPLE_RIG_TOML.replace('port = "/dev/ttyUSB0"', f'port = "{grbl.port}"')
+def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(uno, tmp_path, capsys):
+    """The acceptance run: `clsas acquire --sample-config`, pointed at the firmware's pty (an Uno,
+    as the sample's reset_on_open = true says), with --simulate audio."""
+    from clsas.cli import main
+
+    assert main(["acquire", "--sample-config"]) == 0
+    text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{uno.port}"')
     # a small, fast grid near the sample's origin (positions, not speed, are what is checked)
-    text = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 1.0", "width_m = 0.06")
-            .replace("height_m = 1.0", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
-            .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
-    cfg = rig.parse_rig_config(text)
-    out = tmp_path / "scan.h5"
-    res = rig.acquire(cfg, out, simulate="audio")
-    assert res.complete and res.stops_this_run == cfg.n_stops
+    small = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 1.0", "width_m = 0.06")
+             .replace("height_m = 1.0", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
+             .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
+    assert small.count("\n") == text.count("\n") and small != text
+    conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
+    conf.write_text(small)
+    assert main(["acquire", str(conf), str(out), "--simulate", "audio", "-q"]) == 0
+    assert "6 of 6 stops (6 this run" in capsys.readouterr().out
+    cfg = rig.load_rig_config(conf)
     with h5py.File(out, "r") as f:
         assert f.attrs["complete"]
         stops = f["stop_index"][()]
@@ -88,6 +95,7 @@ def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(grbl, tmp
     np.testing.assert_array_equal(stops, np.arange(cfg.n_stops))  # every stop written once, in order
     targets = np.array([cfg.carriage_m(cfg.stage_target_mm(i)) for i in range(cfg.n_stops)])
     np.testing.assert_allclose(stage_m[:, :2], targets[:, :2], atol=STEP_MM / 1000)  # within a motor step
+    assert "\\x18" not in uno.transcript().split("reset on open (DTR)")[-1]  # the boot banner was waited for
 
 
 @pytest.fixture

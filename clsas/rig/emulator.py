@@ -7,12 +7,9 @@ boot-loader noise, as an Arduino that resets when its port is opened), ``ok`` an
 machine position advances while the state is ``Run``), ``G4`` dwells, and the real-time
 ``?`` (status report), ``!`` (feed hold), ``~`` (cycle start) and Ctrl-X (soft reset).
 
-Faults are injected at the N-th motion command (``G0``/``G1``, counted from 1): a hard-limit
-alarm part way through the move, the reset button pressed half way (``ALARM:3``), an ``error:N``
-answer, a dropped ``ok``, or a disconnect; :meth:`GrblEmulator.press_reset` and
-:meth:`GrblEmulator.disconnect` do the last two at any time. With hard limits on, a move that
-drives the carriage past a home switch (machine coordinate 0) trips ``ALARM:1`` there.
-It is used by the tests and by ``clsas acquire --simulate``.
+Faults (:class:`Faults`) are injected at the N-th motion command; :meth:`GrblEmulator.press_reset`
+and :meth:`GrblEmulator.disconnect` press the reset button or pull the cable at any time. Used by
+the tests and by ``clsas acquire --simulate``.
 """
 
 from __future__ import annotations
@@ -209,9 +206,8 @@ class GrblEmulator:
             self._send("[MSG:'$H'|'$X' to unlock]")
 
     def _run(self) -> None:
-        # Like an Arduino Uno, the controller resets whenever its port is opened (reset_on_open):
-        # until a client opens the pseudo-terminal, reading the master fails (EIO); the first
-        # quiet select after that means a client is there, and the banner follows the boot delay.
+        # Until a client opens the pseudo-terminal, reading the master fails (EIO); the first quiet
+        # select after that means a client is there (and, reset_on_open, the banner follows the boot).
         connected = False
         while not self._stop.is_set() and not self._closed:
             try:
@@ -493,19 +489,17 @@ class GrblEmulator:
             return self._send("ok")
         if up == "$$":
             settings = {10: int(self.report_mpos), 20: int(self.soft_limits and self.homing), 21: int(self.hard_limits),
-                        22: int(self.homing),
-                        25: self.seek_rate_mm_min, 27: self.pulloff_mm, 110: self.max_rate_mm_min,
-                        111: self.max_rate_mm_min, 130: self.travel_mm[0], 131: self.travel_mm[1],
-                        132: self.travel_mm[2]}
+                        22: int(self.homing), 25: self.seek_rate_mm_min, 27: self.pulloff_mm,
+                        110: self.max_rate_mm_min, 111: self.max_rate_mm_min,
+                        **{130 + i: travel for i, travel in enumerate(self.travel_mm)}}
             settings.update({k: val for k, val in self.written.items() if k not in (20, 21)})
             for k, val in settings.items():
                 self._send(f"${k}={val:g}")
             return self._send("ok")
-        if up == "$I":
-            self._send("[VER:1.1h.20190825:clsas-emulator]")
-            self._send("[OPT:V,15,128]")
-            return self._send("ok")
-        if up == "$":
-            self._send("[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]")
+        answers = {"$I": ["[VER:1.1h.20190825:clsas-emulator]", "[OPT:V,15,128]"],
+                   "$": ["[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"]}
+        if up in answers:
+            for line in answers[up]:
+                self._send(line)
             return self._send("ok")
         return self._send("error:3")

@@ -50,9 +50,15 @@ class ScanResult:
         return self.stops_done == self.n_stops
 
 
+def _check_config(config) -> None:
+    if not isinstance(config, RigConfig):
+        raise TypeError(f"config must be a RigConfig (clsas.rig.load_rig_config), got {type(config).__name__}")
+
+
 def stage_for(config: RigConfig, port: str | None = None, cls: type[GrblStage] = GrblStage, **kwargs) -> GrblStage:
     """The stage ``config`` describes: ``cls(**config.stage)``, on ``port`` if given; ``kwargs``
     override or add constructor arguments."""
+    _check_config(config)
     args = {**config.stage, **kwargs}
     if port is not None:
         args["port"] = port
@@ -72,11 +78,13 @@ def audio_for(config: RigConfig, simulate: bool, air: tuple[float, float]):
 
 def recorder_for(config: RigConfig, audio_io) -> Recorder:
     """The takes ``[recorder]`` describes, played and recorded through ``audio_io``."""
+    _check_config(config)
     return Recorder(audio_io, config.waveform, config.fs_hz, **config.recorder)
 
 
 def store_for(config: RigConfig, out: Path, resume: bool, air: tuple[float, float]) -> ScanFile:
     """The scan file: ``out`` reopened at its first missing stop, or created for ``config``."""
+    _check_config(config)
     if resume:
         store = ScanFile.resume(out, config.text)
         log.info("resuming %s at stop %d of %d", out, store.stops_done + 1, config.n_stops)
@@ -91,6 +99,7 @@ def run_stops(config: RigConfig, stage: GrblStage, recorder: Recorder, store: Sc
               progress: Callable[[int, int], None] | None = None, on_stop: Callable[[int], None] | None = None) -> int:
     """The stop loop on an open stage: home or unlock, then move, settle, record and store every
     stop from the file's first missing one. Returns how many stops needed a retried take."""
+    _check_config(config)
     if config.home:
         stage.home()
     else:
@@ -163,8 +172,7 @@ def acquire(
     ScanInterrupted
         On Ctrl-C, likewise.
     """
-    if not isinstance(config, RigConfig):
-        raise TypeError(f"config must be a RigConfig (clsas.rig.load_rig_config), got {type(config).__name__}")
+    _check_config(config)
     out = Path(out)
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
     if simulate not in (False, True, "all", "stage", "audio"):
