@@ -709,3 +709,20 @@ def test_hard_limit_then_jogging_off_retrips_as_on_the_real_firmware():
             st.wait_idle(5.0)
         assert st.move_off_limit(-5.0, 0.0).state == "Idle" and st.read_settings()[21] == 1
         assert st.home().position_mm[:2] == (-1.0, -1.0)
+
+
+@pytest.mark.parametrize("board,client,wait_s,banners,ctrl_x", [
+    (True, True, 2.0, 1, 0),     # an Uno: the boot banner is waited for, nothing is sent before it
+    (True, True, 0.2, 2, 1),     # the wait is shorter than the boot: the Ctrl-X's banner follows, dropped
+    (True, False, 2.0, 1, 0),    # a Ctrl-X sent at once is lost in the boot: the boot banner answers
+    (False, True, 0.3, 1, 1),    # no reset on open: no banner, so a soft reset after the wait
+    (False, None, 0.3, 1, 1),
+], ids=["uno", "uno-reset-crosses-boot", "uno-client-resets", "no-auto-reset", "no-auto-reset-auto"])
+def test_reset_on_open_banner_is_waited_for_and_a_second_one_dropped(board, client, wait_s, banners, ctrl_x):
+    """As tests/test_grbl_real.py checks on GRBL 1.1h behind the kit's --reset-on-open port."""
+    with GrblEmulator(time_scale=1.0, banner_delay_s=0.6, homing_s=0.1, reset_on_open=board) as emu:
+        with GrblStage(emu.port, reset_on_open=client, reset_wait_s=wait_s) as st:
+            assert st.version == "Grbl 1.1h" and st.settings[130] == 1000
+            assert any(line.startswith("$130=") for line in st.command("$$"))  # not a banner's leftovers
+            assert st.home().state == "Idle"
+        assert (emu.banners, emu.ctrl_x) == (banners, ctrl_x)

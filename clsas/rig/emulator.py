@@ -122,6 +122,8 @@ class GrblEmulator:
         self.received: list[str] = []  # every line received, for the tests
         self.written: dict[int, float] = {}  # settings written with $N=value
         self.status_times: list[float] = []  # when each '?' arrived (monotonic s)
+        self.banners = 0  # start-up banners sent (boots and soft resets)
+        self.ctrl_x = 0  # soft resets (Ctrl-X) received
         self.moves = 0
         self._pos = np.zeros(3)
         self._queue: list[_Move] = []
@@ -200,6 +202,7 @@ class GrblEmulator:
                 return  # no client on the port: the line is lost, as on a real serial line
 
     def _banner(self) -> None:
+        self.banners += 1
         self._send("")
         self._send("Grbl 1.1h ['$' for help]")
         if self._state == "Alarm":
@@ -281,6 +284,7 @@ class GrblEmulator:
                     if self._queue:
                         self._queue[0].t_start = time.monotonic()
         elif ch == b"\x18":
+            self.ctrl_x += 1
             with self._lock:
                 self._soft_reset()
         elif ch in (b"\n", b"\r"):
