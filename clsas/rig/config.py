@@ -230,9 +230,10 @@ def _simulate_table(cfg: dict, source: str) -> dict:
 
 
 def _move_old_keys(cfg: dict, source: str) -> None:
-    """Read the flat layout's keys at their new places, warning once per key where it moved."""
+    """Read the flat layout's keys at their new places, with one warning that says where each moved."""
     import warnings
 
+    moved = []
     for (old_table, key), (table, new_key) in MOVED.items():
         old = cfg.get(old_table)
         if not isinstance(old, dict) or key not in old:
@@ -240,12 +241,15 @@ def _move_old_keys(cfg: dict, source: str) -> None:
         new = cfg.setdefault(table, {})
         if not isinstance(new, dict):
             continue  # the table check says what is wrong with it
-        if new_key in new and (table, new_key) != (old_table, key):
+        if new_key in new:
             raise c.ConfigError(f"{source}: [{old_table}] {key} and [{table}] {new_key} are the same setting; "
                                 f"keep [{table}] {new_key} only")
         new[new_key] = old.pop(key)
-        warnings.warn(f"{source}: [{old_table}] {key} has moved to [{table}] {new_key}; it is read from the old "
-                      "place for now, but a later clsas will refuse it there", FutureWarning, stacklevel=3)
+        moved.append(f"[{old_table}] {key} has moved to [{table}] {new_key}")
+    if moved:
+        warnings.warn(f"{source} uses keys of the older flat layout: {'; '.join(moved)}. They are read from the "
+                      "old places for now, but a later clsas will refuse them there (clsas acquire "
+                      "--sample-config prints the new layout)", FutureWarning, stacklevel=3)
 
 
 def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
