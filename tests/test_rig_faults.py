@@ -70,6 +70,9 @@ class EmulatedRig:
         self.start()
 
     def start(self):
+        if self.emu is not None:
+            self.emu.stop()
+        # like the kit's port (no --reset-on-open): GRBL runs on across opens
         self.emu = GrblEmulator(time_scale=0.01, homing_s=20.0, reset_on_open=False).start()
 
     @property
