@@ -240,3 +240,43 @@ def _fault_then_resume(backend, kind, at, tmp_path):
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
     assert {k: v for k, v in got_attrs.items() if k != "clsas_version"} == \
         {k: v for k, v in want_attrs.items() if k != "clsas_version"}
+
+
+def test_cli_resume_after_the_reset_button_on_the_real_firmware(real, tmp_path, capsys):
+    """The same through `clsas acquire ... --simulate audio` and `--resume`, the port taken from
+    the rig file: the reset button pressed while the carriage moves to stop 3."""
+    import threading
+    import time
+
+    from clsas.cli import main
+
+    rig_, _, ref = real
+    rig_.prepare("reset")
+    conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
+    conf.write_text(RIG.replace('port = "set by the test"', f'port = "{rig_.port}"\nreset_on_open = false'))
+    log, start = rig_.grbl.transcript, len(rig_.grbl.transcript())
+
+    def press_during_the_third_move():
+        for _ in range(3000):
+            if log()[start:].count("> b'G53 G1 ") >= 3:
+                return rig_.grbl.press_reset()
+            time.sleep(0.01)
+
+    presser = threading.Thread(target=press_during_the_third_move)
+    presser.start()
+    try:
+        assert main(["acquire", str(conf), str(out), "--simulate", "audio", "-q"]) == 3
+    finally:
+        presser.join()
+    err = capsys.readouterr().err
+    assert "at stop 3 of 4: GRBL raised ALARM:3" in err and "2 stops are saved" in err
+    assert f"clsas acquire {conf} {out} --resume --simulate audio" in err
+    assert main(["acquire", str(conf), str(out), "--resume", "--simulate", "audio", "-q"]) == 0
+    assert "4 of 4 stops (2 this run" in capsys.readouterr().out
+    (got, got_attrs), (want, want_attrs) = _arrays(out), _arrays(ref)
+    assert sorted(got) == sorted(want)
+    for key in want:  # the same scan as the matrix's reference, stop for stop
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+    skip = ("clsas_version", "config_toml")  # the rig file names the port
+    for key in set(got_attrs) | set(want_attrs):
+        assert key in skip or got_attrs.get(key) == want_attrs.get(key), key
