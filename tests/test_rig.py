@@ -725,3 +725,13 @@ def test_reset_on_open_banner_is_waited_for_and_a_second_one_dropped(board, clie
             assert any(line.startswith("$130=") for line in st.command("$$"))  # not a banner's leftovers
             assert st.home().state == "Idle"
         assert (emu.banners, emu.ctrl_x) == (banners, ctrl_x)
+
+
+def test_recorder_takes_its_length_as_samples_or_seconds():
+    io = rig.SimulatedIO(clsas.Scene(np.array([[0.0, 0.0, 0.5]])), 96e3)
+    assert rig.Recorder(io, np.ones(10), 96e3, record_s=0.01).n_samples == 960
+    for args in ({}, {"n_samples": 960, "record_s": 0.01}):
+        with pytest.raises(TypeError, match="n_samples or as record_s"):
+            rig.Recorder(io, np.ones(10), 96e3, **args)
+    with pytest.raises(ValueError, match="record_s"):
+        rig.Recorder(io, np.ones(10), 96e3, record_s=-1.0)
