@@ -426,7 +426,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="all (the default when given alone): emulated GRBL stage and simulated microphone hearing "
                    "the [simulate] scene; stage: the emulated stage with the real sound card; audio: the real "
                    "stage (stage.port) with the simulated microphone")
-    a.add_argument("--fault", help="with --simulate: inject faults, e.g. alarm@5, error@3, drop-ok@2, disconnect@4 "
+    a.add_argument("--fault", help="with --simulate: inject faults, e.g. alarm@5, reset@2, error@3, drop-ok@2, "
+                   "disconnect@4 "
                    "(at the N-th move)")
     a.add_argument("--sample-config", action="store_true", help="print a commented rig.toml and exit")
     a.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
