@@ -46,6 +46,7 @@ KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
     "fmcw_dechirp": (("common.cl", "compress.cl"), "clsas.compress.opencl", "FmcwPlan"),
     "matched_fft": (("common.cl", "compress.cl"), "clsas.compress.opencl", "FftMatchedPlan"),
     "backproject": (("common.cl", "backproject.cl"), "clsas.imaging.opencl", "BackprojectPlan"),
+    "stolt_spread": (("common.cl", "stolt.cl"), "clsas.formation.opencl", "StoltPlan"),
 }
 WIDTHS = (16, 8, 4)
 PROBE_TIMEOUT_S = 300.0

@@ -14,7 +14,8 @@ lattice with the kernel ``exp(i k r)``, ``k = 4 pi f / c``, which this module ev
 wavenumber domain. The steps, and what each costs in accuracy:
 
 1. **Delay to frequency.** Each profile (complex baseband, row ``m`` at delays
-   ``tau0_m + n dtau``) is zero-padded to ``pad_time`` times its length and FFT'd; a row's own
+   ``tau0_m + n dtau``) is zero-padded to ``pad_time`` (1.5) times its length and FFT'd, so that
+   the delays the grid needs do not wrap; a row's own
    ``tau0`` becomes a phase ramp. Backprojection interpolates profiles linearly; its transfer
    function on the band, ``sinc^2(f_b dtau)`` (``f_b`` the baseband frequency), is applied so
    that amplitudes agree (up to 3.5 % at the band edge otherwise); the interpolation's images
@@ -22,8 +23,9 @@ wavenumber domain. The steps, and what each costs in accuracy:
    A per-measurement speed of sound is **handled**: each profile is then transformed by a
    direct DFT at its own frequencies ``f = kappa c_m / 2 pi`` of one common wavenumber grid
    ``kappa``, so every measurement lands on the same ``k`` samples.
-2. **The band used** is the smallest set of frequency samples holding all but ``band_tol^2``
-   of the profiles' energy (default: all but 1e-6).
+2. **The band used** runs from the lowest to the highest frequency sample whose energy (summed
+   over the measurements) is at least ``band_tol^2`` of the strongest sample's (default
+   -40 dB); what lies outside is dropped.
 3. **Spatial FFT.** Per frequency the lattice is zero-padded to ``M_u x M_v`` (default: enough
    that the spread of the processed angles does not wrap onto the grid, from the geometry) and
    2-D FFT'd (scipy.fft with ``workers``). The band's outer ``taper`` (default 10 %) of each
@@ -77,8 +79,9 @@ __all__ = ["form", "OPTIONS", "NotPlanarUniform"]
 log = logging.getLogger(__name__)
 
 OPTIONS = {
-    "pad_time": 2.0, "pad": None, "window": None, "taper": 0.1, "upsample": 1, "bistatic": True,
-    "phase_tol": 1e-3, "band_tol": 1e-3, "kernel_width": 6, "tol_m": None, "workers": None, "chunk": 8192,
+    "pad_time": 1.5, "pad": None, "window": None, "taper": 0.1, "upsample": 1, "bistatic": True,
+    "phase_tol": 1e-3, "band_tol": 1e-2, "kernel_width": 6, "tol_m": None, "workers": None, "chunk": 8192,
+    "max_sine": None,
 }
 
 
@@ -132,19 +135,13 @@ def _spectra(data, tau0, dtau, fc, c, pad_time, band_tol, workers):
     fb = scipy.fft.fftfreq(n_fft, dtau)
     spec = scipy.fft.fft(data, n_fft, axis=1, workers=workers)
     energy = np.sum(np.abs(spec) ** 2, axis=0)
-    order = np.argsort(energy)
-    dropped = np.cumsum(energy[order]) <= band_tol**2 * energy.sum()
-    keep = np.zeros(n_fft, bool)
-    keep[order[~dropped]] = True
-    keep &= fb + fc > 0
-    idx = np.flatnonzero(keep)
-    # the kept bins as one contiguous run in frequency order (bins inside the run stay)
+    # the band: the run of bins (in frequency order) from the first to the last whose energy
+    # is at least band_tol^2 of the strongest bin's, above zero Hz
     srt = np.argsort(fb)
-    pos = np.flatnonzero(np.isin(srt, idx))
-    bins = srt[pos.min(): pos.max() + 1] if len(pos) else srt[:0]
-    bins = bins[fb[bins] + fc > 0]
-    if len(bins) == 0:
+    strong = np.flatnonzero((energy[srt] >= band_tol**2 * energy.max()) & (fb[srt] + fc > 0))
+    if len(strong) == 0 or energy.max() == 0:
         raise ValueError("profiles: no frequency with energy above zero Hz (all-zero data?)")
+    bins = srt[strong.min(): strong.max() + 1]
     f_b = fb[bins]
     df = 1.0 / (n_fft * dtau)
     c_arr = np.broadcast_to(np.asarray(c, float), (n_meas,))
@@ -162,7 +159,9 @@ def _spectra(data, tau0, dtau, fc, c, pad_time, band_tol, workers):
             s[m0:m1] = np.einsum("bn,bnf->bf", data[m0:m1], e) * (c_arr[m0:m1, None] / c_ref)
             s[m0:m1] *= (np.sinc(f_m * dtau) ** 2) / lin[None, :]
     s *= dtau * df * lin[None, :]
-    return s, fc + f_b, c_ref
+    e = energy[bins]
+    f_top = float(fc + f_b[np.flatnonzero(e >= 1e-2 * e.max()).max()])  # top of the -20 dB band
+    return s, fc + f_b, c_ref, f_top
 
 
 # -- helpers ---------------------------------------------------------------------------------
@@ -252,10 +251,11 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
         Accepted for the registry's interface (ω-k allocates about 16 bytes per voxel, times
         a few, and no more).
     **options
-        ``pad_time`` (delay FFT zero padding, default 2), ``pad`` (spatial zero padding factor,
+        ``pad_time`` (delay FFT zero padding, default 1.5), ``pad`` (spatial zero padding factor,
         default from the geometry), ``window`` (None or "hann"), ``taper`` (band-edge fraction,
         0.1), ``upsample`` (1, an integer or "auto"), ``bistatic`` (True), ``phase_tol`` (rad,
-        1e-3), ``band_tol`` (1e-3), ``kernel_width`` (6), ``tol_m`` (lattice and plane
+        1e-3), ``band_tol`` (1e-2), ``max_sine`` (the steepest look angle's sine to keep,
+        default from the geometry), ``kernel_width`` (6), ``tol_m`` (lattice and plane
         tolerance, m; default a hundredth of the shortest wavelength), ``workers`` (FFT
         threads), ``chunk`` (columns per Stolt launch).
 
@@ -283,7 +283,7 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
     fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
     t_start = time.perf_counter()
 
-    spec, f, c_ref = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
+    spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
     k = 4 * np.pi * f / c_ref
     tol = o["tol_m"] if o["tol_m"] is not None else c_ref / f.max() / 100
     ap = planar_aperture(tx, rx, grid, tol)
@@ -301,8 +301,8 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
     info = {"groups": len(ap.groups), "n_f": len(f), "band_hz": (float(f.min()), float(f.max())), "lattices": []}
     t_stolt = 0.0
     for g in ap.groups:
-        img, ginfo, dt_stolt = _form_group(g, spec[g.index], k, pu, pv, depth_inc, o, workers, runner, tol,
-                                           progress)
+        img, ginfo, dt_stolt = _form_group(g, spec[g.index], k, pu, pv, depth_inc, o, workers, runner,
+                                           4 * np.pi * f_top / c_ref, progress)
         values += img[:, :, ::-1] if flip else img
         info["lattices"].append(ginfo)
         t_stolt += dt_stolt
@@ -326,7 +326,7 @@ def _n_terms(alpha_max: float, u_max: float, tol: float, bistatic: bool) -> int:
     return p
 
 
-def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, tol, progress):
+def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     """Image one lattice group on the (u, v, depth) grid (depth increasing)."""
     import scipy.fft
 
@@ -339,7 +339,7 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, tol, progress):
     zref = 2.0 / (1.0 / z0 + 1.0 / z1)
     u_max = 0.5 * (1.0 / z0 - 1.0 / z1)
     # look angles: every voxel-stop pair, plus a margin; the window falls from s1 to s2
-    s_geo = _max_sine(g, pu, pv, z0)
+    s_geo = _max_sine(g, pu, pv, z0) if o["max_sine"] is None else o["max_sine"]
     s1 = min(s_geo + 0.05, 0.97)
     s2 = min(s1 + 0.1, 0.995)
     # aliased angles: U repeats of the periodic spectrum
@@ -347,10 +347,15 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, tol, progress):
     if up == "auto":
         need = s2 * k.max()
         up = max(1, int(math.ceil(need / (np.pi / min(du, dv)))))
-    # spatial zero padding: the processed angles spread the aperture by depth * tan(theta)
-    tan = s2 / math.sqrt(1 - s2 * s2)
-    lat_u = max(pu[-1] - g.extent_uv[0, 0], g.extent_uv[0, 1] - pu[0]) + z1 * tan + 4 * du
-    lat_v = max(pv[-1] - g.extent_uv[1, 0], g.extent_uv[1, 1] - pv[0]) + z1 * tan + 4 * dv
+    # spatial zero padding: the longest voxel-stop distance along the axis plus the spread, at
+    # the deepest plane, of the angles the lattice samples unaliased at the band's top (the
+    # top of its -20 dB band; beyond them the spectrum only tapers)
+    def _spread(d):
+        s = min(up * np.pi / (d * k_top), s2, 0.9)
+        return z1 * s / math.sqrt(1 - s * s)
+
+    lat_u = max(pu[-1] - g.extent_uv[0, 0], g.extent_uv[0, 1] - pu[0]) + _spread(du) + 4 * du
+    lat_v = max(pv[-1] - g.extent_uv[1, 0], g.extent_uv[1, 1] - pv[0]) + _spread(dv) + 4 * dv
     if o["pad"] is None:
         mu = scipy.fft.next_fast_len(max(nu, int(math.ceil(lat_u / du))))
         mv = scipy.fft.next_fast_len(max(nv, int(math.ceil(lat_v / dv))))
