@@ -12,7 +12,7 @@ class StoltPlan(Plan):
     """The ``stolt_spread`` kernel on one queue; buffers grow to the largest call.
 
     Called like :func:`clsas.formation.stolt.spread` (its NumPy twin), in float32 on the
-    device; returns complex128 cells (n_terms, n_cols, n_cells).
+    device; returns complex64 cells (n_terms, n_cols, n_cells).
     """
 
     kernel_name = "stolt_spread"
@@ -45,8 +45,7 @@ class StoltPlan(Plan):
         win = np.array([*p.baseline_uv, p.s1, 1 / max(p.s2 - p.s1, 1e-12)], np.float32)
         self.launch((-(-n_cols // self.vec),), d_spec, d_k, d_kuv, np.int32(n_cols), np.int32(n_f), geo, win,
                     np.float32(p.s2), np.int32(M), np.int32(p.width), np.float32(p.beta), np.int32(p.n_terms), d_out)
-        out = self.read(d_out, (p.n_terms, n_cols, M), np.complex64)
-        return out.astype(np.complex128)
+        return self.read(d_out, (p.n_terms, n_cols, M), np.complex64)
 
     @staticmethod
     def selftest_inputs(n_cols: int = 37, n_f: int = 23):

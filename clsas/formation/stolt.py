@@ -152,6 +152,6 @@ def columns_to_depths(cells: np.ndarray, n_z: int, p: StoltParams, workers: int 
     import scipy.fft
 
     M = p.n_cells
-    b = scipy.fft.ifft(cells, axis=-1, workers=workers) * M
+    b = scipy.fft.ifft(cells, axis=-1, workers=workers)
     ell = np.arange(n_z) - n_z // 2
-    return b[..., np.mod(ell, M)] * deapodization(n_z, p)
+    return b[..., np.mod(ell, M)] * (M * deapodization(n_z, p)).astype(b.dtype)
