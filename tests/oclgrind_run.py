@@ -1,6 +1,6 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [vec=N ...]. Checks each result against its NumPy
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [stolt] [vec=N ...]. Checks each result against its NumPy
 twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
@@ -13,6 +13,7 @@ import pyopencl as cl
 import clsas
 from clsas.compress import fft_layout
 from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.formation.opencl import StoltPlan
 from clsas.imaging.opencl import BackprojectPlan
 
 FS = 96e3
@@ -58,6 +59,12 @@ def check_backproject(queue, rng, vec):
     assert BackprojectPlan.selftest(queue, vec) < 1e-4, "backproject"
 
 
+def check_stolt(queue, rng, vec):
+    # the plan's selftest: columns with evanescent, windowed and kept samples, three terms,
+    # positions that fold around the kz axis, VEC columns per work-item with a ragged last one
+    assert StoltPlan.selftest(queue, vec) < 2e-4, "stolt_spread"
+
+
 def main(kernels: set[str]) -> int:
     plats = [p for p in cl.get_platforms() if "Oclgrind" in p.name]
     if not plats:
@@ -74,9 +81,11 @@ def main(kernels: set[str]) -> int:
             check_fft(queue, rng, vec)
         if "backproject" in kernels:
             check_backproject(queue, rng, vec)
+        if "stolt" in kernels:
+            check_stolt(queue, rng, vec)
     print("oclgrind run ok")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "stolt"}))

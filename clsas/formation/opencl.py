@@ -35,7 +35,7 @@ class StoltPlan(Plan):
         d_spec = self._buf("spec", 8 * n_cols * n_f, "r")
         d_k = self._buf("k", 4 * n_f, "r")
         d_kuv = self._buf("kuv", 8 * n_cols, "r")
-        d_out = self._buf("cells", 8 * p.n_terms * n_cols * M, "w")
+        d_out = self._buf("cells", 8 * p.n_terms * n_cols * M, "rw")  # read-modify-write
         self.begin()
         self.write(d_spec, spec, np.complex64)
         self.write(d_k, k, np.float32)
