@@ -33,6 +33,8 @@ def _bar(desc: str, total: int, enabled: bool = True):
 
     with tqdm(total=total, desc=desc, unit="stop", disable=not enabled, leave=False) as bar:
         def update(done: int, _total: int) -> None:
+            if bar.total != _total:  # a formation counts its own steps (ω-k: spatial-frequency columns)
+                bar.total = _total
             bar.update(done - bar.n)
 
         yield update
@@ -65,14 +67,34 @@ def _simulate(cfg, progress=True):
                               seed=cfg.seed, chirp=cfg.chirp, config=cfg.text, progress=cb)
 
 
+def _formation_options(items: list[str] | None) -> dict:
+    """``KEY=VALUE`` pairs; values read as TOML scalars (numbers, true/false, "text"), else as text."""
+    import tomllib
+
+    out = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--formation-option must be KEY=VALUE, got {item!r}")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        out[key.strip()] = value
+    return out
+
+
 def _reconstruct(ds, grid, args, progress=True):
     import clsas
 
-    with _bar("backproject", ds.n_meas, progress) as cb:
+    formation = getattr(args, "formation", "bp")
+    options = _formation_options(getattr(args, "formation_option", None)) or None
+    with _bar("backproject" if formation == "bp" else formation, ds.n_meas, progress) as cb:
         return clsas.reconstruct(ds, grid, method=getattr(args, "method", "bp"),
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
-                                 force=getattr(args, "force", False))
+                                 force=getattr(args, "force", False), formation=formation,
+                                 formation_options=options)
 
 
 def cmd_demo(args) -> int:
@@ -381,6 +403,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
     r.add_argument("--preprocess", action="store_true",
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
+    from clsas.formation import FORMATIONS
+
+    r.add_argument("--formation", default="bp", choices=tuple(FORMATIONS),
+                   help="how the profiles become an image: bp (exact backprojection, default), omega-k (planar uniform "
+                   "apertures, much faster), ... (see README: Fast image formation)")
+    r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
+                   help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     _preprocess_options(r)
     common(r)
     r.set_defaults(func=cmd_reconstruct)

@@ -230,3 +230,25 @@ def test_stolt_kernel_equals_its_twin():
     spec2 = np.tile(spec, (3, 1))
     got2 = plan(spec2, k, np.tile(ku, 3), np.tile(kv, 3), p)
     assert np.abs(got2[:, : len(ku)] - want).max() / np.abs(want).max() < TOL["stolt"]
+
+
+def test_cli_reconstruct_with_a_formation(tmp_path, capsys):
+    from clsas.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(
+        "[chirp]\nf_start_hz = 20000.0\nf_stop_hz = 30000.0\nduration_s = 0.002\nfs_hz = 96000.0\ntaper = 0.1\n"
+        "[aperture]\nnx = 16\nny = 16\nwidth_m = 0.06\nheight_m = 0.06\n"
+        "[[points]]\nposition_m = [0.008, -0.004, 0.25]\namplitude = 1.0\n"
+        "[grid]\nx_m = [-0.024, 0.024]\ny_m = [-0.024, 0.024]\nz_m = [0.234, 0.266]\nspacing_m = 0.004\n")
+    scan = tmp_path / "scan.h5"
+    assert main(["simulate", str(scene), str(scan), "-q"]) == 0
+    out = tmp_path / "img.h5"
+    assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "pad_time=2",
+                 "--formation-option", "window=hann", "--out", str(out), "-q"]) == 0
+    assert "peak (+0.008, -0.004, 0.250)" in capsys.readouterr().out
+    from clsas.imaging import Image
+
+    assert Image.load(out).provenance["formation"] == "omega-k"
+    assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "bogus=1", "-q"]) == 2
+    assert "unknown option" in capsys.readouterr().err
