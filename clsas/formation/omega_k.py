@@ -309,6 +309,16 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
         t_stolt += dt_stolt
     inv = np.argsort(ap.perm)
     values = np.transpose(values, inv)
+    if o["upsample"] == 1:
+        from .planar import well_sampled_cone
+
+        frac = float(well_sampled_cone(tx, rx, grid, f_top, c_ref, tol_m=tol).mean())
+        info["cone_fraction"] = frac
+        if frac < 0.5:
+            log.warning("omega-k: the aperture's lattice samples only %.0f %% of the grid unaliased at %.0f kHz "
+                        "(its well-sampled cone); elsewhere backprojection also forms aliased angles (grating "
+                        "lobes), which omega-k leaves out: formation_options={'upsample': 'auto'} forms them, "
+                        "or use formation='bp'", 100 * frac, f_top / 1e3)
     total = time.perf_counter() - t_start
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
     image = Image(values, grid, "bp", sel.kind, sel.device, timings)
