@@ -271,3 +271,23 @@ def test_any_plane_normal_and_either_side(frame):
     ref = clsas.backproject(moved, grid, backend="numpy")
     img = form(moved, grid, "omega-k", backend="numpy")
     assert error_to_signal_db(img, ref) < STATED_DB
+
+
+@pytest.mark.slow
+def test_formation_benchmark_writes_its_table(tmp_path):
+    import json
+
+    from clsas.bench import run_formation
+
+    res = run_formation(out_dir=tmp_path, scale=0.1, cases=("dense", "circular"), sides=(6, 8), plots=False)
+    js = json.loads(next(tmp_path.glob("*-formation-*-quick.json")).read_text())
+    dense, circ = js["cases"]
+    rows = {r["formation"]: r for r in dense["rows"]}
+    assert rows["bp"]["time_s"] > 0 and rows["omega-k"]["error_cone_db"] < -30
+    assert dense["cone_fraction"] > 0.5
+    wk = {r["formation"]: r for r in circ["rows"]}["omega-k"]
+    assert "ffbp" in wk["refused"] and circ["cone_fraction"] is None
+    assert set(js["scaling"]) >= {"bp", "omega-k"}
+    md = next(tmp_path.glob("*-formation-*-quick.md")).read_text()
+    assert "| dense | omega-k |" in md and "refused" in md
+    assert res["paths"]["json"].endswith(".json")

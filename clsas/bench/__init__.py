@@ -178,14 +178,15 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
 
 
 def run_formation(full: bool = False, out_dir: str | Path = "bench/results", *, formations=None,
-                  scale: float | None = None, cases=None, plots: bool = True,
+                  scale: float | None = None, cases=None, sides=None, plots: bool = True,
                   status: Callable[[str], None] | None = None) -> dict:
     """Only the image-formation part (:mod:`clsas.bench.formation`), written to
     ``<out>/<date>-formation-<device>[-quick].json`` and ``.md`` (and ``.png``).
 
     ``scale`` shrinks the dense planar case (1: 128 x 128 stops, 256 x 256 x 128 voxels; the
     quick set uses 0.25); ``formations`` picks registered formations (bp always runs: it is
-    the reference); ``cases`` picks among ``demo``, ``dense``, ``circular``.
+    the reference); ``cases`` picks among ``demo``, ``dense``, ``circular``; ``sides`` are the
+    scans (N x N stops) of the cost fit (empty: no fit).
     """
     from . import formation, throughput
 
@@ -194,7 +195,7 @@ def run_formation(full: bool = False, out_dir: str | Path = "bench/results", *, 
     info = throughput.opencl_device_info()
     device = info["name"] if info else "NumPy only (no OpenCL device)"
     res = formation.run(tuple(cases or cfg["cases"]), formations, cfg["scale"] if scale is None else scale,
-                        cfg["sides"], status=say)
+                        cfg["sides"] if sides is None else sides, status=say)
     res.update(date=dt.datetime.now().isoformat(timespec="seconds"), device=device, mode="full" if full else "quick",
                host=f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs",
                versions=_versions())

@@ -13,7 +13,8 @@ For every formation in :data:`clsas.formation.FORMATIONS` (with its defaults) an
 
 Cases: ``demo`` (the demo's front scene: 18 x 12 stops over 1 m, the mannequin, the demo grid),
 ``dense`` (a dense planar scan: 128 x 128 stops over 0.75 m, 256 x 256 x 128 voxels of 2.9 mm,
-a few reflectors; ``scale`` shrinks both sides), ``circular`` (360 stops on a 1 m circle).
+a few reflectors; ``scale`` shrinks both sides), ``circular`` (360 stops on a 1 m circle, a
+5 mm grid; ``scale`` < 1 thins both).
 Cost exponents: each formation timed on planar scans of N x N stops and 2N x 2N x N voxels,
 and the slope of log(time) against log(N) fitted. Benchmarks measure; nothing here asserts.
 """
@@ -67,7 +68,8 @@ def _planar(n_stops: int, n_vox: int, n_z: int, seed: int = 0):
 
 
 def make_case(name: str, scale: float = 1.0):
-    """(dataset, grid, description) of a case; ``scale`` < 1 shrinks the dense scan's sides."""
+    """(dataset, grid, description) of a case; ``scale`` < 1 shrinks the dense scan's sides and the
+    circular scan's stop count and grid."""
     if name == "demo":
         from ..scenes import demo_configs, parse_config
 
@@ -81,11 +83,13 @@ def make_case(name: str, scale: float = 1.0):
                           f"{2 * n} x {2 * n} x {n} voxels, 6 reflectors")
     if name == "circular":
         w, chirp = _chirp()
-        ap = clsas.circular_aperture(360, 1.0, mode="arc")
+        n = max(36, int(round(360 * min(scale, 1.0))))
+        sp = 0.005 / min(max(scale, 0.25), 1.0)
+        ap = clsas.circular_aperture(n, 1.0, mode="arc")
         pts = np.array([[0.05, -0.03, 0.0], [-0.08, 0.06, 0.02], [0.0, 0.1, -0.02]])
         ds = clsas.simulate(clsas.Scene(pts), ap, w, FS, snr_db=30, chirp=chirp)
-        grid = clsas.VoxelGrid.from_bounds((-0.2, 0.2), (-0.2, 0.2), (-0.05, 0.05), 0.005)
-        return ds, grid, "circular scan: 360 stops on a 1 m circle, 3 reflectors, 5 mm grid"
+        grid = clsas.VoxelGrid.from_bounds((-0.2, 0.2), (-0.2, 0.2), (-0.05, 0.05), sp)
+        return ds, grid, f"circular scan: {n} stops on a 1 m circle, 3 reflectors, {sp * 1e3:.0f} mm grid"
     raise ValueError(f"case must be one of {CASES}, got {name!r}")
 
 
@@ -191,7 +195,7 @@ def run(cases=CASES, formations=None, scale: float = 1.0, sides=(12, 16, 24, 32)
             raise ValueError(f"formation {f!r} is not registered; known: {', '.join(FORMATIONS)}")
     _warm_up(formations)
     res = {"formations": formations, "scale": scale,
-           "cases": [run_case(c, formations, scale if c == "dense" else 1.0, status=status) for c in cases]}
+           "cases": [run_case(c, formations, 1.0 if c == "demo" else scale, status=status) for c in cases]}
     if sides:
         res["scaling"] = scaling(formations, sides, status=status)
     return res
