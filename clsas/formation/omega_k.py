@@ -257,7 +257,7 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
         0.1), ``upsample`` (1, an integer or "auto"), ``bistatic`` (True), ``phase_tol`` (rad,
         1e-3), ``band_tol`` (1e-2), ``max_sine`` (the steepest look angle's sine to keep,
         default from the geometry), ``kernel_width`` (6), ``tol_m`` (lattice and plane
-        tolerance, m; default a hundredth of the shortest wavelength), ``workers`` (FFT
+        tolerance, m; default a hundredth of the wavelength at 1.5 times the carrier), ``workers`` (FFT
         threads), ``chunk`` (columns per Stolt launch).
 
     Returns
@@ -283,10 +283,10 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
     dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
     fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
     t_start = time.perf_counter()
-
-    spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
-    k = 4 * np.pi * f / c_ref
-    tol = o["tol_m"] if o["tol_m"] is not None else c_ref / f.max() / 100
+    # the geometry first (a refusal costs nothing); the tolerance is a hundredth of the
+    # wavelength at 1.5 times the carrier (the band's top, about)
+    f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
+    tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
     ap = planar_aperture(tx, rx, grid, tol)
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
@@ -294,6 +294,8 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
     if depth.min() < 4 * tol:
         raise ValueError(f"grid: a voxel plane lies {depth.min():.3g} m from the aperture's plane; omega-k "
                          "needs the grid off the plane")
+    spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
+    k = 4 * np.pi * f / c_ref
     flip = depth[0] > depth[-1]
     depth_inc = depth[::-1] if flip else depth
     runner, sel = _stolt_runner(backend, device)
