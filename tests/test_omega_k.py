@@ -291,3 +291,20 @@ def test_formation_benchmark_writes_its_table(tmp_path):
     md = next(tmp_path.glob("*-formation-*-quick.md")).read_text()
     assert "| dense | omega-k |" in md and "refused" in md
     assert res["paths"]["json"].endswith(".json")
+
+
+def test_stolt_interpolation_equals_the_direct_sum():
+    # spreading + FFT + de-apodisation against the non-uniform DFT it stands for, term by term
+    from clsas.formation.opencl import StoltPlan
+    from clsas.formation.stolt import _strengths, columns_to_depths
+
+    spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    n_z = p.n_cells // 2
+    got = columns_to_depths(spread(spec, k, ku, kv, p), n_z, p)
+    c0, alpha, _, valid = _strengths(spec, k, ku, kv, p)
+    kz = np.sqrt(np.maximum(k[None, :] ** 2 - (ku**2 + kv**2)[:, None], 0))
+    ell = np.arange(n_z) - n_z // 2
+    phase = np.exp(1j * kz[:, :, None] * ell[None, None, :] * p.dz_m)  # (cols, f, z)
+    for term in range(p.n_terms):
+        want = np.einsum("cf,cfz->cz", np.where(valid, c0 * alpha**term, 0), phase)
+        assert np.abs(got[term] - want).max() < 1e-4 * np.abs(want).max()
