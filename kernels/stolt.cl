@@ -3,8 +3,8 @@
  * One spatial-frequency column (ku, kv) per loop iteration; each work-item owns VEC
  * consecutive columns and writes only their cells (no atomics, no races). For every frequency
  * sample j of a column (two-way wavenumber k_j):
- *   kz    = sqrt(k_j^2 - ku^2 - kv^2)                           (skipped where <= 0)
- *   s     = |k_perp| / k_j;  w = 1 below s1, raised cosine to 0 at s2  (look-angle window)
+ *   kz    = sign(k_j) sqrt(k_j^2 - ku^2 - kv^2)                 (skipped where k_j^2 <= ku^2 + kv^2)
+ *   s     = |k_perp| / |k_j|;  w = 1 below s1, raised cosine to 0 at s2  (look-angle window)
  *   alpha = kz / 8 (|b|^2 - (b . k_perp)^2 / k_j^2)               (bistatic correction, rad m)
  *   c0    = spec_j w 2 pi k_j / kz^2 (1 + i / (kz zref)) exp(i (kz zc + alpha / zref))
  *   pos   = kz dz M / (2 pi)                                      (position on the kz axis, cells)
@@ -15,7 +15,7 @@
 
 __kernel void stolt_spread(
     __global const float2 *spec,     /* (n_cols, n_f) data spectrum, weights applied            */
-    __global const float *k,         /* (n_f,) two-way wavenumber 4 pi f / c, rad/m             */
+    __global const float *k,         /* (n_f,) two-way wavenumber 4 pi f / c, rad/m (any sign)  */
     __global const float2 *kuv,      /* (n_cols,) column spatial frequencies (ku, kv), rad/m     */
     const int n_cols,                /* columns                                                 */
     const int n_f,                   /* frequency samples per column                            */
@@ -45,11 +45,11 @@ __kernel void stolt_spread(
             const float kk = k[j];
             const float kz2 = kk * kk - kp2;
             if (kz2 <= 0.0f) continue;
-            const float s = sqrt(kp2) / kk;
+            const float s = sqrt(kp2) / fabs(kk);
             if (s >= s2) continue;
             const float ramp = (s - win.z) * win.w;
             const float w = ramp <= 0.0f ? 1.0f : 0.5f * (1.0f + cospi(ramp));
-            const float kz = sqrt(kz2);
+            const float kz = copysign(sqrt(kz2), kk);    /* negative frequencies: kz < 0 */
             const float alpha = 0.125f * kz * (b2 - proj * proj / (kk * kk));
             float cyc = kz * geo.y + alpha * geo.w;
             cyc -= RINT(cyc);

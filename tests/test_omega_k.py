@@ -302,7 +302,7 @@ def test_stolt_interpolation_equals_the_direct_sum():
     n_z = p.n_cells // 2
     got = columns_to_depths(spread(spec, k, ku, kv, p), n_z, p)
     c0, alpha, _, valid = _strengths(spec, k, ku, kv, p)
-    kz = np.sqrt(np.maximum(k[None, :] ** 2 - (ku**2 + kv**2)[:, None], 0))
+    kz = np.sign(k) * np.sqrt(np.maximum(k[None, :] ** 2 - (ku**2 + kv**2)[:, None], 0))  # k < 0: kz < 0
     ell = np.arange(n_z) - n_z // 2
     phase = np.exp(1j * kz[:, :, None] * ell[None, None, :] * p.dz_m)  # (cols, f, z)
     for term in range(p.n_terms):

@@ -25,7 +25,8 @@ wavenumber domain. The steps, and what each costs in accuracy:
    ``kappa``, so every measurement lands on the same ``k`` samples.
 2. **The band used** runs from the lowest to the highest frequency sample whose energy (summed
    over the measurements) is at least ``band_tol^2`` of the strongest sample's (default
-   -40 dB); what lies outside is dropped.
+   -40 dB); what lies outside is dropped. Frequencies below zero are kept (the sparse methods'
+   rendered pulses are wider than their carrier): backprojection forms them too.
 3. **Spatial FFT.** Per frequency the lattice is zero-padded to ``M_u x M_v`` (default: enough
    that the spread of the processed angles does not wrap onto the grid, from the geometry) and
    2-D FFT'd (scipy.fft with ``workers``). The band's outer ``taper`` (default 10 %) of each
@@ -138,10 +139,11 @@ def _spectra(data, tau0, dtau, fc, c, pad_time, band_tol, workers):
     # the band: the run of bins (in frequency order) from the first to the last whose energy
     # is at least band_tol^2 of the strongest bin's, above zero Hz
     srt = np.argsort(fb)
-    strong = np.flatnonzero((energy[srt] >= band_tol**2 * energy.max()) & (fb[srt] + fc > 0))
-    if len(strong) == 0 or energy.max() == 0:
-        raise ValueError("profiles: no frequency with energy above zero Hz (all-zero data?)")
+    strong = np.flatnonzero(energy[srt] >= band_tol**2 * energy.max())
+    if energy.max() == 0:
+        raise ValueError("profiles: all zero, nothing to image")
     bins = srt[strong.min(): strong.max() + 1]
+    bins = bins[fb[bins] + fc != 0]  # zero Hz carries nothing to an image
     f_b = fb[bins]
     df = 1.0 / (n_fft * dtau)
     c_arr = np.broadcast_to(np.asarray(c, float), (n_meas,))
@@ -160,7 +162,8 @@ def _spectra(data, tau0, dtau, fc, c, pad_time, band_tol, workers):
             s[m0:m1] *= (np.sinc(f_m * dtau) ** 2) / lin[None, :]
     s *= dtau * df * lin[None, :]
     e = energy[bins]
-    f_top = float(fc + f_b[np.flatnonzero(e >= 1e-2 * e.max()).max()])  # top of the -20 dB band
+    strong20 = np.flatnonzero(e >= 1e-2 * e.max())  # the -20 dB band's highest |frequency|
+    f_top = float(np.abs(fc + f_b[strong20]).max())
     return s, fc + f_b, c_ref, f_top
 
 
@@ -347,7 +350,7 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     du, dv = g.spacing_uv
     z0, z1 = float(depth[0]), float(depth[-1])
     nz = len(depth)
-    dz = (z1 - z0) / (nz - 1) if nz > 1 else 2 * np.pi / (2 * k.max())
+    dz = (z1 - z0) / (nz - 1) if nz > 1 else 2 * np.pi / (2 * np.abs(k).max())
     zc = z0 + (nz // 2) * dz
     zref = 2.0 / (1.0 / z0 + 1.0 / z1)
     u_max = 0.5 * (1.0 / z0 - 1.0 / z1)
@@ -358,7 +361,7 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     # aliased angles: U repeats of the periodic spectrum
     up = o["upsample"]
     if up == "auto":
-        need = s2 * k.max()
+        need = s2 * np.abs(k).max()
         up = max(1, int(math.ceil(need / (np.pi / min(du, dv)))))
     # spatial zero padding: the longest voxel-stop distance along the axis plus the spread, at
     # the deepest plane, of the angles the lattice samples unaliased at the band's top (the
@@ -384,9 +387,9 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     wu = _edge_window(ku_all, up * np.pi / du, o["taper"], o["window"])
     wv = _edge_window(kv_all, up * np.pi / dv, o["taper"], o["window"])
     # keep only columns with weight, and with any frequency inside the look-angle window
-    kp_ok = np.hypot(ku_all[:, None], kv_all[None, :]) < s2 * k.max()
+    kp_ok = np.hypot(ku_all[:, None], kv_all[None, :]) < s2 * np.abs(k).max()
     cols = np.argwhere((wu[:, None] * wv[None, :] > 0) & kp_ok)
-    alpha_max = (g.baseline_uvw[0] ** 2 + g.baseline_uvw[1] ** 2) * k.max() / 8
+    alpha_max = (g.baseline_uvw[0] ** 2 + g.baseline_uvw[1] ** 2) * np.abs(k).max() / 8
     n_terms = _n_terms(alpha_max, u_max, o["phase_tol"], o["bistatic"])
     b = tuple(g.baseline_uvw[:2]) if o["bistatic"] else (0.0, 0.0)
     n_cells = scipy.fft.next_fast_len(max(2 * nz, 2 * o["kernel_width"]))

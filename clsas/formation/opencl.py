@@ -51,7 +51,7 @@ class StoltPlan(Plan):
     def selftest_inputs(n_cols: int = 37, n_f: int = 23):
         """A small column set: evanescent, windowed and kept samples, several terms, folding."""
         rng = np.random.default_rng(3)
-        k = np.linspace(700.0, 1100.0, n_f)
+        k = np.linspace(-300.0, 1100.0, n_f)  # negative frequencies too
         ku = rng.uniform(-900, 900, n_cols)
         kv = rng.uniform(-500, 500, n_cols)
         spec = (rng.normal(size=(n_cols, n_f)) + 1j * rng.normal(size=(n_cols, n_f))) * 1e-3

@@ -79,8 +79,10 @@ def _strengths(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, 
     kk = k[None, :]
     kz2 = kk**2 - kp2
     valid = kz2 > 0
-    kz = np.sqrt(np.where(valid, kz2, 1.0))
-    s = np.sqrt(kp2) / kk
+    # negative frequencies (baseband profiles wider than their carrier, e.g. the sparse methods'
+    # rendered pulses) are exp(i k r) with k < 0: the same formulas with kz of k's sign
+    kz = np.sign(kk) * np.sqrt(np.where(valid, kz2, 1.0))
+    s = np.sqrt(kp2) / np.abs(kk)
     ramp = np.clip((s - p.s1) / max(p.s2 - p.s1, 1e-12), 0.0, 1.0)
     w = np.where(valid, 0.5 * (1 + np.cos(np.pi * ramp)), 0.0)
     bu, bv = p.baseline_uv
@@ -109,7 +111,8 @@ def spread(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: S
         Data spectrum per spatial-frequency column and frequency sample (all per-sample
         weights, such as the frequency step, already applied).
     k : (n_f,) float
-        Two-way wavenumber ``4 pi f / c`` of each sample, rad/m.
+        Two-way wavenumber ``4 pi f / c`` of each sample, rad/m (negative for negative
+        frequencies, where ``kz`` takes k's sign; zero is skipped).
     ku, kv : (n_cols,) float
         The columns' spatial frequencies, rad/m.
     p : StoltParams
