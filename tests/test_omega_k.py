@@ -186,6 +186,10 @@ def test_lattice_and_cone():
     fine = clsas.raster_aperture(10, 10, 0.025, 0.025)
     assert well_sampled_cone(fine.tx_positions, fine.rx_positions, grid, 30e3, 343.0).all()
     del w
+    with pytest.raises(ValueError, match="f_max_hz"):
+        well_sampled_cone(fine.tx_positions, fine.rx_positions, grid, float("nan"), 343.0)
+    with pytest.raises(ValueError, match="rx"):
+        well_sampled_cone(fine.tx_positions, fine.rx_positions[:3], grid, 30e3, 343.0)
 
 
 def test_options_and_inputs_are_checked(scan):

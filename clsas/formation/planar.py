@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import _validate as v
 from ..geometry import VoxelGrid
 
 __all__ = ["Lattice", "PlanarAperture", "NotPlanarUniform", "planar_aperture", "well_sampled_cone"]
@@ -176,8 +177,15 @@ def well_sampled_cone(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, f_max_hz:
     tol_m : float, optional
         Lattice tolerance (default ``c / f_max / 100``).
     """
-    tol = c_mps / f_max_hz / 100 if tol_m is None else tol_m
-    ap = planar_aperture(np.asarray(tx, float), np.asarray(rx, float), grid, tol)
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    tx = v.array("tx", tx, shape=(None, 3))
+    rx = v.array("rx", rx, shape=(len(tx), 3))
+    f_max_hz = v.positive("f_max_hz", f_max_hz)
+    c_mps = v.positive("c_mps", c_mps)
+    margin = v.positive("margin", margin)
+    tol = c_mps / f_max_hz / 100 if tol_m is None else v.positive("tol_m", tol_m)
+    ap = planar_aperture(tx, rx, grid, tol)
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
     U, V, W = np.meshgrid(pu, pv, np.abs(pw - ap.w_m), indexing="ij")
