@@ -15,8 +15,8 @@ Cases: ``demo`` (the demo's front scene: 18 x 12 stops over 1 m, the mannequin, 
 ``dense`` (a dense planar scan: 128 x 128 stops over 0.75 m, 256 x 256 x 128 voxels of 2.9 mm,
 a few reflectors; ``scale`` shrinks both sides), ``circular`` (360 stops on a 1 m circle, a
 5 mm grid; ``scale`` < 1 thins both).
-Cost exponents: each formation timed on planar scans of N x N stops and 2N x 2N x N voxels,
-and the slope of log(time) against log(N) fitted. Benchmarks measure; nothing here asserts.
+Cost exponents: each formation timed (the faster of two calls) on planar scans of N x N stops
+and 2N x 2N x N voxels, and the slope of log(time) against log(N) fitted. Benchmarks measure; nothing here asserts.
 """
 
 from __future__ import annotations
@@ -174,14 +174,17 @@ def scaling(formations=None, sides=(12, 16, 24, 32), bp_max_pairs: float = 2e9, 
             if f == "bp" and ds.n_meas * grid.size > bp_max_pairs:
                 continue
             say(f"scaling: {f} at N = {n}")
-            t = time.perf_counter()
+            best = float("inf")
             try:
-                form(profs[n], grid, f)
+                for _ in range(2):  # the faster of two calls: one-time costs and load spikes aside
+                    t = time.perf_counter()
+                    form(profs[n], grid, f)
+                    best = min(best, time.perf_counter() - t)
             except ValueError as exc:
                 log.info("scaling of %s at N=%d: %s", f, n, exc)
                 break
             xs.append(n)
-            ts.append(time.perf_counter() - t)
+            ts.append(best)
         if len(xs) >= 2:
             res[f] = {"sides": xs, "times_s": ts, "exponent": fit_exponent(xs, ts)}
     return res

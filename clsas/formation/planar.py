@@ -123,8 +123,13 @@ def planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: floa
             axis = a
             break
     if axis is None:
+        _groups(tx, rx, candidates[0], tol_m)  # a stop pattern that is no lattice says so first
         raise NotPlanarUniform("the grid crosses the aperture's plane (it must lie on one side of it)")
-    w = float(np.mean(pts[:, axis]))
+    return PlanarAperture(axis, float(np.mean(pts[:, axis])), _groups(tx, rx, axis, tol_m))
+
+
+def _groups(tx: np.ndarray, rx: np.ndarray, axis: int, tol_m: float) -> tuple[Lattice, ...]:
+    """The offset groups and their lattices in the plane normal to ``axis``."""
     perm = {0: (1, 2, 0), 1: (2, 0, 1), 2: (0, 1, 2)}[axis]
     mid = 0.5 * (tx + rx)[:, perm]
     base = (tx - rx)[:, perm]
@@ -132,6 +137,10 @@ def planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: floa
     key = np.round(base / max(tol_m, 1e-12)).astype(np.int64)
     _, inverse = np.unique(key, axis=0, return_inverse=True)
     inverse = inverse.ravel()
+    n_groups = int(inverse.max()) + 1
+    if n_groups > 1 and n_groups * 4 > len(tx):
+        raise NotPlanarUniform(f"the speaker-microphone offset changes from stop to stop ({n_groups} different "
+                               f"offsets in {len(tx)} measurements; a rotating rig?)")
     groups = []
     for g in range(inverse.max() + 1):
         index = np.flatnonzero(inverse == g)
@@ -147,7 +156,7 @@ def planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: floa
         bl = b.mean(axis=0)
         bl[2] = 0.0
         groups.append(Lattice(index, iu, iv, (u0, v0), (du, dv), (nu, nv), bl))
-    return PlanarAperture(axis, w, tuple(groups))
+    return tuple(groups)
 
 
 def _max_sin(lateral: np.ndarray, other: np.ndarray, depth: np.ndarray) -> np.ndarray:
