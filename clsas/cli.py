@@ -34,6 +34,8 @@ def _bar(desc: str, total: int, enabled: bool = True):
 
     with tqdm(total=total, desc=desc, unit="stop", disable=not enabled, leave=False) as bar:
         def update(done: int, _total: int) -> None:
+            if bar.total != _total:  # a formation counts its own steps (ω-k: spatial-frequency columns)
+                bar.total = _total
             bar.update(done - bar.n)
 
         yield update
@@ -66,14 +68,34 @@ def _simulate(cfg, progress=True):
                               seed=cfg.seed, chirp=cfg.chirp, config=cfg.text, progress=cb)
 
 
+def _formation_options(items: list[str] | None) -> dict:
+    """``KEY=VALUE`` pairs; values read as TOML scalars (numbers, true/false, "text"), else as text."""
+    import tomllib
+
+    out = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--formation-option must be KEY=VALUE, got {item!r}")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        out[key.strip()] = value
+    return out
+
+
 def _reconstruct(ds, grid, args, progress=True):
     import clsas
 
-    with _bar("backproject", ds.n_meas, progress) as cb:
+    formation = getattr(args, "formation", "bp")
+    options = _formation_options(getattr(args, "formation_option", None)) or None
+    with _bar("backproject" if formation == "bp" else formation, ds.n_meas, progress) as cb:
         return clsas.reconstruct(ds, grid, method=getattr(args, "method", "bp"),
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
-                                 force=getattr(args, "force", False))
+                                 force=getattr(args, "force", False), formation=formation,
+                                 formation_options=options)
 
 
 def cmd_demo(args) -> int:
@@ -299,11 +321,26 @@ def cmd_acquire(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from clsas.bench import run
+    from clsas.bench import run, run_formation
 
     def status(line: str) -> None:
         if not args.quiet:
             print(f"[bench] {line}", flush=True)
+
+    if args.formation is not None:
+        res = run_formation(full=args.full, out_dir=args.out, formations=args.formation or None, scale=args.scale,
+                            cases=args.cases, plots=not args.no_plots, status=status)
+        for c in res["cases"]:
+            for r in c["rows"]:
+                what = (f"refused ({r['refused'].split(':')[0]})" if "refused" in r else
+                        f"{r['time_s']:.2f} s" + (f", {r['speedup']:.0f}x bp, error {r['error_all_db']:.1f} dB over "
+                                                  "the grid" if "speedup" in r else "")
+                        + (f", {r['error_cone_db']:.1f} dB in the cone" if r.get("error_cone_db") is not None
+                           else ""))
+                print(f"{c['case']}: {r['formation']}: {what}")
+        for path in res["paths"].values():
+            print(f"wrote {path}")
+        return 0
 
     res = run(full=args.full, out_dir=args.out, scheduler=args.scheduler, use_dask=True if args.dask else None,
               plots=not args.no_plots, status=status)
@@ -371,6 +408,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
     r.add_argument("--preprocess", action="store_true",
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
+    from clsas.formation import FORMATIONS
+
+    r.add_argument("--formation", default="bp", choices=tuple(FORMATIONS),
+                   help="how the profiles become an image: bp (exact backprojection, default), omega-k (planar uniform "
+                   "apertures, much faster), ... (see README: Fast image formation)")
+    r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
+                   help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     _preprocess_options(r)
     r.add_argument("--autofocus", action="store_true",
                    help="estimate motion, sound speed and delay from the scan first (see clsas autofocus)")
@@ -454,6 +498,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "cluster of 2 workers with --full)")
     b.add_argument("--dask", action="store_true", help="run the Dask part in the quick set too")
     b.add_argument("--no-plots", action="store_true", help="no PNG")
+    b.add_argument("--formation", nargs="*", metavar="NAME", default=None,
+                   help="run only the image-formation benchmark, for these registered formations (default all; bp, "
+                   "the reference, always runs)")
+    b.add_argument("--scale", type=float, default=None,
+                   help="with --formation: size of the dense planar case (1 = 128 x 128 stops, 256 x 256 x 128 "
+                   "voxels; default 1 with --full, else 0.25)")
+    b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular"), default=None,
+                   help="with --formation: which cases (default all)")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.add_argument("-v", "--verbose", action="store_true", help="log details")
     b.set_defaults(func=cmd_bench)

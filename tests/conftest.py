@@ -22,7 +22,7 @@ BACKENDS = [
 ]
 
 # tolerance of the float32 kernels against the float64 twins, relative to the peak
-TOL = {"compress": 1e-5, "compress_fft": 1e-4, "fmcw": 2e-4, "backproject": 2e-4}
+TOL = {"compress": 1e-5, "compress_fft": 1e-4, "fmcw": 2e-4, "backproject": 2e-4, "stolt": 2e-4}
 
 
 def width_or_skip(kernel: str, vec: int) -> None:
