@@ -1,6 +1,6 @@
 """The ``clsas`` command: demo, simulate, reconstruct, limits, devices, acquire, bench; the commands
 for measured data (import, preprocess, compare, export) are in ``_cli_data.py``, ``devices``
-in ``_cli_devices.py``."""
+in ``_cli_devices.py``, ``acquire`` and ``bench`` in ``_cli_run.py``, ``autofocus`` in ``_cli_autofocus.py``."""
 
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ from ._cli_data import (
     cmd_preprocess,
 )
 from ._cli_devices import cmd_devices
+from ._cli_run import cmd_acquire, cmd_bench
 
 log = logging.getLogger("clsas")
 
@@ -34,6 +35,8 @@ def _bar(desc: str, total: int, enabled: bool = True):
 
     with tqdm(total=total, desc=desc, unit="stop", disable=not enabled, leave=False) as bar:
         def update(done: int, _total: int) -> None:
+            if bar.total != _total:  # a formation counts its own steps (ω-k: spatial-frequency columns)
+                bar.total = _total
             bar.update(done - bar.n)
 
         yield update
@@ -66,14 +69,34 @@ def _simulate(cfg, progress=True):
                               seed=cfg.seed, chirp=cfg.chirp, config=cfg.text, progress=cb)
 
 
+def _formation_options(items: list[str] | None) -> dict:
+    """``KEY=VALUE`` pairs; values read as TOML scalars (numbers, true/false, "text"), else as text."""
+    import tomllib
+
+    out = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--formation-option must be KEY=VALUE, got {item!r}")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        out[key.strip()] = value
+    return out
+
+
 def _reconstruct(ds, grid, args, progress=True):
     import clsas
 
-    with _bar("backproject", ds.n_meas, progress) as cb:
+    formation = getattr(args, "formation", "bp")
+    options = _formation_options(getattr(args, "formation_option", None)) or None
+    with _bar("backproject" if formation == "bp" else formation, ds.n_meas, progress) as cb:
         return clsas.reconstruct(ds, grid, method=getattr(args, "method", "bp"),
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
-                                 force=getattr(args, "force", False))
+                                 force=getattr(args, "force", False), formation=formation,
+                                 formation_options=options)
 
 
 def cmd_demo(args) -> int:
@@ -257,73 +280,6 @@ def cmd_limits(args) -> int:
     return 0
 
 
-def cmd_acquire(args) -> int:
-    from clsas import rig
-
-    if args.sample_config:
-        print(rig.SAMPLE_RIG_TOML, end="")
-        return 0
-    if not args.config or not args.out:
-        raise ValueError("clsas acquire needs a rig configuration and an output file: clsas acquire rig.toml out.h5 "
-                         "(clsas acquire --sample-config > rig.toml writes a commented example)")
-    if args.fault and args.simulate not in ("all", "stage"):
-        raise ValueError("--fault injects faults into the emulated stage: use it with --simulate or --simulate stage")
-    cfg = rig.load_rig_config(args.config)
-    faults = rig.Faults.parse(args.fault) if args.fault else None
-    flags = "" if not args.simulate else " --simulate" if args.simulate == "all" else f" --simulate {args.simulate}"
-    hint = f"resume with: clsas acquire {args.config} {args.out} --resume{flags}"
-    kind = {"all": "emulated ", "stage": "emulated-stage ", "audio": "simulated-audio "}.get(args.simulate, "")
-    print(f"{kind}scan: {cfg.n_stops} stops x {cfg.n_mics} microphone(s), "
-          f"{cfg.repeats} chirp(s) per stop at {cfg.fs_hz:g} Hz -> {args.out}")
-    from tqdm import tqdm
-
-    with tqdm(total=cfg.n_stops, desc="acquire", unit="stop", disable=args.quiet) as bar:
-        def progress(done: int, total: int) -> None:
-            bar.n = done
-            bar.refresh()
-
-        try:
-            res = rig.acquire(cfg, args.out, resume=args.resume, simulate=args.simulate or False, faults=faults,
-                              progress=progress, resume_hint=hint)
-        except rig.ScanInterrupted as exc:
-            bar.close()
-            print(f"clsas acquire: {exc}", file=sys.stderr)
-            return 130
-        except rig.ScanAborted as exc:
-            bar.close()
-            print(f"clsas acquire: {exc}", file=sys.stderr)
-            return 3
-    print(f"wrote {res.path}: {res.stops_done} of {res.n_stops} stops ({res.stops_this_run} this run, "
-          f"{res.retried_stops} retried) in {res.elapsed_s:.1f} s; image it with: clsas reconstruct {res.path}")
-    return 0
-
-
-def cmd_bench(args) -> int:
-    from clsas.bench import run
-
-    def status(line: str) -> None:
-        if not args.quiet:
-            print(f"[bench] {line}", flush=True)
-
-    res = run(full=args.full, out_dir=args.out, scheduler=args.scheduler, use_dask=True if args.dask else None,
-              plots=not args.no_plots, status=status)
-    for r in res["backprojection"]:
-        rt = r.get("ratios", {})
-        if "opencl_kernel / numpy_twin" in rt:
-            print(f"backprojection {r['workload']}: {r['opencl_kernel']['rate_per_s']:.3g} pairs/s, "
-                  f"{rt['opencl_kernel / numpy_twin']:.0f}x the NumPy twin"
-                  + (f", {rt['opencl_kernel / numba_peer']:.1f}x Numba" if "opencl_kernel / numba_peer" in rt else ""))
-    rt = res["compression"].get("ratios", {})
-    if "opencl_fft_kernel / fftconvolve" in rt:
-        print(f"compression: kernel {rt['opencl_fft_kernel / fftconvolve']:.2f}x fftconvolve, "
-              f"wall {rt['opencl_fft_wall / fftconvolve']:.2f}x")
-    if "backprojection_vs_pairs" in res["scaling"]:
-        print(f"backprojection cost ~ pairs^{res['scaling']['backprojection_vs_pairs']['exponent']:.2f}")
-    for path in res["paths"].values():
-        print(f"wrote {path}")
-    return 0
-
-
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -371,6 +327,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
     r.add_argument("--preprocess", action="store_true",
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
+    from clsas.formation import FORMATIONS
+
+    r.add_argument("--formation", default="bp", choices=tuple(FORMATIONS),
+                   help="how the profiles become an image: bp (exact backprojection, default), omega-k (planar uniform "
+                   "apertures, much faster), ... (see README: Fast image formation)")
+    r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
+                   help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     _preprocess_options(r)
     r.add_argument("--autofocus", action="store_true",
                    help="estimate motion, sound speed and delay from the scan first (see clsas autofocus)")
@@ -426,7 +389,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="all (the default when given alone): emulated GRBL stage and simulated microphone hearing "
                    "the [simulate] scene; stage: the emulated stage with the real sound card; audio: the real "
                    "stage (stage.port) with the simulated microphone")
-    a.add_argument("--fault", help="with --simulate: inject faults, e.g. alarm@5, error@3, drop-ok@2, disconnect@4 "
+    a.add_argument("--fault", help="with --simulate: inject faults, e.g. alarm@5, reset@2, error@3, drop-ok@2, "
+                   "disconnect@4 "
                    "(at the N-th move)")
     a.add_argument("--sample-config", action="store_true", help="print a commented rig.toml and exit")
     a.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -453,6 +417,14 @@ def build_parser() -> argparse.ArgumentParser:
                    "cluster of 2 workers with --full)")
     b.add_argument("--dask", action="store_true", help="run the Dask part in the quick set too")
     b.add_argument("--no-plots", action="store_true", help="no PNG")
+    b.add_argument("--formation", nargs="*", metavar="NAME", default=None,
+                   help="run only the image-formation benchmark, for these registered formations (default all; bp, "
+                   "the reference, always runs)")
+    b.add_argument("--scale", type=float, default=None,
+                   help="with --formation: size of the dense planar case (1 = 128 x 128 stops, 256 x 256 x 128 "
+                   "voxels; default 1 with --full, else 0.25)")
+    b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular"), default=None,
+                   help="with --formation: which cases (default all)")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.add_argument("-v", "--verbose", action="store_true", help="log details")
     b.set_defaults(func=cmd_bench)

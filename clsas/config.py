@@ -31,7 +31,7 @@ T = TypeVar("T")
 
 #: top-level tables of a scene file and of a rig file
 SCENE_TABLES = ("chirp", "aperture", "air", "noise", "points", "walls", "grid", "preprocess")
-RIG_TABLES = ("stage", "aperture", "audio", "chirp", "air", "grid", "simulate", "preprocess")
+RIG_TABLES = ("stage", "scan", "aperture", "audio", "recorder", "chirp", "air", "grid", "simulate", "preprocess")
 CHIRP_KEYS = ("f_start_hz", "f_stop_hz", "duration_s", "taper")
 POINT_KEYS = ("position_m", "amplitude", "visible")
 WALL_KEYS = ("point_m", "normal", "reflectivity")
@@ -39,7 +39,7 @@ GRID_KEYS = ("x_m", "y_m", "z_m", "spacing_m")
 
 _REQUIRED: Any = object()
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
-_RIG_ONLY = ("stage", "audio", "simulate")
+_RIG_ONLY = ("stage", "scan", "audio", "recorder", "simulate")
 _SCENE_ONLY = ("points", "walls", "noise")
 
 
@@ -228,7 +228,7 @@ def _nested_lists(value: Any) -> bool:
 
 def kind_of(cfg: dict) -> str:
     """``"rig"``, ``"scene"`` or ``"other"`` (e.g. an ``import.toml``), from the top-level tables."""
-    if any(t in cfg for t in ("stage", "audio")):
+    if any(t in cfg for t in ("stage", "scan", "audio", "recorder")):
         return "rig"
     if any(t in cfg for t in _SCENE_ONLY):
         return "scene"

@@ -22,7 +22,7 @@ BACKENDS = [
 ]
 
 # tolerance of the float32 kernels against the float64 twins, relative to the peak
-TOL = {"compress": 1e-5, "compress_fft": 1e-4, "fmcw": 2e-4, "backproject": 2e-4}
+TOL = {"compress": 1e-5, "compress_fft": 1e-4, "fmcw": 2e-4, "backproject": 2e-4, "stolt": 2e-4}
 
 
 def width_or_skip(kernel: str, vec: int) -> None:
@@ -66,3 +66,11 @@ def small_dataset(points, amplitudes=None, nx=9, ny=7, width=0.4, height=0.3, sn
     scene = clsas.Scene(np.asarray(points, float), amplitudes, visible, walls)
     return clsas.simulate(scene, ap, w, fs, snr_db=snr_db,
                           chirp={"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": duration_s})
+
+
+@pytest.fixture(scope="session")
+def grbl_exe(tmp_path_factory):
+    """The real GRBL 1.1h firmware built with grbl-sim (tests/grbl_kit.py); skips without the kit."""
+    from grbl_kit import build_grbl
+
+    return build_grbl(tmp_path_factory.mktemp("grbl_real"))

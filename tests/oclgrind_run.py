@@ -1,7 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [vec=N ...]. Checks each result against
-its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [stolt] [vec=N ...]. Checks each result
+against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
 
@@ -14,6 +14,7 @@ import clsas
 from clsas.autofocus.opencl import FocusGradientPlan
 from clsas.compress import fft_layout
 from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.formation.opencl import StoltPlan
 from clsas.imaging.opencl import BackprojectPlan
 
 FS = 96e3
@@ -65,6 +66,12 @@ def check_gradient(queue, rng, vec):
     assert FocusGradientPlan.selftest(queue, vec) < 1e-4, "focus_gradient"
 
 
+def check_stolt(queue, rng, vec):
+    # the plan's selftest: columns with evanescent, windowed and kept samples, three terms,
+    # positions that fold around the kz axis, VEC columns per work-item with a ragged last one
+    assert StoltPlan.selftest(queue, vec) < 2e-4, "stolt_spread"
+
+
 def main(kernels: set[str]) -> int:
     plats = [p for p in cl.get_platforms() if "Oclgrind" in p.name]
     if not plats:
@@ -83,9 +90,11 @@ def main(kernels: set[str]) -> int:
             check_backproject(queue, rng, vec)
         if "gradient" in kernels:
             check_gradient(queue, rng, vec)
+        if "stolt" in kernels:
+            check_stolt(queue, rng, vec)
     print("oclgrind run ok")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient", "stolt"}))

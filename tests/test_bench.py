@@ -96,7 +96,7 @@ def test_quick_bench_writes_json_report_and_plot(tmp_path, capsys):
     assert len(js) == 1 and "wrote" in out
     res = json.loads(js[0].read_text())
     assert res["mode"] == "quick" and res["versions"]["clsas"] == clsas.__version__
-    for part in ("backprojection", "compression", "scaling", "plan_saving", "two_echo", "delta_lambda"):
+    for part in ("backprojection", "compression", "scaling", "plan_saving", "two_echo", "delta_lambda", "formation"):
         assert part in res, part
     bp = res["backprojection"][0]
     assert bp["numpy_twin"]["rate_per_s"] > 0 and bp["numpy_twin"]["repeats"] >= 1

@@ -150,11 +150,11 @@ def test_preprocess_table_passes_through_scene_and_rig_files():
 
 
 @pytest.mark.parametrize("old,new,expected", [
-    ("settle_s = 0.5", "setle_s = 0.5", "[stage] unknown key 'setle_s' (did you mean 'settle_s'?)"),
-    ("repeats = 4", 'repeats = "4"', "audio.repeats must be an integer, got '4'"),
-    ("level = 0.5", "level = -0.5", "audio.level must be > 0, got -0.5"),
+    ("settle_s = 0.5", "setle_s = 0.5", "[scan] unknown key 'setle_s' (did you mean 'settle_s'?)"),
+    ("repeats = 4", 'repeats = "4"', "recorder.repeats must be an integer, got '4'"),
+    ("level = 0.5", "level = -0.5", "recorder.level must be > 0, got -0.5"),
     ("[audio]", "[adio]", "unknown table 'adio' (did you mean 'audio'?)"),
-    ("home = true", 'home = "yes"', "stage.home must be true or false, got 'yes'"),
+    ("home = true", 'home = "yes"', "scan.home must be true or false, got 'yes'"),
     ("mic_channels = [2]", "mic_channels = [0]", "audio.mic_channels must be a list of input channels"),
     ("noise_rms = 1e-4", "noise_rms = -1", "simulate.noise_rms must be >= 0, got -1"),
     ("position_m = [0.0, 0.0, 1.2]", "positon_m = [0.0, 0.0, 1.2]",
@@ -173,7 +173,8 @@ def test_rig_refusals_name_file_table_and_key(tmp_path, old, new, expected):
 
 
 def test_a_rig_file_is_not_a_scene_and_a_scene_is_not_a_rig_file():
-    with pytest.raises(ConfigError, match=r"rig\.toml is a rig configuration \(\[stage\], \[audio\], \[simulate\]\)"
+    with pytest.raises(ConfigError, match=r"rig\.toml is a rig configuration "
+                       r"\(\[stage\], \[scan\], \[audio\], \[recorder\], \[simulate\]\)"
                        r", not a scene file: scan it with `clsas acquire"):
         parse_config(rig.SAMPLE_RIG_TOML, "rig.toml")
     with pytest.raises(ConfigError, match=r"scene\.toml is a scene configuration \(\[\[points\]\], \[\[walls\]\], "

@@ -1,22 +1,18 @@
 """The rig client against the real GRBL 1.1h firmware (grbl-sim on a pseudo-terminal).
 
 The firmware is built from the kit in ``../shared/grbl-sim`` (or ``$CLSAS_GRBL_SIM``) with gcc
-and make; without them, or without the kit, these tests skip and say why.
+and make (tests/grbl_kit.py, the ``grbl_exe`` fixture); without them, or without the kit, these
+tests skip and say why. The fault matrix on it is in tests/test_rig_faults.py.
 """
 
 from __future__ import annotations
 
-import os
-import shutil
-import signal
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from grbl_kit import SETUP, STEP_MM, RealGrbl
 
 from clsas import rig
 from clsas.rig import GrblStage
@@ -24,77 +20,6 @@ from clsas.rig import GrblStage
 serial = pytest.importorskip("serial", reason="the rig tests need pyserial (pip install 'clsas[rig]')")
 
 pytestmark = pytest.mark.hw
-
-KIT = Path(os.environ.get("CLSAS_GRBL_SIM", Path(__file__).resolve().parents[2] / "shared" / "grbl-sim"))
-STEP_MM = 1 / 250  # $100/$101 steps per mm: one motor step
-# fast but real settings: homing on with soft limits, travel 1000 mm as in the sample rig.toml
-SETUP = ["$22=1", "$20=1", "$130=1000", "$131=1000", "$132=100", "$25=3000", "$24=500", "$27=1",
-         "$110=6000", "$111=6000", "$120=1000", "$121=1000"]
-
-
-@pytest.fixture(scope="session")
-def grbl_exe(tmp_path_factory) -> Path:
-    if sys.platform.startswith("win"):
-        pytest.skip("grbl-sim runs on POSIX only")
-    if not (KIT / "build.sh").is_file() or not list((KIT / "src").glob("*.tar.gz")):
-        pytest.skip(f"the grbl-sim kit is not at {KIT} (set CLSAS_GRBL_SIM)")
-    missing = [t for t in ("gcc", "make") if shutil.which(t) is None]
-    if missing:
-        pytest.skip(f"building the real GRBL firmware needs {' and '.join(missing)}")
-    root = tmp_path_factory.mktemp("grbl_real")
-    res = subprocess.run(["bash", str(KIT / "build.sh")], env=dict(os.environ, GRBL_REAL_DIR=str(root)),
-                         capture_output=True, text=True, timeout=300)
-    if res.returncode != 0:
-        pytest.fail(f"grbl-sim build failed:\n{res.stdout}\n{res.stderr}")
-    return root / "build" / "grbl" / "grbl-sim" / "grbl_sim.exe"
-
-
-def _read_until(port, done, timeout_s: float) -> bytes:
-    got = b""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not done(got):
-        got += port.read(4096)
-    return got
-
-
-class RealGrbl:
-    """grbl_pty.py running the firmware; ``port`` is the pty's link."""
-
-    def __init__(self, exe: Path, workdir: Path, start_mm: float = 5.0, reset_on_open: bool = False):
-        self.port = str(workdir / "ttyGRBL")
-        self.log = workdir / "transcript.log"
-        args = [sys.executable, str(KIT / "grbl_pty.py"), "--link", self.port, "--exe", str(exe),
-                "--workdir", str(workdir), "--start-mm", str(start_mm), "--log", str(self.log)]
-        if reset_on_open:
-            args.append("--reset-on-open")
-        self.proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        deadline = time.monotonic() + 10
-        while not os.path.exists(self.port):
-            if time.monotonic() > deadline or self.proc.poll() is not None:
-                self.stop()
-                pytest.fail(f"grbl_pty.py did not start: {self.proc.stderr.read().decode()}")
-            time.sleep(0.05)
-
-    def raw(self, *lines: str) -> str:
-        """Send lines with plain pyserial (no clsas checks); each must be answered ``ok``."""
-        with serial.serial_for_url(self.port, 115200, timeout=0.1) as s:
-            s.write(b"\x18")
-            out = _read_until(s, lambda got: b"Grbl 1.1" in got, 10.0)
-            out += _read_until(s, lambda got: False, 0.5)  # the boot's own lines (a fresh EEPROM's error:7)
-            for line in lines:
-                s.write(line.encode() + b"\n")
-                got = _read_until(s, lambda got: b"ok" in got or b"error" in got, 5.0)
-                assert got.strip().endswith(b"ok"), f"GRBL answered {got!r} to {line!r}"
-                out += got
-        return out.decode(errors="replace")
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(5)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
 
 
 @pytest.fixture
@@ -146,16 +71,23 @@ def test_soft_limit_alarm_resets_and_the_late_ok_is_not_taken_for_the_next_answe
         assert st.move_to(-20.0, -20.0).position_mm[:2] == pytest.approx((-20.0, -20.0), abs=STEP_MM)
 
 
-def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(grbl, tmp_path):
-    text = rig.SAMPLE_RIG_TOML.replace('port = "/dev/ttyUSB0"', f'port = "{grbl.port}"')
+def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(uno, tmp_path, capsys):
+    """The acceptance run: `clsas acquire --sample-config`, pointed at the firmware's pty (an Uno,
+    as the sample's reset_on_open = true says), with --simulate audio."""
+    from clsas.cli import main
+
+    assert main(["acquire", "--sample-config"]) == 0
+    text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{uno.port}"')
     # a small, fast grid near the sample's origin (positions, not speed, are what is checked)
-    text = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 1.0", "width_m = 0.06")
-            .replace("height_m = 1.0", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
-            .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
-    cfg = rig.parse_rig_config(text)
-    out = tmp_path / "scan.h5"
-    res = rig.acquire(cfg, out, simulate="audio")
-    assert res.complete and res.stops_this_run == cfg.n_stops
+    small = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 1.0", "width_m = 0.06")
+             .replace("height_m = 1.0", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
+             .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
+    assert small.count("\n") == text.count("\n") and small != text
+    conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
+    conf.write_text(small)
+    assert main(["acquire", str(conf), str(out), "--simulate", "audio", "-q"]) == 0
+    assert "6 of 6 stops (6 this run" in capsys.readouterr().out
+    cfg = rig.load_rig_config(conf)
     with h5py.File(out, "r") as f:
         assert f.attrs["complete"]
         stops = f["stop_index"][()]
@@ -163,3 +95,53 @@ def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(grbl, tmp
     np.testing.assert_array_equal(stops, np.arange(cfg.n_stops))  # every stop written once, in order
     targets = np.array([cfg.carriage_m(cfg.stage_target_mm(i)) for i in range(cfg.n_stops)])
     np.testing.assert_allclose(stage_m[:, :2], targets[:, :2], atol=STEP_MM / 1000)  # within a motor step
+    assert "\\x18" not in uno.transcript().split("reset on open (DTR)")[-1]  # the boot banner was waited for
+
+
+@pytest.fixture
+def uno(grbl_exe, tmp_path):
+    """The firmware behind a port that reboots it when opened, as an Arduino Uno's does."""
+    g = RealGrbl(grbl_exe, tmp_path, reset_on_open=True)
+    g.raw(*SETUP)
+    yield g
+    g.stop()
+
+
+@pytest.mark.parametrize("reset_wait_s,banners", [(3.0, 1), (0.3, 2)], ids=["waits-for-boot", "reset-crosses-boot"])
+def test_uno_reset_on_open_banner_is_waited_for_and_not_taken_for_an_answer(uno, reset_wait_s, banners):
+    """``reset_on_open``: the boot banner is waited for; when the wait is shorter than the boot,
+    the Ctrl-X sent meanwhile makes GRBL print a second banner, which must be dropped (not taken
+    for an answer to ``$$`` or for an unexpected reset)."""
+    start = len(uno.transcript())
+    with GrblStage(uno.port, feed_mm_min=6000, reset_on_open=True, reset_wait_s=reset_wait_s) as st:
+        assert st.version == "Grbl 1.1h" and st.settings[130] == 1000  # $$ answered by its own lines
+        assert any(line.startswith("$130=") for line in st.command("$$"))
+        st.home()
+        assert st.move_to(-30.0, -20.0).position_mm[:2] == pytest.approx((-30.0, -20.0), abs=STEP_MM)
+    log = uno.transcript()[start:]
+    assert "reset on open (DTR): restarting the simulator" in log  # the kit rebooted GRBL as the port opened
+    assert log.count("Grbl 1.1h") == banners
+    assert ("\\x18" in log) == (banners == 2)  # Ctrl-X only when the boot outlasted the wait
+
+
+def test_hard_limit_alarm_then_jogging_off_retrips_unless_hard_limits_are_off(grbl):
+    """``$21=1``: driving onto a home switch raises ALARM:1 (clsas resets); a jog off the switch
+    after ``$X`` trips it again (GRBL reacts to any change of the pin), ``move_off_limit`` turns
+    hard limits off for the jog, and ``$H`` homes from the pressed switch."""
+    grbl.raw("$20=0", "$21=1")
+    with GrblStage(grbl.port, feed_mm_min=6000, reset_on_open=False) as st:
+        st.home()
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 \(hard limit.*'\$21=0'"):
+            st.command("G53 G1 X5 F3000")
+            st.wait_idle(10.0)
+        st.command("$X")
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 "):
+            st.command("G91 G1 X-5 F1000")
+            st.wait_idle(10.0)
+        off = st.move_off_limit(-5.0, 0.0)
+        assert off.state == "Idle" and st.read_settings()[21] == 1  # hard limits on again
+        assert st.home().position_mm[:2] == pytest.approx((-1.0, -1.0), abs=STEP_MM)
+        st.command("G53 G1 X5 F3000")  # onto the switch again, and home from there
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 "):
+            st.wait_idle(10.0)
+        assert st.home().position_mm[:2] == pytest.approx((-1.0, -1.0), abs=STEP_MM)

@@ -1,4 +1,5 @@
-"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl; autofocus.cl) runs clean under Oclgrind."""
+"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl; autofocus.cl; stolt.cl) runs clean
+under Oclgrind."""
 
 import os
 import subprocess
@@ -27,12 +28,12 @@ def _oclgrind_available() -> str | None:
 # first run, and VEC 4 and 8 (the same code with narrower vectors) for uninitialised values.
 WIDTHS = ("vec=4", "vec=8", "vec=16")
 CHECKS = [
-    pytest.param({"OCLGRIND_DATA_RACES": "1"}, ["compress", "fft", "backproject", "gradient", *WIDTHS],
+    pytest.param({"OCLGRIND_DATA_RACES": "1"}, ["compress", "fft", "backproject", "gradient", "stolt", *WIDTHS],
                  id="memcheck+races-all"),
 ] + [
     pytest.param({"OCLGRIND_UNINITIALIZED": "1"}, [kernels, f"vec={vec}"], id=f"uninitialized-{kernels}-vec{vec}")
     for kernels, vecs in [("compress", (4, 8, 16)), ("fft", (4, 8, 16)), ("backproject", (4, 8)),
-                           ("gradient", (4, 8))]
+                           ("gradient", (4, 8)), ("stolt", (4, 16))]
     for vec in vecs
 ]
 

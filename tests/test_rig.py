@@ -25,10 +25,12 @@ def rig_toml(nx=4, ny=3, mics=1, repeats=1, timeout_s=1.0, extra=""):
     return f"""
 [stage]
 port = "unused"
-origin_mm = [-300, -300]
-settle_s = 0
 timeout_s = {timeout_s}
 feed_mm_min = 6000
+
+[scan]
+origin_mm = [-300, -300]
+settle_s = 0
 
 [aperture]
 nx = {nx}
@@ -39,6 +41,8 @@ rx_offset_m = {rx}
 
 [audio]
 mic_channels = {ch}
+
+[recorder]
 record_s = 0.016
 repeats = {repeats}
 repeat_gap_s = 0
@@ -304,11 +308,13 @@ def test_import_clsas_stays_light():
 # -- configuration ------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("old,new,match", [
-    ("record_s = 0.016", "record_s = 0.016\nfs_hz = 44100", "audio.fs_hz must be 96000 or 192000"),
+    ("mic_channels = [2]", "mic_channels = [2]\nfs_hz = 44100", "audio.fs_hz must be 96000 or 192000"),
     ("mic_channels = [2]", "mic_channels = [2, 3]", "one input channel per microphone"),
     ("mic_channels = [2]", "mic_channels = [1]", "loopback_channel 1 is also a microphone"),
     ("origin_mm = [-300, -300]", "origin_mm = [-50, -300]", "outside stage.work_area_mm"),
-    ("repeats = 1", "repeats = 0", "audio.repeats"),
+    ("repeats = 1", "repeats = 0", "recorder.repeats"),
+    ("record_s = 0.016", "record_s = 0.016\ndevice = 1",
+     r"\[recorder\] unknown key 'device': it belongs in \[audio\] device"),
     ("record_s = 0.016", "record_s = 0.001", "shorter than the chirp"),
     ("[stage]", "[stage\n", "not valid TOML"),
 ])
@@ -321,6 +327,68 @@ def test_sample_config_parses():
     cfg = rig.parse_rig_config(rig.SAMPLE_RIG_TOML)
     assert cfg.n_stops == 18 * 12 and cfg.n_mics == 1 and cfg.fs_hz == 96000
     assert cfg.stage_target_mm(0) == (-1000.0, -1000.0) and cfg.stage_target_mm(17) == (0.0, -1000.0)
+    assert cfg.stage["reset_on_open"] is True and cfg.home and cfg.settle_s == 0.5
+
+
+def _parameters(func, skip=()):
+    import inspect
+
+    return {name for name in inspect.signature(func).parameters if name not in ("self", *skip)}
+
+
+def test_config_sections_are_the_constructors_arguments():
+    cfg = rig.parse_rig_config(rig.SAMPLE_RIG_TOML)
+    assert set(cfg.stage) == _parameters(GrblStage.__init__)
+    assert set(cfg.audio) == _parameters(rig.SoundDeviceIO.__init__)
+    assert set(cfg.recorder) == _parameters(rig.Recorder.__init__, skip=("io", "waveform", "fs_hz", "n_samples"))
+    st = rig.scan.stage_for(cfg)
+    assert st.port == "/dev/ttyUSB0" and st.reset_on_open is True and st.work_area_mm.tolist() == [[-1000, 0]] * 2
+    rec = rig.scan.recorder_for(cfg, rig.SimulatedIO(cfg.scene(), cfg.fs_hz))
+    assert rec.n_samples == cfg.n_samples == 1920 and rec.repeats == 4
+
+
+FLAT = """
+[stage]
+port = "/dev/ttyACM0"
+home = false
+origin_mm = [-200, -200]
+settle_s = 0.25
+homing_timeout_s = 90
+feed_mm_min = 2000
+
+[aperture]
+nx = 2
+ny = 2
+width_m = 0.1
+height_m = 0.1
+
+[audio]
+device = 3
+record_s = 0.01
+repeats = 2
+level = 0.3
+"""
+
+
+def test_old_flat_keys_are_read_with_a_warning_naming_where_they_moved():
+    with pytest.warns(FutureWarning) as record:
+        old = rig.parse_rig_config(FLAT, "old.toml")
+    assert len(record) == 1 and str(record[0].message).startswith("old.toml uses keys of the older flat layout: ")
+    for moved in ("[stage] settle_s has moved to [scan] settle_s", "[stage] home has moved to [scan] home",
+                  "[stage] homing_timeout_s has moved to [stage] home_timeout_s",
+                  "[audio] record_s has moved to [recorder] record_s", "[audio] level has moved to [recorder] level"):
+        assert moved in str(record[0].message), moved
+    new = rig.parse_rig_config(FLAT.replace("home = false\norigin_mm = [-200, -200]\nsettle_s = 0.25\n", "")
+                               .replace("homing_timeout_s", "home_timeout_s")
+                               .replace("record_s = 0.01\nrepeats = 2\nlevel = 0.3\n", "")
+                               + "\n[scan]\nhome = false\norigin_mm = [-200, -200]\nsettle_s = 0.25\n"
+                               + "\n[recorder]\nrecord_s = 0.01\nrepeats = 2\nlevel = 0.3\n")
+    assert old.stage == new.stage and old.audio == new.audio and old.recorder == new.recorder
+    assert (old.home, old.settle_s, old.origin_mm.tolist()) == (False, 0.25, [-200, -200]) == \
+        (new.home, new.settle_s, new.origin_mm.tolist())
+    assert old.stage["home_timeout_s"] == 90 and old.recorder["repeats"] == 2
+    with pytest.raises(ValueError, match=r"\[stage\] settle_s and \[scan\] settle_s are the same setting; keep"):
+        rig.parse_rig_config(FLAT + "\n[scan]\nsettle_s = 1\n")
 
 
 # -- scans: faults, resume, equality ------------------------------------------------------------
@@ -344,7 +412,8 @@ def _assert_equal_files(a, b):
         assert att_a[k] == att_b[k] or k == "clsas_version", k
 
 
-FAULTS = [(kind, n) for kind in ("alarm", "error", "drop-ok", "disconnect") for n in (1, 7, 12)]
+# alarms, resets, disconnects, audio errors and Ctrl-C: tests/test_rig_faults.py (emulator and real firmware)
+FAULTS = [(kind, n) for kind in ("error", "drop-ok") for n in (1, 7, 12)]
 
 
 @pytest.mark.parametrize("kind,n", FAULTS, ids=[f"{k}@{n}" for k, n in FAULTS])
@@ -526,8 +595,8 @@ def test_jack_unknown_device_is_refused():
 @needs_jack
 def test_jack_scan_with_emulated_stage(tmp_path, jack_io):
     """The scan script end to end with real audio: the stops' t0 come from the JACK loopback."""
-    text = rig_toml(nx=3, ny=1).replace("record_s = 0.016", "record_s = 0.01\ndevice = \"loopback\"")
-    cfg = rig.parse_rig_config(text.replace("mic_channels = [2]", "mic_channels = [2]\nretries = 5"))
+    text = rig_toml(nx=3, ny=1).replace("record_s = 0.016", "record_s = 0.01\nretries = 5")
+    cfg = rig.parse_rig_config(text.replace("mic_channels = [2]", "mic_channels = [2]\ndevice = \"loopback\""))
     path = tmp_path / "jack.h5"
     res = rig.acquire(cfg, path, simulate=True, audio_io=jack_io)
     assert res.complete
@@ -613,7 +682,7 @@ def test_import_clsas_rig_needs_no_posix_terminal_modules():
 
 def test_moving_off_a_limit_switch_turns_hard_limits_off_then_on():
     with GrblEmulator(time_scale=0.01, faults=Faults(alarm_at_move=1)) as emu, GrblStage(emu.port) as st:
-        emu.written[21] = 1.0  # hard limits on
+        emu.hard_limits = True  # $21=1
         st.settings = st.read_settings()
         st.home()
         with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 .*'\$21=0'"):
@@ -623,3 +692,46 @@ def test_moving_off_a_limit_switch_turns_hard_limits_off_then_on():
         i = sent.index("$21=0")
         assert sent[i + 1] == "$X" and sent[i + 2].startswith("G91 G1 X5.000") and sent[-1] == "$21=1"
         assert emu.written[21] == 1.0 and emu.state == "Idle"
+
+
+def test_hard_limit_then_jogging_off_retrips_as_on_the_real_firmware():
+    """As tests/test_grbl_real.py checks on GRBL 1.1h: the switch trips on the way onto it and off it."""
+    with GrblEmulator(time_scale=0.01, soft_limits=False, hard_limits=True) as emu, GrblStage(emu.port) as st:
+        st.home()
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 \(hard limit.*'\$21=0'"):
+            st.command("G53 G1 X5 F3000")
+            st.wait_idle(5.0)
+        assert emu.position_mm[0] == pytest.approx(0.0)  # stopped on the switch
+        st.command("$X")
+        with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 "):
+            st.command("G91 G1 X-5 F1000")
+            st.wait_idle(5.0)
+        assert st.move_off_limit(-5.0, 0.0).state == "Idle" and st.read_settings()[21] == 1
+        assert st.home().position_mm[:2] == (-1.0, -1.0)
+
+
+@pytest.mark.parametrize("board,client,wait_s,banners,ctrl_x", [
+    (True, True, 2.0, 1, 0),     # an Uno: the boot banner is waited for, nothing is sent before it
+    (True, True, 0.2, 2, 1),     # the wait is shorter than the boot: the Ctrl-X's banner follows, dropped
+    (True, False, 2.0, 1, 0),    # a Ctrl-X sent at once is lost in the boot: the boot banner answers
+    (False, True, 0.3, 1, 1),    # no reset on open: no banner, so a soft reset after the wait
+    (False, None, 0.3, 1, 1),
+], ids=["uno", "uno-reset-crosses-boot", "uno-client-resets", "no-auto-reset", "no-auto-reset-auto"])
+def test_reset_on_open_banner_is_waited_for_and_a_second_one_dropped(board, client, wait_s, banners, ctrl_x):
+    """As tests/test_grbl_real.py checks on GRBL 1.1h behind the kit's --reset-on-open port."""
+    with GrblEmulator(time_scale=1.0, banner_delay_s=0.6, homing_s=0.1, reset_on_open=board) as emu:
+        with GrblStage(emu.port, reset_on_open=client, reset_wait_s=wait_s) as st:
+            assert st.version == "Grbl 1.1h" and st.settings[130] == 1000
+            assert any(line.startswith("$130=") for line in st.command("$$"))  # not a banner's leftovers
+            assert st.home().state == "Idle"
+        assert (emu.banners, emu.ctrl_x) == (banners, ctrl_x)
+
+
+def test_recorder_takes_its_length_as_samples_or_seconds():
+    io = rig.SimulatedIO(clsas.Scene(np.array([[0.0, 0.0, 0.5]])), 96e3)
+    assert rig.Recorder(io, np.ones(10), 96e3, record_s=0.01).n_samples == 960
+    for args in ({}, {"n_samples": 960, "record_s": 0.01}):
+        with pytest.raises(TypeError, match="n_samples or as record_s"):
+            rig.Recorder(io, np.ones(10), 96e3, **args)
+    with pytest.raises(ValueError, match="record_s"):
+        rig.Recorder(io, np.ones(10), 96e3, record_s=-1.0)

@@ -10,6 +10,9 @@ one ``PYOPENCL_CTX`` names):
   of the scene-aware plan against a full-window, full-volume one;
 - error against run time for every reconstruction method on the two-echo task and on the
   paper's Delta x lam grid;
+- fast image formation (:mod:`clsas.bench.formation`): every registered formation against exact
+  backprojection, error against run time on the demo, a dense planar and a circular scan,
+  with fitted cost exponents (``clsas bench --formation`` runs this part alone);
 - with Dask (``--full``, or ``--scheduler``): the sweeps run on the cluster and are checked
   against a serial run, and a volume is backprojected in tiles and checked against one call.
 
@@ -30,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["run", "QUICK", "FULL"]
+__all__ = ["run", "run_formation", "QUICK", "FULL"]
 
 log = logging.getLogger(__name__)
 
@@ -169,11 +172,45 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
         rows = af.run_cases(af.CASES_FULL if cfg["autofocus"] == "full" else af.CASES_QUICK, status=say)
         res["autofocus"] = {"rows": rows, "markdown": af.markdown(rows)}
 
+    from . import formation
+
+    say("image formation against exact backprojection")
+    fcfg = formation.FULL if full else formation.QUICK
+    res["formation"] = formation.run(fcfg["cases"], scale=fcfg["scale"], sides=fcfg["sides"], status=say)
+
     if use_dask:
         res["dask"] = _dask_part(cfg, res, scheduler, say)
 
     stem = f"{dt.date.today()}-{re.sub(r'[^A-Za-z0-9]+', '-', device).strip('-')[:60]}" + ("" if full else "-quick")
     res["paths"] = write_report(res, Path(out_dir), stem, plots=plots)
+    return res
+
+
+def run_formation(full: bool = False, out_dir: str | Path = "bench/results", *, formations=None,
+                  scale: float | None = None, cases=None, sides=None, plots: bool = True,
+                  status: Callable[[str], None] | None = None) -> dict:
+    """Only the image-formation part (:mod:`clsas.bench.formation`), written to
+    ``<out>/<date>-formation-<device>[-quick].json`` and ``.md`` (and ``.png``).
+
+    ``scale`` shrinks the dense planar case (1: 128 x 128 stops, 256 x 256 x 128 voxels; the
+    quick set uses 0.25); ``formations`` picks registered formations (bp always runs: it is
+    the reference); ``cases`` picks among ``demo``, ``dense``, ``circular``; ``sides`` are the
+    scans (N x N stops) of the cost fit (empty: no fit).
+    """
+    from . import formation, throughput
+
+    say = status or (lambda s: log.info("%s", s))
+    cfg = formation.FULL if full else formation.QUICK
+    info = throughput.opencl_device_info()
+    device = info["name"] if info else "NumPy only (no OpenCL device)"
+    res = formation.run(tuple(cases or cfg["cases"]), formations, cfg["scale"] if scale is None else scale,
+                        cfg["sides"] if sides is None else sides, status=say)
+    res.update(date=dt.datetime.now().isoformat(timespec="seconds"), device=device, mode="full" if full else "quick",
+               host=f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs",
+               versions=_versions())
+    stem = (f"{dt.date.today()}-formation-{re.sub(r'[^A-Za-z0-9]+', '-', device).strip('-')[:60]}"
+            + ("" if full else "-quick"))
+    res["paths"] = formation.write(res, Path(out_dir), stem, plots=plots)
     return res
 
 

@@ -139,6 +139,10 @@ def markdown(res: dict, png: Path | None = None) -> str:
         md.append(f"| {m} | {b['delta_s']:g} s | {b['lam_frac']:g} | {b['error']:.3g} | {b['time_s'] * 1e3:.1f} ms | "
                   f"{b['median_error']:.3g} | {b['median_time_s'] * 1e3:.1f} ms |")
 
+    if "formation" in res:
+        from .formation import markdown as formation_markdown
+
+        md += ["", *formation_markdown(res["formation"])]
     if "dask" in res:
         d = res["dask"]
         md += ["", "## Dask", "", f"Cluster: {d['scheduler']} ({d['workers']} workers).", "",

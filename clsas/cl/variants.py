@@ -47,6 +47,7 @@ KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
     "matched_fft": (("common.cl", "compress.cl"), "clsas.compress.opencl", "FftMatchedPlan"),
     "backproject": (("common.cl", "backproject.cl"), "clsas.imaging.opencl", "BackprojectPlan"),
     "focus_gradient": (("common.cl", "autofocus.cl"), "clsas.autofocus.opencl", "FocusGradientPlan"),
+    "stolt_spread": (("common.cl", "stolt.cl"), "clsas.formation.opencl", "StoltPlan"),
 }
 WIDTHS = (16, 8, 4)
 PROBE_TIMEOUT_S = 300.0

@@ -137,13 +137,17 @@ class Recorder:
     io : SoundDeviceIO or SimulatedIO
         ``io.playrec(drive (n,), context) -> (inputs (n, 1 + n_mics), problems)``: loopback first.
     waveform : (n_wave,) unit-peak chirp; it is played at ``level``.
-    fs_hz, n_samples, level, repeats, repeat_gap_s, retries, clip_level, max_latency_s,
-    acoustic_delay_s : see ``rig.toml``'s [audio].
+    fs_hz : sample rate (Hz).
+    n_samples : int, optional
+        Samples kept per take after the onset; or give ``record_s`` (s) instead.
+    level, record_s, repeats, repeat_gap_s, retries, clip_level, max_latency_s, acoustic_delay_s :
+        see ``rig.toml``'s ``[recorder]``, whose keys are these arguments.
     """
 
-    def __init__(self, io, waveform: np.ndarray, fs_hz: float, n_samples: int, *, level: float = 0.5,
-                 repeats: int = 1, repeat_gap_s: float = 0.05, retries: int = 3, clip_level: float = 0.99,
-                 max_latency_s: float = 0.1, acoustic_delay_s: float = 0.0) -> None:
+    def __init__(self, io, waveform: np.ndarray, fs_hz: float, n_samples: int | None = None, *,
+                 record_s: float | None = None, level: float = 0.5, repeats: int = 1, repeat_gap_s: float = 0.05,
+                 retries: int = 3, clip_level: float = 0.99, max_latency_s: float = 0.1,
+                 acoustic_delay_s: float = 0.0) -> None:
         if not callable(getattr(io, "playrec", None)):
             raise TypeError(f"io must have a playrec(out, context) method, got {type(io).__name__}")
         self.io = io
@@ -154,6 +158,10 @@ class Recorder:
             raise ValueError(f"level and clip_level are fractions of full scale (at most 1), got {level}, {clip_level}")
         self.drive = level * self.waveform
         self.fs_hz = v.positive("fs_hz", fs_hz)
+        if (n_samples is None) == (record_s is None):
+            raise TypeError("give the take's length as n_samples or as record_s (one of them)")
+        if record_s is not None:
+            n_samples = int(round(v.positive("record_s", record_s) * self.fs_hz))
         self.n_samples = v.positive_int("n_samples", n_samples)
         self.repeats = v.positive_int("repeats", repeats)
         self.gap = int(round(v.non_negative("repeat_gap_s", repeat_gap_s) * fs_hz))

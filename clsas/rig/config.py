@@ -1,7 +1,11 @@
-"""The rig configuration (``rig.toml``): stage, aperture, audio, chirp, air, grid, simulation.
+"""The rig configuration (``rig.toml``): stage, scan, aperture, audio, recorder, chirp, air, grid,
+simulation.
 
-See the README section "Building and running a rig" for a commented example; every key has a
-default except ``stage.port`` (not needed with ``--simulate``).
+``[stage]``, ``[audio]`` and ``[recorder]`` hold the constructor arguments of :class:`GrblStage`,
+:class:`SoundDeviceIO` and :class:`Recorder`; ``[scan]`` the stop loop's (homing, origin,
+settling). See the README section "Building and running a rig" for a commented example; every
+key has a default except ``stage.port`` (not needed with ``--simulate``). Files in the older flat
+layout are read with a warning that names where each key moved.
 """
 
 from __future__ import annotations
@@ -21,16 +25,24 @@ __all__ = ["RigConfig", "parse_rig_config", "load_rig_config", "SAMPLE_RIG_TOML"
 
 SAMPLE_RIG_TOML = """\
 # clsas rig configuration: one file describes the rig and the scan.
-[stage]
+[stage]                        # the GRBL stage: clsas.rig.GrblStage(**[stage])
 port = "/dev/ttyUSB0"          # any pyserial URL: COM3, socket://host:2000, ...
 baudrate = 115200
-home = true                    # $H before the scan (false: $X unlock only)
 feed_mm_min = 3000             # G1 feed rate between stops
 work_area_mm = [[-1000, 0], [-1000, 0]]   # machine coordinates a move may reach: after $H, GRBL's
                                # machine space is [-travel, 0] ($130/$131) with soft limits on
-origin_mm = [-500, -500]       # machine position of the scan centre
-# homing_timeout_s = 300       # default: from GRBL's $25 seek rate and $130-$132 travel
+reset_on_open = true           # an Arduino Uno/Nano reboots when its port opens (false: a board without
+                               # auto-reset, which gets a soft reset instead)
+# timeout_s = 5                # for the answer ('ok') to one line
+# home_timeout_s = 300         # default: from GRBL's $25 seek rate and $130-$132 travel
 # move_timeout_s = 60          # default: from feed_mm_min and the work area
+# reset_wait_s = 2.5           # for the start-up banner after opening the port
+# poll_hz = 5                  # '?' status reports while a move runs (at most 5)
+# position_tol_mm = 0.02       # how close to the target a move must end
+
+[scan]                         # the stop loop
+home = true                    # $H before the scan (false: $X unlock only)
+origin_mm = [-500, -500]       # machine position of the scan centre
 settle_s = 0.5                 # wait after each move before the chirp (vibration)
 
 [aperture]
@@ -42,12 +54,14 @@ pattern = "serpentine"         # or "raster"
 tx_offset_m = [-0.02, 0.0, 0.0]      # speaker, relative to the carriage
 rx_offset_m = [[0.02, 0.0, 0.0]]     # one offset per microphone
 
-[audio]
+[audio]                        # the sound card: clsas.rig.SoundDeviceIO(**[audio])
 device = "default"             # a name (substring) or index from `clsas devices`
 fs_hz = 96000                  # 96000 or 192000
 output_channel = 1             # speaker drive (1-based)
 loopback_channel = 1           # input wired back from the speaker drive
 mic_channels = [2]             # one input per microphone, in rx_offset_m's order
+
+[recorder]                     # the takes: clsas.rig.Recorder(io, chirp, fs_hz, **[recorder])
 level = 0.5                    # peak drive, full scale = 1
 record_s = 0.02                # kept per stop after the chirp leaves (0.02 s = 3.4 m of round trip)
 max_latency_s = 0.1            # longest output-to-input latency expected
@@ -85,44 +99,52 @@ time_scale = 0.01              # emulated moves run 100x faster than real ones
 
 @dataclass
 class RigConfig:
-    """A parsed ``rig.toml``; ``text`` is stored verbatim in the dataset."""
+    """A parsed ``rig.toml``; ``text`` is stored verbatim in the dataset.
+
+    ``stage``, ``audio`` and ``recorder`` are the keyword arguments of :class:`GrblStage`,
+    :class:`SoundDeviceIO` and :class:`Recorder` (``[stage]``, ``[audio]``, ``[recorder]``, with
+    every default filled in); ``home``, ``origin_mm`` and ``settle_s`` drive the stop loop
+    (``[scan]``).
+    """
 
     text: str
-    port: str | None
-    baudrate: int
+    stage: dict  # GrblStage(**stage); stage["port"] may be None (--simulate)
     home: bool
-    feed_mm_min: float | None
-    work_area_mm: np.ndarray
     origin_mm: np.ndarray
     settle_s: float
-    stage_timeout_s: float
-    poll_hz: float
+    audio: dict  # SoundDeviceIO(**audio)
+    recorder: dict  # Recorder(io, waveform, audio["fs_hz"], **recorder)
     stops_m: np.ndarray  # (n_stops, 3) carriage positions in scan order
     tx_offset_m: np.ndarray  # (3,)
     rx_offsets_m: np.ndarray  # (n_mics, 3)
-    device: str | int
-    fs_hz: float
-    output_channel: int
-    loopback_channel: int
-    mic_channels: list[int]
-    level: float
-    record_s: float
-    max_latency_s: float
-    repeats: int
-    repeat_gap_s: float
-    retries: int
-    clip_level: float
-    acoustic_delay_s: float
     chirp: dict
     waveform: np.ndarray  # unit-peak chirp at fs_hz
     temperature_c: float
     humidity_pct: float
     sensor_command: str | None
-    homing_timeout_s: float | None = None  # None: from GRBL's $25 and travel
-    move_timeout_s: float | None = None  # None: from the feed rate and the work area
     simulate: dict = field(default_factory=dict)  # [simulate], checked: points, walls, numbers
     preprocess: dict = field(default_factory=dict)  # [preprocess], checked by clsas.preprocess.from_table
     grid: VoxelGrid | None = None  # [grid], where `clsas reconstruct` images by default
+
+    @property
+    def port(self) -> str | None:
+        return self.stage["port"]
+
+    @property
+    def work_area_mm(self) -> np.ndarray:
+        return np.asarray(self.stage["work_area_mm"], float)
+
+    @property
+    def fs_hz(self) -> float:
+        return self.audio["fs_hz"]
+
+    @property
+    def level(self) -> float:
+        return self.recorder["level"]
+
+    @property
+    def repeats(self) -> int:
+        return self.recorder["repeats"]
 
     @property
     def n_stops(self) -> int:
@@ -134,7 +156,7 @@ class RigConfig:
 
     @property
     def n_samples(self) -> int:
-        return int(round(self.record_s * self.fs_hz))
+        return int(round(self.recorder["record_s"] * self.fs_hz))
 
     def stage_target_mm(self, stop: int) -> tuple[float, float]:
         """Machine (x, y) in mm of stop ``stop``."""
@@ -170,13 +192,20 @@ class RigConfig:
         return v.finite("temperature_c", t), v.non_negative("humidity_pct", h)
 
 
-STAGE_KEYS = ("port", "baudrate", "home", "feed_mm_min", "work_area_mm", "origin_mm", "settle_s", "timeout_s",
-              "poll_hz", "homing_timeout_s", "move_timeout_s")
+#: [stage]: GrblStage's arguments; [scan]: the stop loop; [audio]: SoundDeviceIO's; [recorder]: Recorder's
+STAGE_KEYS = ("port", "baudrate", "work_area_mm", "feed_mm_min", "timeout_s", "home_timeout_s", "move_timeout_s",
+              "poll_hz", "reset_wait_s", "reset_on_open", "position_tol_mm")
+SCAN_KEYS = ("home", "origin_mm", "settle_s")
 APERTURE_KEYS = ("nx", "ny", "width_m", "height_m", "pattern", "tx_offset_m", "rx_offset_m")
-AUDIO_KEYS = ("device", "fs_hz", "output_channel", "loopback_channel", "mic_channels", "level", "record_s",
-              "max_latency_s", "repeats", "repeat_gap_s", "retries", "clip_level", "acoustic_delay_s")
+AUDIO_KEYS = ("device", "fs_hz", "output_channel", "loopback_channel", "mic_channels")
+RECORDER_KEYS = ("level", "record_s", "max_latency_s", "repeats", "repeat_gap_s", "retries", "clip_level",
+                 "acoustic_delay_s")
 AIR_KEYS = ("temperature_c", "humidity_pct", "sensor_command")
 SIMULATE_KEYS = ("points", "walls", "noise_rms", "mic_gain", "latency_samples", "time_scale", "seed")
+#: keys of the flat layout (before [scan] and [recorder]): (table, key) -> (new table, new key)
+MOVED = {("stage", "home"): ("scan", "home"), ("stage", "origin_mm"): ("scan", "origin_mm"),
+         ("stage", "settle_s"): ("scan", "settle_s"), ("stage", "homing_timeout_s"): ("stage", "home_timeout_s"),
+         **{("audio", k): ("recorder", k) for k in RECORDER_KEYS}}
 
 
 def _optional_seconds(st: c.Table, key: str) -> float | None:
@@ -200,6 +229,29 @@ def _simulate_table(cfg: dict, source: str) -> dict:
     return out
 
 
+def _move_old_keys(cfg: dict, source: str) -> None:
+    """Read the flat layout's keys at their new places, with one warning that says where each moved."""
+    import warnings
+
+    moved = []
+    for (old_table, key), (table, new_key) in MOVED.items():
+        old = cfg.get(old_table)
+        if not isinstance(old, dict) or key not in old:
+            continue
+        new = cfg.setdefault(table, {})
+        if not isinstance(new, dict):
+            continue  # the table check says what is wrong with it
+        if new_key in new:
+            raise c.ConfigError(f"{source}: [{old_table}] {key} and [{table}] {new_key} are the same setting; "
+                                f"keep [{table}] {new_key} only")
+        new[new_key] = old.pop(key)
+        moved.append(f"[{old_table}] {key} has moved to [{table}] {new_key}")
+    if moved:
+        warnings.warn(f"{source} uses keys of the older flat layout: {'; '.join(moved)}. They are read from the "
+                      "old places for now, but a later clsas will refuse them there (clsas acquire "
+                      "--sample-config prints the new layout)", FutureWarning, stacklevel=3)
+
+
 def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
     """Parse and check the text of a ``rig.toml``.
 
@@ -216,14 +268,27 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         (a ``ValueError``) naming the file, the table and the key: invalid TOML, a scene file,
         an unknown table or key, a value of the wrong type or out of range, or keys that
         disagree (one input channel per microphone, the aperture inside the work area, ...).
+
+    Warns
+    -----
+    FutureWarning
+        For a key of the older flat layout (``[stage] home, origin_mm, settle_s``,
+        ``homing_timeout_s``; ``[audio] level, record_s, repeats, ...``), naming where it moved
+        (``[scan]``, ``[stage] home_timeout_s``, ``[recorder]``); its value is used.
     """
-    cfg = c.read_toml(text, source, "rig", {"stage": STAGE_KEYS, "aperture": APERTURE_KEYS, "audio": AUDIO_KEYS,
-                                             "chirp": c.CHIRP_KEYS, "air": AIR_KEYS, "grid": c.GRID_KEYS,
-                                             "simulate": SIMULATE_KEYS})
-    st = c.Table(cfg.get("stage", {}), source, "[stage]", STAGE_KEYS)
+    cfg = c.read_toml(text, source, "rig", {"stage": STAGE_KEYS, "scan": SCAN_KEYS, "aperture": APERTURE_KEYS,
+                                             "audio": AUDIO_KEYS, "recorder": RECORDER_KEYS, "chirp": c.CHIRP_KEYS,
+                                             "air": AIR_KEYS, "grid": c.GRID_KEYS, "simulate": SIMULATE_KEYS})
+    _move_old_keys(cfg, source)
+    st = c.Table(cfg.get("stage", {}), source, "[stage]", STAGE_KEYS,
+                 hints={k: f"it belongs in [scan] {k}" for k in SCAN_KEYS})
+    sc = c.Table(cfg.get("scan", {}), source, "[scan]", SCAN_KEYS,
+                 hints={k: f"it belongs in [stage] {k} (GrblStage's arguments)" for k in STAGE_KEYS})
     ap = c.Table(cfg.get("aperture", {}), source, "[aperture]", APERTURE_KEYS)
     au = c.Table(cfg.get("audio", {}), source, "[audio]", AUDIO_KEYS,
                  hints={"snr_db": "the emulated microphone's noise is [simulate] noise_rms"})
+    rec = c.Table(cfg.get("recorder", {}), source, "[recorder]", RECORDER_KEYS,
+                  hints={k: f"it belongs in [audio] {k} (the sound card's)" for k in AUDIO_KEYS})
     ch = c.Table(cfg.get("chirp", {}), source, "[chirp]", c.CHIRP_KEYS,
                  hints={"fs_hz": "a rig's sample rate is [audio] fs_hz"})
     air = c.Table(cfg.get("air", {}), source, "[air]", AIR_KEYS)
@@ -258,60 +323,71 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         pattern=ap.string("pattern", "serpentine", choices=("serpentine", "raster")),
     )
     area = st.vector("work_area_mm", [[-1000, 0], [-1000, 0]], shape=(2, 2))
-    origin = st.vector("origin_mm", [-500, -500], shape=(2,))
+    origin = sc.vector("origin_mm", [-500, -500], shape=(2,))
     stops = aperture.stage_positions
     targets = origin + 1000.0 * stops[:, :2]
     for axis, name in ((0, "x"), (1, "y")):
         lo, hi = targets[:, axis].min(), targets[:, axis].max()
         if lo < area[axis, 0] or hi > area[axis, 1]:
             raise fail(f"the aperture spans {name} = [{lo:g}, {hi:g}] mm on the stage, outside stage.work_area_mm "
-                       f"{area[axis].tolist()}: reduce the aperture or move stage.origin_mm")
+                       f"{area[axis].tolist()}: reduce the aperture or move scan.origin_mm")
     feed = st.number("feed_mm_min", 3000.0, low=0)
     device = au.raw("device", "default")
     if not isinstance(device, str | int) or isinstance(device, bool):
         raise fail(f"audio.device must be a device name or index, got {device!r}")
-    level = float(au.number("level", 0.5, above=0))
+    level = float(rec.number("level", 0.5, above=0))
     if level > 1:
-        raise fail(f"audio.level must be at most 1 (full scale), got {level:g}")
-    record_s = float(au.number("record_s", 0.02, above=0))
+        raise fail(f"recorder.level must be at most 1 (full scale), got {level:g}")
+    record_s = float(rec.number("record_s", 0.02, above=0))
     if record_s * fs < len(waveform):
-        raise fail(f"audio.record_s = {record_s:g} s is shorter than the chirp ({chirp['duration_s']:g} s)")
-    port = st.string("port", None)
-    sensor = air.string("sensor_command", None)
+        raise fail(f"recorder.record_s = {record_s:g} s is shorter than the chirp ({chirp['duration_s']:g} s)")
+    poll_hz = float(st.number("poll_hz", 5.0, above=0))
+    if poll_hz > 5:
+        raise fail(f"stage.poll_hz must be at most 5 (GRBL's advice for '?' polling), got {poll_hz:g}")
+    reset_on_open = st.raw("reset_on_open", None)
+    if reset_on_open is not None:
+        reset_on_open = st.boolean("reset_on_open")
+    stage = {
+        "port": st.string("port", None),
+        "baudrate": st.integer("baudrate", 115200, low=1),
+        "work_area_mm": tuple(map(tuple, area.tolist())),
+        "feed_mm_min": None if feed == 0 else float(feed),
+        "timeout_s": float(st.number("timeout_s", 5.0, above=0)),
+        "home_timeout_s": _optional_seconds(st, "home_timeout_s"),
+        "move_timeout_s": _optional_seconds(st, "move_timeout_s"),
+        "poll_hz": poll_hz,
+        "reset_wait_s": float(st.number("reset_wait_s", 2.5, low=0)),
+        "reset_on_open": reset_on_open,
+        "position_tol_mm": float(st.number("position_tol_mm", 0.02, above=0)),
+    }
+    recorder = {
+        "level": level,
+        "record_s": record_s,
+        "max_latency_s": float(rec.number("max_latency_s", 0.1, above=0)),
+        "repeats": rec.integer("repeats", 1, low=1),
+        "repeat_gap_s": float(rec.number("repeat_gap_s", 0.05, low=0)),
+        "retries": rec.integer("retries", 3, low=1),
+        "clip_level": min(float(rec.number("clip_level", 0.99, above=0)), 1.0),
+        "acoustic_delay_s": float(rec.number("acoustic_delay_s", 0.0)),
+    }
+    audio = {"device": device, "fs_hz": fs, "output_channel": au.integer("output_channel", 1, low=1),
+             "loopback_channel": loop, "mic_channels": mics}
     return RigConfig(
         text=text,
-        port=port,
-        baudrate=st.integer("baudrate", 115200, low=1),
-        home=st.boolean("home", True),
-        feed_mm_min=None if feed == 0 else float(feed),
-        work_area_mm=area,
+        stage=stage,
+        home=sc.boolean("home", True),
         origin_mm=origin,
-        settle_s=float(st.number("settle_s", 0.5, low=0)),
-        stage_timeout_s=float(st.number("timeout_s", 5.0, above=0)),
-        poll_hz=float(st.number("poll_hz", 5.0, above=0)),
-        homing_timeout_s=_optional_seconds(st, "homing_timeout_s"),
-        move_timeout_s=_optional_seconds(st, "move_timeout_s"),
+        settle_s=float(sc.number("settle_s", 0.5, low=0)),
+        audio=audio,
+        recorder=recorder,
         stops_m=stops,
         tx_offset_m=tx_off,
         rx_offsets_m=rx,
-        device=device,
-        fs_hz=fs,
-        output_channel=au.integer("output_channel", 1, low=1),
-        loopback_channel=loop,
-        mic_channels=mics,
-        level=level,
-        record_s=record_s,
-        max_latency_s=float(au.number("max_latency_s", 0.1, above=0)),
-        repeats=au.integer("repeats", 1, low=1),
-        repeat_gap_s=float(au.number("repeat_gap_s", 0.05, low=0)),
-        retries=au.integer("retries", 3, low=1),
-        clip_level=min(float(au.number("clip_level", 0.99, above=0)), 1.0),
-        acoustic_delay_s=float(au.number("acoustic_delay_s", 0.0)),
         chirp=chirp,
         waveform=waveform,
         temperature_c=float(air.number("temperature_c", 20.0, low=-273.15)),
         humidity_pct=float(air.number("humidity_pct", 50.0, low=0, high=100)),
-        sensor_command=sensor,
+        sensor_command=air.string("sensor_command", None),
         simulate=_simulate_table(cfg, source),
         preprocess=c.preprocess_table(cfg, source),
         grid=c.grid_table(cfg, source),

@@ -7,9 +7,9 @@ boot-loader noise, as an Arduino that resets when its port is opened), ``ok`` an
 machine position advances while the state is ``Run``), ``G4`` dwells, and the real-time
 ``?`` (status report), ``!`` (feed hold), ``~`` (cycle start) and Ctrl-X (soft reset).
 
-Faults are injected at the N-th motion command (``G0``/``G1``, counted from 1): a hard-limit
-alarm part way through the move, an ``error:N`` answer, a dropped ``ok``, or a disconnect.
-It is used by the tests and by ``clsas acquire --simulate``.
+Faults (:class:`Faults`) are injected at the N-th motion command; :meth:`GrblEmulator.press_reset`
+and :meth:`GrblEmulator.disconnect` press the reset button or pull the cable at any time. Used by
+the tests and by ``clsas acquire --simulate``.
 """
 
 from __future__ import annotations
@@ -36,12 +36,14 @@ class Faults:
     """Faults to inject, each at the N-th motion command (1-based); None for none.
 
     alarm_at_move : ALARM:1 (hard limit) half way through that move; the machine stops.
+    reset_at_move : the reset button half way through that move (``ALARM:3``, then the banner).
     error_at_move : answer ``error:<error_code>`` to that move instead of running it.
     drop_ok_at_move : run that move but never send its ``ok``.
     disconnect_at_move : close the port when that move arrives.
     """
 
     alarm_at_move: int | None = None
+    reset_at_move: int | None = None
     error_at_move: int | None = None
     error_code: int = 33
     drop_ok_at_move: int | None = None
@@ -49,10 +51,11 @@ class Faults:
 
     @classmethod
     def parse(cls, text: str) -> Faults:
-        """From ``"alarm@5"``, ``"error@3"``, ``"drop-ok@2"``, ``"disconnect@4"`` (comma-separated)."""
+        """From ``"alarm@5"``, ``"reset@2"``, ``"error@3"``, ``"drop-ok@2"``, ``"disconnect@4"``
+        (comma-separated)."""
         f = cls()
-        names = {"alarm": "alarm_at_move", "error": "error_at_move", "drop-ok": "drop_ok_at_move",
-                 "disconnect": "disconnect_at_move"}
+        names = {"alarm": "alarm_at_move", "reset": "reset_at_move", "error": "error_at_move",
+                 "drop-ok": "drop_ok_at_move", "disconnect": "disconnect_at_move"}
         for part in filter(None, (p.strip() for p in text.split(","))):
             kind, _, n = part.partition("@")
             if kind not in names or not n.isdigit() or int(n) < 1:
@@ -67,7 +70,8 @@ class _Move:
     start: np.ndarray
     end: np.ndarray
     duration_s: float
-    alarm: bool = False
+    alarm_at: float | None = None  # fraction of the move where ALARM:1 (hard limit) trips
+    reset_at: float | None = None  # fraction of the move where the reset button is pressed
     t_start: float | None = None
 
 
@@ -89,8 +93,14 @@ class GrblEmulator:
     max_rate_mm_min : rapid (G0) rate per the ``$110`` setting.
     homing : starts locked in Alarm until ``$H`` or ``$X`` (``$22=1``).
     soft_limits : a target outside the travel raises ALARM:2 (``$20=1``).
+    hard_limits : limit switches at the home end of each axis, at machine coordinate 0 (where
+        ``$H`` finds them, before the pull-off), trip ALARM:1 when the carriage reaches one, or
+        moves off the one it stopped on (``$21=1``). ``$20=`` and ``$21=`` writes switch both.
     banner_delay_s : boot time after the port opens, before the banner (an Arduino's boot loader
         takes ~1.5 s); scaled by ``time_scale`` but never under 50 ms.
+    reset_on_open : like an Arduino Uno, the controller reboots whenever its port is opened
+        (position lost, banner after ``banner_delay_s``); False: it runs on across opens and
+        says nothing until spoken to, like a board without auto-reset.
     """
 
     faults: Faults = field(default_factory=Faults)
@@ -100,16 +110,20 @@ class GrblEmulator:
     homing: bool = True
     homing_s: float = 3.0
     soft_limits: bool = True
+    hard_limits: bool = False
     banner_delay_s: float = 1.5
     pulloff_mm: float = 1.0
     report_mpos: bool = True
     work_offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seek_rate_mm_min: float = 500.0
+    reset_on_open: bool = True
 
     def __post_init__(self) -> None:
         self.received: list[str] = []  # every line received, for the tests
         self.written: dict[int, float] = {}  # settings written with $N=value
         self.status_times: list[float] = []  # when each '?' arrived (monotonic s)
+        self.banners = 0  # start-up banners sent (boots and soft resets)
+        self.ctrl_x = 0  # soft resets (Ctrl-X) received
         self.moves = 0
         self._pos = np.zeros(3)
         self._queue: list[_Move] = []
@@ -118,6 +132,7 @@ class GrblEmulator:
         self._relative = False
         self._line = b""
         self._locked_until_reset = False  # after ALARM:1/2 only Ctrl-X is answered
+        self._on_switch = False  # a hard limit left the carriage on a switch
         self._late_ok = False  # the refused line's ok, sent after the reset
         self._stop = threading.Event()
         self._lock = threading.Lock()
@@ -187,15 +202,15 @@ class GrblEmulator:
                 return  # no client on the port: the line is lost, as on a real serial line
 
     def _banner(self) -> None:
+        self.banners += 1
         self._send("")
         self._send("Grbl 1.1h ['$' for help]")
         if self._state == "Alarm":
             self._send("[MSG:'$H'|'$X' to unlock]")
 
     def _run(self) -> None:
-        # Like an Arduino, the controller resets whenever its port is opened: until a client
-        # opens the pseudo-terminal, reading the master fails (EIO); the first quiet select
-        # after that means a client is there, and the banner follows the boot delay.
+        # Until a client opens the pseudo-terminal, reading the master fails (EIO); the first quiet
+        # select after that means a client is there (and, reset_on_open, the banner follows the boot).
         connected = False
         while not self._stop.is_set() and not self._closed:
             try:
@@ -205,18 +220,23 @@ class GrblEmulator:
             with self._lock:
                 self._advance(time.monotonic())
             if not connected:
+                data = b""
                 if ready:
                     try:
-                        os.read(self._master, 1024)
-                        continue  # stale bytes from an earlier client
+                        data = os.read(self._master, 1024)
                     except BlockingIOError:
                         pass  # a client opened the port between select and read
                     except OSError:
                         time.sleep(0.005)  # no client: the slave side is closed
                         continue
+                    if self.reset_on_open:
+                        continue  # bytes that arrive while the board boots are lost
                 connected = True
                 log.debug("emulator: a client opened %s", self.port)
-                self._reset_on_open()
+                if self.reset_on_open:
+                    self._reset_on_open()
+                for byte in data:  # a board that runs on answers at once
+                    self._byte(byte)
                 continue
             if not ready:
                 continue
@@ -264,17 +284,9 @@ class GrblEmulator:
                     if self._queue:
                         self._queue[0].t_start = time.monotonic()
         elif ch == b"\x18":
+            self.ctrl_x += 1
             with self._lock:
-                moving = self._state in ("Run", "Hold", "Home")
-                self._queue.clear()
-                self._state = "Alarm" if (self.homing or moving or self._locked_until_reset) else "Idle"
-                self._locked_until_reset = False
-                late, self._late_ok = self._late_ok, False
-            if moving:
-                self._send("ALARM:3")
-            self._banner()
-            if late:
-                self._send("ok")
+                self._soft_reset()
         elif ch in (b"\n", b"\r"):
             line, self._line = self._line.decode("ascii", "replace").strip(), b""
             if line and self._locked_until_reset:
@@ -294,24 +306,54 @@ class GrblEmulator:
             if mv.t_start is None:
                 mv.t_start = now
             frac = (now - mv.t_start) / mv.duration_s if mv.duration_s > 0 else 1.0
-            if mv.alarm and frac >= 0.5:
-                self._pos = mv.start + 0.5 * (mv.end - mv.start)
+            if mv.alarm_at is not None and frac >= mv.alarm_at:
+                self._pos = mv.start + mv.alarm_at * (mv.end - mv.start)
                 self._queue.clear()
                 self._state = "Alarm"
                 self._send("ALARM:1")
+                self._on_switch = True
                 self._send("[MSG:Reset to continue]")
                 self._locked_until_reset = True
+                return
+            if mv.reset_at is not None and frac >= mv.reset_at:
+                self._pos = mv.start + mv.reset_at * (mv.end - mv.start)
+                self._soft_reset()
                 return
             if frac < 1.0:
                 self._pos = mv.start + frac * (mv.end - mv.start)
                 return
             self._pos = mv.end.copy()
             self._queue.pop(0)
+            self._on_switch = False  # it moved off (hard limits were off, or it would have tripped)
             if self._queue:
                 self._queue[0].t_start = mv.t_start + mv.duration_s
                 self._queue[0].start = self._pos.copy()
         if not self._queue and self._state == "Run":
             self._state = "Idle"
+
+    def _soft_reset(self) -> None:
+        """Ctrl-X or the reset button (called with the lock held): stop, ALARM:3 if moving, banner."""
+        moving = self._state in ("Run", "Hold", "Home")
+        self._queue.clear()
+        self._state = "Alarm" if (self.homing or moving or self._locked_until_reset) else "Idle"
+        self._locked_until_reset = False
+        late, self._late_ok = self._late_ok, False
+        if moving:
+            self._send("ALARM:3")
+        self._banner()
+        if late:
+            self._send("ok")
+
+    def press_reset(self) -> None:
+        """The controller's reset button: a soft reset as if Ctrl-X had come from the port."""
+        with self._lock:
+            self._advance(time.monotonic())
+            self._soft_reset()
+
+    def disconnect(self) -> None:
+        """The port disappears (a pulled USB cable): the client's next read or write fails."""
+        log.info("emulator: disconnected")
+        self._close_master()
 
     def _hold_now(self) -> None:
         mv = self._queue[0]
@@ -406,8 +448,14 @@ class GrblEmulator:
                 self._send("error:22")
                 return
             dist = float(np.linalg.norm(target - last))
-            self._queue.append(_Move(last.copy(), target, dist / rate * 60.0 * self.time_scale,
-                                     alarm=(f.alarm_at_move == n)))
+            alarm_at = 0.5 if f.alarm_at_move == n else None
+            if self.hard_limits and self._on_switch:
+                alarm_at = 0.0  # GRBL trips on any change of a switch's pin: moving off it too
+            if self.hard_limits and np.any(target > 0):  # the carriage reaches a home switch at 0
+                hit = [(0.0 - last[i]) / (target[i] - last[i]) for i in range(3) if target[i] > 0 >= last[i]]
+                alarm_at = min([*hit, *([] if alarm_at is None else [alarm_at])], default=0.0)
+            self._queue.append(_Move(last.copy(), target, dist / rate * 60.0 * self.time_scale, alarm_at=alarm_at,
+                                     reset_at=0.5 if f.reset_at_move == n else None))
             if self._state == "Idle":
                 self._state = "Run"
         if f.drop_ok_at_move == n:
@@ -424,6 +472,7 @@ class GrblEmulator:
             time.sleep(self.homing_s * self.time_scale)
             with self._lock:
                 self._pos = -self.pulloff_mm * np.ones(3)
+                self._on_switch = False
                 self._queue.clear()
                 self._state = "Idle"
             return self._send("ok")
@@ -434,24 +483,27 @@ class GrblEmulator:
                     self._send("[MSG:Caution: Unlocked]")
             return self._send("ok")
         m = re.fullmatch(r"\$(\d+)=([-+]?\d*\.?\d+)", up)
-        if m:  # a setting write, kept for `$$` (only $21 changes the emulation's answers)
-            self.written[int(m.group(1))] = float(m.group(2))
+        if m:  # a setting write, kept for `$$` ($20 and $21 switch the soft and hard limits)
+            key, val = int(m.group(1)), float(m.group(2))
+            self.written[key] = val
+            if key == 20:
+                self.soft_limits = bool(val)
+            elif key == 21:
+                self.hard_limits = bool(val)
             return self._send("ok")
         if up == "$$":
-            settings = {10: int(self.report_mpos), 20: int(self.soft_limits and self.homing), 21: 0,
-                        22: int(self.homing),
-                        25: self.seek_rate_mm_min, 27: self.pulloff_mm, 110: self.max_rate_mm_min,
-                        111: self.max_rate_mm_min, 130: self.travel_mm[0], 131: self.travel_mm[1],
-                        132: self.travel_mm[2]}
-            settings.update(self.written)
+            settings = {10: int(self.report_mpos), 20: int(self.soft_limits and self.homing), 21: int(self.hard_limits),
+                        22: int(self.homing), 25: self.seek_rate_mm_min, 27: self.pulloff_mm,
+                        110: self.max_rate_mm_min, 111: self.max_rate_mm_min,
+                        **{130 + i: travel for i, travel in enumerate(self.travel_mm)}}
+            settings.update({k: val for k, val in self.written.items() if k not in (20, 21)})
             for k, val in settings.items():
                 self._send(f"${k}={val:g}")
             return self._send("ok")
-        if up == "$I":
-            self._send("[VER:1.1h.20190825:clsas-emulator]")
-            self._send("[OPT:V,15,128]")
-            return self._send("ok")
-        if up == "$":
-            self._send("[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]")
+        answers = {"$I": ["[VER:1.1h.20190825:clsas-emulator]", "[OPT:V,15,128]"],
+                   "$": ["[HLP:$$ $# $G $I $N $x=val $Nx=line $J=line $SLP $C $X $H ~ ! ? ctrl-x]"]}
+        if up in answers:
+            for line in answers[up]:
+                self._send(line)
             return self._send("ok")
         return self._send("error:3")

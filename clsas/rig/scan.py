@@ -18,7 +18,8 @@ from .emulator import Faults, GrblEmulator
 from .grbl import GrblStage, StageError
 from .store import ScanFile
 
-__all__ = ["acquire", "ScanResult", "ScanAborted", "ScanInterrupted"]
+__all__ = ["acquire", "stage_for", "audio_for", "recorder_for", "store_for", "run_stops", "ScanResult", "ScanAborted",
+           "ScanInterrupted"]
 
 log = logging.getLogger(__name__)
 
@@ -49,10 +50,78 @@ class ScanResult:
         return self.stops_done == self.n_stops
 
 
-def _stage_for(config: RigConfig, port: str) -> GrblStage:
-    return GrblStage(port, baudrate=config.baudrate, work_area_mm=tuple(map(tuple, config.work_area_mm)),
-                     feed_mm_min=config.feed_mm_min, timeout_s=config.stage_timeout_s, poll_hz=config.poll_hz,
-                     home_timeout_s=config.homing_timeout_s, move_timeout_s=config.move_timeout_s)
+def _check_config(config) -> None:
+    if not isinstance(config, RigConfig):
+        raise TypeError(f"config must be a RigConfig (clsas.rig.load_rig_config), got {type(config).__name__}")
+
+
+def stage_for(config: RigConfig, port: str | None = None, cls: type[GrblStage] = GrblStage, **kwargs) -> GrblStage:
+    """The stage ``config`` describes: ``cls(**config.stage)``, on ``port`` if given; ``kwargs``
+    override or add constructor arguments."""
+    _check_config(config)
+    args = {**config.stage, **kwargs}
+    if port is not None:
+        args["port"] = port
+    return cls(**args)
+
+
+def audio_for(config: RigConfig, simulate: bool, air: tuple[float, float]):
+    """The audio source: the sound card ``[audio]`` describes, or (``simulate``) the microphone
+    that hears the ``[simulate]`` scene in ``air`` (temperature C, humidity %)."""
+    if not simulate:
+        return SoundDeviceIO(**config.audio)
+    sim = config.simulate
+    return SimulatedIO(config.scene(*air), config.fs_hz, latency_samples=int(sim.get("latency_samples", 300)),
+                       noise_rms=float(sim.get("noise_rms", 1e-4)), mic_gain=float(sim.get("mic_gain", 0.05)),
+                       seed=int(sim.get("seed", 0)))
+
+
+def recorder_for(config: RigConfig, audio_io) -> Recorder:
+    """The takes ``[recorder]`` describes, played and recorded through ``audio_io``."""
+    _check_config(config)
+    return Recorder(audio_io, config.waveform, config.fs_hz, **config.recorder)
+
+
+def store_for(config: RigConfig, out: Path, resume: bool, air: tuple[float, float]) -> ScanFile:
+    """The scan file: ``out`` reopened at its first missing stop, or created for ``config``."""
+    _check_config(config)
+    if resume:
+        store = ScanFile.resume(out, config.text)
+        log.info("resuming %s at stop %d of %d", out, store.stops_done + 1, config.n_stops)
+        return store
+    return ScanFile.create(out, fs_hz=config.fs_hz, waveform=config.level * config.waveform,
+                           n_samples=config.n_samples, n_mics=config.n_mics, n_stops=config.n_stops,
+                           temperature_c=air[0], humidity_pct=air[1], c_mps=speed_of_sound(air[0]),
+                           chirp=config.chirp, config_text=config.text)
+
+
+def run_stops(config: RigConfig, stage: GrblStage, recorder: Recorder, store: ScanFile, *, settle_s: float,
+              progress: Callable[[int, int], None] | None = None, on_stop: Callable[[int], None] | None = None) -> int:
+    """The stop loop on an open stage: home or unlock, then move, settle, record and store every
+    stop from the file's first missing one. Returns how many stops needed a retried take."""
+    _check_config(config)
+    if config.home:
+        stage.home()
+    else:
+        stage.unlock()
+    retried = 0
+    for i in range(store.stops_done, config.n_stops):
+        if on_stop is not None:
+            on_stop(i)
+        x_mm, y_mm = config.stage_target_mm(i)
+        st = stage.move_to(x_mm, y_mm)
+        if settle_s:
+            time.sleep(settle_s)
+        carriage = config.carriage_m(st.position_mm)
+        tx = carriage + config.tx_offset_m
+        rx = carriage[None, :] + config.rx_offsets_m
+        take = recorder.take(i, tx, rx)
+        retried += take.attempts > 1
+        store.append(i, signals=take.signals, tx_m=tx, rx_m=rx, t0_s=take.t0_s, stage_m=carriage,
+                     timestamp=time.time(), loopback=take.loopback)
+        if progress is not None:
+            progress(i + 1, config.n_stops)
+    return retried
 
 
 def acquire(
@@ -68,6 +137,10 @@ def acquire(
     resume_hint: str | None = None,
 ) -> ScanResult:
     """Run the scan described by ``config`` and write it to ``out``, one stop at a time.
+
+    The parts are :func:`stage_for`, :func:`audio_for` and :func:`recorder_for`,
+    :func:`store_for` and :func:`run_stops`; this function puts them together and makes every
+    fault stop the scan safely.
 
     Parameters
     ----------
@@ -88,6 +161,8 @@ def acquire(
         Use these instead of the ones the configuration describes.
     progress : callable(done, total), optional
         Called after each stop.
+    resume_hint : str, optional
+        How the abort message tells the user to resume (the CLI gives its command line).
 
     Raises
     ------
@@ -97,8 +172,7 @@ def acquire(
     ScanInterrupted
         On Ctrl-C, likewise.
     """
-    if not isinstance(config, RigConfig):
-        raise TypeError(f"config must be a RigConfig (clsas.rig.load_rig_config), got {type(config).__name__}")
+    _check_config(config)
     out = Path(out)
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
     if simulate not in (False, True, "all", "stage", "audio"):
@@ -116,37 +190,20 @@ def acquire(
 
         if find_spec("serial") is None:  # before any file is written
             raise ImportError(f"the stage (and its emulator) needs pyserial: {install_hint('rig')}")
-    sim = config.simulate
     resuming = resume and out.exists()
-    t_c, rh = _stored_air(out) if resuming else config.read_air()
-    if audio_io is None:
-        if sim_audio:
-            audio_io = SimulatedIO(config.scene(t_c, rh), config.fs_hz,
-                                   latency_samples=int(sim.get("latency_samples", 300)),
-                                   noise_rms=float(sim.get("noise_rms", 1e-4)),
-                                   mic_gain=float(sim.get("mic_gain", 0.05)), seed=int(sim.get("seed", 0)))
-        else:
-            audio_io = SoundDeviceIO(config.device, config.fs_hz, config.output_channel, config.loopback_channel,
-                                     config.mic_channels)
-    recorder = Recorder(audio_io, config.waveform, config.fs_hz, config.n_samples, level=config.level,
-                        repeats=config.repeats, repeat_gap_s=config.repeat_gap_s, retries=config.retries,
-                        clip_level=config.clip_level, max_latency_s=config.max_latency_s,
-                        acoustic_delay_s=config.acoustic_delay_s)
-
-    if resuming:
-        store = ScanFile.resume(out, config.text)
-        log.info("resuming %s at stop %d of %d", out, store.stops_done + 1, config.n_stops)
-    else:
-        store = ScanFile.create(out, fs_hz=config.fs_hz, waveform=config.level * config.waveform,
-                                n_samples=config.n_samples, n_mics=config.n_mics, n_stops=config.n_stops,
-                                temperature_c=t_c, humidity_pct=rh, c_mps=speed_of_sound(t_c), chirp=config.chirp,
-                                config_text=config.text)
+    air = _stored_air(out) if resuming else config.read_air()
+    recorder = recorder_for(config, audio_io if audio_io is not None else audio_for(config, sim_audio, air))
+    store = store_for(config, out, resuming, air)
     start_done = store.stops_done
+    time_scale = float(config.simulate.get("time_scale", 0.01))
     emulator = None
-    settle_s = config.settle_s * (float(sim.get("time_scale", 0.01)) if sim_stage else 1.0)
     t_start = time.monotonic()
-    retried = 0
     i = start_done
+
+    def at(stop: int) -> None:
+        nonlocal i
+        i = stop
+
     try:
         if start_done >= config.n_stops:
             log.info("%s already holds all %d stops", out, config.n_stops)
@@ -155,31 +212,12 @@ def acquire(
         if stage is None:
             if sim_stage:
                 travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
-                emulator = GrblEmulator(faults=faults or Faults(), time_scale=float(sim.get("time_scale", 0.01)),
-                                        travel_mm=travel).start()
-                stage = _stage_for(config, emulator.port)
-            else:
-                stage = _stage_for(config, config.port)
+                emulator = GrblEmulator(faults=faults or Faults(), time_scale=time_scale, travel_mm=travel).start()
+            stage = stage_for(config, emulator.port if emulator else None)
         try:
             stage.open()
-            if config.home:
-                stage.home()
-            else:
-                stage.unlock()
-            for i in range(start_done, config.n_stops):
-                x_mm, y_mm = config.stage_target_mm(i)
-                st = stage.move_to(x_mm, y_mm)
-                if settle_s:
-                    time.sleep(settle_s)
-                carriage = config.carriage_m(st.position_mm)
-                tx = carriage + config.tx_offset_m
-                rx = carriage[None, :] + config.rx_offsets_m
-                take = recorder.take(i, tx, rx)
-                retried += take.attempts > 1
-                store.append(i, signals=take.signals, tx_m=tx, rx_m=rx, t0_s=take.t0_s, stage_m=carriage,
-                             timestamp=time.time(), loopback=take.loopback)
-                if progress is not None:
-                    progress(i + 1, config.n_stops)
+            retried = run_stops(config, stage, recorder, store, progress=progress, on_stop=at,
+                                settle_s=config.settle_s * (time_scale if sim_stage else 1.0))
             store.close(complete=True)
         except KeyboardInterrupt:
             stage.feed_hold()

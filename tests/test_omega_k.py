@@ -1,0 +1,314 @@
+"""ω-k (wavenumber-domain) formation: against backprojection, its refusals, its Stolt kernel."""
+
+import numpy as np
+import pytest
+from conftest import BACKENDS, TOL, needs_opencl
+
+import clsas
+from clsas.formation import error_to_signal_db, form
+from clsas.formation.planar import NotPlanarUniform, planar_aperture, well_sampled_cone
+from clsas.formation.stolt import spread
+
+FS = 96e3
+F_TOP = 30e3
+# stated accuracy of ω-k against bp inside the well-sampled cone on these small scans (the
+# measured figure is about -45 dB; the dense benchmark's is in the README)
+STATED_DB = -35.0
+
+
+def _scan(points, n=24, pitch=0.004, pattern="serpentine", temperature_c=None, duration_s=2e-3, **ap_kw):
+    w = clsas.lfm_chirp(20e3, F_TOP, duration_s, FS, taper=0.1)
+    ap = clsas.raster_aperture(n, n, pitch * (n - 1), pitch * (n - 1), pattern=pattern, **ap_kw)
+    return clsas.simulate(clsas.Scene(np.asarray(points, float)), ap, w, FS, temperature_c=temperature_c,
+                          chirp={"f_start_hz": 20e3, "f_stop_hz": F_TOP, "duration_s": duration_s})
+
+
+GRID = clsas.VoxelGrid.from_bounds((-0.024, 0.024), (-0.024, 0.024), (0.23, 0.274), 0.004)
+TARGETS = [[0.008, -0.004, 0.25], [-0.012, 0.012, 0.262]]
+
+
+def _profiles(ds, grid):
+    """Compressed over the grid's gate (on OpenCL where there is a device: the NumPy twin of
+    compression is slow, and it is not what is tested here)."""
+    return clsas.compress(ds, gate_s=clsas.imaging.plan_reconstruction(ds, grid, []).gate_s)
+
+
+@pytest.fixture(scope="module")
+def scan():
+    ds = _scan(TARGETS)
+    prof = _profiles(ds, GRID)
+    return ds, prof, clsas.backproject(prof, GRID, backend="numpy")
+
+
+def _cone(ds, grid):
+    return well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, F_TOP, float(np.mean(ds.c_mps)))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_point_target_lands_in_its_voxel(backend):
+    target = [0.008, -0.004, 0.25]
+    ds = _scan([target], n=16)
+    img = clsas.reconstruct(ds, GRID, backend=backend, formation="omega-k")
+    assert img.provenance["formation"] == "omega-k"
+    assert img.peaks(1)[0].index == GRID.index_of(np.array(target))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_omega_k_equals_bp_inside_the_cone(scan, backend):
+    ds, prof, ref = scan
+    cone = _cone(ds, GRID)
+    assert cone.all()  # a lambda/2.9 lattice at 0.23-0.27 m: every voxel is well sampled
+    img = form(prof, GRID, "omega-k", backend=backend)
+    assert error_to_signal_db(img, ref, cone) < STATED_DB
+    # amplitude and phase, not only the shape: the peak voxel agrees to a few percent
+    i = ref.peaks(1)[0].index
+    assert abs(img.values[i] / ref.values[i] - 1) < 0.03
+
+
+def test_the_bistatic_compensation_matters(scan):
+    ds, prof, ref = scan
+    with_it = error_to_signal_db(form(prof, GRID, "omega-k", backend="numpy"), ref)
+    midpoint = error_to_signal_db(form(prof, GRID, "omega-k", backend="numpy", bistatic=False), ref)
+    one_term = error_to_signal_db(form(prof, GRID, "omega-k", backend="numpy", phase_tol=10.0), ref)
+    # 4 cm baseline at 0.25 m: d^2/4R = 1.6 mm of path, 0.9 rad at 30 kHz
+    assert midpoint > -15.0
+    assert with_it < STATED_DB
+    assert with_it < one_term - 5 < midpoint - 10
+
+
+def test_visiting_order_does_not_matter():
+    prof_s = _profiles(_scan(TARGETS, n=12), GRID)
+    prof_r = _profiles(_scan(TARGETS, n=12, pattern="raster"), GRID)
+    perm = np.random.default_rng(0).permutation(prof_r.n_meas)
+    shuffled = clsas.Profiles(prof_r.data[perm], prof_r.tau0_s[perm], prof_r.dtau_s, prof_r.fc_hz, "matched",
+                              "numpy", prof_r.tx_positions[perm], prof_r.rx_positions[perm], prof_r.c_mps)
+    a = form(prof_s, GRID, "omega-k", backend="numpy").values
+    b = form(prof_r, GRID, "omega-k", backend="numpy").values
+    c = form(shuffled, GRID, "omega-k", backend="numpy").values
+    assert error_to_signal_db(b, a) < -60 and error_to_signal_db(c, a) < -60
+
+
+def test_two_microphones_and_air_that_changes():
+    # two offset groups (a lattice each, summed) and one speed of sound per measurement
+    n = 16
+    temps = np.linspace(18.0, 24.0, 2 * n * n)
+    ds = _scan(TARGETS[:1], n=n, rx_offsets_m=[[0.02, 0.0, 0.0], [0.0, 0.03, 0.0]], temperature_c=temps)
+    assert np.ptp(ds.c_mps) > 3
+    grid = clsas.VoxelGrid.from_bounds((-0.02, 0.02), (-0.02, 0.02), (0.238, 0.262), 0.004)
+    prof = _profiles(ds, grid)
+    ref = clsas.backproject(prof, grid, backend="numpy")
+    img = form(prof, grid, "omega-k", backend="numpy")
+    assert img.provenance["omega_k"]["groups"] == 2
+    assert error_to_signal_db(img, ref, _cone(ds, grid)) < STATED_DB
+    # one mean c instead would be far off: the per-measurement speeds are used
+    prof.c_mps = float(np.mean(ds.c_mps))
+    assert error_to_signal_db(form(prof, grid, "omega-k", backend="numpy"), ref) > -20
+
+
+def test_range_profiles_from_elsewhere_and_fmcw(scan):
+    ds, _, _ = scan
+    # analytic profiles at the recording's rate, as an outside deconvolution would give them
+    gate = clsas.imaging.plan_reconstruction(ds, GRID, []).gate_s
+    prof = clsas.compress(ds, gate_s=gate, lag_step=1)
+    ext = clsas.Profiles.from_range_profiles(prof.carrier(), tau0_s=prof.tau0_s, dtau_s=prof.dtau_s,
+                                             tx_positions=ds.tx_positions, rx_positions=ds.rx_positions,
+                                             c_mps=ds.c_mps, fc_hz=prof.fc_hz)
+    ref = clsas.backproject(ext, GRID, backend="numpy")
+    img = clsas.reconstruct(ext, GRID, backend="numpy", formation="omega-k")
+    assert error_to_signal_db(img, ref) < STATED_DB
+    target = np.array(TARGETS[0])
+    long = _scan([target], n=12, duration_s=10e-3)  # echoes while the chirp plays: fmcw's case
+    fm = clsas.reconstruct(long, GRID, compression="fmcw", formation="omega-k")
+    assert fm.peaks(1)[0].index == GRID.index_of(target)
+
+
+@pytest.mark.slow
+def test_upsample_forms_the_aliased_angles_too():
+    # 12 mm stops (about lambda at 30 kHz): the cone is small and bp has grating lobes about
+    # lambda R / 2d = 0.12-0.18 m off the target; upsample="auto" forms every angle (a line
+    # through the target and its lobes keeps this fast)
+    ds = _scan([[0.008, 0.0, 0.25]], n=12, pitch=0.012)
+    grid = clsas.VoxelGrid.from_bounds((-0.2, 0.2), (0.0, 0.0), (0.25, 0.25), 0.005)
+    prof = _profiles(ds, grid)
+    ref = clsas.backproject(prof, grid, backend="numpy")
+    assert not _cone(ds, grid).any()
+    plain = form(prof, grid, "omega-k", backend="numpy")
+    full = form(prof, grid, "omega-k", backend="numpy", upsample="auto")
+    assert error_to_signal_db(plain, ref) > -20  # bp's grating lobes are not formed...
+    assert error_to_signal_db(full, ref) < -30  # ...unless asked for
+    assert full.provenance["omega_k"]["lattices"][0]["upsample"] > 1
+
+
+@pytest.mark.parametrize("case", ["circle", "jitter", "missing", "tilted", "crossing", "line"])
+def test_apertures_that_are_not_planar_uniform_are_refused(case):
+    prof = _profiles(_scan(TARGETS[:1], n=8), GRID)
+    tx, rx = prof.tx_positions.copy(), prof.rx_positions.copy()
+    keep = np.arange(prof.n_meas)
+    grid = GRID
+    if case == "circle":
+        ap = clsas.circular_aperture(64, 0.5)
+        tx, rx, keep = ap.tx_positions, ap.rx_positions, keep[:64]
+        grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.05, 0.05), (0.0, 0.0), 0.01)
+    elif case == "jitter":
+        tx[:, :2] += np.random.default_rng(1).normal(0, 1e-3, (len(tx), 2))
+        rx[:, :2] = tx[:, :2] + [0.04, 0.0]
+    elif case == "missing":
+        keep = keep[1:]
+    elif case == "tilted":
+        tx[:, 2] += 0.1 * tx[:, 0]
+        rx[:, 2] += 0.1 * rx[:, 0]
+    elif case == "crossing":
+        grid = clsas.VoxelGrid.from_bounds((-0.02, 0.02), (-0.02, 0.02), (-0.1, 0.1), 0.02)
+    elif case == "line":
+        tx[:, 1] = rx[:, 1] = 0.0
+        keep = keep[:8]
+    bad = clsas.Profiles(prof.data[keep], prof.tau0_s[keep], prof.dtau_s, prof.fc_hz, "matched", "numpy",
+                         tx[: len(keep)] if case == "circle" else tx[keep], rx[: len(keep)] if case == "circle"
+                         else rx[keep], prof.c_mps)
+    with pytest.raises(ValueError, match="planar, uniform") as err:
+        form(bad, grid, "omega-k", backend="numpy")
+    assert "ffbp" in str(err.value) and "'bp'" in str(err.value)
+    assert isinstance(err.value, NotPlanarUniform)
+
+
+def test_lattice_and_cone():
+    ds = _scan(TARGETS[:1], n=6, pattern="raster")
+    ap = planar_aperture(ds.tx_positions, ds.rx_positions, GRID, 1e-4)
+    (g,) = ap.groups
+    assert ap.axis == 2 and g.shape == (6, 6) and np.allclose(g.spacing_uv, 0.004)
+    assert np.allclose(g.baseline_uvw, [-0.04, 0, 0])
+    # the paper's 18 x 12 stops over 1 m: nothing is well sampled at 1.5 m
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS)
+    paper = clsas.raster_aperture(18, 12, 1.0, 1.0)
+    grid = clsas.VoxelGrid.from_bounds((-0.2, 0.2), (-0.2, 0.2), (1.4, 1.6), 0.05)
+    assert not well_sampled_cone(paper.tx_positions, paper.rx_positions, grid, 30e3, 343.0).any()
+    # a lambda/4 lattice samples every angle
+    fine = clsas.raster_aperture(10, 10, 0.025, 0.025)
+    assert well_sampled_cone(fine.tx_positions, fine.rx_positions, grid, 30e3, 343.0).all()
+    del w
+    with pytest.raises(ValueError, match="f_max_hz"):
+        well_sampled_cone(fine.tx_positions, fine.rx_positions, grid, float("nan"), 343.0)
+    with pytest.raises(ValueError, match="rx"):
+        well_sampled_cone(fine.tx_positions, fine.rx_positions[:3], grid, 30e3, 343.0)
+
+
+def test_options_and_inputs_are_checked(scan):
+    ds, prof, _ = scan
+    for opts, err, match in [
+        ({"zero_pad": 2}, ValueError, "unknown option"),
+        ({"window": "kaiser"}, ValueError, "window"),
+        ({"upsample": 0}, ValueError, "upsample"),
+        ({"upsample": 1.5}, TypeError, "upsample"),
+        ({"taper": 1.0}, ValueError, "taper"),
+        ({"pad": 0.5}, ValueError, "pad"),
+        ({"pad_time": float("nan")}, ValueError, "pad_time"),
+        ({"phase_tol": -1}, ValueError, "phase_tol"),
+        ({"kernel_width": 40}, ValueError, "kernel_width"),
+        ({"bistatic": "yes"}, TypeError, "bistatic"),
+    ]:
+        with pytest.raises(err, match=match):
+            form(prof, GRID, "omega-k", backend="numpy", **opts)
+    nan = clsas.Profiles(prof.data.copy(), prof.tau0_s, prof.dtau_s, prof.fc_hz, "matched", "numpy",
+                         prof.tx_positions, prof.rx_positions, prof.c_mps)
+    nan.data[3, 5] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        form(nan, GRID, "omega-k", backend="numpy")
+    with pytest.raises(TypeError, match="Profiles"):
+        form(prof.data, GRID, "omega-k")
+    with pytest.raises(ValueError, match="formation_options"):
+        clsas.reconstruct(prof, GRID, backend="numpy", formation="omega-k", formation_options={"depth": 3})
+
+
+@needs_opencl
+def test_stolt_kernel_equals_its_twin():
+    from clsas import cl
+    from clsas.formation.opencl import StoltPlan
+
+    spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    plan = StoltPlan(queue=cl.get_queue())
+    want = spread(spec, k, ku, kv, p)
+    got = plan(spec, k, ku, kv, p)
+    assert np.any(want != 0) and np.any(np.all(want == 0, axis=(0, 2)))  # kept and dropped columns
+    assert np.abs(got - want).max() / np.abs(want).max() < TOL["stolt"]
+    # a second, larger call reuses the plan (buffers grow)
+    spec2 = np.tile(spec, (3, 1))
+    got2 = plan(spec2, k, np.tile(ku, 3), np.tile(kv, 3), p)
+    assert np.abs(got2[:, : len(ku)] - want).max() / np.abs(want).max() < TOL["stolt"]
+
+
+def test_cli_reconstruct_with_a_formation(tmp_path, capsys):
+    from clsas.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(
+        "[chirp]\nf_start_hz = 20000.0\nf_stop_hz = 30000.0\nduration_s = 0.002\nfs_hz = 96000.0\ntaper = 0.1\n"
+        "[aperture]\nnx = 16\nny = 16\nwidth_m = 0.06\nheight_m = 0.06\n"
+        "[[points]]\nposition_m = [0.008, -0.004, 0.25]\namplitude = 1.0\n"
+        "[grid]\nx_m = [-0.024, 0.024]\ny_m = [-0.024, 0.024]\nz_m = [0.234, 0.266]\nspacing_m = 0.004\n")
+    scan = tmp_path / "scan.h5"
+    assert main(["simulate", str(scene), str(scan), "-q"]) == 0
+    out = tmp_path / "img.h5"
+    assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "pad_time=2",
+                 "--formation-option", "window=hann", "--out", str(out), "-q"]) == 0
+    assert "peak (+0.008, -0.004, 0.250)" in capsys.readouterr().out
+    from clsas.imaging import Image
+
+    assert Image.load(out).provenance["formation"] == "omega-k"
+    assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "bogus=1", "-q"]) == 2
+    assert "unknown option" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("frame", ["normal-x", "behind"])
+def test_any_plane_normal_and_either_side(frame):
+    # the same scan in a frame where the aperture's normal is x, or with the scene behind it (-z)
+    ds = _scan(TARGETS, n=12)
+    prof = _profiles(ds, GRID)
+    if frame == "normal-x":
+        perm = [2, 0, 1]  # new (x, y, z) = old (z, x, y)
+        tx, rx = prof.tx_positions[:, perm], prof.rx_positions[:, perm]
+        grid = clsas.VoxelGrid(GRID.z_m, GRID.x_m, GRID.y_m)
+    else:
+        flip = np.array([1.0, 1.0, -1.0])
+        tx, rx = prof.tx_positions * flip, prof.rx_positions * flip
+        grid = clsas.VoxelGrid(GRID.x_m, GRID.y_m, -GRID.z_m[::-1])
+    moved = clsas.Profiles(prof.data, prof.tau0_s, prof.dtau_s, prof.fc_hz, "matched", "numpy", tx, rx, prof.c_mps)
+    ref = clsas.backproject(moved, grid, backend="numpy")
+    img = form(moved, grid, "omega-k", backend="numpy")
+    assert error_to_signal_db(img, ref) < STATED_DB
+
+
+@pytest.mark.slow
+def test_formation_benchmark_writes_its_table(tmp_path):
+    import json
+
+    from clsas.bench import run_formation
+
+    res = run_formation(out_dir=tmp_path, scale=0.1, cases=("dense", "circular"), sides=(6, 8), plots=False)
+    js = json.loads(next(tmp_path.glob("*-formation-*-quick.json")).read_text())
+    dense, circ = js["cases"]
+    rows = {r["formation"]: r for r in dense["rows"]}
+    assert rows["bp"]["time_s"] > 0 and rows["omega-k"]["error_cone_db"] < -30
+    assert dense["cone_fraction"] > 0.5
+    wk = {r["formation"]: r for r in circ["rows"]}["omega-k"]
+    assert "ffbp" in wk["refused"] and circ["cone_fraction"] is None
+    assert set(js["scaling"]) >= {"bp", "omega-k"}
+    md = next(tmp_path.glob("*-formation-*-quick.md")).read_text()
+    assert "| dense | omega-k |" in md and "refused" in md
+    assert res["paths"]["json"].endswith(".json")
+
+
+def test_stolt_interpolation_equals_the_direct_sum():
+    # spreading + FFT + de-apodisation against the non-uniform DFT it stands for, term by term
+    from clsas.formation.opencl import StoltPlan
+    from clsas.formation.stolt import _strengths, columns_to_depths
+
+    spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    n_z = p.n_cells // 2
+    got = columns_to_depths(spread(spec, k, ku, kv, p), n_z, p)
+    c0, alpha, _, valid = _strengths(spec, k, ku, kv, p)
+    kz = np.sign(k) * np.sqrt(np.maximum(k[None, :] ** 2 - (ku**2 + kv**2)[:, None], 0))  # k < 0: kz < 0
+    ell = np.arange(n_z) - n_z // 2
+    phase = np.exp(1j * kz[:, :, None] * ell[None, None, :] * p.dz_m)  # (cols, f, z)
+    for term in range(p.n_terms):
+        want = np.einsum("cf,cfz->cz", np.where(valid, c0 * alpha**term, 0), phase)
+        assert np.abs(got[term] - want).max() < 1e-4 * np.abs(want).max()
