@@ -28,6 +28,7 @@ __all__ = ["FORMATIONS", "form", "error_to_signal_db"]
 # name -> "module:function"; each takes (profiles, grid, *, backend, device, progress, force, **options)
 FORMATIONS: dict[str, str] = {
     "bp": "clsas.formation:_form_bp",
+    "ffbp": "clsas.formation.ffbp:form",
 }
 
 
