@@ -46,6 +46,8 @@ KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
     "fmcw_dechirp": (("common.cl", "compress.cl"), "clsas.compress.opencl", "FmcwPlan"),
     "matched_fft": (("common.cl", "compress.cl"), "clsas.compress.opencl", "FftMatchedPlan"),
     "backproject": (("common.cl", "backproject.cl"), "clsas.imaging.opencl", "BackprojectPlan"),
+    "ffbp_leaf": (("ffbp.cl",), "clsas.formation.ffbp_opencl", "FfbpLeafPlan"),
+    "ffbp_merge": (("ffbp.cl",), "clsas.formation.ffbp_opencl", "FfbpMergePlan"),
 }
 WIDTHS = (16, 8, 4)
 PROBE_TIMEOUT_S = 300.0

@@ -52,11 +52,11 @@ __all__ = ["form", "plan_tree", "ORDERS"]
 log = logging.getLogger(__name__)
 
 ORDERS = (1, 3, 5)  # interpolation orders: linear, cubic, quintic Lagrange (order + 1 taps per axis)
-OPTIONS = ("depth", "factor", "oversample", "range_oversample", "order", "band_hz", "band_tail")
+OPTIONS = ("depth", "factor", "oversample", "range_oversample", "order", "interpolator", "band_hz", "band_tail")
 
 
-def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample=2.0, order=3, band_hz=None,
-             band_tail=1e-4) -> dict:
+def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample=2.0, order=3,
+             interpolator="lsq", band_hz=None, band_tail=1e-4) -> dict:
     factor = v.positive_int("factor", factor)
     if factor < 2:
         raise ValueError(f"factor must be >= 2 (children per merge), got {factor}")
@@ -77,6 +77,7 @@ def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample
             raise ValueError(f"{name} must be in [1, 16] (times the Nyquist rate), got {val:g}")
     if order not in ORDERS or isinstance(order, bool):
         raise ValueError(f"order must be one of {ORDERS} (Lagrange interpolation), got {order!r}")
+    v.choice("interpolator", interpolator, twin.INTERPOLATORS)
     if band_hz is not None:
         lo, hi = v.array("band_hz", band_hz, shape=(2,))
         if not 0 <= lo < hi:
@@ -86,7 +87,7 @@ def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample
     if band_tail >= 0.5:
         raise ValueError(f"band_tail must be < 0.5 (fraction of the energy left outside the band), got {band_tail:g}")
     return {"depth": depth, "factor": factor, "oversample": oversample, "range_oversample": range_oversample,
-            "order": int(order), "band_hz": band_hz, "band_tail": band_tail}
+            "order": int(order), "interpolator": interpolator, "band_hz": band_hz, "band_tail": band_tail}
 
 
 def _inputs(profiles: Profiles):
@@ -152,6 +153,7 @@ def form(
     oversample: float = 2.0,
     range_oversample: float = 2.0,
     order: int = 3,
+    interpolator: str = "lsq",
     band_hz: tuple[float, float] | None = None,
     band_tail: float = 1e-4,
 ) -> Image:
@@ -181,7 +183,11 @@ def form(
         Sampling of the sub-images over their Nyquist rate in angle and in range (1 to 16);
         the error falls and the cost rises (as ``oversample² x range_oversample``).
     order : {1, 3, 5}
-        Lagrange interpolation order on every axis (``order + 1`` taps each).
+        Interpolation order on every axis (``order + 1`` taps each).
+    interpolator : {"lsq", "lagrange"}
+        ``"lsq"``: weights with the least squared error over the band the sub-images are
+        sampled for (at twice the Nyquist rate, 4 taps err by -30 dB at worst against
+        Lagrange's -19 dB, for the same cost); ``"lagrange"``: the polynomial through the taps.
     band_hz : (f_lo, f_hi), optional
         The frequencies the profiles hold, carrier included. Default: estimated from their
         spectrum, all but ``band_tail`` of the energy.
@@ -199,7 +205,7 @@ def form(
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
-    opts = _options(len(data), depth, factor, oversample, range_oversample, order, band_hz, band_tail)
+    opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
     if opts["depth"] == 0:
         from ..imaging import backproject
 
@@ -216,19 +222,22 @@ def form(
         log.info("ffbp: %s", line)
     o = tree.order
     args = (data[o], tau0[o], dtau, fc, tx[o], rx[o], c[o])
+    taps = opts["order"] + 1
+    tables = (twin.weight_table(taps, opts["range_oversample"], opts["interpolator"]),
+              twin.weight_table(taps, opts["oversample"], opts["interpolator"]))
     values = None
     if sel.opencl:
         from .ffbp_opencl import FfbpPipeline
 
         try:
-            pipe = FfbpPipeline(tree, grid, data.shape[1], taps=opts["order"] + 1, queue=sel.queue)
+            pipe = FfbpPipeline(tree, grid, data.shape[1], tables, queue=sel.queue)
         except _cl.BuildError as exc:
             sel = sel.fall_back(exc)
         else:
             values = pipe(*args, progress=progress)
             timings.update(pipe.timings_s)
     if values is None:
-        values = _run_numpy(tree, grid, args, opts["order"] + 1, progress, timings)
+        values = _run_numpy(tree, grid, args, tables, progress, timings)
     timings["ffbp"] = time.perf_counter() - t_start
     image = Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings)
     image.plan = tree
@@ -237,7 +246,7 @@ def form(
     return image
 
 
-def _run_numpy(tree: Tree, grid: VoxelGrid, args, taps: int, progress, timings: dict) -> np.ndarray:
+def _run_numpy(tree: Tree, grid: VoxelGrid, args, tables, progress, timings: dict) -> np.ndarray:
     total = tree.depth + 1
     t = time.perf_counter()
     values = twin.form_leaves(*args, tree.levels[-1], tree.kref)
@@ -247,13 +256,13 @@ def _run_numpy(tree: Tree, grid: VoxelGrid, args, taps: int, progress, timings: 
         progress(done, total)
     t = time.perf_counter()
     for d in range(tree.depth - 1, 0, -1):
-        values = twin.merge(values, tree.levels[d], tree.levels[d - 1], tree.kref, taps)
+        values = twin.merge(values, tree.levels[d], tree.levels[d - 1], tree.kref, tables)
         done += 1
         if progress is not None:
             progress(done, total)
     timings["ffbp_merges"] = time.perf_counter() - t
     t = time.perf_counter()
-    out = twin.to_grid(values, tree.levels[0], grid.points(), tree.kref, taps)
+    out = twin.to_grid(values, tree.levels[0], grid.points(), tree.kref, tables)
     timings["ffbp_grid"] = time.perf_counter() - t
     if progress is not None:
         progress(total, total)
