@@ -176,7 +176,8 @@ def form(
         Go on even if the sub-images seem not to fit in memory.
     depth : int, optional
         Factorisation levels: 0 is exact backprojection; ``d`` splits the aperture ``d`` times
-        (leaves of ``n_meas / factor**d`` measurements). Default: leaves of about ``factor``.
+        (leaves of ``n_meas / factor**d`` measurements). Default: leaves of 16 or more
+        measurements (fewer levels err less; a leaf costs its measurements per sample).
     factor : int
         Children per merge (>= 2; 4 splits a raster into quadrants).
     oversample, range_oversample : float
@@ -197,8 +198,10 @@ def form(
     Returns
     -------
     Image
-        Values as :func:`clsas.backproject` gives them; ``image.plan`` is the :class:`Tree`,
-        ``image.timings_s`` has the time of each step.
+        Values as :func:`clsas.backproject` gives them; ``image.plan`` is the
+        :class:`~clsas.formation.ffbp_tree.Tree` (``reconstruct`` puts its own plan there instead),
+        ``image.provenance["ffbp"]`` the options used (depth resolved, band estimated) and the
+        samples per level, ``image.timings_s`` the time of each step.
     """
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
@@ -242,7 +245,8 @@ def form(
     image = Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings)
     image.plan = tree
     image.provenance = {**image.provenance, "ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
-                        | {"band_hz": list(tree.band_hz)}}
+                        | {"band_hz": list(tree.band_hz),
+                           "samples_per_level": [lev.samples for lev in tree.levels]}}
     return image
 
 

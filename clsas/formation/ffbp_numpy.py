@@ -6,8 +6,9 @@ for the tables and the sample layout):
 - :func:`form_leaves` (``ffbp_leaf``): each leaf's sub-image by exact backprojection of its
   measurements onto its spherical grid, with the node's reference carrier removed;
 - :func:`merge` (``ffbp_merge``): each parent's sub-image as the sum of its children's,
-  interpolated (``taps`` points per axis, least-squares band-limited or Lagrange weights from a table) at the parent's samples, each child's
-  reference carrier restored and the parent's removed;
+  interpolated at the parent's samples (``taps`` points per axis, least-squares band-limited
+  or Lagrange weights from a table), each child's reference carrier restored and the
+  parent's removed;
 - :func:`to_grid` (``ffbp_merge`` with a Cartesian parent): the sum of the top sub-images at
   the voxels, with their carriers restored.
 

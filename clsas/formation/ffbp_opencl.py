@@ -229,6 +229,7 @@ class FfbpPipeline:
             progress(total, total)
         timings = {"ffbp_device": time.perf_counter() - t0}
         for name, evt in events:
-            timings[name + "_kernel"] = timings.get(name + "_kernel", 0.0) + (evt.profile.end - evt.profile.start) * 1e-9
+            key = name + "_kernel"
+            timings[key] = timings.get(key, 0.0) + (evt.profile.end - evt.profile.start) * 1e-9
         self.timings_s = timings
         return _complex(out)[: self.grid.size]

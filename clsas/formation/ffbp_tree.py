@@ -13,12 +13,13 @@ Samples are stored range-fastest: index ``(iu * nv + iv) * nr + ir`` after the n
 its level's packed buffer (offsets are multiples of :data:`BLOCK`).
 
 Sampling (cycles per metre of range, per unit of direction cosine): a measurement's term in
-the sub-image, with the carrier of the node's reference path removed, oscillates in ``u`` at
-``f / c · (a·e1 - t a·w)`` (``a`` the measurement's two-way offset from the node's mean tx and
-rx, ``t = u / sqrt(1 - u² - v²)``, ``f`` up to the band's top), and in ``r`` at the baseband's
-half width ``2 (f - f0) / c``; a near-field factor covers what the far-field expansion leaves
-out. Each axis is sampled at ``oversample`` (angles) or ``range_oversample`` times that
-Nyquist rate.
+the sub-image, with the carrier of the node's reference path removed, oscillates along each
+coordinate at ``f d tau_m / dq - f0 d tau_ref / dq`` (about ``f / c`` times the measurement's
+two-way offset from the node's mean speaker and microphone across the line of sight, in angle;
+about the band's half width ``2 (f - f0) / c`` in range). The largest of these over the node's
+measurements, the band's two ends and a lattice of its region sets the Nyquist rate (near
+field, bistatic pairs and each measurement's speed of sound included); each axis is sampled at
+``oversample`` (angles) or ``range_oversample`` times it.
 """
 
 from __future__ import annotations
@@ -101,9 +102,16 @@ def max_depth(n_meas: int, factor: int) -> int:
     return d
 
 
+LEAF = 16  # measurements per leaf by default: a leaf is formed by backprojection, which costs about
+# what a merge level costs per sample at 16 measurements (4 taps per axis, factor 4)
+
+
 def default_depth(n_meas: int, factor: int) -> int:
-    """Leaves of about ``factor`` measurements (at least one level)."""
-    return max(1, max_depth(n_meas, factor) - 1) if n_meas >= factor else max_depth(n_meas, factor)
+    """Leaves of at least :data:`LEAF` measurements (or 1 level where the aperture has fewer)."""
+    d = 0
+    while n_meas // factor ** (d + 1) >= LEAF:
+        d += 1
+    return max(d, min(1, max_depth(n_meas, factor)))
 
 
 def split_sizes(factor: int) -> list[int]:
@@ -145,14 +153,16 @@ def estimate_band(data: np.ndarray, dtau_s: float, fc_hz: float, tail: float = 1
     """The band holding all but ``tail`` of the profiles' energy, in Hz (carrier included).
 
     The profiles are complex baseband (rotated by ``exp(-j 2 pi fc tau)``); their spectrum,
-    summed over rows, is cut where the cumulative energy passes ``tail / 2`` and ``1 - tail / 2``.
+    summed over rows (each tapered by a Hann window, so that the cut at the gate's ends does not
+    leak), is cut where the cumulative energy passes ``tail / 2`` and ``1 - tail / 2``.
     """
     n = data.shape[1]
     nfft = max(64, 1 << int(np.ceil(np.log2(2 * n))))
     rows = data if len(data) <= 4096 else data[np.linspace(0, len(data) - 1, 4096).astype(int)]
+    taper = np.hanning(n + 2)[1:-1]  # the rows are cut at the gate: no leakage from their edges
     power = np.zeros(nfft)
     for k in range(0, len(rows), 512):
-        power += (np.abs(np.fft.fft(rows[k:k + 512], nfft, axis=1)) ** 2).sum(axis=0)
+        power += (np.abs(np.fft.fft(rows[k:k + 512] * taper, nfft, axis=1)) ** 2).sum(axis=0)
     f = np.fft.fftfreq(nfft, dtau_s)
     order = np.argsort(f)
     f, power = f[order], power[order]
@@ -256,6 +266,52 @@ def _regions(geom, grid_bounds, parent_geom, parent_ints, factor, chunk=2048) ->
     return box
 
 
+def _unit_from(p: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Unit vectors from the points ``x`` (m, 3) to ``p`` (m, k, 3)."""
+    d = p - x[:, None, :]
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _rates(geom, box, tx, rx, c, sizes, band, f0, c_ref, chunk=2048):
+    """(fr, fu, fv) per node: the largest local frequency, in cycles per metre of range and per
+    unit of direction cosine, of any of its measurements' terms at any frequency of the band,
+    over a 3 x 3 x 3 lattice of its region (corners, edge and face centres).
+
+    A term of measurement m at frequency f varies as ``exp(j 2 pi (f tau_m(P) - f0 tau_ref(P)))``;
+    its local frequency along a coordinate q is ``f d tau_m / dq - f0 d tau_ref / dq``, with
+    ``d |P - x| / dq`` the unit vector from x to P dotted with ``dP/dq``.
+    """
+    nn = len(geom)
+    node_of = np.repeat(np.arange(nn), sizes)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    t = np.linspace(0.0, 1.0, 3)
+    tr, tu, tv = np.meshgrid(t, t, t, indexing="ij")
+    unit = np.stack([tr.ravel(), tu.ravel(), tv.ravel()], axis=1)  # (k, 3)
+    per_meas = np.zeros((len(node_of), 3))
+    for a in range(0, len(node_of), chunk):
+        nodes = node_of[a:a + chunk]
+        g, bx = geom[nodes], box[nodes]
+        lo, hi = bx[:, [0, 2, 4]], bx[:, [1, 3, 5]]
+        lat = lo[:, None, :] + unit[None] * (hi - lo)[:, None, :]  # (m, k, 3) r, u, v
+        r, u, v = lat[..., 0], lat[..., 1], lat[..., 2]
+        s = np.sqrt(np.maximum(1.0 - u**2 - v**2, 0.04))
+        e1, e2, w = g[:, None, 3:6], g[:, None, 6:9], g[:, None, 9:12]
+        n_hat = u[..., None] * e1 + v[..., None] * e2 + s[..., None] * w
+        p = g[:, None, 0:3] + r[..., None] * n_hat
+        dp = (n_hat, r[..., None] * (e1 - (u / s)[..., None] * w), r[..., None] * (e2 - (v / s)[..., None] * w))
+
+        pair = (_unit_from(p, tx[a:a + chunk]), _unit_from(p, rx[a:a + chunk]))
+        ref = (_unit_from(p, g[:, 12:15]), _unit_from(p, g[:, 15:18]))
+        cm = c[a:a + chunk, None]
+        for q in range(3):
+            d_tau = np.sum((pair[0] + pair[1]) * dp[q], axis=-1) / cm
+            d_ref = np.sum((ref[0] + ref[1]) * dp[q], axis=-1) / c_ref
+            fq = np.maximum(np.abs(band[0] * d_tau - f0 * d_ref), np.abs(band[1] * d_tau - f0 * d_ref))
+            per_meas[a:a + chunk, q] = fq.max(axis=1)
+    rates = np.maximum.reduceat(per_meas, starts, axis=0)
+    return rates[:, 0], rates[:, 1], rates[:, 2]
+
+
 def build_tree(
     tx: np.ndarray,
     rx: np.ndarray,
@@ -289,10 +345,7 @@ def build_tree(
     centres = 0.5 * (tx + rx)
     f_lo, f_hi = band_hz
     f0 = 0.5 * (f_lo + f_hi)
-    half_band = 0.5 * (f_hi - f_lo)
     c_ref = float(np.mean(c_mps))
-    c_min = float(np.min(c_mps))
-    dslow = float(np.max(np.abs(1.0 / c_mps - 1.0 / c_ref)))
     target = grid_bounds.mean(axis=1)
 
     # the tree, top down; leaves in order give the measurement permutation
@@ -329,30 +382,9 @@ def build_tree(
 
         # the region each node must cover: the grid's box (depth 1) or its parent's grid
         box = _regions(geom, grid_bounds, parent_geom, parent_ints, factor)
-        r_min = np.maximum(box[:, 0], 1e-3)
 
-        # sampling: spread of the two-way offsets a over the node's measurements
-        node_of = np.repeat(np.arange(nn), sizes)
-        a = (tx_o - t_mean[node_of]) + (rx_o - r_mean[node_of])
-        au = np.sum(a * geom[node_of, 3:6], axis=1)
-        av = np.sum(a * geom[node_of, 6:9], axis=1)
-        aw = np.sum(a * geom[node_of, 9:12], axis=1)
-        reach = np.maximum(np.linalg.norm(tx_o - t_mean[node_of], axis=1),
-                           np.linalg.norm(rx_o - r_mean[node_of], axis=1))
-        rho = np.maximum.reduceat(reach, starts) / r_min
-        corners_u = box[:, [2, 3, 2, 3]]
-        corners_v = box[:, [4, 4, 5, 5]]
-        s = np.sqrt(np.maximum(1.0 - corners_u**2 - corners_v**2, 0.04))
-        tu, tv = corners_u / s, corners_v / s
-        fu = np.zeros(nn)
-        fv = np.zeros(nn)
-        for k in range(4):
-            fu = np.maximum(fu, np.maximum.reduceat(np.abs(au - tu[node_of, k] * aw), starts))
-            fv = np.maximum(fv, np.maximum.reduceat(np.abs(av - tv[node_of, k] * aw), starts))
-        near = 1.0 + rho
-        fu *= f_hi / c_min * near
-        fv *= f_hi / c_min * near
-        fr = 2 * half_band / c_min + f_hi / c_min * rho**2 + 2 * f_hi * dslow
+        # sampling: the largest local frequency of any measurement's term over the node's region
+        fr, fu, fv = _rates(geom, box, tx_o, rx_o, c_o, sizes, (f_lo, f_hi), f0, c_ref)
         steps = np.stack([1.0 / (2 * fr * range_oversample), 1.0 / (2 * np.maximum(fu, 1e-9) * oversample),
                           1.0 / (2 * np.maximum(fv, 1e-9) * oversample)], axis=1)
         counts = np.zeros((nn, 3), np.int64)
