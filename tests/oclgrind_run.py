@@ -1,6 +1,6 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [vec=N ...]. Checks each result against its NumPy
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [ffbp] [vec=N ...]. Checks each result against its NumPy
 twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
@@ -13,6 +13,7 @@ import pyopencl as cl
 import clsas
 from clsas.compress import fft_layout
 from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
 from clsas.imaging.opencl import BackprojectPlan
 
 FS = 96e3
@@ -58,6 +59,15 @@ def check_backproject(queue, rng, vec):
     assert BackprojectPlan.selftest(queue, vec) < 1e-4, "backproject"
 
 
+def check_ffbp(queue, rng, vec):
+    # the plans' selftests: leaves of a depth-2 tree over 20 jittered bistatic pairs (samples in
+    # and out of the profile windows, padding and directions outside the unit disc), a merge of
+    # 16 leaves into 4 parents (stencils shifted at the grids' edges) and the 4 parents onto a
+    # 5 x 4 x 3 grid (not a multiple of the block)
+    assert FfbpLeafPlan.selftest(queue, vec) < 1e-4, "ffbp_leaf"
+    assert FfbpMergePlan.selftest(queue, vec) < 1e-4, "ffbp_merge"
+
+
 def main(kernels: set[str]) -> int:
     plats = [p for p in cl.get_platforms() if "Oclgrind" in p.name]
     if not plats:
@@ -74,9 +84,11 @@ def main(kernels: set[str]) -> int:
             check_fft(queue, rng, vec)
         if "backproject" in kernels:
             check_backproject(queue, rng, vec)
+        if "ffbp" in kernels:
+            check_ffbp(queue, rng, vec)
     print("oclgrind run ok")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "ffbp"}))

@@ -99,8 +99,9 @@ class FfbpMergePlan(Plan):
         if taps not in (2, 4, 6):
             raise ValueError(f"taps must be 2, 4 or 6, got {taps!r}")
         self.taps = taps
-        self.kernel = kernel(self.context, KERNELS[self.kernel_name][0], self.kernel_name,
-                             {"VEC": self.vec, "TAPS": taps})
+        if taps != 4:  # the base class built the default (TAPS 4, shared with the leaf kernel)
+            self.kernel = kernel(self.context, KERNELS[self.kernel_name][0], self.kernel_name,
+                                 {"VEC": self.vec, "TAPS": taps})
 
     def upload_tables(self, tables) -> tuple:
         return tuple(self.upload(t, np.float32) for t in tables)
