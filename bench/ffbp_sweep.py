@@ -185,8 +185,8 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     suffix = "" if args.scale == 1 else f"-x{args.scale:g}"
     stem = out / f"{time.strftime('%Y-%m-%d')}-ffbp-sweep-{platform.node()}{suffix}"
-    stem.with_suffix(".json").write_text(json.dumps(res, indent=1))
-    stem.with_suffix(".md").write_text(markdown(res))
+    Path(f"{stem}.json").write_text(json.dumps(res, indent=1))
+    Path(f"{stem}.md").write_text(markdown(res))
     print(f"wrote {stem}.json and .md")
     return 0
 
