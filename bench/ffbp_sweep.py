@@ -105,7 +105,7 @@ def parse_setting(text: str) -> dict:
     return out
 
 
-def run(cases, scale: float, settings: list[str], backend: str | None, say=print) -> dict:
+def run(cases, scale: float, settings: list[str], backend: str | None, say=print, reuse_bp: str | None = None) -> dict:
     result = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "host": platform.node(), "python": sys.version.split()[0],
               "clsas": clsas.__version__, "load_before": os.getloadavg(), "scale": scale, "cases": []}
     small = clsas.VoxelGrid.from_bounds((-0.02, 0.02), (-0.02, 0.02), (0.98, 1.0), 0.01)
@@ -118,11 +118,23 @@ def run(cases, scale: float, settings: list[str], backend: str | None, say=print
         prof = clsas.compress(ds, gate_s=plan.gate_s, backend=backend)
         row = {"case": name, "description": text, "mask": mask_text, "n_meas": prof.n_meas, "grid": list(grid.shape),
                "mask_fraction": None if mask is None else float(np.mean(mask)), "runs": []}
-        t = time.perf_counter()
-        ref = form(prof, grid, "bp", backend=backend)
-        row["bp_s"] = time.perf_counter() - t
+        cached = None if reuse_bp is None else Path(reuse_bp) / f"bp-{name}-x{scale:g}.npz"
+        if cached is not None and cached.is_file():
+            z = np.load(cached)
+            ref = clsas.Image(z["values"], grid, "bp", str(z["backend"]), str(z["device"]))
+            row["bp_s"], row["bp_reused"] = float(z["time_s"]), f"{cached} ({z['date']}, load {z['load']:.1f})"
+            row["load_after_bp"] = (float(z["load"]),) * 3
+            say(f"  bp: reused {cached}: {row['bp_s']:.1f} s measured {z['date']}")
+        else:
+            t = time.perf_counter()
+            ref = form(prof, grid, "bp", backend=backend)
+            row["bp_s"] = time.perf_counter() - t
+            row["load_after_bp"] = os.getloadavg()
+            if cached is not None:
+                cached.parent.mkdir(parents=True, exist_ok=True)
+                np.savez(cached, values=ref.values, time_s=row["bp_s"], backend=ref.backend, device=ref.device,
+                         date=result["date"], load=row["load_after_bp"][0])
         row["backend"], row["device"] = ref.backend, ref.device
-        row["load_after_bp"] = os.getloadavg()
         say(f"  bp: {row['bp_s']:.1f} s on {ref.device} (load {row['load_after_bp'][0]:.1f})")
         for s in settings:
             opts = parse_setting(s)
@@ -157,7 +169,8 @@ def markdown(res: dict) -> str:
     for c in res["cases"]:
         md += [f"## {c['description']}", "",
                f"{c['n_meas']} measurements, grid {c['grid'][0]} x {c['grid'][1]} x {c['grid'][2]}; "
-               f"bp {c['bp_s']:.2f} s on {c['device']} ({c['backend']}). Error mask: {c['mask']}"
+               f"bp {c['bp_s']:.2f} s on {c['device']} ({c['backend']}"
+               + (f"; reused from {c['bp_reused']}" if c.get("bp_reused") else "") + f"). Error mask: {c['mask']}"
                + ("" if c["mask_fraction"] is None else f" ({100 * c['mask_fraction']:.0f} % of the voxels)") + ".",
                "", "| setting | depth | time (s) | speed-up | error in mask (dB) | error, grid (dB) | load |",
                "|---|---|---|---|---|---|---|"]
@@ -179,8 +192,11 @@ def main(argv=None) -> int:
                     help='ffbp options, e.g. "depth=5,oversample=2" (default: a sweep)')
     ap.add_argument("--backend", default=None, choices=["auto", "opencl", "numpy"])
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap.add_argument("--reuse-bp", metavar="DIR", default=None,
+                    help="keep each case's bp image and time in DIR and reuse them on later runs (bp on the "
+                         "dense case takes minutes; the speed-ups then compare runs made at different times)")
     args = ap.parse_args(argv)
-    res = run(args.cases, args.scale, args.settings, args.backend)
+    res = run(args.cases, args.scale, args.settings, args.backend, reuse_bp=args.reuse_bp)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     suffix = "" if args.scale == 1 else f"-x{args.scale:g}"

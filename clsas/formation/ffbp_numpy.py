@@ -29,6 +29,7 @@ __all__ = ["RES", "INTERPOLATORS", "lagrange", "least_squares", "weight_table", 
 CHUNK = 1 << 16  # samples per vectorised pass
 RES = 64  # weight-table entries per sample of position
 INTERPOLATORS = ("lsq", "lagrange")
+LSQ_BAND = 0.375  # design band of the least-squares weights, x the Nyquist rate / oversample
 
 
 def lagrange(t: np.ndarray, taps: int) -> np.ndarray:
@@ -61,12 +62,16 @@ def weight_table(taps: int, oversample: float, interpolator: str = "lsq") -> np.
     """(taps * RES + 1, taps) weights at positions ``t = -0.5 + i / RES`` of the stencil.
 
     ``oversample`` is the sampling rate over the Nyquist rate of the signals interpolated: the
-    least-squares weights are designed for their band, ``|f| <= 0.55 / oversample`` cycles per sample.
+    least-squares weights are designed for ``|f| <= LSQ_BAND / oversample`` cycles per sample.
+    The sub-images' rates are bounds (the largest local frequency anywhere in a node's region,
+    at the band's top), so most of their energy lies well inside them: a design band of 0.375
+    of the bound erred 7 dB less than 0.55 on a dense raster (32 x 32 stops, depth 3) and 14 dB
+    less on a 360-stop circle (depth 2), at the same cost.
     """
     t = -0.5 + np.arange(taps * RES + 1) / RES
     if interpolator == "lagrange":
         return lagrange(t, taps).T.copy()
-    return least_squares(t, taps, min(0.5, 0.55 / oversample)).T.copy()
+    return least_squares(t, taps, min(0.5, LSQ_BAND / oversample)).T.copy()
 
 
 def table_weights(table: np.ndarray, t: np.ndarray) -> np.ndarray:
