@@ -1,7 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [stolt] [vec=N ...]. Checks each result
-against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [stolt] [ffbp] [vec=N ...]. Checks each
+result against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
 
@@ -14,6 +14,7 @@ import clsas
 from clsas.autofocus.opencl import FocusGradientPlan
 from clsas.compress import fft_layout
 from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
 from clsas.formation.opencl import StoltPlan
 from clsas.imaging.opencl import BackprojectPlan
 
@@ -72,6 +73,15 @@ def check_stolt(queue, rng, vec):
     assert StoltPlan.selftest(queue, vec) < 2e-4, "stolt_spread"
 
 
+def check_ffbp(queue, rng, vec):
+    # the plans' selftests: leaves of a depth-2 tree over 20 jittered bistatic pairs (samples in
+    # and out of the profile windows, padding and directions outside the unit disc), a merge of
+    # 16 leaves into 4 parents (stencils shifted at the grids' edges) and the 4 parents onto a
+    # 5 x 4 x 3 grid (not a multiple of the block)
+    assert FfbpLeafPlan.selftest(queue, vec) < 1e-4, "ffbp_leaf"
+    assert FfbpMergePlan.selftest(queue, vec) < 1e-4, "ffbp_merge"
+
+
 def main(kernels: set[str]) -> int:
     plats = [p for p in cl.get_platforms() if "Oclgrind" in p.name]
     if not plats:
@@ -92,9 +102,11 @@ def main(kernels: set[str]) -> int:
             check_gradient(queue, rng, vec)
         if "stolt" in kernels:
             check_stolt(queue, rng, vec)
+        if "ffbp" in kernels:
+            check_ffbp(queue, rng, vec)
     print("oclgrind run ok")
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient", "stolt"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient", "stolt", "ffbp"}))

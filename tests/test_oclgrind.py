@@ -1,5 +1,5 @@
-"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl; autofocus.cl; stolt.cl) runs clean
-under Oclgrind."""
+"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl; autofocus.cl; stolt.cl; ffbp.cl:
+ffbp_leaf, ffbp_merge) runs clean under Oclgrind."""
 
 import os
 import subprocess
@@ -26,14 +26,15 @@ def _oclgrind_available() -> str | None:
 # It segfaults (inside itself) on backproject.cl at VEC=16, whose gather builds float16 vectors
 # from float8 swizzles; that width is still checked for invalid accesses and data races by the
 # first run, and VEC 4 and 8 (the same code with narrower vectors) for uninitialised values.
+# ffbp.cl is scalar (VEC changes nothing in it): one width is checked for uninitialised values.
 WIDTHS = ("vec=4", "vec=8", "vec=16")
 CHECKS = [
-    pytest.param({"OCLGRIND_DATA_RACES": "1"}, ["compress", "fft", "backproject", "gradient", "stolt", *WIDTHS],
-                 id="memcheck+races-all"),
+    pytest.param({"OCLGRIND_DATA_RACES": "1"},
+                 ["compress", "fft", "backproject", "gradient", "stolt", "ffbp", *WIDTHS], id="memcheck+races-all"),
 ] + [
     pytest.param({"OCLGRIND_UNINITIALIZED": "1"}, [kernels, f"vec={vec}"], id=f"uninitialized-{kernels}-vec{vec}")
     for kernels, vecs in [("compress", (4, 8, 16)), ("fft", (4, 8, 16)), ("backproject", (4, 8)),
-                           ("gradient", (4, 8)), ("stolt", (4, 16))]
+                           ("gradient", (4, 8)), ("stolt", (4, 16)), ("ffbp", (4,))]
     for vec in vecs
 ]
 

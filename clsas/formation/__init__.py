@@ -29,6 +29,7 @@ __all__ = ["FORMATIONS", "form", "error_to_signal_db"]
 FORMATIONS: dict[str, str] = {
     "bp": "clsas.formation:_form_bp",
     "omega-k": "clsas.formation.omega_k:form",
+    "ffbp": "clsas.formation.ffbp:form",
 }
 
 

@@ -1,0 +1,289 @@
+"""3-D fast factorized backprojection (FFBP, after Ulander, Hellsten and Stenström 2003) for any
+trajectory and bistatic pairs.
+
+``reconstruct(dataset, grid, formation="ffbp", formation_options={...})`` or
+:func:`form` here. The measurements are split into a tree of sub-apertures by position (each
+node's phase centres split along their widest direction into ``factor`` groups of equal count:
+quadrants of a raster, arcs of a circle, stretches of a hand-held track). Each leaf's
+sub-image is formed by exact backprojection onto a coarse spherical grid about the leaf's
+centre (range and two direction cosines, sampled as finely as the leaf's size needs); parents
+interpolate their children's sub-images onto their own finer grids and sum them, level by
+level; the top sub-images are finally interpolated onto the user's Cartesian grid. Every
+sub-image is kept at baseband: the carrier of the node's reference path (through its mean
+speaker and microphone positions) is removed when it is formed and restored at each
+interpolation, so what is interpolated varies only at the band's width in range and at the
+node's size in angle. The result has exact backprojection's values and phase convention
+(:func:`clsas.backproject`); ``depth=0`` *is* exact backprojection.
+
+Cost and error. Exact backprojection costs voxels x measurements. FFBP costs about
+(samples per level) x (levels) x ``factor`` x ``(order + 1)³`` for the merges, plus
+(leaf samples) x (measurements per leaf) for the leaves and voxels x ``factor`` x
+``(order + 1)³`` for the last step; the samples per level are about the voxels at which the
+aperture's image is Nyquist-sampled, times ``oversample² x range_oversample``, and hardly
+depend on the number of measurements. The error against exact backprojection comes from the
+interpolations, one per level plus the last step. It is mostly a systematic loss near the
+band's edge, the same in every sub-image, so the levels' errors add almost coherently:
+``depth`` levels of -50 dB each give about -50 + 20 log10(depth + 1) dB. It falls fast as
+``oversample``, ``range_oversample`` and ``order`` rise and grows with ``depth``; fewer,
+bigger leaves err less but cost their measurements per leaf sample. Measured on a dense
+raster (128 x 128 stops over 0.75 m, 256 x 256 x 128 voxels, depth 5, cubic least-squares
+weights; ``bench/ffbp_sweep.py``): -26 dB at 1.5 times the Nyquist rate and 60x faster than
+exact backprojection, -36 dB at twice (the default) and 36x faster.
+``order=1`` (linear) needs far more oversampling than ``order=3`` for the same error;
+``order=5`` costs (6/4)³ ≈ 3.4x the cubic's per sample.
+
+When it pays. FFBP wins where many measurements fall on each resolution cell of a grid that
+samples the image finely enough: a dense raster (thousands of stops) onto a grid at about
+the image's resolution. On a grid much coarser than the image's detail (a 360-degree circle of
+a few hundred stops onto 5 mm voxels) the sub-images, which must be sampled at the aperture's
+own bandwidth, hold more samples than the grid has voxels, and exact backprojection is faster.
+
+The speed of sound may differ per measurement: the leaves use each measurement's own, the
+reference paths their mean.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .. import _validate as v
+from .. import cl as _cl
+from ..compress import Profiles
+from ..geometry import VoxelGrid
+from ..imaging.guard import available_memory_bytes, check_grid
+from ..imaging.image import Image
+from . import ffbp_numpy as twin
+from .ffbp_tree import Tree, build_tree, default_depth, estimate_band, max_depth
+
+__all__ = ["form", "plan_tree", "ORDERS"]
+
+log = logging.getLogger(__name__)
+
+ORDERS = (1, 3, 5)  # interpolation orders: linear, cubic, quintic Lagrange (order + 1 taps per axis)
+OPTIONS = ("depth", "factor", "oversample", "range_oversample", "order", "interpolator", "band_hz", "band_tail")
+
+
+def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample=2.0, order=3,
+             interpolator="lsq", band_hz=None, band_tail=1e-4) -> dict:
+    factor = v.positive_int("factor", factor)
+    if factor < 2:
+        raise ValueError(f"factor must be >= 2 (children per merge), got {factor}")
+    if depth is None:
+        depth = default_depth(n_meas, factor)
+    else:
+        if isinstance(depth, bool) or not isinstance(depth, int | np.integer):
+            raise TypeError(f"depth must be an integer or None, got {depth!r}")
+        depth = int(depth)
+        deepest = max_depth(n_meas, factor)
+        if depth < 0 or depth > deepest:
+            raise ValueError(f"depth must be in 0..{deepest} for {n_meas} measurements and factor {factor} "
+                             f"(factor ** depth <= n_meas), got {depth}")
+    oversample = v.positive("oversample", oversample)
+    range_oversample = v.positive("range_oversample", range_oversample)
+    for name, val in (("oversample", oversample), ("range_oversample", range_oversample)):
+        if not 1.0 <= val <= 16.0:
+            raise ValueError(f"{name} must be in [1, 16] (times the Nyquist rate), got {val:g}")
+    if order not in ORDERS or isinstance(order, bool):
+        raise ValueError(f"order must be one of {ORDERS} (Lagrange interpolation), got {order!r}")
+    v.choice("interpolator", interpolator, twin.INTERPOLATORS)
+    if band_hz is not None:
+        lo, hi = v.array("band_hz", band_hz, shape=(2,))
+        if not 0 <= lo < hi:
+            raise ValueError(f"band_hz must be (f_lo, f_hi) with 0 <= f_lo < f_hi, got ({lo:g}, {hi:g})")
+        band_hz = (float(lo), float(hi))
+    band_tail = v.positive("band_tail", band_tail)
+    if band_tail >= 0.5:
+        raise ValueError(f"band_tail must be < 0.5 (fraction of the energy left outside the band), got {band_tail:g}")
+    return {"depth": depth, "factor": factor, "oversample": oversample, "range_oversample": range_oversample,
+            "order": int(order), "interpolator": interpolator, "band_hz": band_hz, "band_tail": band_tail}
+
+
+def _inputs(profiles: Profiles):
+    n = profiles.n_meas
+    tx = v.array("profiles.tx_positions", profiles.tx_positions, shape=(n, 3))
+    rx = v.array("profiles.rx_positions", profiles.rx_positions, shape=(n, 3))
+    c = v.speeds("profiles.c_mps", profiles.c_mps, n)
+    data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
+    if data.shape[1] < 2:
+        raise ValueError(f"profiles.data must have at least 2 samples per profile, got shape {data.shape}")
+    tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
+    dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
+    fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
+    return data, tau0, dtau, fc, tx, rx, np.broadcast_to(np.asarray(c, float), (n,)).copy()
+
+
+def plan_tree(profiles: Profiles, grid: VoxelGrid, **options) -> Tree:
+    """The sub-aperture tree and sub-image grids FFBP would use (``options`` as :func:`form`'s)."""
+    data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
+    opts = _options(len(data), **options)
+    return _tree(data, dtau, fc, tx, rx, c, grid, opts)
+
+
+def _tree(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
+    band = opts["band_hz"] or estimate_band(data, dtau, fc, opts["band_tail"])
+    band = (max(band[0], 1e-3 * band[1]), band[1])
+    tree = build_tree(tx, rx, c, grid.bounds(), band, depth=opts["depth"], factor=opts["factor"],
+                      oversample=opts["oversample"], range_oversample=opts["range_oversample"],
+                      taps=opts["order"] + 1)
+    return tree
+
+
+def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -> None:
+    sizes = [lev.size for lev in tree.levels]
+    pairs = max((a + b for a, b in zip(sizes, sizes[1:], strict=False)), default=sizes[0] if sizes else 0)
+    bytes_per = 16 if kind == "numpy" else 8
+    need = bytes_per * pairs
+    if max(sizes) >= 2**31:
+        raise ValueError(f"ffbp: a level of {max(sizes):.3g} samples exceeds the kernels' 32-bit indexing "
+                         "(lower oversample/range_oversample, or a coarser grid)")
+    problems = []
+    avail = available_memory_bytes()
+    if avail is not None and need > 0.5 * avail:
+        problems.append(f"two levels of sub-images need {need / 1e9:.3g} GB of host memory, {avail / 1e9:.3g} GB "
+                        "available")
+    if kind == "opencl" and device is not None and 8 * max(sizes) > int(device.max_mem_alloc_size):
+        problems.append(f"a level of {8 * max(sizes) / 1e9:.3g} GB exceeds the device's largest allocation "
+                        f"({int(device.max_mem_alloc_size) / 1e9:.3g} GB)")
+    if problems:
+        text = "; ".join(problems) + " (lower oversample/range_oversample, or a coarser grid)"
+        if not force:
+            raise ValueError(f"ffbp: {text}; force=True tries anyway")
+        log.warning("ffbp: %s; going on (force=True)", text)
+
+
+def form(
+    profiles: Profiles,
+    grid: VoxelGrid,
+    *,
+    backend: str | None = None,
+    device: Any = None,
+    progress: Callable[[int, int], None] | None = None,
+    force: bool = False,
+    depth: int | None = None,
+    factor: int = 4,
+    oversample: float = 2.0,
+    range_oversample: float = 2.0,
+    order: int = 3,
+    interpolator: str = "lsq",
+    band_hz: tuple[float, float] | None = None,
+    band_tail: float = 1e-4,
+) -> Image:
+    """Image ``profiles`` on ``grid`` by fast factorized backprojection.
+
+    Parameters
+    ----------
+    profiles : Profiles
+        Complex baseband range profiles with their positions and speed of sound (from
+        :func:`clsas.compress`); one bistatic pair per row, any trajectory.
+    grid : VoxelGrid
+        Must lie in front of the aperture: within 72 degrees of each sub-aperture's line of
+        sight to the grid's centre (else a ``ValueError`` names ``formation='bp'``).
+    backend : {"auto", "opencl", "numpy"}, optional
+        As :func:`clsas.backproject`; the NumPy path works alone.
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+    progress : callable(done, total), optional
+        Called after each level (leaves, each merge, the final interpolation).
+    force : bool
+        Go on even if the sub-images seem not to fit in memory.
+    depth : int, optional
+        Factorisation levels: 0 is exact backprojection; ``d`` splits the aperture ``d`` times
+        (leaves of ``n_meas / factor**d`` measurements). Default: leaves of 16 or more
+        measurements (fewer levels err less; a leaf costs its measurements per sample).
+    factor : int
+        Children per merge (>= 2; 4 splits a raster into quadrants).
+    oversample, range_oversample : float
+        Sampling of the sub-images over their Nyquist rate in angle and in range (1 to 16);
+        the error falls and the cost rises (as ``oversample² x range_oversample``).
+    order : {1, 3, 5}
+        Interpolation order on every axis (``order + 1`` taps each).
+    interpolator : {"lsq", "lagrange"}
+        ``"lsq"``: weights with the least squared error over the band the sub-images are
+        sampled for (at twice the Nyquist rate, 4 taps err by -30 dB at worst against
+        Lagrange's -19 dB, for the same cost); ``"lagrange"``: the polynomial through the taps.
+    band_hz : (f_lo, f_hi), optional
+        The frequencies the profiles hold, carrier included. Default: estimated from their
+        spectrum, all but ``band_tail`` of the energy.
+    band_tail : float
+        Energy fraction left outside the estimated band (default 1e-4).
+
+    Returns
+    -------
+    Image
+        Values as :func:`clsas.backproject` gives them; ``image.plan`` is the
+        :class:`~clsas.formation.ffbp_tree.Tree` (``reconstruct`` puts its own plan there instead),
+        ``image.provenance["ffbp"]`` the options used (depth resolved, band estimated) and the
+        samples per level, ``image.timings_s`` the time of each step.
+    """
+    if not isinstance(profiles, Profiles):
+        raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
+    opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
+    if opts["depth"] == 0:
+        from ..imaging import Backprojector
+
+        image = Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
+        image.provenance = {**image.provenance, "ffbp_depth": 0}
+        return image
+    sel = _cl.select(backend, device)
+    check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=force)
+    t_start = time.perf_counter()
+    tree = _tree(data, dtau, fc, tx, rx, c, grid, opts)
+    timings = {"ffbp_plan": time.perf_counter() - t_start}
+    _check_memory(tree, grid, sel.kind, sel.queue.device if sel.opencl else None, force)
+    for line in tree.describe().splitlines():
+        log.info("ffbp: %s", line)
+    o = tree.order
+    args = (data[o], tau0[o], dtau, fc, tx[o], rx[o], c[o])
+    taps = opts["order"] + 1
+    tables = (twin.weight_table(taps, opts["range_oversample"], opts["interpolator"]),
+              twin.weight_table(taps, opts["oversample"], opts["interpolator"]))
+    values = None
+    if sel.opencl:
+        from .ffbp_opencl import FfbpPipeline
+
+        try:
+            pipe = FfbpPipeline(tree, grid, data.shape[1], tables, queue=sel.queue)
+        except _cl.BuildError as exc:
+            sel = sel.fall_back(exc)
+        else:
+            values = pipe(*args, progress=progress)
+            timings.update(pipe.timings_s)
+    if values is None:
+        values = _run_numpy(tree, grid, args, tables, progress, timings)
+    timings["ffbp"] = time.perf_counter() - t_start
+    image = Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings)
+    image.plan = tree
+    image.provenance = {**image.provenance, "ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
+                        | {"band_hz": list(tree.band_hz),
+                           "samples_per_level": [lev.samples for lev in tree.levels]}}
+    return image
+
+
+def _run_numpy(tree: Tree, grid: VoxelGrid, args, tables, progress, timings: dict) -> np.ndarray:
+    total = tree.depth + 1
+    t = time.perf_counter()
+    values = twin.form_leaves(*args, tree.levels[-1], tree.kref)
+    timings["ffbp_leaves"] = time.perf_counter() - t
+    done = 1
+    if progress is not None:
+        progress(done, total)
+    t = time.perf_counter()
+    for d in range(tree.depth - 1, 0, -1):
+        values = twin.merge(values, tree.levels[d], tree.levels[d - 1], tree.kref, tables)
+        done += 1
+        if progress is not None:
+            progress(done, total)
+    timings["ffbp_merges"] = time.perf_counter() - t
+    t = time.perf_counter()
+    out = twin.to_grid(values, tree.levels[0], grid.points(), tree.kref, tables)
+    timings["ffbp_grid"] = time.perf_counter() - t
+    if progress is not None:
+        progress(total, total)
+    return out

@@ -1,0 +1,236 @@
+"""OpenCL plans for kernels/ffbp.cl, and the pipeline that keeps every level on the device.
+
+:class:`FfbpLeafPlan` and :class:`FfbpMergePlan` each run one kernel and, called with host
+arrays, return what their NumPy twins return (:mod:`clsas.formation.ffbp_numpy`); that is how
+they are tested. :class:`FfbpPipeline` chains them for a whole tree with the sub-images kept on
+the device (two buffers, children and parents, swapped level by level); only the image comes back.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from ..cl import Plan, kernel
+from ..cl.variants import KERNELS
+from ..geometry import VoxelGrid
+from . import ffbp_numpy as twin
+from .ffbp_tree import BLOCK, Level, Tree
+
+__all__ = ["FfbpLeafPlan", "FfbpMergePlan", "FfbpPipeline"]
+
+
+class _LevelTables:
+    """A level's node tables on the device."""
+
+    def __init__(self, plan: Plan, level: Level):
+        self.level = level
+        self.geom = plan.upload(level.geom, np.float32)
+        self.ints = plan.upload(level.ints, np.int32)
+        self.blocks = plan.upload(level.block_node(), np.int32)
+        self.size = level.size
+
+
+def _profiles(plan: Plan, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps):
+    """Device copies of the profiles as backproject.cl takes them: (p[k], p[k+1]) records and
+    positions with the path scales in their w lanes."""
+    n, n_lags = data.shape
+    n_lags = max(2, n_lags)
+    prof = np.zeros((n, n_lags + 1), np.complex64)
+    prof[:, : data.shape[1]] = data
+    pairs = np.empty((n, n_lags, 2), np.complex64)
+    pairs[:, :, 0] = prof[:, :-1]
+    pairs[:, :, 1] = prof[:, 1:]
+    c = np.broadcast_to(np.asarray(c_mps, float), (n,))
+    pos4 = np.zeros((2, n, 4), np.float32)
+    pos4[0, :, :3] = tx
+    pos4[0, :, 3] = 1.0 / (c * dtau_s)
+    pos4[1, :, :3] = rx
+    pos4[1, :, 3] = fc_hz / c
+    return (plan.upload(pairs, np.complex64), np.int32(n_lags), plan.upload(pos4[0], np.float32),
+            plan.upload(pos4[1], np.float32), plan.upload(np.asarray(tau0_s) / dtau_s, np.float32))
+
+
+def _complex(host: np.ndarray) -> np.ndarray:
+    return host.view(np.complex64).reshape(-1)
+
+
+class FfbpLeafPlan(Plan):
+    """The ``ffbp_leaf`` kernel: leaf sub-images by exact backprojection of their measurements."""
+
+    kernel_name = "ffbp_leaf"
+
+    def launch_level(self, prof, tables: _LevelTables, kref: float, d_out):
+        return self.launch((tables.size,), *prof, tables.geom, tables.ints, tables.blocks, np.float32(kref), d_out,
+                           local_size=(BLOCK,))
+
+    def __call__(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: float) -> np.ndarray:
+        """Same arguments as :func:`clsas.formation.ffbp_numpy.form_leaves`; (level.size,) complex64."""
+        self.begin()
+        prof = _profiles(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps)
+        tables = _LevelTables(self, level)
+        d_out = self.alloc(8 * level.size)
+        self.launch_level(prof, tables, kref, d_out)
+        return _complex(self.read(d_out, (level.size, 2), np.float32))
+
+    @classmethod
+    def selftest(cls, queue, vec: int) -> float:
+        """Leaves of a depth-2 tree over 20 bistatic pairs, each with its own speed of sound;
+        voxels inside and outside the profile windows."""
+        args, tree, _ = _selftest_scene()
+        leaves = tree.levels[-1]
+        got = cls(queue, vec)(*args, leaves, tree.kref)
+        want = twin.form_leaves(*args, leaves, tree.kref)
+        if not (np.any(want == 0) and np.any(want != 0)):
+            raise RuntimeError("selftest scene must have samples inside and outside the profile windows")
+        return float(np.abs(got - want).max() / np.abs(want).max())
+
+
+class FfbpMergePlan(Plan):
+    """The ``ffbp_merge`` kernel with ``taps`` points per axis: parents from children, or the
+    image on a Cartesian grid from the top sub-images."""
+
+    kernel_name = "ffbp_merge"
+
+    def __init__(self, taps: int = 4, queue=None, vec=None):
+        super().__init__(queue, vec)
+        if taps not in (2, 4, 6):
+            raise ValueError(f"taps must be 2, 4 or 6, got {taps!r}")
+        self.taps = taps
+        if taps != 4:  # the base class built the default (TAPS 4, shared with the leaf kernel)
+            self.kernel = kernel(self.context, KERNELS[self.kernel_name][0], self.kernel_name,
+                                 {"VEC": self.vec, "TAPS": taps})
+
+    def upload_tables(self, tables) -> tuple:
+        return tuple(self.upload(t, np.float32) for t in tables)
+
+    def _check(self, tables) -> None:
+        if tables[0].shape[1] != self.taps or tables[1].shape[1] != self.taps:
+            raise ValueError(f"tables: {tables[0].shape[1]} and {tables[1].shape[1]} taps, the plan has {self.taps}")
+
+    def launch_level(self, d_vals, children: _LevelTables, parents: _LevelTables, d_tables, kref: float, d_out):
+        zero4 = np.zeros(4, np.float32)
+        return self.launch((parents.size,), d_vals, children.geom, children.ints, parents.geom, parents.ints,
+                           parents.blocks, *d_tables, np.float32(kref), np.int32(0), zero4, zero4, np.int32(1),
+                           np.int32(1), np.int32(0), np.int32(0), d_out, local_size=(BLOCK,))
+
+    def launch_grid(self, d_vals, children: _LevelTables, grid: VoxelGrid, d_tables, kref: float, d_out):
+        n_pad = -(-grid.size // BLOCK) * BLOCK
+        origin = np.array([grid.x_m[0], grid.y_m[0], grid.z_m[0], 0], np.float32)
+        step = np.array([*grid.spacing(), 0], np.float32)
+        return self.launch((n_pad,), d_vals, children.geom, children.ints, children.geom, children.ints,
+                           children.blocks, *d_tables, np.float32(kref), np.int32(1), origin, step,
+                           np.int32(grid.shape[1]), np.int32(grid.shape[2]), np.int32(grid.size),
+                           np.int32(children.level.n_nodes), d_out, local_size=(BLOCK,))
+
+    def __call__(self, values: np.ndarray, children: Level, parents: Level | None, kref: float, tables,
+                 grid: VoxelGrid | None = None) -> np.ndarray:
+        """As :func:`clsas.formation.ffbp_numpy.merge` (``parents`` given) or
+        :func:`~clsas.formation.ffbp_numpy.to_grid` (``grid`` given); complex64."""
+        self._check(tables)
+        self.begin()
+        d_vals = self.upload(np.asarray(values, np.complex64), np.complex64)
+        d_tables = self.upload_tables(tables)
+        ct = _LevelTables(self, children)
+        if grid is not None:
+            n_pad = -(-grid.size // BLOCK) * BLOCK
+            d_out = self.alloc(8 * n_pad)
+            self.launch_grid(d_vals, ct, grid, d_tables, kref, d_out)
+            return _complex(self.read(d_out, (n_pad, 2), np.float32))[: grid.size]
+        pt = _LevelTables(self, parents)
+        d_out = self.alloc(8 * parents.size)
+        self.launch_level(d_vals, ct, pt, d_tables, kref, d_out)
+        return _complex(self.read(d_out, (parents.size, 2), np.float32))
+
+    @classmethod
+    def selftest(cls, queue, vec: int) -> float:
+        """A merge of 16 leaves into 4 parents and the 4 parents onto a 5 x 4 x 3 grid (not a
+        multiple of the block), cubic least-squares weights."""
+        args, tree, grid = _selftest_scene()
+        tables = (twin.weight_table(4, 2.0), twin.weight_table(4, 2.0))
+        leaves = twin.form_leaves(*args, tree.levels[1], tree.kref)
+        plan = cls(4, queue, vec)
+        got = plan(leaves, tree.levels[1], tree.levels[0], tree.kref, tables)
+        want = twin.merge(leaves, tree.levels[1], tree.levels[0], tree.kref, tables)
+        err = np.abs(got - want).max() / np.abs(want).max()
+        got = plan(want, tree.levels[0], None, tree.kref, tables, grid=grid)
+        want = twin.to_grid(want, tree.levels[0], grid.points(), tree.kref, tables)
+        return float(max(err, np.abs(got - want).max() / np.abs(want).max()))
+
+
+def _selftest_scene():
+    """20 bistatic pairs on a jittered 5 x 4 patch, random profiles, a depth-2 tree (factor 2)."""
+    from .ffbp_tree import build_tree
+
+    rng = np.random.default_rng(11)
+    fs = 96e3
+    xy = np.stack(np.meshgrid(np.linspace(-0.06, 0.06, 5), np.linspace(-0.04, 0.04, 4)), -1).reshape(-1, 2)
+    tx = np.c_[xy + rng.normal(0, 0.003, xy.shape), rng.normal(0, 0.003, len(xy))]
+    rx = tx + [0.03, 0.0, 0.0]
+    c = 343.0 + rng.uniform(-2, 2, len(tx))
+    n_lags = 24
+    prof = (rng.normal(size=(len(tx), n_lags)) + 1j * rng.normal(size=(len(tx), n_lags))) * np.hanning(n_lags)
+    grid = VoxelGrid(np.linspace(-0.04, 0.04, 5), np.linspace(-0.03, 0.03, 4), np.linspace(0.3, 0.36, 3))
+    centre = np.array([0.0, 0.0, 0.33])
+    path = np.linalg.norm(centre - tx, axis=1) + np.linalg.norm(centre - rx, axis=1)
+    tau0 = path / c - (n_lags // 2) / (fs / 2)
+    tree = build_tree(tx, rx, c, grid.bounds(), (20e3, 30e3), depth=2, factor=2, oversample=1.5,
+                      range_oversample=1.5, taps=4)
+    o = tree.order
+    args = (prof[o], tau0[o], 2 / fs, 25e3, tx[o], rx[o], c[o])
+    return args, tree, grid
+
+
+class FfbpPipeline:
+    """Both kernels and the device buffers of one tree and grid: construct once, call per profile set."""
+
+    def __init__(self, tree: Tree, grid: VoxelGrid, n_lags: int, tables, queue=None):
+        self.tree, self.grid, self.n_lags = tree, grid, n_lags
+        taps = tables[0].shape[1]
+        self.leaf = FfbpLeafPlan(queue)
+        self.merge = FfbpMergePlan(taps, self.leaf.queue)
+        self.merge._check(tables)
+        self.d_tables = self.merge.upload_tables(tables)
+        self.levels = [_LevelTables(self.merge, lev) for lev in tree.levels]
+        biggest = max(lev.size for lev in tree.levels)
+        self.bufs = [self.merge.alloc(8 * biggest), self.merge.alloc(8 * biggest)]
+        self.n_pad = -(-grid.size // BLOCK) * BLOCK
+        self.d_image = self.merge.alloc(8 * self.n_pad)
+        self.timings_s: dict = {}
+        self.device = self.merge.device
+
+    def __call__(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps,
+                 progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        """Image profiles given in tree order (as the twin takes them): (n_vox,) complex64."""
+        tree, kref = self.tree, self.tree.kref
+        total = tree.depth + 1
+        events = []
+        t0 = time.perf_counter()
+        prof = _profiles(self.leaf, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps)
+        cur = 0
+        events.append(("ffbp_leaves", self.leaf.launch_level(prof, self.levels[-1], kref, self.bufs[cur])))
+        if progress is not None:
+            events[-1][1].wait()
+            progress(1, total)
+        for d in range(tree.depth - 1, 0, -1):
+            evt = self.merge.launch_level(self.bufs[cur], self.levels[d], self.levels[d - 1], self.d_tables, kref,
+                                          self.bufs[1 - cur])
+            events.append(("ffbp_merges", evt))
+            cur = 1 - cur
+            if progress is not None:
+                evt.wait()
+                progress(total - d, total)
+        events.append(("ffbp_grid", self.merge.launch_grid(self.bufs[cur], self.levels[0], self.grid, self.d_tables,
+                                                           kref, self.d_image)))
+        out = np.empty((self.n_pad, 2), np.float32)
+        self.merge.cl.enqueue_copy(self.merge.queue, out, self.d_image, wait_for=[e for _, e in events])
+        if progress is not None:
+            progress(total, total)
+        timings = {"ffbp_device": time.perf_counter() - t0}
+        for name, evt in events:
+            key = name + "_kernel"
+            timings[key] = timings.get(key, 0.0) + (evt.profile.end - evt.profile.start) * 1e-9
+        self.timings_s = timings
+        return _complex(out)[: self.grid.size]
