@@ -87,9 +87,16 @@ def test_tiled_volume_equals_one_call(client):
 
 
 @pytest.mark.slow
-def test_quick_bench_writes_json_report_and_plot(tmp_path, capsys):
+def test_quick_bench_writes_json_report_and_plot(tmp_path, capsys, monkeypatch):
+    """The whole quick suite's path through the CLI, its heaviest parts shrunk (the quick set itself
+    runs autofocus on the demo mannequin and every K-echo cell: minutes, a benchmark's time)."""
+    from clsas import bench
+    from clsas.bench import formation
     from clsas.cli import main
 
+    monkeypatch.setitem(bench.QUICK, "autofocus", None)
+    monkeypatch.setitem(bench.QUICK, "k_echo", {"ks": (2,), "ratios": (1.0,), "trials": 1})
+    monkeypatch.setattr(formation, "QUICK", {"cases": ("demo", "circular"), "scale": 0.25, "sides": (8, 12)})
     assert main(["bench", "--out", str(tmp_path), "-q"]) == 0
     out = capsys.readouterr().out
     js = sorted(tmp_path.glob("*-quick.json"))
