@@ -204,6 +204,12 @@ def test_profiles_from_elsewhere_image_like_the_library_s_own(quiet_scan):
                                               tx_positions=ds.tx_positions, rx_positions=ds.rx_positions,
                                               c_mps=ds.c_mps, fc_hz=own.fc_hz)
     assert np.allclose(clsas.reconstruct(base, GRID, backend="numpy").values, want.values)
+    # baseband rows sampled below twice the carrier (every third lag: 1/dtau 33 kHz, fc 20 kHz) are valid
+    half = clsas.Profiles.from_range_profiles(own.data[:, ::3], tau0_s=own.tau0_s, dtau_s=3 * own.dtau_s,
+                                              baseband=True, tx_positions=ds.tx_positions,
+                                              rx_positions=ds.rx_positions, c_mps=ds.c_mps, fc_hz=own.fc_hz)
+    assert 2 * own.fc_hz > 1 / half.dtau_s
+    assert near_target(clsas.reconstruct(half, GRID, backend="numpy"), quiet_scan.target_m, 0.008)
     with pytest.raises(ValueError, match="fc_hz is required"):
         clsas.Profiles.from_range_profiles(own.data, tau0_s=0, dtau_s=1e-5, baseband=True,
                                            tx_positions=ds.tx_positions, rx_positions=ds.rx_positions, c_mps=343)

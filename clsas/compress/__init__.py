@@ -119,7 +119,7 @@ class Profiles:
             f = np.fft.fftfreq(k, dtau)
             fc_hz = float((spec.sum(axis=0) * f).sum() / max(spec.sum(), 1e-300))
         fc = v.non_negative("fc_hz", fc_hz)
-        if fc >= 0.5 / dtau:
+        if not baseband and fc >= 0.5 / dtau:  # baseband rows need only the band's width, not the carrier
             raise ValueError(f"fc_hz={fc:g} is at or above the profiles' Nyquist frequency {0.5 / dtau:g}")
         if not baseband:
             tau = tau0[:, None] + dtau * np.arange(k)[None, :]
