@@ -70,10 +70,7 @@ __kernel void focus_gradient(
         nr = (nr > 1e-9f) ? nr : (floatV)(1e-9f);
         const floatV idx = path * t.w - sm;
         const intV inside = (idx >= 0.0f) & (idx <= last);
-        floatV i0 = RINT(idx);
-        i0 = (i0 > idx) ? i0 - 1.0f : i0;
-        i0 = (i0 < 0.0f) ? (floatV)(0.0f) : i0;
-        i0 = (i0 > last - 1.0f) ? (floatV)(last - 1.0f) : i0;
+        const floatV i0 = lag_floor(idx, last);
         const floatV w = idx - i0;
         lanes_f li;
         li.v = i0;

@@ -60,11 +60,7 @@ __kernel void backproject(
                           + sqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - s0[m];
         const intV inside = (idx >= 0.0f) & (idx <= last);
-        /* floor(idx) clamped to [0, n_lags - 2] (n_lags >= 2), with operators only */
-        floatV i0 = RINT(idx);
-        i0 = (i0 > idx) ? i0 - 1.0f : i0;
-        i0 = (i0 < 0.0f) ? (floatV)(0.0f) : i0;
-        i0 = (i0 > last - 1.0f) ? (floatV)(last - 1.0f) : i0;
+        const floatV i0 = lag_floor(idx, last);
         const floatV w = idx - i0;
         lanes_f li;
         li.v = i0;

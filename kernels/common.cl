@@ -39,6 +39,16 @@ inline floatV sincos_2pi(const floatV c, floatV *cos_out)
     return odd ? (pos ? k : -k) : (zero ? s : -s);
 }
 
+/* floor(idx) clamped to [0, last - 1] (last = n_lags - 1 >= 1), with operators only: the left
+ * sample of the linear interpolation at fractional lag idx */
+inline floatV lag_floor(const floatV idx, const float last)
+{
+    floatV i0 = RINT(idx);
+    i0 = (i0 > idx) ? i0 - 1.0f : i0;
+    i0 = (i0 < 0.0f) ? (floatV)(0.0f) : i0;
+    return (i0 > last - 1.0f) ? (floatV)(last - 1.0f) : i0;
+}
+
 
 /* Gather VEC float4 (a_re, a_im, b_re, b_im) records at lane indices li (lanes_f holding
  * integral floats) from `src` into four planar vectors, with constructors and .even/.odd

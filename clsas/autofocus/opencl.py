@@ -74,19 +74,10 @@ class FocusGradientPlan(Plan):
     def selftest(cls, queue, vec: int) -> float:
         """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, fewer work-items than blocks,
         voxels in and out of the window, a speed of sound per measurement."""
-        from ..geometry import VoxelGrid as Grid
+        from ..imaging.opencl import selftest_scene
         from . import numpy as twin
 
-        rng = np.random.default_rng(7)
-        fs = 96e3
-        grid = Grid(np.linspace(-0.1, 0.1, 5), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 3))
-        tx = np.c_[rng.uniform(-0.2, 0.2, (3, 2)), np.zeros(3)]
-        rx = tx + [0.03, 0, 0]
-        prof = (rng.normal(size=(3, 40)) + 1j * rng.normal(size=(3, 40))) * np.hanning(40)
-        centre = np.array([0.0, 0.025, 0.4])
-        path = np.linalg.norm(centre - tx, axis=1) + np.linalg.norm(centre - rx, axis=1)
-        tau0 = path / 343.0 - 20 / fs
-        c = np.array([343.0, 340.0, 346.0])
+        grid, prof, tau0, fs, tx, rx, c, rng = selftest_scene()
         weight = rng.normal(size=grid.size) + 1j * rng.normal(size=grid.size)
         plan = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, n_items=2)
         got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c, weight)

@@ -86,19 +86,27 @@ class BackprojectPlan(Plan):
         a different speed of sound for each measurement."""
         from . import numpy as twin
 
-        rng = np.random.default_rng(7)
-        fs = 96e3
-        grid = VoxelGrid(np.linspace(-0.1, 0.1, 5), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 3))
-        tx = np.c_[rng.uniform(-0.2, 0.2, (3, 2)), np.zeros(3)]
-        rx = tx + [0.03, 0, 0]
-        prof = (rng.normal(size=(3, 40)) + 1j * rng.normal(size=(3, 40))) * np.hanning(40)
-        # the window (40 samples) centred on the grid's centre: voxels inside and outside it
-        centre = np.array([0.0, 0.025, 0.4])
-        path = np.linalg.norm(centre - tx, axis=1) + np.linalg.norm(centre - rx, axis=1)
-        tau0 = path / 343.0 - 20 / fs
-        c = np.array([343.0, 340.0, 346.0])
+        grid, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
         got = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2)(prof, tau0, 1 / fs, 25e3, tx, rx, c)
         want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
         if not (np.any(want == 0) and np.any(want != 0)):
             raise RuntimeError("selftest scene must have voxels inside and outside the profile window")
         return float(np.abs(got - want).max() / np.abs(want).max())
+
+
+def selftest_scene():
+    """The small scene the backprojection-type plans check themselves on: a 5 x 2 x 3 grid (not
+    a multiple of VEC), 3 measurements of 40 lags whose window is centred on the grid's centre
+    (voxels inside and outside it), a speed of sound per measurement. Returns ``(grid, profiles,
+    tau0_s, fs_hz, tx, rx, c_mps, rng)``, the rng (seed 7) left where the scene's draws end."""
+    rng = np.random.default_rng(7)
+    fs = 96e3
+    grid = VoxelGrid(np.linspace(-0.1, 0.1, 5), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 3))
+    tx = np.c_[rng.uniform(-0.2, 0.2, (3, 2)), np.zeros(3)]
+    rx = tx + [0.03, 0, 0]
+    prof = (rng.normal(size=(3, 40)) + 1j * rng.normal(size=(3, 40))) * np.hanning(40)
+    centre = np.array([0.0, 0.025, 0.4])
+    path = np.linalg.norm(centre - tx, axis=1) + np.linalg.norm(centre - rx, axis=1)
+    tau0 = path / 343.0 - 20 / fs
+    c = np.array([343.0, 340.0, 346.0])
+    return grid, prof, tau0, fs, tx, rx, c, rng
