@@ -47,7 +47,7 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"
 
 log = logging.getLogger(__name__)
 
-METHODS = ("direct", "temperature", "delay", "phase", "los", "3d")
+METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
 DEFAULT_METHODS = ("direct", "temperature", "delay", "phase", "3d")
 
 
@@ -156,6 +156,8 @@ def autofocus(
     max_iter: int = 40,
     phase_sweeps: int = 4,
     max_stop_bytes: int = 1 << 30,
+    pga_min_coherence: float | None = None,
+    pga_max_points: int = 32,
     backend: str | None = None,
     device: Any = None,
     progress: Callable[[str, int, float], None] | None = None,
@@ -193,6 +195,11 @@ def autofocus(
     max_stop_bytes : int
         Memory for the per-stop images of ``"phase"`` (complex64, stops x voxels), bytes; past
         it, only the brightest voxels of the image are kept.
+    pga_min_coherence : float, optional
+        ``"pga"`` uses only points whose per-stop contributions add up this coherently (0 to 1;
+        default :data:`clsas.autofocus.pga.PGA_MIN_COHERENCE`).
+    pga_max_points : int
+        Most strong points ``"pga"`` uses (the brightest that qualify).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -223,6 +230,12 @@ def autofocus(
     max_iter = v.positive_int("max_iter", max_iter)
     phase_sweeps = v.positive_int("phase_sweeps", phase_sweeps)
     max_stop_bytes = v.positive_int("max_stop_bytes", max_stop_bytes)
+    pga_options = {"max_points": v.positive_int("pga_max_points", pga_max_points)}
+    if pga_min_coherence is not None:
+        coh = v.non_negative("pga_min_coherence", pga_min_coherence)
+        if coh > 1:
+            raise ValueError(f"pga_min_coherence must be in [0, 1], got {pga_min_coherence!r}")
+        pga_options["min_coherence"] = coh
     if progress is not None and not callable(progress):
         raise TypeError("progress must be callable(step, n_images, metric)")
     if dataset.n_meas < 4:
@@ -232,7 +245,8 @@ def autofocus(
     return run(dataset, grid, methods=tuple(methods), metric=metric, n_basis=n_basis, bandwidth_hz=bw,
                temperature_range_c=t_range, max_delay_s=max_delay, per_stop_delay=bool(per_stop_delay),
                max_iter=max_iter, backend=backend, device=device, progress=progress, force=force,
-               started=time.perf_counter(), phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes)
+               started=time.perf_counter(), phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes,
+               pga_options=pga_options)
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:
