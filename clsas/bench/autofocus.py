@@ -88,8 +88,8 @@ def run_cases(cases=CASES_QUICK, *, spacing_m: float = 0.01, max_iter: int = 40,
     for kind, size in cases:
         if status:
             status(f"autofocus: {kind} {size:g}")
-        err = {"jitter": {"position_error": HandMotion(size)}, "temperature": {"temperature_error_c": size},
-               "delay": {"group_delay_s": size}}[kind]
+        err = {"position_error": HandMotion(size)} if kind == "jitter" else \
+            {"temperature_error_c": size} if kind == "temperature" else {"group_delay_s": size}
         methods = {"jitter": ("direct", "phase", "3d", "pga"), "temperature": ("direct", "temperature"),
                    "delay": ("direct",)}[kind]
         ds = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, **common, **err)
