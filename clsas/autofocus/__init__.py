@@ -20,7 +20,11 @@ estimates, in this order (each step selectable in ``methods``):
    estimate where there is one;
 6. ``"3d"``: the carriage's 3-D displacement per stop (the line of sight differs between
    reflectors seen at different angles), from the line-of-sight estimate on, its change in the
-   same smooth basis per axis, by the same analytic gradient.
+   same smooth basis per axis, by the same analytic gradient;
+7. ``"pga"``: phase-gradient autofocus on strong points (:mod:`.pga`): each stop's own 3-D
+   displacement, from the phases of its contributions to the image's strong isolated points;
+   applied only where at least four points are coherent enough to be points (not on an
+   extended target) and the image gets sharper. Not in the default.
 
 It returns the corrected dataset and an :class:`AutofocusReport`, and never an image less
 sharp than the input's: if the final metric is not above the input's, the input comes back
@@ -171,9 +175,10 @@ def autofocus(
     grid : VoxelGrid
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
-    methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d"}
+    methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d", "pga"}
         The steps to run (see the module docstring); order is fixed. The default leaves out
-        ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains).
+        ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains) and ``"pga"``
+        (for scenes of a few isolated strong points).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.autofocus.metrics.metric_and_weight`.
     n_basis : int, optional
