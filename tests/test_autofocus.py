@@ -324,3 +324,22 @@ def test_pga_leaves_an_extended_target_alone():
     assert not st["kept"] and st["points"] < 4 and max(st["coherence_after"]) < 0.5
     assert any("no strong isolated points" in n for n in rep.notes)
     assert out is ds and not rep.improved  # nothing else ran: the input comes back
+
+
+def test_bench_peak_measures():
+    from clsas.bench.autofocus import _fine_peaks_db, _peaks_db, _untilted_truth
+
+    ds = scan(nx=7, ny=5, position_error=HandMotion(0.001, seed=3))
+    u = _untilted_truth(ds)
+    d = u.tx_positions - ds.tx_positions
+    xy = ds.tx_positions[:, :2]
+    nuis = np.c_[np.ones(len(xy)), xy - xy.mean(axis=0)]
+    assert np.abs(nuis.T @ d).max() < 1e-12  # no constant, no tilt left
+    true_d = ds.truth["tx_positions"] - ds.tx_positions
+    coef, *_ = np.linalg.lstsq(nuis, true_d, rcond=None)
+    assert np.allclose(d, true_d - nuis @ coef)  # the rest of the true motion, unchanged
+    pts = np.asarray(POINTS)
+    grid_db = _peaks_db(clsas.reconstruct(ds, GRID, backend="numpy"), pts, GRID)
+    fine_db = _fine_peaks_db(ds, pts, backend="numpy")
+    assert np.all(fine_db >= grid_db - 0.05)  # the local peak is the peak, not a voxel near it
+    assert np.all(fine_db - grid_db < 3.0)
