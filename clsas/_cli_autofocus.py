@@ -10,7 +10,7 @@ import numpy as np
 def add_autofocus_options(sp) -> None:
     """The autofocus options shared by ``autofocus`` and ``reconstruct --autofocus``."""
     sp.add_argument("--methods", default="direct,temperature,delay,phase,3d",
-                    help="steps, comma-separated, from direct, temperature, delay, phase, los, 3d "
+                    help="steps, comma-separated, from direct, temperature, delay, phase, los, 3d, pga "
                     "(default: direct,temperature,delay,phase,3d)")
     sp.add_argument("--metric", default="sharpness", choices=("sharpness", "entropy"), help="focus metric")
     sp.add_argument("--n-basis", type=int, default=None, help="smooth functions for the line-of-sight motion")

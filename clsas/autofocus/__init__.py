@@ -20,7 +20,11 @@ estimates, in this order (each step selectable in ``methods``):
    estimate where there is one;
 6. ``"3d"``: the carriage's 3-D displacement per stop (the line of sight differs between
    reflectors seen at different angles), from the line-of-sight estimate on, its change in the
-   same smooth basis per axis, by the same analytic gradient.
+   same smooth basis per axis, by the same analytic gradient;
+7. ``"pga"``: phase-gradient autofocus on strong points (:mod:`.pga`): each stop's own 3-D
+   displacement, from the phases of its contributions to the image's strong isolated points;
+   applied only where at least four points are coherent enough to be points (not on an
+   extended target) and the image gets sharper. Not in the default.
 
 It returns the corrected dataset and an :class:`AutofocusReport`, and never an image less
 sharp than the input's: if the final metric is not above the input's, the input comes back
@@ -47,7 +51,7 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"
 
 log = logging.getLogger(__name__)
 
-METHODS = ("direct", "temperature", "delay", "phase", "los", "3d")
+METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
 DEFAULT_METHODS = ("direct", "temperature", "delay", "phase", "3d")
 
 
@@ -156,6 +160,8 @@ def autofocus(
     max_iter: int = 40,
     phase_sweeps: int = 4,
     max_stop_bytes: int = 1 << 30,
+    pga_min_coherence: float | None = None,
+    pga_max_points: int = 32,
     backend: str | None = None,
     device: Any = None,
     progress: Callable[[str, int, float], None] | None = None,
@@ -169,9 +175,10 @@ def autofocus(
     grid : VoxelGrid
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
-    methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d"}
+    methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d", "pga"}
         The steps to run (see the module docstring); order is fixed. The default leaves out
-        ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains).
+        ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains) and ``"pga"``
+        (for scenes of a few isolated strong points).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.autofocus.metrics.metric_and_weight`.
     n_basis : int, optional
@@ -193,6 +200,11 @@ def autofocus(
     max_stop_bytes : int
         Memory for the per-stop images of ``"phase"`` (complex64, stops x voxels), bytes; past
         it, only the brightest voxels of the image are kept.
+    pga_min_coherence : float, optional
+        ``"pga"`` uses only points whose per-stop contributions add up this coherently (0 to 1;
+        default :data:`clsas.autofocus.pga.PGA_MIN_COHERENCE`).
+    pga_max_points : int
+        Most strong points ``"pga"`` uses (the brightest that qualify).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -223,6 +235,12 @@ def autofocus(
     max_iter = v.positive_int("max_iter", max_iter)
     phase_sweeps = v.positive_int("phase_sweeps", phase_sweeps)
     max_stop_bytes = v.positive_int("max_stop_bytes", max_stop_bytes)
+    pga_options = {"max_points": v.positive_int("pga_max_points", pga_max_points)}
+    if pga_min_coherence is not None:
+        coh = v.non_negative("pga_min_coherence", pga_min_coherence)
+        if coh > 1:
+            raise ValueError(f"pga_min_coherence must be in [0, 1], got {pga_min_coherence!r}")
+        pga_options["min_coherence"] = coh
     if progress is not None and not callable(progress):
         raise TypeError("progress must be callable(step, n_images, metric)")
     if dataset.n_meas < 4:
@@ -232,7 +250,8 @@ def autofocus(
     return run(dataset, grid, methods=tuple(methods), metric=metric, n_basis=n_basis, bandwidth_hz=bw,
                temperature_range_c=t_range, max_delay_s=max_delay, per_stop_delay=bool(per_stop_delay),
                max_iter=max_iter, backend=backend, device=device, progress=progress, force=force,
-               started=time.perf_counter(), phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes)
+               started=time.perf_counter(), phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes,
+               pga_options=pga_options)
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:

@@ -13,6 +13,7 @@ from .direct import direct_arrivals
 from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, los_directions, motion_basis, optimise_los, optimise_xyz, stops_of
+from .pga import pga_refine
 from .phases import PHASE_MIN_GAIN, phase_to_path, stop_phase_search
 
 log = logging.getLogger("clsas.autofocus")
@@ -49,7 +50,7 @@ def _bounded_search(f, lo: float, hi: float, step: float, tol: float) -> tuple[f
 
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
-        smooth_start=True) -> tuple:
+        smooth_start=True, pga_options=None) -> tuple:
     rep = AutofocusReport(metric=metric, methods=list(methods))
     history = rep.history
     temp0 = np.broadcast_to(np.asarray(ds.temperature_c, float), (ds.n_meas,)).copy()
@@ -66,8 +67,8 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
                          device=device, force=force)
     rep.backend, rep.device = engine.backend, engine.device
 
-    def image_metric(shift, c, step):
-        m = metric_and_weight(engine.image(shift, c), metric)[0]
+    def image_metric(shift, c, step, tx=None, rx=None):
+        m = metric_and_weight(engine.image(shift, c, tx, rx), metric)[0]
         history.append(m)
         if progress is not None:
             progress(step, len(history), m)
@@ -190,14 +191,15 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
         d, info = optimise_xyz(engine, t0_est - ds.t0_s, c_est, stop, start, max_iter, history, callback=progress,
                                basis=basis)
         move = d[stop]
-        # the line-of-sight path at the focus centre that this displacement makes, per stop
-        path = np.linalg.norm(centre - ds.tx_positions, axis=1) + np.linalg.norm(centre - ds.rx_positions, axis=1)
-        moved = np.linalg.norm(centre - ds.tx_positions - move, axis=1) \
-            + np.linalg.norm(centre - ds.rx_positions - move, axis=1)
-        p_stop = (moved - path)[first]
+        p_stop = _los_path(ds, centre, move, first)
         rep.n_basis = info["functions"]
         rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
                            "time_s": time.perf_counter() - t})
+    if "pga" in methods:  # 7. phase-gradient autofocus on strong points: per-stop 3-D refinement
+        move, changed = _pga_step(engine, ds, t0_est - ds.t0_s, c_est, stop, xy, move, pga_options or {},
+                                  image_metric, rep)
+        if changed:
+            p_stop = _los_path(ds, centre, move, np.r_[0, np.flatnonzero(np.diff(stop)) + 1])
     tx, rx = ds.tx_positions + move, ds.rx_positions + move
     m_final = metric_and_weight(engine.image(t0_est - ds.t0_s, c_est, tx, rx), metric)[0]
     history.append(m_final)
@@ -208,7 +210,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     rep.temperature_offset_c = float(d_temp)
     rep.temperature_c = float(np.mean(temp0) + d_temp)
     rep.c_mps = float(np.mean(c_est))
-    rep.los_path_m = p_stop if {"los", "phase", "3d"} & set(methods) else None
+    rep.los_path_m = p_stop if {"los", "phase", "3d", "pga"} & set(methods) else None
     rep.position_correction_m = move
     rep.stop_index = stop
     rep.metric_after = m_final
@@ -259,6 +261,44 @@ def _phase_step(engine, ds, grid, shift, c, stop, sweeps, max_bytes, image_metri
     log.info("autofocus phase: %d sweeps, %.2f mm RMS of path, metric %.5g", info["sweeps"],
              float(np.sqrt(np.mean(p**2))) * 1e3, m_after)
     return p
+
+
+def _los_path(ds, centre, move, first) -> np.ndarray:
+    """The bistatic path change at ``centre`` that the displacement ``move`` makes, per stop, m."""
+    path = np.linalg.norm(centre - ds.tx_positions, axis=1) + np.linalg.norm(centre - ds.rx_positions, axis=1)
+    moved = np.linalg.norm(centre - ds.tx_positions - move, axis=1) \
+        + np.linalg.norm(centre - ds.rx_positions - move, axis=1)
+    return (moved - path)[first]
+
+
+def _pga_step(engine, ds, shift, c, stop, xy, move, options, image_metric, rep) -> tuple[np.ndarray, bool]:
+    """PGA from the displacement ``move`` (n_meas, 3); kept where the image gets sharper."""
+    t = time.perf_counter()
+    n_stops = int(stop.max()) + 1
+    start = np.stack([np.bincount(stop, move[:, k], n_stops) / np.bincount(stop, minlength=n_stops)
+                      for k in range(3)], axis=1)
+    d, info = pga_refine(engine, shift, c, stop, start, xy, **options)
+    stage = {"step": "pga", "points": info["points"], "candidates": info["candidates"],
+             "iterations": info["iterations"], "kept": False, "coherence": info["coherence"],
+             "coherence_after": info.get("coherence_after", [])}
+    if info["reason"]:
+        rep.notes.append(f"pga: no strong isolated points ({info['reason']}): not used")
+        rep.stages.append({**stage, "time_s": time.perf_counter() - t})
+        return move, False
+    tx, rx = ds.tx_positions + move, ds.rx_positions + move
+    m_before = image_metric(shift, c, "pga", tx, rx)
+    m_after = image_metric(shift, c, "pga", ds.tx_positions + d[stop], ds.rx_positions + d[stop])
+    stage.update(metric=m_after, kept=bool(m_after > m_before), time_s=time.perf_counter() - t)
+    rep.stages.append(stage)
+    if not stage["kept"]:
+        rep.notes.append(f"pga: {info['points']} strong points, but their per-stop phases did not sharpen the image "
+                         f"({m_after:.5g} against {m_before:.5g}); not used")
+        return move, False
+    rep.notes.append(f"pga: {info['points']} strong points (coherence after {max(info['coherence_after']):.2f} "
+                     f"at best), {info['iterations']} iterations, per-stop 3-D moves "
+                     f"{np.sqrt(np.mean(np.sum((d - start) ** 2, axis=1))) * 1e3:.3f} mm RMS")
+    log.info("autofocus pga: %d points, metric %.5g -> %.5g", info["points"], m_before, m_after)
+    return d[stop], True
 
 
 def _record(rep) -> dict:
