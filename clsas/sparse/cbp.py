@@ -62,6 +62,15 @@ def _solve(prob, name):
     return prob.status, int(prob.solver_stats.num_iters or 0)
 
 
+def _window_weights(D: np.ndarray) -> np.ndarray:
+    """Each atom's l1 weight: its norm on the window over the largest (1 for an atom inside the
+    window, less for one the window cuts). Unweighted, a cut echo costs as much lam per unit of
+    amplitude as a whole one while explaining a fraction of the energy, and the convex programs
+    spread it over neighbouring atoms; weighted, a cut echo is one echo again."""
+    norms = np.linalg.norm(D, axis=0)
+    return np.maximum(norms / max(float(norms.max(initial=0.0)), 1e-300), 0.5)
+
+
 def _echoes_from(taus, amps, rel_threshold, method, status, iters, t_start, info):
     keep = amps > rel_threshold * max(amps.max(initial=0.0), 1e-300)
     return Echoes(taus[keep], amps[keep], method, status, iters, time.perf_counter() - t_start, info)
@@ -69,7 +78,8 @@ def _echoes_from(taus, amps, rel_threshold, method, status, iters, t_start, info
 
 def cbp_taylor(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes="positive",
                rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
-    """CBP-Taylor: ``min |b - F c - G d|^2 + lam sum c`` s.t. ``|d_i| <= c_i`` (G = Delta/2 f').
+    """CBP-Taylor: ``min |b - F c - G d|^2 + lam sum w_i c_i`` s.t. ``|d_i| <= c_i`` (G = Delta/2 f';
+    ``w_i`` the atom's norm on the window over a whole atom's, 1 but for atoms the window cuts).
 
     ``amplitudes="positive"`` is Ekanadham et al.'s convex program. For signed or complex
     amplitudes (echoes of unknown phase) the same idea is kept convex with a bound ``t_i``:
@@ -86,20 +96,21 @@ def cbp_taylor(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes
     _check_memory("cbp-taylor", (2 if cplx else 1) * len(b), (4 if cplx else 2) * dictionary.k, max_memory_gib)
     F, G = dictionary.taylor()
     k = dictionary.k
+    w = _window_weights(F)
     if amplitudes == "positive":
         c = cp.Variable(k, nonneg=True)
         d = cp.Variable(k)
-        prob = cp.Problem(cp.Minimize(cp.sum_squares(b - F @ c - G @ d) + lam * cp.sum(c)), [cp.abs(d) <= c])
+        prob = cp.Problem(cp.Minimize(cp.sum_squares(b - F @ c - G @ d) + lam * (w @ c)), [cp.abs(d) <= c])
     elif amplitudes == "real":
         c, d, t = cp.Variable(k), cp.Variable(k), cp.Variable(k, nonneg=True)
-        prob = cp.Problem(cp.Minimize(cp.sum_squares(b - F @ c - G @ d) + lam * cp.sum(t)),
+        prob = cp.Problem(cp.Minimize(cp.sum_squares(b - F @ c - G @ d) + lam * (w @ t)),
                           [cp.abs(c) <= t, cp.abs(d) <= t])
     else:
         # complex, written in real and imaginary parts: the same program, and cvxpy builds it
         # about 4x faster than from complex variables
         M = np.block([[F.real, -F.imag, G.real, -G.imag], [F.imag, F.real, G.imag, G.real]])
         z, t = cp.Variable(4 * k), cp.Variable(k, nonneg=True)
-        prob = cp.Problem(cp.Minimize(cp.sum_squares(np.r_[b.real, b.imag] - M @ z) + lam * cp.sum(t)),
+        prob = cp.Problem(cp.Minimize(cp.sum_squares(np.r_[b.real, b.imag] - M @ z) + lam * (w @ t)),
                           [cp.SOC(t, cp.vstack([z[:k], z[k:2 * k]]), axis=0),
                            cp.SOC(t, cp.vstack([z[2 * k:3 * k], z[3 * k:]]), axis=0)])
     status, iters = _solve(prob, "cbp-taylor")
@@ -121,7 +132,8 @@ def cbp_taylor(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes
 
 def cbp_polar(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes="positive",
               rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
-    """Convex CBP-Polar (SOCP): ``|(u_i, v_i)| <= r c_i``, ``u_i >= r cos(theta) c_i``;
+    """Convex CBP-Polar (SOCP): ``|(u_i, v_i)| <= r c_i``, ``u_i >= r cos(theta) c_i``, penalty
+    ``lam sum w_i c_i`` (``w_i`` as in :func:`cbp_taylor`);
     delay = grid + (Delta/2) atan2(v, u) / theta. Refused before it is built where its memory
     estimate exceeds ``max_memory_gib`` (see :func:`cbp_taylor`)."""
     import cvxpy as cp
@@ -135,7 +147,8 @@ def cbp_polar(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amplitudes=
     k = dictionary.k
     c, u, w = cp.Variable(k, nonneg=True), cp.Variable(k), cp.Variable(k)
     cons = [cp.SOC(P.r * c, cp.vstack([u, w]), axis=0), u >= P.r * np.cos(P.theta) * c]
-    prob = cp.Problem(cp.Minimize(cp.sum_squares(b - P.C @ c - P.U @ u - P.V @ w) + lam * cp.sum(c)), cons)
+    weights = _window_weights(dictionary.matrix())
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(b - P.C @ c - P.U @ u - P.V @ w) + lam * (weights @ c)), cons)
     status, iters = _solve(prob, "cbp-polar (convex)")
     cv = np.maximum(c.value, 0.0)
     shift = (dictionary.delta / 2) * np.arctan2(w.value, u.value) / P.theta

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _validate as v
-from .atoms import Dictionary, pulse_length_s
+from .atoms import Dictionary, whole_atoms
 from .bpdn import MODES, ShiftOperator, _check, bpdn, lam_max
 
 __all__ = ["correlation_sigma", "lam_noise", "noise_lam", "noise_sigma"]
@@ -44,7 +44,7 @@ def correlation_sigma(dictionary: Dictionary, b, amplitudes: str = "real") -> fl
     (:func:`noise_sigma`), and coloured or analytic noise is measured as the atoms see it."""
     b = _check(dictionary, b, amplitudes)
     g = ShiftOperator(dictionary).adjoint(b)
-    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    whole = whole_atoms(dictionary)
     if np.count_nonzero(whole) >= 8:
         g = g[whole]
     if amplitudes == "complex":
@@ -59,7 +59,7 @@ def _independent(dictionary: Dictionary) -> float:
     col = dictionary.atom.matrix(np.array([0.0]))[:, 0]
     acf = np.abs(np.fft.ifft(np.abs(np.fft.fft(col, 2 * len(col))) ** 2))
     length = float(np.sum(acf**2) / acf.max() ** 2) if acf.max() > 0 else 1.0
-    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    whole = whole_atoms(dictionary)
     n = np.count_nonzero(whole) if np.count_nonzero(whole) >= 8 else dictionary.k
     return max(n * dictionary.delta * dictionary.atom.fs / max(length, 1.0), 1.0)
 
@@ -79,7 +79,7 @@ def _deflated_sigma(dictionary: Dictionary, b, A: np.ndarray, amplitudes: str) -
     cover = np.zeros(dictionary.k)
     for col in q.T:
         cover += np.abs(op.adjoint(col)) ** 2
-    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    whole = whole_atoms(dictionary)
     n2 = dictionary.atom.norm ** 2
     keep = whole & (n2 - cover > 0.2 * n2)
     if np.count_nonzero(keep) < 8:
@@ -120,11 +120,12 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     lam = 2 * correlation_sigma(dictionary, b, amplitudes) * t
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
         raise ValueError(f"refine must be an integer >= 0, got {refine!r}")
+    lam_floor = v.non_negative("floor", floor) * lmax
     trial, need = lam, 0.9
     if refine and lam >= lmax:  # the gate may be all echoes: go down from lam_max / 2
         trial, need = 0.5 * lmax, 1.0
     for _ in range(int(refine)):
-        if trial >= lmax:
+        if trial >= lmax or trial <= lam_floor:  # below the floor the floor is the answer: no fit
             break
         x = bpdn(dictionary, b, trial, amplitudes=amplitudes, tol=1e-3, max_inner=2000).x
         on = np.flatnonzero(x)
@@ -137,7 +138,7 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
         if new >= need * trial:
             break
         lam, trial, need = new, new, 0.9
-    return float(max(lam, v.non_negative("floor", floor) * lmax))
+    return float(max(lam, lam_floor))
 
 
 def noise_lam(dictionary: Dictionary, sigma: float, amplitudes: str = "real", *, false_alarm: float = 0.01) -> float:
