@@ -291,7 +291,11 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
     p = 3 if amplitudes == "complex" else 2
     # an echo's parameters are informed by the samples its pulse covers, not the whole window
     n_eff = int(round(pulse_length_s(atom) * atom.fs))
-    penalty = p * np.log(n_eff * (2 if amplitudes == "complex" else 1))
+    # the analytic signal of a real recording holds n independent values, not 2 n (its imaginary
+    # part is the real part's Hilbert transform): counted twice, the BIC accepted a pair of close
+    # echoes that fits a noise fluctuation in about a quarter of 2-echo profiles at 40 dB
+    n_free = atom.n if real_signal else n_real
+    penalty = p * np.log(n_eff * (2 if amplitudes == "complex" and not real_signal else 1))
     vp = _VarPro(atom, b, amplitudes, real_signal)
     min_gap = half / 16
 
@@ -307,7 +311,7 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
     energy_cap = 4.0 * float(np.vdot(b, b).real)
 
     def bic(rss, k):
-        return n_real * np.log(max(rss, rss_floor) / n_real) + penalty * k
+        return n_free * np.log(max(rss, rss_floor) / n_real) + penalty * k
 
     def fit(taus):
         return vp.fit(taus, t_lo, t_hi, min_gap)
