@@ -107,7 +107,8 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     their noise level in three or four fits; on pure noise the first residual's level is still
     above lam_max / 2 (the rescaling keeps it near the first estimate), lam stays at or above
     lam_max and the answer is no echo ("nothing here"). The threshold is raised by one
-    standard deviation of the median's relative error, ``0.72 / sqrt(n_eff)`` (Rayleigh),
+    standard deviation of the median's relative error, ``0.72 / sqrt(n_eff)`` (Rayleigh; 1.17 for
+    real and positive amplitudes, half-normal),
     ``n_eff`` the independent correlations in the window (:func:`_independent`): a scale
     estimated from a short window is often low, and pure noise then crossed a threshold set for
     1 % in 2-3 % of profiles. At least ``floor`` x lam_max (a dynamic range of 40 dB by default:
@@ -116,7 +117,11 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     """
     b = _check(dictionary, b, amplitudes)
     lmax = lam_max(ShiftOperator(dictionary), b, amplitudes)
-    t = _threshold(dictionary.k, amplitudes, false_alarm) * (1 + 0.72 / np.sqrt(_independent(dictionary)))
+    # the median's relative standard error: 0.72 / sqrt(n) for |complex Gaussian| (Rayleigh),
+    # 1.17 / sqrt(n) for |real Gaussian| (half-normal; with 0.72, 1.5-2 % of pure-noise profiles
+    # gave an echo for real and positive amplitudes)
+    spread = 0.72 if amplitudes == "complex" else 1.17
+    t = _threshold(dictionary.k, amplitudes, false_alarm) * (1 + spread / np.sqrt(_independent(dictionary)))
     lam = 2 * correlation_sigma(dictionary, b, amplitudes) * t
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
         raise ValueError(f"refine must be an integer >= 0, got {refine!r}")
