@@ -170,8 +170,13 @@ class Atom:
     def _hermite(self, taus, d):
         return self._hermite_both(taus, d == 0, d == 1)[0 if d == 0 else 1]
 
-    def _hermite_both(self, taus, want_f=True, want_df=True):
+    def _hermite_both(self, taus, want_f=True, want_df=True, consistent=False):
         """Cubic Hermite interpolation of the tables at t_n - tau: (f, f') columns.
+
+        ``consistent``: f' is the derivative of the f interpolant itself (one order less
+        accurate than the interpolated f' table, about 1e-5 relative), so that a gradient built
+        on it is the exact gradient of an objective built on f: L-BFGS's line search otherwise
+        meets the 1e-6 disagreement near a minimum and fails ("runtime_error").
 
         t_n is a whole number of table steps, so the fractional position (and with it the four
         Hermite weights) is one per column; the tables are stored polyphase, (derivative, phase,
@@ -193,7 +198,7 @@ class Atom:
         idx = q[:, None] + np.arange(n)[None, :]  # (K, n)
         r_next = (r + 1) % L
         idx_next = idx + (r + 1 == L)[:, None]
-        d_lo, d_hi = (0 if want_f else 1), (1 if not want_df else 2)
+        d_lo, d_hi = (0 if want_f or consistent else 1), (1 if not want_df or consistent else 2)
         a = poly[d_lo:d_hi + 1][:, r[:, None], idx]  # (d, K, n)
         b = poly[d_lo:d_hi + 1][:, r_next[:, None], idx_next]
 
@@ -202,7 +207,11 @@ class Atom:
             return (w00 * a[i] + w01 * b[i] + w10 * a[i + 1] + w11 * b[i + 1]).T
 
         f = self._center(comb(0)) if want_f else None
-        df = self._center(comb(1)) if want_df else None
+        if want_df and consistent:  # d/ds of the Hermite interpolant (s = t - tau = (j + u) h)
+            df = self._center(((6 * u2 - 6 * u) * (a[0] - b[0]) / h + (3 * u2 - 4 * u + 1) * a[1]
+                               + (3 * u2 - 2 * u) * b[1]).T)
+        else:
+            df = self._center(comb(1)) if want_df else None
         return f, df
 
 

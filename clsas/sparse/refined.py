@@ -93,7 +93,7 @@ class _VarPro:
         self.evals += 1
         want_grad = grad is not None and grad.size
         if self.atom.sampled is not None:
-            A, df = self.atom._hermite_both(taus, True, want_grad)
+            A, df = self.atom._hermite_both(taus, True, want_grad, consistent=True)
             dA = -df if want_grad else None  # d/dtau f(t - tau) = -f'(t - tau)
         else:
             A, dA = self.atom.matrix(taus), (self.atom.dmatrix(taus) if want_grad else None)
