@@ -70,8 +70,8 @@ class _VarPro:
     """RSS(taus) = |b - A(taus) a*(taus)|^2 with a* the best amplitudes, and its gradient.
 
     ``real_signal``: ``b`` is the analytic signal of a real recording, and the RSS is that of
-    its real part, ``2 |P Re(b) - P Re(A a)|^2`` (``P`` removes the mean; complex amplitudes, real
-    least squares on ``[Re a, Im a]``): the analytic RSS in the window's interior, and exact for echoes that the
+    its real part, ``2 |Re(b) - Re(A a)|^2`` (complex amplitudes, real least squares on
+    ``[Re a, Im a]``): the analytic RSS in the window's interior, and exact for echoes that the
     window cuts (see :class:`clsas.sparse.bpdn.RealPartOperator`)."""
 
     def __init__(self, atom, b, mode, real_signal: bool = False):

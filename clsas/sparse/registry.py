@@ -184,6 +184,8 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
     if noise_sigma is not None and (lam is not None or lam_frac is not None):
         raise ValueError("noise_sigma sets lam: give it instead of lam and lam_frac, not with them")
     b = _check(dictionary, b, amplitudes)
+    if real_signal and (amplitudes != "complex" or not np.iscomplexobj(b)):
+        raise ValueError("real_signal=True needs amplitudes='complex' and b the analytic signal (complex)")
     scale = float(np.max(np.abs(b), initial=0.0))
     if scale == 0.0:
         return _nothing(method, "zero input", t_start, {"lam_max": 0.0})
@@ -202,8 +204,6 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
     if lam_n >= lmax or (lam_frac is not None and lam_frac >= 1):
         return _nothing(method, "lam >= lam_max", t_start, {"lam": lam_n * scale, "lam_max": lmax * scale})
     if real_signal:
-        if amplitudes != "complex" or not np.iscomplexobj(b):
-            raise ValueError("real_signal=True needs amplitudes='complex' and b the analytic signal (complex)")
         options["real_signal"] = True
     e = SPARSE_METHODS[method](dictionary, bn, lam_n, None, amplitudes, max_echoes=max_echoes, **options)
     return _rescaled(e, scale)
