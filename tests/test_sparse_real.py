@@ -245,13 +245,17 @@ def test_grouping_bpdn_atoms_sharpens_the_image():
         away = mag[dist > 0.015]
         return np.array([20 * np.log10(mag.max() / np.sqrt(np.mean(away**2))), 20 * np.log10(mag.max() / away.max())])
 
-    runs = clsas.reconstruct(ds, grid, "bpdn", backend="numpy", sparse={"max_echoes": 16})
-    atoms = clsas.reconstruct(ds, grid, "bpdn", backend="numpy",
-                              sparse={"max_echoes": 16, "method_options": {"group": False}})
+    # lam fixed (5 % of lam_max, where BPDN spreads this pulse's echoes): the test is of the
+    # grouping, not of the noise level, whose estimate moves the default lam (1.8 % of lam_max
+    # before the noise was measured on whole atoms only, 3.2 % since; there grouping measures
+    # -0.45 dB on the RMS and +0.8 dB on the largest)
+    opts = {"max_echoes": 16, "lam_frac": 0.05}
+    runs = clsas.reconstruct(ds, grid, "bpdn", backend="numpy", sparse=opts)
+    atoms = clsas.reconstruct(ds, grid, "bpdn", backend="numpy", sparse={**opts, "method_options": {"group": False}})
     assert np.mean([len(e) for e in runs.echoes]) < np.mean([len(e) for e in atoms.echoes])
-    # measured: +0.7 dB and +0.8 dB (+1.9 and +2.8 before lam_noise read the residual with the fitted
-    # span deflated: its lam is higher, BPDN leaves fewer stray atoms for grouping to merge)
-    assert np.all(tcr_db(runs) > tcr_db(atoms) + 0.3)
+    # measured: +1.4 dB on both (+0.7 and +0.8 at the default lam before the noise was measured on
+    # whole atoms only; +1.9 and +2.8 before lam_noise read the residual with the fitted span deflated)
+    assert np.all(tcr_db(runs) > tcr_db(atoms) + 0.5)
     assert np.linalg.norm(runs.peaks(1)[0].position_m - pts[0]) <= 0.01
 
 

@@ -7,6 +7,7 @@ import pytest
 
 import clsas
 from clsas.sparse import SPARSE_METHODS, superres
+from clsas.sparse.atoms import margin_s
 
 pytest.importorskip("cvxpy", reason="cvxpy is an optional dependency (pip install 'clsas[sparse]')")
 
@@ -37,12 +38,6 @@ def _profile(pulse, delays_s, amps, n=N):
 def _run(method, amplitudes, x, pulse, **kw):
     kw.setdefault("delta_s", 1 / FS)
     return superres(x, pulse, FS, method=method, amplitudes=amplitudes, **kw)
-
-
-def _open_for(request, method, methods, reason):
-    """Mark this case an expected failure for ``methods`` (an open part of issue 17)."""
-    if method in methods:
-        request.applymarker(pytest.mark.xfail(reason=reason, strict=False))
 
 
 def _no_solve(monkeypatch, method):
@@ -94,27 +89,54 @@ def test_answer_does_not_depend_on_scale(pulse, method, amplitudes):
 
 
 @pytest.mark.parametrize(("method", "amplitudes"), CASES, ids=IDS)
-def test_echo_starting_before_the_window(request, pulse, method, amplitudes):
-    """Half a pulse early: no exception, a usable answer, no swarm of echoes."""
-    _open_for(request, method, ("bpdn", "cbp-taylor", "cbp-polar-socp"),
-              "the grid methods have no atoms before the window: the cut pulse takes 5-8 echoes")
-    x = _profile(pulse, [-len(pulse) / 2 / FS, 90 / FS], [1.0, 0.8])
+def test_echo_starting_before_the_window(pulse, method, amplitudes):
+    """Half a pulse early, at the default tau0_s (a margin of a pulse length before the window):
+    no exception, no swarm of echoes; the cut echo is found at its true delay, as one echo."""
+    early = -len(pulse) / 2 / FS
+    x = _profile(pulse, [early, 90 / FS], [1.0, 0.8])
     e = _run(method, amplitudes, x, pulse)
     assert clsas.sparse.succeeded(e)
-    assert 1 <= len(e) <= 4
-    assert np.min(np.abs(e.delays_s - 90 / FS)) < 1 / FS
+    assert 2 <= len(e) <= 4
+    assert np.min(np.abs(e.delays_s - 90 / FS)) < 0.5 / FS
+    assert np.min(np.abs(e.delays_s - early)) < 0.5 / FS
+    mag = np.abs(e.amplitudes)
+    assert np.count_nonzero(mag > 0.2 * mag.max()) == 2
 
 
 @pytest.mark.parametrize(("method", "amplitudes"), CASES, ids=IDS)
-def test_echo_truncated_at_the_window_end(request, pulse, method, amplitudes):
-    _open_for(request, method, ("cbp-polar",), "a noise-free cut pulse: the BIC adds 3 weak echoes near the end")
+def test_echo_truncated_at_the_window_end(pulse, method, amplitudes):
+    """Half a pulse cut by the window's end, noise-free: modelled exactly (the real part of the
+    recording is fitted, the atoms' means removed as the signal's was), so no echo is added
+    to explain a mismatch."""
     late = (N - len(pulse) / 2) / FS
     x = _profile(pulse, [40 / FS, late], [1.0, 0.8])
     e = _run(method, amplitudes, x, pulse)
     assert clsas.sparse.succeeded(e)
     assert 2 <= len(e) <= 4
     assert np.min(np.abs(e.delays_s - 40 / FS)) < 0.5 / FS
-    assert np.min(np.abs(e.delays_s - late)) < 1 / FS
+    assert np.min(np.abs(e.delays_s - late)) < 0.5 / FS
+    mag = np.abs(e.amplitudes)
+    assert np.count_nonzero(mag > 0.2 * mag.max()) == 2
+
+
+@pytest.mark.parametrize(("method", "amplitudes"), CASES, ids=IDS)
+def test_hard_edged_chirp_gives_two_echoes(method, amplitudes):
+    """A chirp with no taper (hard on/off edges), two echoes at about 37 dB, at the default grid
+    (half a sample): two echoes at their delays, nothing spurious above a fifth of the strongest
+    and at most two weak ones. (Before: spurious echoes at 77 % and 44 % for CBP-Polar; CBP-Taylor
+    needs the half-sample grid here, its Taylor error grows with the pulse's bandwidth.)"""
+    hard = clsas.lfm_chirp(20e3, 30e3, 0.4e-3, FS, taper=0.0)
+    rng = np.random.default_rng(7)
+    for _ in range(3):
+        t1 = 40 + rng.uniform(0, 1)
+        t2 = t1 + 30 + rng.uniform(0, 50)
+        x = _profile(hard, [t1 / FS, t2 / FS], [1.0, 0.6]) + 0.01 * rng.normal(size=N)
+        e = _run(method, amplitudes, x, hard, delta_s=None)
+        assert clsas.sparse.succeeded(e)
+        mag = np.abs(e.amplitudes)
+        strong = e.delays_s[mag > 0.2 * mag.max()] * FS
+        assert len(e) <= 4 and len(strong) == 2, (e.delays_s * FS, mag)
+        np.testing.assert_allclose(strong, [t1, t2], atol=0.25)
 
 
 @pytest.mark.parametrize(("method", "amplitudes"), CASES, ids=IDS)
@@ -137,7 +159,10 @@ def test_single_nonzero_sample(pulse, method, amplitudes):
     x[80] = 1.0
     e = _run(method, amplitudes, x, pulse)
     assert clsas.sparse.succeeded(e)
-    assert len(e) <= 12
+    # the default cap over the searched span (the window and superres's margin before it: 14)
+    atom = clsas.sparse.Atom(pulse, FS, N)
+    cap = clsas.sparse.default_max_echoes(clsas.sparse.Dictionary(atom, 1 / FS, -margin_s(atom, 1 / FS)))
+    assert len(e) <= cap
     if len(e):
         assert np.abs(e.amplitudes).max() * np.linalg.norm(pulse) <= 3.0
 
@@ -261,11 +286,76 @@ def test_imaging_atom_with_absorption_fits_a_simulated_echo_better():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("method", "amplitudes"), [("bpdn", "complex"), ("cbp-polar", "complex")],
-                         ids=["bpdn", "cbp-polar"])
+@pytest.mark.parametrize(("method", "amplitudes"), CASES, ids=IDS)
 def test_pure_noise_false_alarm_rate_at_most_one_percent(pulse, method, amplitudes):
     """The default threshold's stated rate: an echo in at most 2 of 200 pure-noise profiles
-    (it was 5 of 200 before the threshold allowed for the noise scale's estimation error)."""
+    (it was 5 of 200 before the threshold allowed for the noise scale's estimation error; 4 of
+    200 for the convex CBPs' positive amplitudes before that allowance used the half-normal's
+    spread). About 10-25 s per method on a 2-core VM: most profiles need no solve."""
     rng = np.random.default_rng(5)
     hits = sum(len(_run(method, amplitudes, rng.normal(size=N), pulse)) > 0 for _ in range(200))
     assert hits <= 2
+
+
+def test_real_part_operator_is_its_adjoint_and_its_columns(pulse):
+    """sqrt(2) Re(D x) and sqrt(2) D^H s: adjoint in the real inner product, and equal to the
+    dense [Re, Im] columns that the working sets and CBP-Polar's fits use."""
+    from clsas.sparse import Atom, Dictionary, ShiftOperator
+    from clsas.sparse.bpdn import RealPartOperator, real_part_columns
+
+    rng = np.random.default_rng(1)
+    d = Dictionary(Atom(pulse, FS, N, complex=True, centered=True), 0.5 / FS, -margin_s(Atom(pulse, FS, N), 0.5 / FS))
+    op = RealPartOperator(ShiftOperator(d))
+    x = rng.normal(size=d.k) + 1j * rng.normal(size=d.k)
+    s = rng.normal(size=N)
+    assert np.vdot(op.forward(x), s).real == pytest.approx(np.vdot(x, op.adjoint(s)).real, rel=1e-10)
+    dense = real_part_columns(d.matrix()) @ np.r_[x.real, x.imag]
+    np.testing.assert_allclose(op.forward(x), dense, atol=1e-9 * np.abs(dense).max())
+
+
+@pytest.mark.parametrize("complex_atom", [False, True], ids=["real", "complex"])
+def test_centered_atoms_agree_across_operator_matrix_and_table(pulse, complex_atom):
+    from clsas.sparse import Atom, Dictionary, ShiftOperator
+
+    rng = np.random.default_rng(2)
+    at = Atom(pulse, FS, N, complex=complex_atom, centered=True)
+    d = Dictionary(at, 1 / FS, -20 / FS)
+    D = d.matrix()
+    np.testing.assert_allclose(D.mean(axis=0), 0, atol=1e-12)
+    np.testing.assert_allclose(at.matrix(d.taus[::7] + 0.3 / FS, fast=True),
+                               at.matrix(d.taus[::7] + 0.3 / FS), atol=1e-5 * np.abs(D).max())
+    op = ShiftOperator(d)
+    assert op.fft
+    x = rng.normal(size=d.k)
+    np.testing.assert_allclose(op.forward(x), D @ x, atol=1e-9 * np.abs(D @ x).max())
+    r = rng.normal(size=N)
+    np.testing.assert_allclose(op.adjoint(r), D.conj().T @ r, atol=1e-9 * np.abs(D.conj().T @ r).max())
+
+
+@pytest.mark.parametrize("real_signal", [False, True], ids=["analytic", "real-part"])
+def test_refined_gradient_is_the_objective_s_derivative(pulse, real_signal):
+    """CBP-Polar's delay gradient agrees with central differences of its own RSS to 1e-6 (the
+    interpolated derivative table disagreed by 2.7e-5, and L-BFGS's line search failed near
+    minima with nlopt's runtime_error)."""
+    from clsas.signals import analytic
+    from clsas.sparse import Atom
+    from clsas.sparse.refined import _VarPro
+
+    rng = np.random.default_rng(3)
+    taus = np.array([40.3, 52.8, 100.1]) / FS
+    x = _profile(pulse, taus, [1.0, -0.7, 0.5]) + 0.05 * rng.normal(size=N)
+    vp = _VarPro(Atom(pulse, FS, N, complex=True), analytic(x), "complex", real_signal)
+    t = taus + np.array([0.2, -0.3, 0.1]) / FS
+    g = np.empty(3)
+    vp(t, g)
+    h = 1e-4 / FS
+    fd = np.array([(vp(t + h * e) - vp(t - h * e)) / (2 * h) for e in np.eye(3)])
+    np.testing.assert_allclose(g, fd, atol=1e-6 * np.abs(fd).max())
+
+
+def test_merge_coincident_echoes():
+    from clsas.sparse.cbp import merge_coincident
+
+    taus, amps = merge_coincident(np.array([3.0, 1.0, 1.05, 2.0]), np.array([1.0, 0.25, 0.75, 2.0]), 0.1)
+    np.testing.assert_allclose(taus, [1.0375, 2.0, 3.0])
+    np.testing.assert_allclose(amps, [1.0, 2.0, 1.0])

@@ -17,7 +17,7 @@ import numpy as np
 from .. import _validate as v
 
 __all__ = ["Atom", "absorbed_pulse", "Dictionary", "decaying_exponential", "coherence", "PolarTriple", "pulse_length_s",
-           "default_max_echoes"]
+           "default_max_echoes", "margin_s", "whole_atoms"]
 
 
 def decaying_exponential(alpha: float) -> Callable[[np.ndarray], np.ndarray]:
@@ -47,12 +47,19 @@ class Atom:
         Model analytic signals (echoes with unknown phase).
     derivative : callable, optional
         ``f'(t)`` for a callable shape; default a central difference (step 1e-4 / fs).
+    centered : bool
+        Each delayed atom has its mean over the window removed, as the signal it models had
+        (:func:`clsas.superres`'s ``remove_dc``): a pulse with no mean of its own is almost
+        unchanged, but one that the window cuts keeps a mean, and removing it from the signal
+        alone left a residual that the methods fitted with spurious echoes.
     """
 
-    def __init__(self, shape, fs_hz: float, n_samples: int, *, complex: bool = False, derivative=None):
+    def __init__(self, shape, fs_hz: float, n_samples: int, *, complex: bool = False, derivative=None,
+                 centered: bool = False):
         self.fs = v.positive("fs_hz", fs_hz)
         self.n = v.positive_int("n_samples", n_samples)
         self.complex = bool(complex)
+        self.centered = bool(centered)
         self.t = np.arange(self.n) / self.fs
         if callable(shape):
             self._f, self._df = shape, derivative
@@ -92,10 +99,13 @@ class Atom:
             return self._hermite(taus, 0)
         if self.sampled is None:
             cols = self._f(self.t[:, None] - taus[None, :])
-            return self._analytic_cols(cols) if self.complex else np.asarray(cols, float)
+            return self._center(self._analytic_cols(cols) if self.complex else np.asarray(cols, float))
         ramp = np.exp(-2j * np.pi * np.outer(taus, self._freq))  # (K, m)
         cols = np.fft.ifft(self._spec[None, :] * ramp, axis=1)[:, : self.n].T
-        return cols if self.complex else cols.real
+        return self._center(cols if self.complex else cols.real)
+
+    def _center(self, cols: np.ndarray) -> np.ndarray:
+        return cols - cols.mean(axis=0) if self.centered else cols
 
     def correlate(self, b: np.ndarray, oversample: int = 4) -> np.ndarray:
         """Correlations ``<atom(tau_j), b>`` at ``tau_j = j / (oversample fs)`` for every j < oversample m.
@@ -107,6 +117,8 @@ class Atom:
         if self.sampled is None:
             raise ValueError("correlate needs a sampled atom (a waveform), not a function")
         b = v.array("b", b, shape=(self.n,), dtype=None, allow_complex=True)
+        if self.centered:  # <P f, b> = <f, P b>
+            b = b - b.mean()
         m, big = self._m, oversample * self._m
         k = np.rint(np.fft.fftfreq(m) * m).astype(int)  # signed bin numbers
         z = np.zeros(big, complex)
@@ -128,10 +140,10 @@ class Atom:
                 cols = (self._f(self.t[:, None] - taus[None, :] - h) - self._f(self.t[:, None] - taus[None, :] + h)) / (
                     2 * h
                 )
-            return self._analytic_cols(cols) if self.complex else np.asarray(cols, float)
+            return self._center(self._analytic_cols(cols) if self.complex else np.asarray(cols, float))
         ramp = np.exp(-2j * np.pi * np.outer(taus, self._freq)) * (-2j * np.pi * self._freq)[None, :]
         cols = np.fft.ifft(self._spec[None, :] * ramp, axis=1)[:, : self.n].T
-        return cols if self.complex else cols.real
+        return self._center(cols if self.complex else cols.real)
 
     _OVERSAMPLE = 16
 
@@ -158,8 +170,13 @@ class Atom:
     def _hermite(self, taus, d):
         return self._hermite_both(taus, d == 0, d == 1)[0 if d == 0 else 1]
 
-    def _hermite_both(self, taus, want_f=True, want_df=True):
+    def _hermite_both(self, taus, want_f=True, want_df=True, consistent=False):
         """Cubic Hermite interpolation of the tables at t_n - tau: (f, f') columns.
+
+        ``consistent``: f' is the derivative of the f interpolant itself (one order less
+        accurate than the interpolated f' table, about 1e-5 relative), so that a gradient built
+        on it is the exact gradient of an objective built on f: L-BFGS's line search otherwise
+        meets the 1e-6 disagreement near a minimum and fails ("runtime_error").
 
         t_n is a whole number of table steps, so the fractional position (and with it the four
         Hermite weights) is one per column; the tables are stored polyphase, (derivative, phase,
@@ -181,7 +198,7 @@ class Atom:
         idx = q[:, None] + np.arange(n)[None, :]  # (K, n)
         r_next = (r + 1) % L
         idx_next = idx + (r + 1 == L)[:, None]
-        d_lo, d_hi = (0 if want_f else 1), (1 if not want_df else 2)
+        d_lo, d_hi = (0 if want_f or consistent else 1), (1 if not want_df or consistent else 2)
         a = poly[d_lo:d_hi + 1][:, r[:, None], idx]  # (d, K, n)
         b = poly[d_lo:d_hi + 1][:, r_next[:, None], idx_next]
 
@@ -189,8 +206,12 @@ class Atom:
             i = d - d_lo
             return (w00 * a[i] + w01 * b[i] + w10 * a[i + 1] + w11 * b[i + 1]).T
 
-        f = comb(0) if want_f else None
-        df = comb(1) if want_df else None
+        f = self._center(comb(0)) if want_f else None
+        if want_df and consistent:  # d/ds of the Hermite interpolant (s = t - tau = (j + u) h)
+            df = self._center(((6 * u2 - 6 * u) * (a[0] - b[0]) / h + (3 * u2 - 4 * u + 1) * a[1]
+                               + (3 * u2 - 2 * u) * b[1]).T)
+        else:
+            df = self._center(comb(1)) if want_df else None
         return f, df
 
 
@@ -284,6 +305,23 @@ def pulse_length_s(atom: Atom) -> float:
         e = np.sort(np.abs(atom.matrix([0.0])[:, 0]) ** 2)[::-1]
         atom._pulse_length = float(np.searchsorted(np.cumsum(e), 0.99 * e.sum()) + 1) / atom.fs
     return atom._pulse_length
+
+
+def margin_s(atom: Atom, delta_s: float) -> float:
+    """The default margin of atoms before a signal's window, s: the pulse length
+    (:func:`pulse_length_s`) rounded up to whole grid steps ``delta_s``, so that the grid still
+    holds delay 0. An echo that starts up to a pulse before the window is then fitted as one
+    truncated echo at its true (negative) delay, not as a swarm of echoes at the window's start."""
+    delta = v.positive("delta_s", delta_s)
+    return float(np.ceil(pulse_length_s(atom) / delta - 1e-9) * delta)
+
+
+def whole_atoms(dictionary: Dictionary) -> np.ndarray:
+    """(n_atoms,) bool: the atoms whose pulse lies whole inside the window (delay at or after 0
+    and at least a pulse length before its end); the noise level is measured on them, since the
+    atoms that the window cuts (or a margin before it holds) correlate less with the noise."""
+    atom = dictionary.atom
+    return (dictionary.taus >= -1e-12 / atom.fs) & (dictionary.taus <= atom.n / atom.fs - pulse_length_s(atom))
 
 
 def default_max_echoes(dictionary: Dictionary) -> int:

@@ -21,7 +21,8 @@ import numpy as np
 from .. import _validate as v
 from .atoms import Dictionary
 
-__all__ = ["BpdnResult", "ShiftOperator", "bpdn", "bpdn_cvxpy", "group_atoms", "lam_max"]
+__all__ = ["BpdnResult", "RealPartOperator", "ShiftOperator", "bpdn", "bpdn_cvxpy", "group_atoms", "lam_max",
+           "real_part_target"]
 
 log = logging.getLogger(__name__)
 MODES = ("positive", "real", "complex")
@@ -46,6 +47,7 @@ class ShiftOperator:
         self.d = dictionary
         atom = dictionary.atom
         self.n, self.k, self.complex = atom.n, dictionary.k, atom.complex
+        self.centered = atom.centered
         p = 1.0 / (dictionary.delta * atom.fs)
         self.p = int(round(p))
         self.fft = atom.sampled is not None and self.p >= 1 and abs(p - self.p) < 1e-9 * max(1.0, p)
@@ -69,11 +71,15 @@ class ShiftOperator:
             return self.D @ x
         X = np.fft.fft(x, self.mp)[self.bins]
         y = np.fft.ifft(self.spec * X)[: self.n]
-        return y if self.complex else y.real
+        if not self.complex:
+            y = y.real
+        return y - y.mean() if self.centered else y
 
     def adjoint(self, r: np.ndarray) -> np.ndarray:
         if not self.fft:
             return self.DH @ r
+        if self.centered:  # P is symmetric: D_c^H r = D^H (P r)
+            r = r - r.mean()
         R = np.fft.fft(r, self.m)
         Z = np.zeros(self.mp, complex)
         Z[self.bins] = np.conj(self.spec) * R
@@ -92,6 +98,40 @@ class ShiftOperator:
                 return 1.0
             x = x / s
         return 1.02 * float(s)
+
+
+class RealPartOperator:
+    """``sqrt(2) Re(D x)`` and its adjoint ``sqrt(2) D^H s`` (s real): complex amplitudes of
+    analytic atoms fitted to the real part of an analytic signal ``b``, i.e. to the real
+    recording itself (:func:`real_part_target`).
+
+    BPDN on ``real_part_target(b)`` with it is the complex problem in the interior of the
+    window (an analytic residual holds as much energy in its imaginary part as in its real
+    part, hence the sqrt(2): lam and the residual's scale stay the same), and it is exact for
+    echoes that the window cuts, whose analytic signal, taken over the window, is not the cut
+    analytic atom."""
+
+    def __init__(self, op: ShiftOperator):
+        if not op.complex:
+            raise ValueError("RealPartOperator needs complex (analytic) atoms")
+        self.op, self.d, self.n, self.k, self.complex, self.fft = op, op.d, op.n, op.k, True, op.fft
+
+    def forward(self, x: np.ndarray) -> np.ndarray:
+        return np.sqrt(2.0) * self.op.forward(x).real
+
+    def adjoint(self, r: np.ndarray) -> np.ndarray:
+        return np.sqrt(2.0) * self.op.adjoint(np.asarray(r, float).astype(complex))
+
+
+def real_part_target(b: np.ndarray) -> np.ndarray:
+    """What :class:`RealPartOperator` fits for an analytic signal ``b``: ``sqrt(2) Re(b)``."""
+    return np.sqrt(2.0) * np.asarray(b).real
+
+
+def real_part_columns(D: np.ndarray) -> np.ndarray:
+    """(n, 2K) real matrix of :class:`RealPartOperator` on K analytic columns: coefficients
+    stacked as ``[Re x, Im x]``."""
+    return np.sqrt(2.0) * np.hstack([D.real, -D.imag])
 
 
 def _check(dictionary, b, amplitudes):
@@ -118,7 +158,19 @@ def _objective(r, x, lam):
     return float(np.vdot(r, r).real + lam * np.abs(x).sum())
 
 
+def _mag(z, amplitudes):
+    """Per-atom magnitudes; ``"pairs"``: ``z`` holds ``[Re x, Im x]`` stacked (real)."""
+    if amplitudes == "pairs":
+        k = len(z) // 2
+        return np.hypot(z[:k], z[k:])
+    return np.abs(z)
+
+
 def _prox(z, t, amplitudes):
+    if amplitudes == "pairs":
+        k = len(z) // 2
+        p = _prox(z[:k] + 1j * z[k:], t, "complex")
+        return np.r_[p.real, p.imag]
     if amplitudes == "positive":
         return np.maximum(z.real - t, 0.0)
     if amplitudes == "real":
@@ -153,23 +205,24 @@ def _resolve_lam(op, b, amplitudes, lam, lam_frac):
 def _fista_gram(G, c, bb, lam, amplitudes, x, tol, max_iter, deadline=np.inf):
     """FISTA with restart on ``|b - D x|^2 + lam |x|_1`` written with the Gram matrix of a small
     working set (``G = D^H D``, ``c = D^H b``, ``bb = |b|^2``); stops at a restricted duality gap
-    <= tol x the objective."""
+    <= tol x the objective. ``amplitudes="pairs"``: real ``x = [Re, Im]`` stacked, |x_i| the
+    modulus of each pair (:class:`RealPartOperator`'s working sets)."""
     dtype = x.dtype
     L = 2 * max(np.linalg.eigvalsh(G)[-1], 1e-300)
     step = 1.0 / L
     lp = lam / 2
 
     def f(z):
-        return float(bb + np.vdot(z, G @ z).real - 2 * np.vdot(c, z).real + lam * np.abs(z).sum())
+        return float(bb + np.vdot(z, G @ z).real - 2 * np.vdot(c, z).real + lam * _mag(z, amplitudes).sum())
 
     def gap(z):
         g = c - G @ z  # D^H r
-        dn = np.max(g.real) if amplitudes == "positive" else np.max(np.abs(g))
+        dn = np.max(g.real) if amplitudes == "positive" else np.max(_mag(g, amplitudes))
         s = 1.0 if dn <= lp else lp / dn
         xgx, cx = np.vdot(z, G @ z).real, np.vdot(c, z).real
         rr = bb - 2 * cx + xgx
         b_minus_theta = (1 - s) ** 2 * bb + 2 * s * (1 - s) * cx + s**2 * xgx
-        return max(0.0, rr + lam * np.abs(z).sum() - (bb - b_minus_theta))
+        return max(0.0, rr + lam * _mag(z, amplitudes).sum() - (bb - b_minus_theta))
 
     y, t_mom, f_prev = x.copy(), 1.0, f(x)
     it = 0
@@ -250,6 +303,10 @@ def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter, deadline=np.inf)
     return x, it
 
 
+def _unpair(z, k):
+    return z[:k] + 1j * z[k:]
+
+
 def bpdn(
     dictionary: Dictionary,
     b,
@@ -261,6 +318,7 @@ def bpdn(
     max_outer: int = 30,
     max_inner: int = 100000,
     max_time_s: float | None = None,
+    real_signal: bool = False,
 ) -> BpdnResult:
     """Fast BPDN, stopped at a certified duality gap <= ``tol`` x the objective.
 
@@ -272,15 +330,22 @@ def bpdn(
     is exactly zero). ``max_time_s``: a time budget; where it runs out the best point so far is
     returned with its certified gap (``gap``), status ``"max_time"``. ``status`` is
     ``"optimal"``, ``"max_iter"`` or ``"max_time"``.
+    ``real_signal=True`` (complex amplitudes only): ``b`` is the analytic signal of a real
+    recording, and its real part is fitted (:class:`RealPartOperator`): the same problem in the
+    window's interior, exact for echoes cut by the window's edges.
     """
     t_start = time.perf_counter()
     deadline = np.inf if max_time_s is None else t_start + v.positive("max_time_s", max_time_s)
     b = _check(dictionary, b, amplitudes)
     op = ShiftOperator(dictionary)
+    if real_signal:
+        if amplitudes != "complex":
+            raise ValueError("real_signal=True is for amplitudes='complex' (a real signal's analytic signal)")
+        op, b = RealPartOperator(op), real_part_target(b)
     lam, lmax = _resolve_lam(op, b, amplitudes, lam, lam_frac)
     dtype = complex if amplitudes == "complex" else float
     x = np.zeros(dictionary.k, dtype)
-    info = {"lam_max": lmax, "fft": op.fft}
+    info = {"lam_max": lmax, "fft": op.fft, "real_signal": bool(real_signal)}
     if lam >= lmax:
         return BpdnResult(x, _objective(b, x, lam), lam, "optimal", 0, 0.0, time.perf_counter() - t_start, info)
     if amplitudes != "complex":
@@ -306,12 +371,17 @@ def bpdn(
     while outer < max_outer:
         outer += 1
         Dw = dictionary.atom.matrix(dictionary.taus[work])
+        if real_signal:  # real coefficients [Re, Im] of each atom, its pair's modulus penalised
+            Dw = real_part_columns(Dw)
+            mode, x0 = "pairs", np.r_[x[work].real, x[work].imag]
+        else:
+            mode, x0 = amplitudes, x[work]
         Gw = Dw.conj().T @ Dw
         cw = Dw.conj().T @ b
-        xw, n_in = _fista_gram(Gw, cw, bb, lam, amplitudes, x[work], tol / 10, max_inner, deadline)
+        xw, n_in = _fista_gram(Gw, cw, bb, lam, mode, x0, tol / 10, max_inner, deadline)
         inner += n_in
         x[:] = 0
-        x[work] = xw
+        x[work] = _unpair(xw, len(work)) if real_signal else xw
         r = b - op.forward(x)
         f = _objective(r, x, lam)
         gap = _gap(op, b, r, x, lam, amplitudes)
@@ -326,9 +396,9 @@ def bpdn(
         viol = np.setdiff1d(np.flatnonzero(score > lp * (1 + tol)), work)
         if viol.size == 0:  # the set is right, the restricted solve was not tight enough
             tol_inner = tol_inner / 10
-            xw, n_in = _fista_gram(Gw, cw, bb, lam, amplitudes, xw, tol_inner, max_inner, deadline)
+            xw, n_in = _fista_gram(Gw, cw, bb, lam, mode, xw, tol_inner, max_inner, deadline)
             inner += n_in
-            x[work] = xw
+            x[work] = _unpair(xw, len(work)) if real_signal else xw
             r = b - op.forward(x)
             gap = _gap(op, b, r, x, lam, amplitudes)
             if gap <= tol * max(_objective(r, x, lam), 1e-300):
@@ -401,7 +471,8 @@ def group_atoms(dictionary: Dictionary, x: np.ndarray, *, rel_threshold: float =
     -------
     delays_s, amplitudes, weights : (n_echoes,) arrays
         Per run: the ``|x|``-weighted mean delay; the amplitude of one atom there that best
-        fits the run's signal (its projection, ``<f(tau), sum_i x_i f(tau_i)> / |f|^2``:
+        fits the run's signal (its projection, ``<f(tau), sum_i x_i f(tau_i)> / |f(tau)|^2``,
+        the norm on the window, so that an echo cut by the window keeps its amplitude:
         what the matched filter reads at that delay, scaled to an amplitude, so the carrier
         phase between the run's atoms is accounted for); and the sum of ``|x|``.
     """
@@ -421,7 +492,8 @@ def group_atoms(dictionary: Dictionary, x: np.ndarray, *, rel_threshold: float =
             amps[j] = x[r[0]]
             continue
         f = atom.matrix(np.r_[delays[j], taus[r]], fast=True)
-        proj = np.vdot(f[:, 0], f[:, 1:] @ x[r]) / atom.norm**2
+        # over the column's own energy: an atom the window cuts holds less than |f|^2
+        proj = np.vdot(f[:, 0], f[:, 1:] @ x[r]) / max(np.vdot(f[:, 0], f[:, 0]).real, 1e-300)
         amps[j] = proj if np.iscomplexobj(amps) else proj.real
     weights = np.array([mag[r].sum() for r in runs])
     return delays, amps, weights

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import _validate as v
-from .atoms import Dictionary, pulse_length_s
+from .atoms import Dictionary, whole_atoms
 from .bpdn import MODES, ShiftOperator, _check, bpdn, lam_max
 
 __all__ = ["correlation_sigma", "lam_noise", "noise_lam", "noise_sigma"]
@@ -44,7 +44,7 @@ def correlation_sigma(dictionary: Dictionary, b, amplitudes: str = "real") -> fl
     (:func:`noise_sigma`), and coloured or analytic noise is measured as the atoms see it."""
     b = _check(dictionary, b, amplitudes)
     g = ShiftOperator(dictionary).adjoint(b)
-    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    whole = whole_atoms(dictionary)
     if np.count_nonzero(whole) >= 8:
         g = g[whole]
     if amplitudes == "complex":
@@ -59,7 +59,7 @@ def _independent(dictionary: Dictionary) -> float:
     col = dictionary.atom.matrix(np.array([0.0]))[:, 0]
     acf = np.abs(np.fft.ifft(np.abs(np.fft.fft(col, 2 * len(col))) ** 2))
     length = float(np.sum(acf**2) / acf.max() ** 2) if acf.max() > 0 else 1.0
-    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    whole = whole_atoms(dictionary)
     n = np.count_nonzero(whole) if np.count_nonzero(whole) >= 8 else dictionary.k
     return max(n * dictionary.delta * dictionary.atom.fs / max(length, 1.0), 1.0)
 
@@ -79,7 +79,7 @@ def _deflated_sigma(dictionary: Dictionary, b, A: np.ndarray, amplitudes: str) -
     cover = np.zeros(dictionary.k)
     for col in q.T:
         cover += np.abs(op.adjoint(col)) ** 2
-    whole = dictionary.taus <= dictionary.atom.n / dictionary.atom.fs - pulse_length_s(dictionary.atom)
+    whole = whole_atoms(dictionary)
     n2 = dictionary.atom.norm ** 2
     keep = whole & (n2 - cover > 0.2 * n2)
     if np.count_nonzero(keep) < 8:
@@ -107,7 +107,8 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     their noise level in three or four fits; on pure noise the first residual's level is still
     above lam_max / 2 (the rescaling keeps it near the first estimate), lam stays at or above
     lam_max and the answer is no echo ("nothing here"). The threshold is raised by one
-    standard deviation of the median's relative error, ``0.72 / sqrt(n_eff)`` (Rayleigh),
+    standard deviation of the median's relative error, ``0.72 / sqrt(n_eff)`` (Rayleigh; 1.17 for
+    real and positive amplitudes, half-normal),
     ``n_eff`` the independent correlations in the window (:func:`_independent`): a scale
     estimated from a short window is often low, and pure noise then crossed a threshold set for
     1 % in 2-3 % of profiles. At least ``floor`` x lam_max (a dynamic range of 40 dB by default:
@@ -116,15 +117,20 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
     """
     b = _check(dictionary, b, amplitudes)
     lmax = lam_max(ShiftOperator(dictionary), b, amplitudes)
-    t = _threshold(dictionary.k, amplitudes, false_alarm) * (1 + 0.72 / np.sqrt(_independent(dictionary)))
+    # the median's relative standard error: 0.72 / sqrt(n) for |complex Gaussian| (Rayleigh),
+    # 1.17 / sqrt(n) for |real Gaussian| (half-normal; with 0.72, 1.5-2 % of pure-noise profiles
+    # gave an echo for real and positive amplitudes)
+    spread = 0.72 if amplitudes == "complex" else 1.17
+    t = _threshold(dictionary.k, amplitudes, false_alarm) * (1 + spread / np.sqrt(_independent(dictionary)))
     lam = 2 * correlation_sigma(dictionary, b, amplitudes) * t
     if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or refine < 0:
         raise ValueError(f"refine must be an integer >= 0, got {refine!r}")
+    lam_floor = v.non_negative("floor", floor) * lmax
     trial, need = lam, 0.9
     if refine and lam >= lmax:  # the gate may be all echoes: go down from lam_max / 2
         trial, need = 0.5 * lmax, 1.0
     for _ in range(int(refine)):
-        if trial >= lmax:
+        if trial >= lmax or trial <= lam_floor:  # below the floor the floor is the answer: no fit
             break
         x = bpdn(dictionary, b, trial, amplitudes=amplitudes, tol=1e-3, max_inner=2000).x
         on = np.flatnonzero(x)
@@ -137,7 +143,7 @@ def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alar
         if new >= need * trial:
             break
         lam, trial, need = new, new, 0.9
-    return float(max(lam, v.non_negative("floor", floor) * lmax))
+    return float(max(lam, lam_floor))
 
 
 def noise_lam(dictionary: Dictionary, sigma: float, amplitudes: str = "real", *, false_alarm: float = 0.01) -> float:

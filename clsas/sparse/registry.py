@@ -54,17 +54,18 @@ def cap_echoes(echoes: Echoes, max_echoes: int, weights: np.ndarray | None = Non
 
 def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None, tol: float = 1e-4,
           max_inner: int = 5000, group: bool = True, rel_threshold: float = 0.0,
-          max_run: int | None = None, max_time_s: float | None = None) -> Echoes:
+          max_run: int | None = None, max_time_s: float | None = None, real_signal: bool = False) -> Echoes:
     """BPDN on the grid (duality gap ``tol`` of the objective: 1e-4 is ample for an echo list,
     the complex solver's tail to 1e-7 can take minutes on a coherent grid; ``max_inner``
     FISTA steps per working set, status ``max_iter`` where that was not enough). ``group``:
     one echo per run of neighbouring active atoms (:func:`group_atoms`; runs longer than the
     matched filter's half-power width, or ``max_run`` atoms, are cut); else one per atom.
-    ``max_time_s``: a time budget (the best point kept, status ``max_time``, its gap in ``info``)."""
+    ``max_time_s``: a time budget (the best point kept, status ``max_time``, its gap in ``info``).
+    ``real_signal``: fit the real part of ``b`` (see :func:`clsas.sparse.bpdn.bpdn`)."""
     cap = _cap(max_echoes, dictionary)
     t = time.perf_counter()
     res = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=tol, max_inner=max_inner,
-               max_time_s=max_time_s)
+               max_time_s=max_time_s, real_signal=real_signal)
     info = {"lam": res.lam, "gap": res.gap, **res.info, "atoms": int(np.count_nonzero(res.x))}
     if group:
         if max_run is None:
@@ -79,26 +80,32 @@ def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=No
 
 
 def _cbp_taylor(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
-                rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
-    """CBP-Taylor (cvxpy), the ``max_echoes`` strongest echoes; refused up front beyond ``max_memory_gib``."""
+                rel_threshold: float = 1e-3, max_memory_gib: float = 4.0, real_signal: bool = False) -> Echoes:
+    """CBP-Taylor (cvxpy), the ``max_echoes`` strongest echoes; refused up front beyond ``max_memory_gib``.
+    It fits the analytic signal whatever ``real_signal`` says (its convex relaxation of complex
+    amplitudes is not written on the real part)."""
     e = cbp_taylor(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold,
                    max_memory_gib=max_memory_gib)
     return cap_echoes(e, _cap(max_echoes, dictionary))
 
 
 def _cbp_polar_socp(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
-                    rel_threshold: float = 1e-3, max_memory_gib: float = 4.0) -> Echoes:
-    """The convex CBP-Polar SOCP (positive amplitudes), the ``max_echoes`` strongest echoes."""
+                    rel_threshold: float = 1e-3, max_memory_gib: float = 4.0, real_signal: bool = False) -> Echoes:
+    """The convex CBP-Polar SOCP (positive amplitudes, so ``real_signal`` does not apply), the
+    ``max_echoes`` strongest echoes."""
     e = cbp_polar(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, rel_threshold=rel_threshold,
                   max_memory_gib=max_memory_gib)
     return cap_echoes(e, _cap(max_echoes, dictionary))
 
 
 def _cbp_polar(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
-               rel_threshold: float = 0.02, bounds_s: tuple[float, float] | None = None) -> Echoes:
-    """Refined CBP-Polar (BPDN seeds, nlopt delays within ``bounds_s``, BIC order), capped inside."""
+               rel_threshold: float = 0.02, bounds_s: tuple[float, float] | None = None,
+               real_signal: bool = False) -> Echoes:
+    """Refined CBP-Polar (BPDN seeds, nlopt delays within ``bounds_s``, BIC order), capped inside;
+    ``real_signal``: fit the real part of ``b`` (see :func:`clsas.sparse.refined.cbp_polar_refined`)."""
     return cbp_polar_refined(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes,
-                             max_echoes=_cap(max_echoes, dictionary), rel_threshold=rel_threshold, bounds_s=bounds_s)
+                             max_echoes=_cap(max_echoes, dictionary), rel_threshold=rel_threshold, bounds_s=bounds_s,
+                             real_signal=real_signal)
 
 
 SPARSE_METHODS: dict[str, SparseMethod] = {
@@ -130,7 +137,7 @@ def _rescaled(e: Echoes, scale: float) -> Echoes:
 
 def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = None, *,
                   lam_frac: float | None = None, amplitudes: str = "complex", max_echoes: int | None = None,
-                  noise_sigma: float | None = None, **options) -> Echoes:
+                  noise_sigma: float | None = None, real_signal: bool = False, **options) -> Echoes:
     """The echoes of ``b`` by one of :data:`SPARSE_METHODS`.
 
     Every method sees ``b / max|b|`` and its amplitudes are scaled back, so the answer (echo
@@ -156,6 +163,11 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
         The noise level per sample (units of ``b``), where it is known (e.g. from a noise-only
         recording); default estimated from ``b`` (:func:`clsas.sparse.noise_sigma`). Only used
         when neither ``lam`` nor ``lam_frac`` is given.
+    real_signal : bool
+        ``b`` (complex) is the analytic signal of a real recording: bpdn and cbp-polar then fit
+        its real part, which models echoes cut by the window's edges exactly (the analytic
+        signal of a cut echo, taken over the window, is not the cut analytic atom); the convex
+        CBPs fit ``b`` as it is. :func:`superres` sets it for a real ``signal``.
     **options
         Passed to the method: ``tol``, ``max_inner``, ``max_time_s``, ``group``, ``rel_threshold``,
         ``max_run`` (bpdn);
@@ -172,6 +184,8 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
     if noise_sigma is not None and (lam is not None or lam_frac is not None):
         raise ValueError("noise_sigma sets lam: give it instead of lam and lam_frac, not with them")
     b = _check(dictionary, b, amplitudes)
+    if real_signal and (amplitudes != "complex" or not np.iscomplexobj(b)):
+        raise ValueError("real_signal=True needs amplitudes='complex' and b the analytic signal (complex)")
     scale = float(np.max(np.abs(b), initial=0.0))
     if scale == 0.0:
         return _nothing(method, "zero input", t_start, {"lam_max": 0.0})
@@ -189,6 +203,8 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
         lam_n = lam_noise(dictionary, bn, amplitudes)
     if lam_n >= lmax or (lam_frac is not None and lam_frac >= 1):
         return _nothing(method, "lam >= lam_max", t_start, {"lam": lam_n * scale, "lam_max": lmax * scale})
+    if real_signal:
+        options["real_signal"] = True
     e = SPARSE_METHODS[method](dictionary, bn, lam_n, None, amplitudes, max_echoes=max_echoes, **options)
     return _rescaled(e, scale)
 
@@ -201,7 +217,7 @@ def succeeded(echoes: Echoes) -> bool:
 
 def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", delta_s: float | None = None,
              lam: float | None = None, lam_frac: float | None = None, amplitudes: str = "complex",
-             tau0_s: float = 0.0, max_echoes: int | None = None, noise_sigma: float | None = None,
+             tau0_s: float | None = None, max_echoes: int | None = None, noise_sigma: float | None = None,
              remove_dc: bool = True, **options) -> Echoes:
     """Super-resolve the echoes in one signal.
 
@@ -219,36 +235,41 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
     lam, lam_frac : float
         Absolute lam, or a fraction of lam_max; default :func:`clsas.sparse.lam_noise`, the
         noise level estimated from the signal.
-    tau0_s : float
-        The first atom's delay. Negative (e.g. minus a pulse length) is a margin for echoes that
-        start before the window: they are then modelled as truncated echoes at their true
-        delays, not as a swarm of cancelling echoes at the window's start.
+    tau0_s : float, optional
+        The first atom's delay, s. Default minus the pulse length (rounded up to whole grid
+        steps, :func:`clsas.sparse.atoms.margin_s`): a margin for echoes that start before the
+        window, which every method then models as truncated echoes at their true (negative)
+        delays, not as a swarm of echoes at the window's start. Echoes are thus reported from
+        ``tau0_s`` on; ``tau0_s=0`` searches the window only (an echo cut by its start is then
+        fitted by whatever atoms inside it explain it best, often several).
     max_echoes : int, optional
         Echo cap (default two per pulse length over the signal); ``capped`` says it was hit.
     noise_sigma : float, optional
         Known noise level per sample, in the signal's units (sets the default ``lam``).
     remove_dc : bool
-        Subtract the signal's mean first (a DC offset is no echo; a band-pass pulse has
-        almost no mean of its own).
+        Subtract the signal's mean first, and each atom's mean over the window alike (a DC
+        offset is no echo; a band-pass pulse has almost no mean of its own, but one that the
+        window cuts has, and is still modelled exactly).
     **options
         Passed to the method (see :func:`sparse_echoes`).
     """
     from ..signals import analytic
-    from .atoms import Atom
+    from .atoms import Atom, margin_s
 
     v.choice("method", method, tuple(SPARSE_METHODS))
     fs = v.positive("fs_hz", fs_hz)
     x = v.array("signal", signal, ndim=1, allow_complex=True)
     if remove_dc:
         x = x - np.mean(x)
-    if amplitudes == "complex" and not np.iscomplexobj(x):
+    real_signal = amplitudes == "complex" and not np.iscomplexobj(x)
+    if real_signal:
         peak = float(np.max(np.abs(x), initial=0.0))  # the transform at unit scale (no overflow at 1e200)
         x = analytic(x / peak) * peak if peak > 0 else x.astype(complex)
     if amplitudes != "complex" and np.iscomplexobj(x):
         raise ValueError("signal is complex: use amplitudes='complex'")
-    atom = Atom(atom_shape, fs, len(x), complex=amplitudes == "complex")
+    atom = Atom(atom_shape, fs, len(x), complex=amplitudes == "complex", centered=remove_dc)
     delta = 0.5 / fs if delta_s is None else v.positive("delta_s", delta_s)
-    d = Dictionary(atom, delta, tau0_s)
+    tau0 = -margin_s(atom, delta) if tau0_s is None else v.finite("tau0_s", tau0_s)
+    d = Dictionary(atom, delta, tau0)
     return sparse_echoes(method, d, x, lam, lam_frac=lam_frac, amplitudes=amplitudes, max_echoes=max_echoes,
-                         noise_sigma=noise_sigma,
-                         **options)
+                         noise_sigma=noise_sigma, real_signal=real_signal, **options)
