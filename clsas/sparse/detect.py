@@ -13,17 +13,24 @@ from .. import _validate as v
 from .atoms import Dictionary
 from .bpdn import MODES, ShiftOperator, _check
 from .noise import echo_threshold
-from .refined import _amplitudes, _bounds, _mainlobe_s, _rss_floor
+from .refined import _amplitudes, _bounds, _mainlobe_s, _real_dof, _rss_floor
 
 __all__ = ["detect_echoes"]
 
 
 def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "complex", *, lam: float,
-                  false_alarm: float = 0.01, max_echoes: int = 32,
-                  bounds_s: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Least-squares amplitudes at ``delays_s``, then the echo count by likelihood-ratio tests.
+                  false_alarm: float = 0.01, max_echoes: int = 32, bounds_s: tuple[float, float] | None = None,
+                  polish_steps: int = 3) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Least-squares amplitudes at ``delays_s`` (polished), then the echo count by
+    likelihood-ratio tests.
 
-    The score ``n log(RSS / n) + t K`` (``n`` real samples, ``K`` echoes, ``t`` =
+    Every fit takes up to ``polish_steps`` Gauss-Newton steps on the delays (each echo's atom
+    and its derivative atom fitted together, the delay moved by their ratio, at most a quarter
+    of the matched filter's half-power half-width per step), then the amplitudes by least
+    squares (NNLS for ``"positive"``): a grid delay a tenth of a sample off leaves a strong
+    echo's residual above a weak echo's, and the additions would explain it by spurious echoes.
+
+    The score ``n log(RSS / n) + t K`` (``n`` the noise's real degrees of freedom, ``K`` echoes, ``t`` =
     :func:`clsas.sparse.noise.echo_threshold` over the bounds' span at ``false_alarm``; the RSS
     counted no lower than a quarter of the noise RSS that ``lam`` stands for) is lowered one
     echo at a time: echoes whose removal lowers it are dropped (the one that lowers it most
@@ -43,40 +50,62 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
         The echoes' delays to start from, s (e.g. BPDN's grouped echoes).
     amplitudes : {"positive", "real", "complex"}
     lam : float
-        The lam the delays were found at (sets a quarter of the noise RSS that ``lam`` stands for), in ``b``'s units.
+        The lam the delays were found at (sets the RSS floor), in ``b``'s units.
     false_alarm : float
         Chance per profile that pure noise adds an echo, in (0, 1).
     max_echoes : int
         No additions beyond this many echoes.
     bounds_s : (float, float), optional
         Delays searched for additions, s; default the dictionary's span.
+    polish_steps : int
+        Gauss-Newton steps on the delays per fit (0: the delays stay where they are given,
+        the additions on the grid).
 
     Returns
     -------
     delays_s, amplitudes : (K,) arrays
         Sorted delays (s) and their least-squares amplitudes (``b``'s units).
     info : dict
-        ``order_threshold``, ``dropped`` and ``added`` counts.
+        ``order_threshold``, the ``dropped`` and ``added`` counts, the final ``rss``.
     """
     v.choice("amplitudes", amplitudes, MODES)
     b = _check(dictionary, b, amplitudes)
-    taus = np.sort(v.array("delays_s", delays_s, ndim=1).astype(float)) if len(delays_s) else np.zeros(0)
+    taus = v.array("delays_s", np.asarray(delays_s, float).reshape(-1), ndim=1)
     lam = v.non_negative("lam", lam)
     max_echoes = v.positive_int("max_echoes", max_echoes)
+    if isinstance(polish_steps, bool) or not isinstance(polish_steps, (int, np.integer)) or polish_steps < 0:
+        raise ValueError(f"polish_steps must be an integer >= 0, got {polish_steps!r}")
     lo, hi = _bounds(dictionary, bounds_s)
     atom = dictionary.atom
     t = echo_threshold(atom, hi - lo, amplitudes, false_alarm=false_alarm)
-    n_real = atom.n * (2 if amplitudes == "complex" else 1)
+    n_real = _real_dof(b, amplitudes)
     floor = _rss_floor(dictionary, lam, amplitudes) if lam > 0 else 1e-300
     bb = float(np.vdot(b, b).real)
+    half = _mainlobe_s(atom)
+    step_max = 0.25 * half
+
+    def polish(ts):
+        for _ in range(polish_steps):
+            A, D = atom.matrix(ts, fast=True), atom.dmatrix(ts, fast=True)
+            M = np.hstack([A, D])
+            coef = np.linalg.lstsq(M if amplitudes == "complex" else M.real, b, rcond=None)[0]
+            amp, dd = coef[: len(ts)], coef[len(ts):]
+            step = np.zeros(len(ts))
+            ok = np.abs(amp) > 0
+            step[ok] = np.real(dd[ok] / amp[ok])
+            ts = np.sort(np.clip(ts + np.clip(step, -step_max, step_max), lo, hi))
+            if np.max(np.abs(step)) < 1e-4 / atom.fs:
+                break
+        return ts
 
     def fit(ts):
         if not len(ts):
-            return np.zeros(0, complex if amplitudes == "complex" else float), bb
+            return ts, np.zeros(0, complex if amplitudes == "complex" else float), bb
+        ts = polish(np.sort(ts))
         A = atom.matrix(ts, fast=True)
         a = _amplitudes(A, b, amplitudes)
         r = b - A @ a
-        return a, float(np.vdot(r, r).real)
+        return ts, a, float(np.vdot(r, r).real)
 
     def score(rss, k):
         return n_real * np.log(max(rss, floor) / n_real) + t * k
@@ -84,34 +113,29 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
     def drop(ts, a, rss, cur):
         dropped = 0
         while len(ts):
-            trials = [(np.delete(ts, j), *fit(np.delete(ts, j))) for j in range(len(ts))]
-            best = min(trials, key=lambda tr: score(tr[2], len(tr[0])))
+            best = min((fit(np.delete(ts, j)) for j in range(len(ts))), key=lambda f: score(f[2], len(f[0])))
             s = score(best[2], len(best[0]))
             if s >= cur - 1e-9:
                 break
-            ts, a, rss, cur, dropped = best[0], best[1], best[2], s, dropped + 1
+            (ts, a, rss), cur, dropped = best, s, dropped + 1
         return ts, a, rss, cur, dropped
 
     op = ShiftOperator(dictionary)
-    half = _mainlobe_s(atom)
     grid = dictionary.taus
     in_bounds = (grid >= lo) & (grid <= hi)
-    a, rss = fit(taus)
+    taus, a, rss = fit(taus)
     cur = score(rss, len(taus))
     taus, a, rss, cur, n_drop = drop(taus, a, rss, cur)
     added = 0
     while len(taus) < max_echoes:
-        r = b - (atom.matrix(taus, fast=True) @ a if len(taus) else 0.0)
-        g = op.adjoint(r)
+        g = op.adjoint(b - atom.matrix(taus, fast=True) @ a if len(taus) else b)
         c = g.real if amplitudes == "positive" else np.abs(g)
         free = in_bounds.copy()
         for tau in taus:
             free &= np.abs(grid - tau) > half
         if not free.any():
             break
-        cand = grid[int(np.argmax(np.where(free, c, -np.inf)))]
-        t2 = np.sort(np.r_[taus, cand])
-        a2, rss2 = fit(t2)
+        t2, a2, rss2 = fit(np.r_[taus, grid[int(np.argmax(np.where(free, c, -np.inf)))]])
         s2 = score(rss2, len(t2))
         if s2 >= cur - 1e-9:
             break

@@ -216,6 +216,21 @@ def _bounds(dictionary, bounds_s):
     return lo, hi
 
 
+def _real_dof(b: np.ndarray, amplitudes: str) -> int:
+    """The real degrees of freedom of the noise in ``b``, the ``n`` of the order test's
+    ``n log(RSS / n)``: one per sample for a real signal; two per sample for a complex one
+    (proper complex noise, e.g. I/Q at baseband), but one for an analytic signal (the
+    analytic signal of a real recording: no energy at negative frequencies, its imaginary part
+    the Hilbert transform of its real part). Counting two there doubled every likelihood ratio,
+    and the order test admitted echoes at far more than its stated false-alarm rate."""
+    n = len(b)
+    if amplitudes != "complex" or n < 4:
+        return n
+    power = np.abs(np.fft.fft(b)) ** 2
+    negative = float(power[n // 2 + 1:].sum())
+    return n if negative <= 1e-6 * float(power.sum()) else 2 * n
+
+
 def _rss_floor(dictionary: Dictionary, lam: float, amplitudes: str) -> float:
     """``RSS_FLOOR`` (a quarter) of the noise RSS that ``lam`` stands for, in ``b``'s units squared
     (``lam = 2 t s_g``, ``t`` the 1 % threshold of :func:`lam_noise`, ``s_g`` the noise's rms
@@ -241,7 +256,7 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
        within ``bounds_s`` (default the dictionary's span), the amplitudes are the
        least-squares (or NNLS) fit for the delays.
     3. Model order by a likelihood-ratio test at a stated false-alarm rate: the score
-       n log(RSS / n) + t K (n real samples; ``n log(RSS0 / RSS1)`` is twice the log
+       n log(RSS / n) + t K (n the noise's real degrees of freedom, :func:`_real_dof`; ``n log(RSS0 / RSS1)`` is twice the log
        likelihood ratio of two fits with the noise variance unknown) with ``t`` the level
        that the best of one more echo anywhere in the bounds exceeds on pure noise with
        probability ``false_alarm`` (:func:`clsas.sparse.noise.echo_threshold`, the Rice
@@ -285,7 +300,7 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
             "bounds_s": (t_lo, t_hi), "order_threshold": penalty}
     if not len(taus0):
         return Echoes([], [], "cbp-polar", "optimal", 0, time.perf_counter() - t_start, info)
-    n_real = atom.n * (2 if amplitudes == "complex" else 1)
+    n_real = _real_dof(b, amplitudes)
     n_eff = int(round(pulse_length_s(atom) * atom.fs))
     vp = _VarPro(atom, b, amplitudes)
     min_gap = half / 16

@@ -81,7 +81,7 @@ def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=No
         mag = np.abs(res.x)
         on = np.flatnonzero(mag > max(rel_threshold * mag.max(initial=0.0), 0.0))
         taus, amps, weights = dictionary.taus[on], res.x[on], mag[on]
-    if detect:
+    if detect and len(taus):  # the first echo is lam's to detect (pure noise stays "nothing here")
         from .detect import detect_echoes
 
         taus, amps, found = detect_echoes(dictionary, b, taus, amplitudes, lam=res.lam, false_alarm=false_alarm,
