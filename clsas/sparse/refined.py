@@ -256,8 +256,9 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
        within ``bounds_s`` (default the dictionary's span), the amplitudes are the
        least-squares (or NNLS) fit for the delays.
     3. Model order by a likelihood-ratio test at a stated false-alarm rate: the score
-       n log(RSS / n) + t K (n the noise's real degrees of freedom, :func:`_real_dof`; ``n log(RSS0 / RSS1)`` is twice the log
-       likelihood ratio of two fits with the noise variance unknown) with ``t`` the level
+       n log(RSS / n) + t K (n the noise's real degrees of freedom, :func:`_real_dof`;
+       ``n log(RSS0 / RSS1)`` is twice the log likelihood ratio of two fits with the noise
+       variance unknown) with ``t`` the level
        that the best of one more echo anywhere in the bounds exceeds on pure noise with
        probability ``false_alarm`` (:func:`clsas.sparse.noise.echo_threshold`, the Rice
        formula over the bounds' span). So an echo is added only where its likelihood ratio
