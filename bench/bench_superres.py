@@ -18,8 +18,9 @@ echoes across the gate's edges, a coloured pulse, 20 dB): seconds per recording,
 found, recordings capped and fallen back, per method. Writes <date>-measured-<host>.json.
 
 ``--kecho N``: instead, the K-echo table (clsas.bench.kecho): K = 2, 3, 5, 10 echoes 2/B apart,
-amplitude ratio 1, 0.5, 0.1, 10 dB, N profiles per cell; refined CBP-Polar and BPDN against the
-Cramer-Rao bound's success and known-count ML, with the time per profile. Writes
+amplitude ratio 1, 0.5, 0.1, 10 dB, N profiles per cell; refined CBP-Polar, BPDN and BPDN with
+its debias-and-detect step (bpdn-detect) against the Cramer-Rao bound's success and known-count
+ML, with the time per profile. Writes
 <date>-kecho-<host>.json and .md.
 """
 

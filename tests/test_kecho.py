@@ -37,7 +37,7 @@ def test_k_table_has_a_row_per_cell_and_method():
     rows = k_sweep((2,), (1.0, 0.1), 1, snr_db=30.0)
     table = k_table(rows)
     assert [(c["k"], c["ratio"], c["method"]) for c in table] == [
-        (2, 1.0, "cbp-polar"), (2, 1.0, "bpdn"), (2, 1.0, "mlk"),
-        (2, 0.1, "cbp-polar"), (2, 0.1, "bpdn"), (2, 0.1, "mlk")]
+        (2, 1.0, "cbp-polar"), (2, 1.0, "bpdn"), (2, 1.0, "bpdn-detect"), (2, 1.0, "mlk"),
+        (2, 0.1, "cbp-polar"), (2, 0.1, "bpdn"), (2, 0.1, "bpdn-detect"), (2, 0.1, "mlk")]
     assert all(c["ml_success"] == 1.0 and c["bound_success"] > 0.99 for c in table)
     assert len(k_markdown(table)) == 2 + len(table)

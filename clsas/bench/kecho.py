@@ -9,6 +9,9 @@ white noise. Each method's success is set against two references on the same pro
   correlation, then the joint least-squares fit of the K delays (variable projection, the fit
   refined CBP-Polar runs), then one pass that moves each echo to the residual's best place.
 
+Methods: ``cbp-polar`` (refined), ``bpdn`` (the convex solve, grouped), ``bpdn-detect`` (BPDN
+then ``detect=True``: debiased, echoes added and dropped by CBP-Polar's order test), ``mlk``.
+
 SNR convention as :mod:`clsas.bench.trials`: one strong echo's power per sample over its pulse,
 over the noise power per sample. Success: exactly K echoes, each matched within ``tol_b / B``.
 """
@@ -25,7 +28,7 @@ from .trials import TwoEchoTask
 
 __all__ = ["KECHO_METHODS", "draw_k", "ml_known_count", "bound_success", "run_k_trial", "k_sweep", "k_table"]
 
-KECHO_METHODS = ("cbp-polar", "bpdn", "mlk")
+KECHO_METHODS = ("cbp-polar", "bpdn", "bpdn-detect", "mlk")
 
 
 def _task_for(k: int, spacing_b: float) -> TwoEchoTask:
@@ -104,10 +107,11 @@ def run_k_trial(method: str, k: int, ratio: float, seed: int, *, spacing_b: floa
     t = time.perf_counter()
     if method == "mlk":
         est = ml_known_count(task, b, k)
-    else:
+    else:  # bpdn-detect: BPDN, then debias and detect by CBP-Polar's order test
         d = task.dictionary()
-        est = sparse_echoes(method, d, b, lam_noise(d, b, "complex"), amplitudes="complex",
-                            max_echoes=max(2 * k, 8), rel_threshold=0.02)
+        extra = {"detect": True} if method == "bpdn-detect" else {}
+        est = sparse_echoes(method.removesuffix("-detect"), d, b, lam_noise(d, b, "complex"), amplitudes="complex",
+                            max_echoes=max(2 * k, 8), rel_threshold=0.02, **extra)
     elapsed = time.perf_counter() - t
     err = delay_error(est, truth, tol_s=tol_b / task.bandwidth_hz)
     return {"method": method, "k": k, "ratio": ratio, "seed": seed, "spacing_b": spacing_b, "snr_db": snr_db,

@@ -9,7 +9,7 @@ from .. import _validate as v
 from .atoms import Dictionary, whole_atoms
 from .bpdn import MODES, ShiftOperator, _check, bpdn, lam_max
 
-__all__ = ["correlation_sigma", "lam_noise", "noise_lam", "noise_sigma"]
+__all__ = ["correlation_sigma", "echo_threshold", "lam_noise", "noise_lam", "noise_sigma"]
 
 
 def noise_sigma(b) -> float:
@@ -154,3 +154,70 @@ def noise_lam(dictionary: Dictionary, sigma: float, amplitudes: str = "real", *,
     v.choice("amplitudes", amplitudes, MODES)
     s_g = (2.0 if amplitudes == "complex" else 1.0) * sigma * dictionary.atom.norm
     return float(2 * s_g * _threshold(dictionary.k, amplitudes, false_alarm))
+
+
+def _spectral_moment(atom, centred: bool) -> float:
+    """Second moment of the atom's power spectrum ``|F(w)|^2`` about its mean (``centred``: the
+    envelope of a complex correlation) or about zero (a real correlation's own wiggles), rad^2/s^2."""
+    col = atom.matrix(np.array([0.0]))[:, 0]
+    power = np.abs(np.fft.fft(col, 2 * len(col))) ** 2
+    w = 2 * np.pi * np.fft.fftfreq(len(power), 1.0 / atom.fs)
+    total = float(power.sum())
+    if total == 0:
+        return 0.0
+    mean = float(w @ power) / total if centred else 0.0
+    return float(((w - mean) ** 2) @ power) / total
+
+
+def echo_threshold(atom, span_s: float, amplitudes: str = "complex", *, false_alarm: float = 0.01) -> float:
+    """The likelihood-ratio threshold for one more echo: the level that the largest ``2 log``
+    likelihood ratio of one atom, searched over ``span_s`` of delays with its amplitude fitted,
+    exceeds on pure white noise with probability ``false_alarm``.
+
+    The statistic at one delay is chi-square (2 degrees of freedom for a complex amplitude, 1 for
+    a real one; a positive one is the one-sided half). Its largest value over the span is bounded
+    by the Rice formula, the chance at one point plus the expected number of upcrossings: for a
+    complex amplitude ``P(max > t) ~ exp(-t/2) (1 + span sqrt(m2 t / 2 pi))``, ``m2`` the second
+    moment of the atom's power spectrum about its mean; for a real one ``2 Q(sqrt t) + span
+    sqrt(m2) / pi exp(-t/2)`` with ``m2`` about zero (the carrier's wiggles are upcrossings too),
+    halved for a positive one. Measured on 1000 pure-noise profiles of the paper's chirp (96 kHz,
+    spans 1.5 and 3.1 ms, complex), the formula is within 20 % of the true rate from 1 % to 15 %;
+    for real and positive amplitudes it is an upper bound, 1.2-3 times the measured rate (600
+    profiles: the carrier's upcrossings come in clusters).
+    Dimensionless, in units of ``2 log`` likelihood ratio (``delta RSS / variance per real sample``).
+
+    Parameters
+    ----------
+    atom : Atom
+    span_s : float
+        Length of the delays searched, s (0: one known delay).
+    amplitudes : {"positive", "real", "complex"}
+    false_alarm : float
+        Probability in (0, 1) that pure noise passes the threshold.
+    """
+    from scipy.optimize import brentq
+    from scipy.stats import norm
+
+    span = v.non_negative("span_s", span_s)
+    v.choice("amplitudes", amplitudes, MODES)
+    p = v.positive("false_alarm", false_alarm)
+    if p >= 1:
+        raise ValueError(f"false_alarm must be in (0, 1), got {false_alarm!r}")
+    if amplitudes == "complex":
+        m2 = _spectral_moment(atom, centred=True)
+
+        def rate(t):
+            return np.exp(-t / 2) * (1 + span * np.sqrt(m2 * t / (2 * np.pi)))
+    else:
+        m2 = _spectral_moment(atom, centred=False)
+        sides = 1.0 if amplitudes == "positive" else 2.0
+
+        def rate(t):
+            return sides * (norm.sf(np.sqrt(t)) + span * np.sqrt(m2) / (2 * np.pi) * np.exp(-t / 2))
+
+    if rate(0.0) <= p:
+        return 0.0
+    hi = 10.0
+    while rate(hi) > p:
+        hi *= 2
+    return float(brentq(lambda t: rate(t) - p, 0.0, hi, xtol=1e-6))

@@ -54,15 +54,22 @@ def cap_echoes(echoes: Echoes, max_echoes: int, weights: np.ndarray | None = Non
 
 def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None, tol: float = 1e-4,
           max_inner: int = 5000, group: bool = True, rel_threshold: float = 0.0,
-          max_run: int | None = None, max_time_s: float | None = None, real_signal: bool = False) -> Echoes:
+          max_run: int | None = None, max_time_s: float | None = None, real_signal: bool = False,
+          detect: bool = False, false_alarm: float = 0.01) -> Echoes:
     """BPDN on the grid (duality gap ``tol`` of the objective: 1e-4 is ample for an echo list,
     the complex solver's tail to 1e-7 can take minutes on a coherent grid; ``max_inner``
     FISTA steps per working set, status ``max_iter`` where that was not enough). ``group``:
     one echo per run of neighbouring active atoms (:func:`group_atoms`; runs longer than the
     matched filter's half-power width, or ``max_run`` atoms, are cut); else one per atom.
     ``max_time_s``: a time budget (the best point kept, status ``max_time``, its gap in ``info``).
-    ``real_signal``: fit the real part of ``b`` (see :func:`clsas.sparse.bpdn.bpdn`)."""
+    ``real_signal``: fit the real part of ``b`` (see :func:`clsas.sparse.bpdn.bpdn`).
+    ``detect``: then debias and detect (:func:`clsas.sparse.detect.detect_echoes`): the echoes'
+    amplitudes refit by least squares at their delays, echoes added or dropped by the
+    likelihood-ratio test at ``false_alarm`` that CBP-Polar's order step uses (weak echoes under
+    lam's threshold, e.g. a tenth of their neighbours', are found; the delays stay on the grid)."""
     cap = _cap(max_echoes, dictionary)
+    if not isinstance(detect, (bool, np.bool_)):
+        raise TypeError(f"detect must be True or False, got {detect!r}")
     t = time.perf_counter()
     res = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=tol, max_inner=max_inner,
                max_time_s=max_time_s, real_signal=real_signal)
@@ -75,6 +82,13 @@ def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=No
         mag = np.abs(res.x)
         on = np.flatnonzero(mag > max(rel_threshold * mag.max(initial=0.0), 0.0))
         taus, amps, weights = dictionary.taus[on], res.x[on], mag[on]
+    if detect and len(taus):  # the first echo is lam's to detect (pure noise stays "nothing here")
+        from .detect import detect_echoes
+
+        taus, amps, found = detect_echoes(dictionary, b, taus, amplitudes, lam=res.lam, false_alarm=false_alarm,
+                                          max_echoes=cap, real_signal=real_signal)
+        weights = np.abs(amps)
+        info["detect"] = found
     e = Echoes(taus, amps, "bpdn", res.status, res.iterations, time.perf_counter() - t, info)
     return cap_echoes(e, cap, weights[np.argsort(taus, kind="stable")])
 
@@ -100,12 +114,13 @@ def _cbp_polar_socp(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max
 
 def _cbp_polar(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=None,
                rel_threshold: float = 0.02, bounds_s: tuple[float, float] | None = None,
-               real_signal: bool = False) -> Echoes:
-    """Refined CBP-Polar (BPDN seeds, nlopt delays within ``bounds_s``, BIC order), capped inside;
-    ``real_signal``: fit the real part of ``b`` (see :func:`clsas.sparse.refined.cbp_polar_refined`)."""
+               real_signal: bool = False, false_alarm: float = 0.01) -> Echoes:
+    """Refined CBP-Polar (BPDN seeds, nlopt delays within ``bounds_s``, a likelihood-ratio order
+    test at ``false_alarm``), capped inside; ``real_signal``: fit the real part of ``b`` (see
+    :func:`clsas.sparse.refined.cbp_polar_refined`)."""
     return cbp_polar_refined(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes,
                              max_echoes=_cap(max_echoes, dictionary), rel_threshold=rel_threshold, bounds_s=bounds_s,
-                             real_signal=real_signal)
+                             real_signal=real_signal, false_alarm=false_alarm)
 
 
 SPARSE_METHODS: dict[str, SparseMethod] = {
@@ -170,8 +185,10 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
         CBPs fit ``b`` as it is. :func:`superres` sets it for a real ``signal``.
     **options
         Passed to the method: ``tol``, ``max_inner``, ``max_time_s``, ``group``, ``rel_threshold``,
-        ``max_run`` (bpdn);
-        ``rel_threshold``, ``max_memory_gib`` (the convex CBPs); ``bounds_s`` (cbp-polar).
+        ``max_run``, ``detect``, ``false_alarm`` (bpdn: ``detect=True`` debiases and detects by
+        CBP-Polar's order test);
+        ``rel_threshold``, ``max_memory_gib`` (the convex CBPs); ``bounds_s``, ``false_alarm`` (cbp-polar: the rate
+        at which its order test admits an echo that is not there, default 0.01).
     """
     t_start = time.perf_counter()
     v.choice("method", method, tuple(SPARSE_METHODS))
