@@ -359,3 +359,19 @@ def test_merge_coincident_echoes():
     taus, amps = merge_coincident(np.array([3.0, 1.0, 1.05, 2.0]), np.array([1.0, 0.25, 0.75, 2.0]), 0.1)
     np.testing.assert_allclose(taus, [1.0375, 2.0, 3.0])
     np.testing.assert_allclose(amps, [1.0, 2.0, 1.0])
+
+
+def test_bpdn_detect_models_an_echo_cut_at_the_window_end(pulse):
+    """bpdn's detect step fits the real part, as bpdn does (``real_signal``): an echo cut by the
+    window's end is modelled to the noise (the analytic fit leaves about 6x the noise's RSS
+    there), and stays one echo."""
+    late = (N - len(pulse) / 2) / FS
+    sigma = 0.01
+    x = 50 * (_profile(pulse, [40 / FS, late], [1.0, 0.8]) + np.random.default_rng(3).normal(scale=sigma, size=N))
+    e = _run("bpdn", "complex", x, pulse, detect=True)
+    assert clsas.sparse.succeeded(e)
+    assert len(e) == 2
+    assert np.min(np.abs(e.delays_s - 40 / FS)) < 0.5 / FS
+    assert np.min(np.abs(e.delays_s - late)) < 1 / FS
+    # the real-part RSS is 2 |Re r|^2, so the noise's is about 2 N sigma^2
+    assert e.info["detect"]["rss"] < 1.5 * 2 * N * (50 * sigma) ** 2  # in the input's units

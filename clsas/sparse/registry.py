@@ -145,6 +145,8 @@ def _rescaled(e: Echoes, scale: float) -> Echoes:
     for key in ("rss", "rss_floor"):
         if key in info:
             info[key] = float(info[key]) * scale * scale
+    if isinstance(info.get("detect"), dict) and "rss" in info["detect"]:  # bpdn's detect step
+        info["detect"] = {**info["detect"], "rss": float(info["detect"]["rss"]) * scale * scale}
     info["scale"] = scale
     return Echoes(e.delays_s, e.amplitudes * scale, e.method, e.status, e.iterations, e.time_s, info, e.fallback,
                   e.capped)
