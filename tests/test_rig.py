@@ -581,7 +581,7 @@ def test_jack_take_and_clipping(jack_io):
         0, np.zeros(3), np.zeros((1, 3)))
     np.testing.assert_allclose(take.loopback[:len(w)], 0.5 * w, atol=1e-6)
     assert abs(take.t0_s) < 1e-8
-    loud = rig.Recorder(jack_io, w, 96e3, 1000, level=1.0, retries=2, clip_level=0.99, max_latency_s=0.05)
+    loud = rig.Recorder(jack_io, w, 96e3, 1000, level=1.0, retries=5, clip_level=0.99, max_latency_s=0.05)
     with pytest.raises(rig.AudioError, match="clipping on loopback"):
         loud.take(0, np.zeros(3), np.zeros((1, 3)))
 
