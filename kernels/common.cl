@@ -23,21 +23,27 @@ typedef union { intV v; int s[VEC]; } lanes_i;
 /* sin(2 pi c) and cos(2 pi c) for c in [-0.5, 0.5] (cycles already reduced).
  * Quadrant q = rint(4c) in {-2..2}, remainder x = 2 pi (c - q/4) in [-pi/4, pi/4], Taylor
  * polynomials of degree 7 and 8 (error < 4e-7), then a rotation by q quarter turns.
- * Branch-free, so it vectorises on CPUs; the same accuracy on every device. */
-inline floatV sincos_2pi(const floatV c, floatV *cos_out)
-{
-    const floatV q = RINT(4.0f * c);
-    const floatV x = 6.28318530718f * (c - 0.25f * q);
-    const floatV x2 = x * x;
-    const floatV s = x * (1.0f + x2 * (-1.0f / 6.0f + x2 * (1.0f / 120.0f + x2 * (-1.0f / 5040.0f))));
-    const floatV k = 1.0f + x2 * (-0.5f + x2 * (1.0f / 24.0f + x2 * (-1.0f / 720.0f + x2 * (1.0f / 40320.0f))));
-    const intV zero = q == 0.0f;
-    const intV odd = (q == 1.0f) | (q == -1.0f);
-    const intV pos = q > 0.0f;
-    /* q = 0: (s, k); q = 1: (k, -s); q = -1: (-k, s); q = +-2: (-s, -k) */
-    *cos_out = odd ? (pos ? -s : s) : (zero ? k : -k);
-    return odd ? (pos ? k : -k) : (zero ? s : -s);
-}
+ * Branch-free, so it vectorises on CPUs; the same accuracy on every device. One body for a
+ * vector (T = floatV, TI = intV) and for one lane (float, int). */
+#define SINCOS_2PI_BODY(T, TI)                                                                       \
+    {                                                                                                \
+        const T q = RINT(4.0f * c);                                                                  \
+        const T x = 6.28318530718f * (c - 0.25f * q);                                                \
+        const T x2 = x * x;                                                                          \
+        const T s = x * (1.0f + x2 * (-1.0f / 6.0f + x2 * (1.0f / 120.0f + x2 * (-1.0f / 5040.0f)))); \
+        const T k = 1.0f + x2 * (-0.5f + x2 * (1.0f / 24.0f + x2 * (-1.0f / 720.0f + x2 * (1.0f / 40320.0f)))); \
+        const TI zero = q == 0.0f;                                                                   \
+        const TI odd = (q == 1.0f) | (q == -1.0f);                                                   \
+        const TI pos = q > 0.0f;                                                                     \
+        /* q = 0: (s, k); q = 1: (k, -s); q = -1: (-k, s); q = +-2: (-s, -k) */                      \
+        *cos_out = odd ? (pos ? -s : s) : (zero ? k : -k);                                           \
+        return odd ? (pos ? k : -k) : (zero ? s : -s);                                               \
+    }
+
+inline floatV sincos_2pi(const floatV c, floatV *cos_out) SINCOS_2PI_BODY(floatV, intV)
+
+/* sincos_2pi for one lane (scalar kernels: ffbp.cl) */
+inline float sincos_2pi_1(const float c, float *cos_out) SINCOS_2PI_BODY(float, int)
 
 /* floor(idx) clamped to [0, last - 1] (last = n_lags - 1 >= 1), with operators only: the left
  * sample of the linear interpolation at fractional lag idx */

@@ -13,8 +13,8 @@
  *
  * Scalar code, one work-item per sample: a sample's work (a few measurements, or TAPS^3 taps
  * of each child) has no lanes of its own; PoCL vectorises across the work-group.
- * Self-contained (VEC, set by the device layer, changes nothing here). TAPS (2, 4 or 6) is set
- * with -DTAPS=n. */
+ * Needs common.cl (RINT, sincos_2pi_1); VEC, set by the device layer, changes nothing here.
+ * TAPS (2, 4 or 6) is set with -DTAPS=n. */
 #ifndef TAPS
 #define TAPS 4
 #endif
@@ -22,24 +22,6 @@
 #define NG 32
 #define NI 8
 #define BLOCK 64
-
-/* round to nearest for |x| < 2^22 (as common.cl's RINT) */
-#define RINT(x) (((x) + 12582912.0f) - 12582912.0f)
-
-/* sin(2 pi c), cos(2 pi c) for c in [-0.5, 0.5]: common.cl's sincos_2pi for one lane (error < 4e-7) */
-inline float sincos_2pi_1(const float c, float *cos_out)
-{
-    const float q = RINT(4.0f * c);
-    const float x = 6.28318530718f * (c - 0.25f * q);
-    const float x2 = x * x;
-    const float s = x * (1.0f + x2 * (-1.0f / 6.0f + x2 * (1.0f / 120.0f + x2 * (-1.0f / 5040.0f))));
-    const float k = 1.0f + x2 * (-0.5f + x2 * (1.0f / 24.0f + x2 * (-1.0f / 720.0f + x2 * (1.0f / 40320.0f))));
-    const int zero = q == 0.0f;
-    const int odd = (q == 1.0f) | (q == -1.0f);
-    const int pos = q > 0.0f;
-    *cos_out = odd ? (pos ? -s : s) : (zero ? k : -k);
-    return odd ? (pos ? k : -k) : (zero ? s : -s);
-}
 
 inline float floor_1(const float x)
 {

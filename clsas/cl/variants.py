@@ -48,8 +48,8 @@ KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
     "backproject": (("common.cl", "backproject.cl"), "clsas.imaging.opencl", "BackprojectPlan"),
     "focus_gradient": (("common.cl", "autofocus.cl"), "clsas.autofocus.opencl", "FocusGradientPlan"),
     "stolt_spread": (("common.cl", "stolt.cl"), "clsas.formation.opencl", "StoltPlan"),
-    "ffbp_leaf": (("ffbp.cl",), "clsas.formation.ffbp_opencl", "FfbpLeafPlan"),
-    "ffbp_merge": (("ffbp.cl",), "clsas.formation.ffbp_opencl", "FfbpMergePlan"),
+    "ffbp_leaf": (("common.cl", "ffbp.cl"), "clsas.formation.ffbp_opencl", "FfbpLeafPlan"),
+    "ffbp_merge": (("common.cl", "ffbp.cl"), "clsas.formation.ffbp_opencl", "FfbpMergePlan"),
 }
 WIDTHS = (16, 8, 4)
 PROBE_TIMEOUT_S = 300.0
