@@ -1,7 +1,8 @@
 """Basis pursuit denoising (eq. 3): ``min_x ||b - D x||^2 + lam ||x||_1``.
 
 Two solvers: :func:`bpdn_cvxpy`, the reference (a conic solver through cvxpy), and
-:func:`bpdn`, matrix-free FISTA with adaptive restart that stops on a certified duality gap.
+:func:`bpdn`, a working set solved by FISTA with a Newton polish (:mod:`clsas.sparse.gram`),
+or feature-sign search for real amplitudes, stopped on a certified duality gap.
 Its operator applies the shifted-atom dictionary by FFT: with Delta = T / P (P atoms per
 sample) the dictionary is a convolution of the atom with the coefficients upsampled by P, so
 ``D x`` and ``D^H r`` cost one FFT of length P * M each (M the signal FFT length).
@@ -20,6 +21,7 @@ import numpy as np
 
 from .. import _validate as v
 from .atoms import Dictionary
+from .gram import fista_gram
 
 __all__ = ["BpdnResult", "RealPartOperator", "ShiftOperator", "bpdn", "bpdn_cvxpy", "group_atoms", "lam_max",
            "real_part_target"]
@@ -158,27 +160,6 @@ def _objective(r, x, lam):
     return float(np.vdot(r, r).real + lam * np.abs(x).sum())
 
 
-def _mag(z, amplitudes):
-    """Per-atom magnitudes; ``"pairs"``: ``z`` holds ``[Re x, Im x]`` stacked (real)."""
-    if amplitudes == "pairs":
-        k = len(z) // 2
-        return np.hypot(z[:k], z[k:])
-    return np.abs(z)
-
-
-def _prox(z, t, amplitudes):
-    if amplitudes == "pairs":
-        k = len(z) // 2
-        p = _prox(z[:k] + 1j * z[k:], t, "complex")
-        return np.r_[p.real, p.imag]
-    if amplitudes == "positive":
-        return np.maximum(z.real - t, 0.0)
-    if amplitudes == "real":
-        return np.sign(z.real) * np.maximum(np.abs(z.real) - t, 0.0)
-    mag = np.abs(z)
-    return np.where(mag > t, (1 - t / np.maximum(mag, 1e-300)) * z, 0.0)
-
-
 def _gap(op, b, r, x, lam, amplitudes):
     """Duality gap of the BPDN objective at x (residual r = b - D x); >= the suboptimality."""
     g = op.adjoint(r)
@@ -200,44 +181,6 @@ def _resolve_lam(op, b, amplitudes, lam, lam_frac):
     else:
         lam = v.non_negative("lam", lam)
     return lam, lmax
-
-
-def _fista_gram(G, c, bb, lam, amplitudes, x, tol, max_iter, deadline=np.inf):
-    """FISTA with restart on ``|b - D x|^2 + lam |x|_1`` written with the Gram matrix of a small
-    working set (``G = D^H D``, ``c = D^H b``, ``bb = |b|^2``); stops at a restricted duality gap
-    <= tol x the objective. ``amplitudes="pairs"``: real ``x = [Re, Im]`` stacked, |x_i| the
-    modulus of each pair (:class:`RealPartOperator`'s working sets)."""
-    dtype = x.dtype
-    L = 2 * max(np.linalg.eigvalsh(G)[-1], 1e-300)
-    step = 1.0 / L
-    lp = lam / 2
-
-    def f(z):
-        return float(bb + np.vdot(z, G @ z).real - 2 * np.vdot(c, z).real + lam * _mag(z, amplitudes).sum())
-
-    def gap(z):
-        g = c - G @ z  # D^H r
-        dn = np.max(g.real) if amplitudes == "positive" else np.max(_mag(g, amplitudes))
-        s = 1.0 if dn <= lp else lp / dn
-        xgx, cx = np.vdot(z, G @ z).real, np.vdot(c, z).real
-        rr = bb - 2 * cx + xgx
-        b_minus_theta = (1 - s) ** 2 * bb + 2 * s * (1 - s) * cx + s**2 * xgx
-        return max(0.0, rr + lam * _mag(z, amplitudes).sum() - (bb - b_minus_theta))
-
-    y, t_mom, f_prev = x.copy(), 1.0, f(x)
-    it = 0
-    for it in range(1, max_iter + 1):
-        x_new = _prox(y - 2 * step * (G @ y - c), lam * step, amplitudes).astype(dtype)
-        f_new = f(x_new)
-        if f_new > f_prev:
-            y, t_mom = x.copy(), 1.0
-            continue
-        t_next = 0.5 * (1 + np.sqrt(1 + 4 * t_mom**2))
-        y = x_new + ((t_mom - 1) / t_next) * (x_new - x)
-        x, f_prev, t_mom = x_new, f_new, t_next
-        if it % 25 == 0 and (gap(x) <= tol * max(f_prev, 1e-300) or time.perf_counter() > deadline):
-            break
-    return x, it
 
 
 def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter, deadline=np.inf):
@@ -324,7 +267,8 @@ def bpdn(
 
     Real and positive amplitudes: feature-sign search, an exact active-set method whose full
     gradient ``D^T r`` is one FFT. Complex amplitudes: a working set, solved by FISTA (with
-    adaptive restart) on its Gram matrix; the atoms that violate optimality join the set. Either
+    adaptive restart) on its Gram matrix and polished by Newton's method on the support FISTA
+    finds (:func:`clsas.sparse.gram.fista_gram`); the atoms that violate optimality join the set. Either
     way the duality gap over all atoms certifies the end.
     ``lam`` is absolute, or ``lam_frac`` a fraction of lam_max (at or above lam_max the answer
     is exactly zero). ``max_time_s``: a time budget; where it runs out the best point so far is
@@ -378,7 +322,7 @@ def bpdn(
             mode, x0 = amplitudes, x[work]
         Gw = Dw.conj().T @ Dw
         cw = Dw.conj().T @ b
-        xw, n_in = _fista_gram(Gw, cw, bb, lam, mode, x0, tol / 10, max_inner, deadline)
+        xw, n_in = fista_gram(Gw, cw, bb, lam, mode, x0, tol / 10, max_inner, deadline)
         inner += n_in
         x[:] = 0
         x[work] = _unpair(xw, len(work)) if real_signal else xw
@@ -396,7 +340,7 @@ def bpdn(
         viol = np.setdiff1d(np.flatnonzero(score > lp * (1 + tol)), work)
         if viol.size == 0:  # the set is right, the restricted solve was not tight enough
             tol_inner = tol_inner / 10
-            xw, n_in = _fista_gram(Gw, cw, bb, lam, mode, xw, tol_inner, max_inner, deadline)
+            xw, n_in = fista_gram(Gw, cw, bb, lam, mode, xw, tol_inner, max_inner, deadline)
             inner += n_in
             x[work] = _unpair(xw, len(work)) if real_signal else xw
             r = b - op.forward(x)

@@ -56,9 +56,8 @@ def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=No
           max_inner: int = 5000, group: bool = True, rel_threshold: float = 0.0,
           max_run: int | None = None, max_time_s: float | None = None, real_signal: bool = False,
           detect: bool = False, false_alarm: float = 0.01) -> Echoes:
-    """BPDN on the grid (duality gap ``tol`` of the objective: 1e-4 is ample for an echo list,
-    the complex solver's tail to 1e-7 can take minutes on a coherent grid; ``max_inner``
-    FISTA steps per working set, status ``max_iter`` where that was not enough). ``group``:
+    """BPDN on the grid (duality gap ``tol`` of the objective: 1e-4 is ample for an echo list;
+    ``max_inner`` FISTA steps per working set, status ``max_iter`` where that was not enough). ``group``:
     one echo per run of neighbouring active atoms (:func:`group_atoms`; runs longer than the
     matched filter's half-power width, or ``max_run`` atoms, are cut); else one per atom.
     ``max_time_s``: a time budget (the best point kept, status ``max_time``, its gap in ``info``).
