@@ -312,9 +312,11 @@ def bpdn(
     status, gap, inner, outer = "max_iter", np.inf, 0, 0
     bb = float(np.vdot(b, b).real)
     tol_inner = tol / 10
+    work = np.sort(work)
+    cols = dictionary.atom.matrix(dictionary.taus[work])  # the working set's atoms, kept as it grows
     while outer < max_outer:
         outer += 1
-        Dw = dictionary.atom.matrix(dictionary.taus[work])
+        Dw = cols
         if real_signal:  # real coefficients [Re, Im] of each atom, its pair's modulus penalised
             Dw = real_part_columns(Dw)
             mode, x0 = "pairs", np.r_[x[work].real, x[work].imag]
@@ -349,7 +351,10 @@ def bpdn(
                 status = "optimal"
                 break
             continue
-        work = np.union1d(work, viol[np.argsort(score[viol])[::-1][:20]])
+        new = viol[np.argsort(score[viol])[::-1][:20]]  # not in work: only their atoms are computed
+        order = np.argsort(np.r_[work, new], kind="stable")
+        work = np.r_[work, new][order]
+        cols = np.concatenate([cols, dictionary.atom.matrix(dictionary.taus[new])], axis=1)[:, order]
     if not np.all(np.isfinite(x)):
         raise FloatingPointError("BPDN diverged (non-finite coefficients); check the dictionary and b")
     r = b - op.forward(x)
