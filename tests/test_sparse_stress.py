@@ -213,8 +213,8 @@ def _long_profile(pulse, rng, n=1000):
 def test_bpdn_default_reaches_its_gap_on_a_1000_sample_profile(pulse):
     """BPDN at superres's default tol certifies its gap on a 1000-sample profile within a bounded
     amount of work (issue 17's budget of 1 s per 1000 samples is a benchmark figure,
-    bench/bpdn_budget.py, not tested: over 20 profiles 0.22-0.40 s, median 0.32 s and 300-450
-    FISTA steps with the Newton polish on a 2-core VM; FISTA alone took 0.53-1.44 s and up to
+    bench/bpdn_budget.py, not tested: over 20 profiles 0.17-0.33 s, median 0.27 s and 300-450
+    FISTA steps with the Newton polish on a 2-core VM; FISTA alone took 0.35-1.40 s and up to
     11,000 steps, and before the working-set fix minutes and 6 million)."""
     rng = np.random.default_rng(8)
     e = superres(_long_profile(pulse, rng), pulse, FS, method="bpdn")
