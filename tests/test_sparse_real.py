@@ -296,3 +296,49 @@ def test_sparse_methods_take_a_speed_of_sound_per_measurement(measured):
     for e, g in zip(img.echoes, gates, strict=True):
         assert e.info["gate_s"] == pytest.approx(tuple(g))
         assert _inside_gate(e)
+
+
+def _three_echoes_of_the_heard_pulse():
+    """Three recordings of three echoes of the coloured pulse (light noise); the dataset's
+    waveform is the transmit chirp, as a rig's would be."""
+    heard = _coloured(CHIRP)
+    n = 450
+    at = Atom(heard, FS, n, complex=True)
+    rng = np.random.default_rng(1)
+    taus = np.array([1.52e-3, 1.93e-3, 2.61e-3])
+    amps = np.array([1.0, 0.6 * np.exp(1j), 0.8 * np.exp(2j)])
+    sig = np.stack([np.real(at.matrix(taus + 1e-5 * m) @ amps) + 0.003 * rng.normal(size=n) for m in range(3)])
+    z = np.zeros((3, 3))
+    return clsas.Dataset(sig, z, z, FS, CHIRP), np.tile([1.2e-3, 3.0e-3], (3, 1)), taus, heard
+
+
+@pytest.mark.parametrize("method", ["bpdn", "cbp-polar"])
+def test_the_heard_pulse_as_the_atom_removes_the_mismatch_echoes(method):
+    """Issue 17, the atom matches the physics: with the transmit chirp as the atom, the
+    transducers' colouring leaves a residual at every echo and the methods add echoes beside
+    the three (measured: bpdn 8-9, cbp-polar 6); with ``pulse=`` the heard pulse, exactly the
+    three, on their delays."""
+    from clsas.imaging.sparse import superres_profiles
+
+    ds, gates, taus, heard = _three_echoes_of_the_heard_pulse()
+    _, plain = superres_profiles(ds, gates, method)
+    _, matched = superres_profiles(ds, gates, method, pulse=heard)
+    assert all(len(e) > 3 for e in plain)
+    for m, e in enumerate(matched):
+        assert len(e) == 3
+        np.testing.assert_allclose(e.delays_s, taus + 1e-5 * m, atol=0.05 / FS)
+
+
+def test_pulse_option_is_validated():
+    from clsas.imaging.sparse import SPARSE_OPTIONS, superres_profiles
+
+    assert "pulse" in SPARSE_OPTIONS
+    ds, gates, _, heard = _three_echoes_of_the_heard_pulse()
+    with pytest.raises(ValueError, match="pulse"):
+        superres_profiles(ds, gates, "bpdn", pulse=np.zeros(50))
+    with pytest.raises(ValueError, match="pulse"):
+        superres_profiles(ds, gates, "bpdn", pulse=np.r_[heard[:-1], np.nan])
+    with pytest.raises(ValueError, match="pulse"):
+        superres_profiles(ds, gates, "bpdn", pulse=np.ones(ds.n_samples + 1))
+    with pytest.raises(ValueError, match="pulse"):
+        superres_profiles(ds, gates, "bpdn", pulse=np.ones((2, 10)))

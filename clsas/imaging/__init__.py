@@ -194,7 +194,9 @@ def reconstruct(
         ``max_echoes`` (cap per recording, reported in ``Echoes.capped``), ``guard_s`` (the
         dictionary reaches this far past each end of the gate, so echoes straddling it are
         fitted there and dropped), ``method_options`` (passed to the method), ``absorption``
-        (model ISO 9613-1 air absorption in the atom at each gate's mean path). A recording whose
+        (model ISO 9613-1 air absorption in the atom at each gate's mean path), ``pulse`` (the
+        atom's waveform: the transmit waveform as heard through the transducers' response;
+        default the dataset's waveform). A recording whose
         sparse recovery fails falls back to its matched-filter profile and says so in
         ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
     force : bool

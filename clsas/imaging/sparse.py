@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 SPARSE_METHODS = ("bpdn", "cbp-taylor", "cbp-polar")
 # the options reconstruct(..., sparse={...}) accepts
 SPARSE_OPTIONS = ("delta_s", "lam", "lam_frac", "render_width_s", "max_echoes", "guard_s", "method_options",
-                  "absorption")
+                  "absorption", "pulse")
 
 
 def _failure_kind(exc: BaseException) -> str:
@@ -136,6 +136,7 @@ def superres_profiles(
     method_options: dict | None = None,
     progress: Callable[[int, int], None] | None = None,
     absorption: bool = False,
+    pulse=None,
 ) -> tuple[Profiles, list]:
     """Super-resolve every recording of ``dataset`` within its delay gate.
 
@@ -170,6 +171,14 @@ def superres_profiles(
         Model air absorption in the atom: the waveform after the gate's mean two-way path
         (``c`` x its mean delay) of the recording's air (:func:`clsas.sparse.absorbed_pulse`,
         ISO 9613-1, as :func:`clsas.simulate` applies it); ``info["path_m"]`` says which path.
+    pulse : 1-D array, optional
+        The atom's waveform, sampled at the dataset's rate: the transmit waveform as the
+        recordings hear it, through the speaker's and the microphone's response (the waveform
+        filtered by a known response, e.g. ``scipy.signal.lfilter(b, a, waveform)`` or
+        ``np.convolve(waveform, impulse_response)``, or a pulse recorded at a known distance).
+        Default the dataset's transmit waveform. An atom that is not the pulse the echoes carry
+        leaves a residual at every echo, and the methods explain it with spurious echoes
+        beside the true ones. Absorption, where asked for, is applied to it.
 
     Returns
     -------
@@ -184,13 +193,20 @@ def superres_profiles(
 
     v.choice("method", method, SPARSE_METHODS)
     fs = dataset.fs_hz
-    wave = dataset.waveform
+    wave = dataset.waveform  # the profiles' centre frequency and render width
+    heard = wave  # the atom's waveform
+    if pulse is not None:
+        heard = v.array("pulse", pulse, ndim=1)
+        if not np.any(heard):
+            raise ValueError("pulse (the atom's waveform) is all zeros")
+        if len(heard) > dataset.n_samples:
+            raise ValueError(f"pulse has {len(heard)} samples, more than the recordings' {dataset.n_samples}")
     n = dataset.n_meas
     gates = v.array("gates_s", gates_s, shape=(n, 2))
     if np.any(gates[:, 1] < gates[:, 0]):
         raise ValueError("gates_s rows must be (min, max) with min <= max")
     delta = 1.0 / fs if delta_s is None else v.positive("delta_s", delta_s)
-    guard = len(wave) / fs if guard_s is None else v.non_negative("guard_s", guard_s)
+    guard = len(heard) / fs if guard_s is None else v.non_negative("guard_s", guard_s)
     if max_echoes is not None:
         max_echoes = v.positive_int("max_echoes", max_echoes)
     if lam is not None and lam_frac is not None:
@@ -207,7 +223,7 @@ def superres_profiles(
         render_width_s = 0.05 / max(band.max() - band.min(), fs / len(wave))
     width = v.positive("render_width_s", render_width_s)
     t0 = np.zeros(n) if dataset.t0_s is None else np.broadcast_to(np.asarray(dataset.t0_s, float), (n,))
-    n_wave = len(wave)
+    n_wave = len(heard)
     air_t = np.broadcast_to(np.asarray(dataset.temperature_c, float), (n,))
     air_h = np.broadcast_to(np.asarray(dataset.humidity_pct, float), (n,))
     air_c = None if dataset.c_mps is None else np.broadcast_to(np.asarray(dataset.c_mps, float), (n,))
@@ -233,10 +249,10 @@ def superres_profiles(
             temp, hum = float(air_t[m]), float(air_h[m])
             c = speed_of_sound(temp) if air_c is None else float(air_c[m])
             path_m = c * 0.5 * float(gates[m, 0] + gates[m, 1])
-            atom = Atom(absorbed_pulse(wave, fs, path_m, temperature_c=temp, humidity_pct=hum), fs, s_hi - s_lo,
+            atom = Atom(absorbed_pulse(heard, fs, path_m, temperature_c=temp, humidity_pct=hum), fs, s_hi - s_lo,
                         complex=True)
         else:
-            atom = Atom(wave, fs, s_hi - s_lo, complex=True)
+            atom = Atom(heard, fs, s_hi - s_lo, complex=True)
         offset = t0[m] + s_lo / fs  # delay after the transmit start of the window's first sample
         gate_rel = (gates[m, 0] - offset, gates[m, 1] - offset)
         tau0 = gate_rel[0] - guard
