@@ -12,7 +12,7 @@ import numpy as np
 from .. import _validate as v
 from .atoms import Dictionary
 from .bpdn import MODES, ShiftOperator, _check, real_part_columns, real_part_target
-from .noise import echo_threshold
+from .noise import colour_factor, echo_threshold
 from .refined import _amplitudes, _bounds, _mainlobe_s, _real_dof, _rss_floor
 
 __all__ = ["detect_echoes"]
@@ -128,8 +128,10 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
             r = b - A @ a
         return ts, a, float(np.vdot(r, r).real)
 
+    n_dof = float(n_real)  # less for coloured noise (colour_factor, set after the first fit)
+
     def score(rss, k):
-        return n_real * np.log(max(rss, floor) / n_real) + t * k
+        return n_dof * np.log(max(rss, floor) / n_real) + t * k
 
     def drop(ts, a, rss, cur):
         dropped = 0
@@ -161,7 +163,11 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
         if s2 >= cur - 1e-9:
             break
         taus, a, rss, cur, added = t2, a2, rss2, s2, added + 1
-    if added:
+    # noise coloured into the atoms' band, read from what the model leaves (CBP-Polar's rule)
+    kappa = colour_factor(dictionary, b, atom.matrix(taus), rss, n_real, amplitudes) if len(taus) else 1.0
+    n_dof = kappa * n_real
+    cur = score(rss, len(taus))
+    if added or kappa < 1:
         taus, a, rss, cur, more = drop(taus, a, rss, cur)
         n_drop += more
-    return taus, a, {"order_threshold": t, "dropped": n_drop, "added": added, "rss": rss}
+    return taus, a, {"order_threshold": t, "dropped": n_drop, "added": added, "rss": rss, "colour_factor": kappa}

@@ -9,7 +9,7 @@ from .. import _validate as v
 from .atoms import Dictionary, whole_atoms
 from .bpdn import MODES, ShiftOperator, _check, bpdn, lam_max
 
-__all__ = ["correlation_sigma", "echo_threshold", "lam_noise", "noise_lam", "noise_sigma"]
+__all__ = ["colour_factor", "correlation_sigma", "echo_threshold", "lam_noise", "noise_lam", "noise_sigma"]
 
 
 def noise_sigma(b) -> float:
@@ -88,6 +88,38 @@ def _deflated_sigma(dictionary: Dictionary, b, A: np.ndarray, amplitudes: str) -
     if amplitudes == "complex":
         return float(np.median(np.abs(z)) / np.sqrt(np.log(2.0)))
     return float(np.median(np.abs(z.real)) / 0.6744897501960817)
+
+
+def colour_factor(dictionary: Dictionary, b, A: np.ndarray, rss: float, n_real: float, amplitudes: str) -> float:
+    """The order test's correction for noise that is not white, at most 1.
+
+    The test reads twice the log likelihood ratio of one more echo as ``n log(RSS0 / RSS1)``:
+    the RSS drop over the noise variance per real degree of freedom, ``RSS / n``. An atom sees
+    only the noise in its band: where the noise is coloured into that band (a microphone's or
+    a sound card's band-pass), the atoms' own variance, read from the residual's correlations
+    (:func:`_deflated_sigma`, the fitted echoes ``A`` removed), is larger than ``RSS / n``, and
+    each spurious echo's ratio is inflated by their quotient. Returns
+    ``kappa = (RSS / n) / (the atoms' variance)``, by which the test's ``n`` is multiplied
+    (1 for white noise: the factor 2 for complex amplitudes makes it so, measured 1.04 +- 0.10
+    on real recordings fitted by their real part; 1 for real amplitudes). Only a clear excess counts:
+    kappa is raised by three standard errors of the median before it is capped at 1, so white
+    noise leaves the test as it was, and noise coloured away from the band never loosens it.
+    Measured on a 1000-sample profile with noise band-passed to 18-32 kHz (the chirp 20-30 kHz,
+    96 kHz): kappa about 0.4 (0.16 before the allowance for the median's error). With noise
+    band-passed to 15-35 kHz, CBP-Polar added spurious echoes to two true ones in 52 of 60
+    profiles without it and in 5 with it (BPDN + detect: 49 and 5). ``A`` must hold every echo
+    the model has found: echoes left in the residual raise the median as coloured noise does
+    (ten echoes filling a gate, five of them weak, read as kappa 0.5), so CBP-Polar and
+    :func:`clsas.sparse.detect_echoes` read it after their forward search. ``b`` is the
+    (analytic) signal and ``rss`` the fit's residual energy over its ``n_real`` real degrees
+    of freedom."""
+    s = _deflated_sigma(dictionary, b, A, amplitudes) if A.shape[1] else correlation_sigma(dictionary, b, amplitudes)
+    if s is None or not np.isfinite(s) or s <= 0 or rss <= 0:
+        return 1.0
+    c = 2.0 if amplitudes == "complex" else 1.0  # the same 2 for a real recording's real-part fit
+    kappa = c * (rss / n_real) * dictionary.atom.norm**2 / s**2
+    spread = 0.72 if amplitudes == "complex" else 1.17
+    return float(min(1.0, kappa * (1 + 3 * spread / np.sqrt(_independent(dictionary)))))
 
 
 def lam_noise(dictionary: Dictionary, b, amplitudes: str = "real", *, false_alarm: float = 0.01,
