@@ -78,6 +78,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     m0 = image_metric(zero, c_stated, "input")
     rep.metric_before = m0
     stop, t_stop, xy = stops_of(ds)
+    first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]  # each stop's first measurement
 
     # 1. the direct sound: each recording's t0 at a given c
     direct = None
@@ -178,8 +179,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     move = (-0.5 * p_stop[stop])[:, None] * u  # a path shorter by p: the pair was p/2 nearer
     if "3d" in methods:  # 6. the carriage's 3-D displacement per stop, from the line of sight on
         t = time.perf_counter()
-        first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
-        start = np.stack([np.bincount(stop, move[:, k]) / np.bincount(stop) for k in range(3)], axis=1)
+        start = _per_stop_mean(move, stop)
         k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, ds.timestamps is not None)
         basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) - 3, 1))) if k < len(t_stop) else None
         if basis is not None and smooth_start:
@@ -199,7 +199,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
         move, changed = _pga_step(engine, ds, t0_est - ds.t0_s, c_est, stop, xy, move, pga_options or {},
                                   image_metric, rep)
         if changed:
-            p_stop = _los_path(ds, centre, move, np.r_[0, np.flatnonzero(np.diff(stop)) + 1])
+            p_stop = _los_path(ds, centre, move, first)
     tx, rx = ds.tx_positions + move, ds.rx_positions + move
     m_final = metric_and_weight(engine.image(t0_est - ds.t0_s, c_est, tx, rx), metric)[0]
     history.append(m_final)
@@ -263,6 +263,12 @@ def _phase_step(engine, ds, grid, shift, c, stop, sweeps, max_bytes, image_metri
     return p
 
 
+def _per_stop_mean(move, stop) -> np.ndarray:
+    """(n_stops, 3): the mean of ``move`` (n_meas, 3) over each stop's measurements."""
+    n = np.bincount(stop)
+    return np.stack([np.bincount(stop, move[:, k], len(n)) / n for k in range(3)], axis=1)
+
+
 def _los_path(ds, centre, move, first) -> np.ndarray:
     """The bistatic path change at ``centre`` that the displacement ``move`` makes, per stop, m."""
     path = np.linalg.norm(centre - ds.tx_positions, axis=1) + np.linalg.norm(centre - ds.rx_positions, axis=1)
@@ -274,9 +280,7 @@ def _los_path(ds, centre, move, first) -> np.ndarray:
 def _pga_step(engine, ds, shift, c, stop, xy, move, options, image_metric, rep) -> tuple[np.ndarray, bool]:
     """PGA from the displacement ``move`` (n_meas, 3); kept where the image gets sharper."""
     t = time.perf_counter()
-    n_stops = int(stop.max()) + 1
-    start = np.stack([np.bincount(stop, move[:, k], n_stops) / np.bincount(stop, minlength=n_stops)
-                      for k in range(3)], axis=1)
+    start = _per_stop_mean(move, stop)
     d, info = pga_refine(engine, shift, c, stop, start, xy, **options)
     stage = {"step": "pga", "points": info["points"], "candidates": info["candidates"],
              "iterations": info["iterations"], "kept": False, "coherence": info["coherence"],

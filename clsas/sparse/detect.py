@@ -11,9 +11,9 @@ import numpy as np
 
 from .. import _validate as v
 from .atoms import Dictionary
-from .bpdn import MODES, ShiftOperator, _check, real_part_columns, real_part_target
+from .bpdn import MODES, ShiftOperator, _check
 from .noise import colour_factor, echo_threshold
-from .refined import _amplitudes, _bounds, _mainlobe_s, _real_dof, _rss_floor
+from .refined import _bounds, _mainlobe_s, _real_dof, _rss_floor, _VarPro
 
 __all__ = ["detect_echoes"]
 
@@ -85,28 +85,18 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
     lo, hi = _bounds(dictionary, bounds_s)
     atom = dictionary.atom
     t = echo_threshold(atom, hi - lo, amplitudes, false_alarm=false_alarm)
-    n_real = atom.n if real else _real_dof(b, amplitudes)
-    y = real_part_target(b) if real else b
-
-    def lsq(M):
-        """(coefficients, residual) of the least-squares fit of the columns ``M``, complex
-        coefficients (real ones for ``"real"``/``"positive"`` amplitudes)."""
-        if real:
-            R = real_part_columns(M)
-            z = np.linalg.lstsq(R, y, rcond=None)[0]
-            k = M.shape[1]
-            return z[:k] + 1j * z[k:], y - R @ z
-        coef = np.linalg.lstsq(M if amplitudes == "complex" else M.real, b, rcond=None)[0]
-        return coef, b - M @ coef
+    n_real = _real_dof(b, amplitudes, real)
+    vp = _VarPro(atom, b, amplitudes, real)  # the fits, CBP-Polar's (the real part where ``real``)
+    # the polish's joint fit of atoms and derivative atoms: unconstrained least squares
+    joint = _VarPro(atom, b, "complex" if amplitudes == "complex" else "real", real)
     floor = _rss_floor(dictionary, lam, amplitudes) if lam > 0 else 1e-300
-    bb = float(np.vdot(b, b).real)
     half = _mainlobe_s(atom)
     step_max = 0.25 * half
 
     def polish(ts):
         for _ in range(polish_steps):
             A, D = atom.matrix(ts, fast=True), atom.dmatrix(ts, fast=True)
-            coef = lsq(np.hstack([A, D]))[0]
+            coef = joint._fit(np.hstack([A, D]))[0]
             amp, dd = coef[: len(ts)], coef[len(ts):]
             step = np.zeros(len(ts))
             ok = np.abs(amp) > 0
@@ -118,14 +108,9 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
 
     def fit(ts):
         if not len(ts):
-            return ts, np.zeros(0, complex if amplitudes == "complex" else float), bb
+            return ts, np.zeros(0, complex if amplitudes == "complex" else float), vp.rss(ts)
         ts = polish(np.sort(ts))
-        A = atom.matrix(ts, fast=True)
-        if real:
-            a, r = lsq(A)
-        else:
-            a = _amplitudes(A, b, amplitudes)
-            r = b - A @ a
+        a, r = vp._fit(atom.matrix(ts, fast=True))
         return ts, a, float(np.vdot(r, r).real)
 
     n_dof = float(n_real)  # less for coloured noise (colour_factor, set after the first fit)
@@ -164,7 +149,7 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
             break
         taus, a, rss, cur, added = t2, a2, rss2, s2, added + 1
     # noise coloured into the atoms' band, read from what the model leaves (CBP-Polar's rule)
-    kappa = colour_factor(dictionary, b, atom.matrix(taus), rss, n_real, amplitudes) if len(taus) else 1.0
+    kappa = colour_factor(dictionary, b, atom.matrix(taus), rss, n_real, amplitudes)
     n_dof = kappa * n_real
     cur = score(rss, len(taus))
     if added or kappa < 1:

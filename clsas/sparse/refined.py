@@ -238,15 +238,16 @@ def _bounds(dictionary, bounds_s):
     return lo, hi
 
 
-def _real_dof(b: np.ndarray, amplitudes: str) -> int:
+def _real_dof(b: np.ndarray, amplitudes: str, real_signal: bool = False) -> int:
     """The real degrees of freedom of the noise in ``b``, the ``n`` of the order test's
     ``n log(RSS / n)``: one per sample for a real signal; two per sample for a complex one
     (proper complex noise, e.g. I/Q at baseband), but one for an analytic signal (the
     analytic signal of a real recording: no energy at negative frequencies, its imaginary part
     the Hilbert transform of its real part). Counting two there doubled every likelihood ratio,
-    and the order test admitted echoes at far more than its stated false-alarm rate."""
+    and the order test admitted echoes at far more than its stated false-alarm rate.
+    ``real_signal``: the real part is what is fitted, one per sample whatever ``b`` holds."""
     n = len(b)
-    if amplitudes != "complex" or n < 4:
+    if real_signal or amplitudes != "complex" or n < 4:
         return n
     power = np.abs(np.fft.fft(b)) ** 2
     negative = float(power[n // 2 + 1:].sum())
@@ -334,10 +335,8 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
             "bounds_s": (t_lo, t_hi), "order_threshold": penalty}
     if not len(taus0):
         return Echoes([], [], "cbp-polar", "optimal", 0, time.perf_counter() - t_start, info)
-    n_real = _real_dof(b, amplitudes)
+    n_real = _real_dof(b, amplitudes, real_signal)
     n_eff = int(round(pulse_length_s(atom) * atom.fs))
-    if real_signal:  # the real part is what is fitted: n real values, whatever _real_dof reads
-        n_real = atom.n
     vp = _VarPro(atom, b, amplitudes, real_signal)
     min_gap = half / 16
 
