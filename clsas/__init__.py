@@ -6,18 +6,18 @@ __version__ = "0.1.0"
 
 from . import preprocess  # a module: clsas.preprocess.apply(ds, ...)
 from .apertures import aperture_from_csv, circular_aperture, helical_aperture
+from .compression import Profiles, compress
+from .dataset import Dataset, load
 
 # the function, not its package: clsas.autofocus(dataset, grid) (the package's other names are
-# imported from it: from clsas.autofocus import AutofocusReport, score)
-from .autofocus import autofocus
-from .compress import Profiles, compress
-from .dataset import Dataset, load
+# imported from it: from clsas.focus import AutofocusReport, score)
+from .focus import autofocus
 from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
 from .imaging import Backprojector, Image, ReconstructionPlan, backproject, reconstruct
 from .physics import air_absorption_db_per_m, resolution_limits, speed_of_sound
 from .quality import compare, tcr_db
 from .signals import analytic, lfm_chirp
-from .simulate import simulate
+from .simulation import simulate
 
 __all__ = [
     "Aperture", "Backprojector", "Dataset", "Image", "Profiles", "ReconstructionPlan", "Scene", "VoxelGrid",

@@ -22,7 +22,7 @@ def add_autofocus_options(sp) -> None:
 
 
 def run_autofocus(ds, grid, args):
-    from clsas.autofocus import autofocus
+    from clsas.focus import autofocus
 
     def say(step, n, metric):
         if not args.quiet and n % 10 == 0:
@@ -71,7 +71,7 @@ def cmd_autofocus(args) -> int:
     out.save(args.out)
     print(f"wrote {args.out}" + ("" if rep.improved else " (the input, unchanged: it did not get sharper)"))
     if ds.truth:
-        from clsas.autofocus import score
+        from clsas.focus import score
 
         s = score(rep, ds)
         print("against the stored truth: " + ", ".join(f"{k} {val:.3g}" for k, val in s.items()))

@@ -178,7 +178,7 @@ def cmd_reconstruct(args) -> int:
         print(image.plan.describe())
     peaks = image.peaks(args.peaks, min_separation_m=0.03)
     print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
-    from clsas.compress import center_frequency
+    from clsas.compression import center_frequency
     from clsas.imaging.lobes import grating_lobe_notes
 
     notes = grating_lobe_notes(peaks, ds.tx_positions, ds.rx_positions, center_frequency(ds.waveform, ds.fs_hz),

@@ -19,7 +19,7 @@ from . import _validate as v
 from .dataset import Dataset
 from .geometry import Aperture, Scene
 from .signals import lfm_chirp
-from .simulate import simulate
+from .simulation import simulate
 
 __all__ = ["TurntableScan", "turntable_scan", "curve_target"]
 

@@ -11,9 +11,9 @@ import numpy as np
 import pyopencl as cl
 
 import clsas
-from clsas.autofocus.opencl import FocusGradientPlan
-from clsas.compress import fft_layout
-from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.compression import fft_layout
+from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.focus.opencl import FocusGradientPlan
 from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
 from clsas.formation.opencl import StoltPlan
 from clsas.imaging.opencl import BackprojectPlan

@@ -6,10 +6,10 @@ import pytest
 from conftest import BACKENDS, needs_opencl, width_or_skip
 
 import clsas
-from clsas.autofocus import autofocus, score
-from clsas.autofocus import numpy as twin
-from clsas.autofocus.engine import FocusEngine
-from clsas.autofocus.metrics import metric_and_weight
+from clsas.focus import autofocus, score
+from clsas.focus import numpy as twin
+from clsas.focus.engine import FocusEngine
+from clsas.focus.metrics import metric_and_weight
 from clsas.scan_errors import HandMotion, hand_motion
 
 FS = 96e3
@@ -29,7 +29,7 @@ GRID = clsas.VoxelGrid.from_bounds((-0.09, 0.09), (-0.08, 0.07), (0.55, 0.69), 0
 @pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
 @pytest.mark.parametrize("shape", [(9, 7, 5), (13, 1, 11)], ids=["volume", "plane"])
 def test_gradient_kernel_equals_twin(rng, vec, shape):
-    from clsas.autofocus.opencl import FocusGradientPlan
+    from clsas.focus.opencl import FocusGradientPlan
 
     width_or_skip("focus_gradient", vec)
     ds = scan(nx=7, ny=5)
@@ -130,7 +130,7 @@ def test_error_free_scan_changes_nothing_beyond_tolerance():
 
 
 def test_never_returns_a_less_sharp_image(monkeypatch):
-    from clsas.autofocus import run as run_mod
+    from clsas.focus import run as run_mod
 
     ds = scan()
 
@@ -225,7 +225,7 @@ def test_cli_autofocus_writes_the_corrected_scan_and_pictures(tmp_path, capsys):
 
 
 def test_conditional_phase_is_the_exact_best(rng):
-    from clsas.autofocus.phases import _conditional_best
+    from clsas.focus.phases import _conditional_best
 
     rest = rng.normal(size=300) + 1j * rng.normal(size=300)
     a = 0.7 * (rng.normal(size=300) + 1j * rng.normal(size=300))
@@ -279,7 +279,7 @@ def test_3d_step_keeps_the_line_of_sight_on_a_rigid_carriage():
 
 
 def test_pga_point_samples_are_the_backprojection_terms():
-    from clsas.autofocus.pga import point_samples
+    from clsas.focus.pga import point_samples
     from clsas.imaging import numpy as bp_twin
 
     ds = scan(nx=5, ny=4)

@@ -5,7 +5,7 @@ import pytest
 from conftest import BACKENDS, TOL, needs_opencl, width_or_skip
 
 import clsas
-from clsas.compress import compress, profile_decimation
+from clsas.compression import compress, profile_decimation
 
 
 def _echo(wave, fs, n_samples, delay_s, amp=1.0, phase=0.0):
@@ -159,9 +159,9 @@ def test_compress_rejects_bad_input(chirp96):
 def test_every_compress_kernel_equals_twin_at_every_width(rng, chirp96, kernel, vec):
     """Each kernel at each vector width the device layer accepts (others skip with its reason)."""
     from clsas import cl
-    from clsas.compress import fft_layout
-    from clsas.compress import numpy as twin
-    from clsas.compress.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+    from clsas.compression import fft_layout
+    from clsas.compression import numpy as twin
+    from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 
     width_or_skip(kernel, vec)
     wave, fs = chirp96

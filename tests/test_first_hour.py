@@ -134,7 +134,7 @@ def test_limits_reads_a_scene_file(tmp_path, capsys):
 
 
 def test_grating_lobes_of_an_undersampled_aperture_are_flagged():
-    from clsas.compress import center_frequency
+    from clsas.compression import center_frequency
     from clsas.imaging.lobes import grating_lobe_notes
 
     fs = 96e3

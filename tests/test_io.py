@@ -34,7 +34,7 @@ def _on_turntable(p, angles_deg):
 
 
 def _write_airsas(folder, *, pings=36, mics=1, temps=None, signals=None, seed=0):
-    """An AirSAS folder: a point target on a turntable, simulated with clsas.simulate."""
+    """An AirSAS folder: a point target on a turntable, simulated with clsas.simulation."""
     folder.mkdir()
     angles = np.arange(pings) * 360.0 / pings
     temps = 20.0 + 2.0 * np.arange(pings) / pings if temps is None else temps

@@ -59,7 +59,7 @@ def _fine_peaks_db(ds, truth_m, radius_m=0.015, step_m=0.0015, backend=None) -> 
 def _untilted_truth(ds):
     """``ds`` at its true positions less their constant and tilt across the aperture (what no
     focus metric sees): the best any autofocus can give, up to a sub-mm shift of the image."""
-    from clsas.autofocus.motion import stops_of
+    from clsas.focus.motion import stops_of
 
     stop, _, xy = stops_of(ds)
     d = ds.truth["tx_positions"] - ds.tx_positions
@@ -74,7 +74,7 @@ def run_cases(cases=CASES_QUICK, *, spacing_m: float = 0.01, max_iter: int = 40,
     """Run each ``(kind, size)`` case; kinds: ``"jitter"`` (RMS of the 3-D displacement, m),
     ``"temperature"`` (°C), ``"delay"`` (s)."""
     import clsas
-    from clsas.autofocus import autofocus, score
+    from clsas.focus import autofocus, score
     from clsas.scan_errors import HandMotion
     from clsas.scenes import demo_configs, parse_config
 

@@ -14,7 +14,7 @@ import scipy.signal
 
 import clsas
 
-from ..compress import compress
+from ..compression import compress
 from ..imaging import numpy as twin
 from ..imaging.plan import path_bounds
 from .stats import fit_exponent, timed

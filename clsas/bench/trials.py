@@ -118,7 +118,7 @@ def _fmcw(task, b):
     near edge (a delayed reference, as long-range FMCW does); the mixed window is the overlap
     of that reference with the gate's far edge, which sets the resolution.
     """
-    from ..compress import compress
+    from ..compression import compress
 
     chirp = {"f_start_hz": task.f_start_hz, "f_stop_hz": task.f_stop_hz, "duration_s": task.duration_s}
     start = int(task.gate_s[0] * task.fs_hz)  # the reference chirp starts here

@@ -42,11 +42,11 @@ log = logging.getLogger("clsas.cl.variants")
 
 # kernel name -> (source files, module and plan class whose ``selftest`` the probe runs)
 KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
-    "matched_filter": (("common.cl", "compress.cl"), "clsas.compress.opencl", "MatchedFilterPlan"),
-    "fmcw_dechirp": (("common.cl", "compress.cl"), "clsas.compress.opencl", "FmcwPlan"),
-    "matched_fft": (("common.cl", "compress.cl"), "clsas.compress.opencl", "FftMatchedPlan"),
+    "matched_filter": (("common.cl", "compress.cl"), "clsas.compression.opencl", "MatchedFilterPlan"),
+    "fmcw_dechirp": (("common.cl", "compress.cl"), "clsas.compression.opencl", "FmcwPlan"),
+    "matched_fft": (("common.cl", "compress.cl"), "clsas.compression.opencl", "FftMatchedPlan"),
     "backproject": (("common.cl", "backproject.cl"), "clsas.imaging.opencl", "BackprojectPlan"),
-    "focus_gradient": (("common.cl", "autofocus.cl"), "clsas.autofocus.opencl", "FocusGradientPlan"),
+    "focus_gradient": (("common.cl", "autofocus.cl"), "clsas.focus.opencl", "FocusGradientPlan"),
     "stolt_spread": (("common.cl", "stolt.cl"), "clsas.formation.opencl", "StoltPlan"),
     "ffbp_leaf": (("common.cl", "ffbp.cl"), "clsas.formation.ffbp_opencl", "FfbpLeafPlan"),
     "ffbp_merge": (("common.cl", "ffbp.cl"), "clsas.formation.ffbp_opencl", "FfbpMergePlan"),

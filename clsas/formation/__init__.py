@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .. import _validate as v
-from ..compress import Profiles
+from ..compression import Profiles
 from ..geometry import VoxelGrid
 
 __all__ = ["FORMATIONS", "form", "error_to_signal_db"]

@@ -53,7 +53,7 @@ import numpy as np
 
 from .. import _validate as v
 from .. import cl as _cl
-from ..compress import Profiles
+from ..compression import Profiles
 from ..geometry import VoxelGrid
 from ..imaging.guard import available_memory_bytes, check_grid
 from ..imaging.image import Image

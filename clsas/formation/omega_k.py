@@ -69,7 +69,7 @@ from typing import Any
 import numpy as np
 
 from .. import _validate as v
-from ..compress import Profiles
+from ..compression import Profiles
 from ..geometry import VoxelGrid
 from ..imaging.image import Image
 from . import stolt

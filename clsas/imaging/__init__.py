@@ -11,7 +11,7 @@ import numpy as np
 
 from .. import _validate as v
 from .. import cl as _cl
-from ..compress import Profiles, compress
+from ..compression import Profiles, compress
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from . import numpy as twin

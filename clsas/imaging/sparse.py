@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import _validate as v
-from ..compress import Profiles, center_frequency
+from ..compression import Profiles, center_frequency
 from ..dataset import Dataset
 from ..signals import analytic
 

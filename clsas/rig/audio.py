@@ -24,7 +24,7 @@ import scipy.signal
 from .. import _validate as v
 from .._validate import install_hint
 from ..geometry import Aperture, Scene
-from ..simulate import simulate
+from ..simulation import simulate
 
 __all__ = ["AudioError", "Take", "Recorder", "SoundDeviceIO", "SimulatedIO", "find_onset", "import_sounddevice",
            "list_audio_devices"]

@@ -74,7 +74,7 @@ def stop_phase_search(
     Parameters
     ----------
     stop_images : (n_stops, n_vox) complex
-        Each stop's image (:meth:`clsas.autofocus.engine.FocusEngine.stop_images`).
+        Each stop's image (:meth:`clsas.focus.engine.FocusEngine.stop_images`).
     sweeps : int
         Most passes over the stops.
     tol : float

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from .. import cl as _cl
-from ..compress import Profiles, compress
+from ..compression import Profiles, compress
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from ..imaging import Backprojector
@@ -41,7 +41,7 @@ class FocusEngine:
     rel_margin : float
         And this fraction of the gate's delays (the largest relative change of c).
     metric : str
-        See :func:`clsas.autofocus.metrics.metric_and_weight`.
+        See :func:`clsas.focus.metrics.metric_and_weight`.
     backend, device : as for :func:`clsas.reconstruct`.
     """
 
@@ -114,7 +114,7 @@ class FocusEngine:
 
     def sums(self, shift_s: np.ndarray, c_mps: np.ndarray, weight: np.ndarray, tx: np.ndarray | None = None,
              rx: np.ndarray | None = None) -> np.ndarray:
-        """(n_meas, 5) gradient sums (see :func:`clsas.autofocus.numpy.focus_gradient`) at these
+        """(n_meas, 5) gradient sums (see :func:`clsas.focus.numpy.focus_gradient`) at these
         shifts, speeds and positions (default: the dataset's)."""
         p = self.prof
         data, tau0 = self._shifted(shift_s)

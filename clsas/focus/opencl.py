@@ -12,7 +12,7 @@ from ..geometry import VoxelGrid
 class FocusGradientPlan(Plan):
     """Compiled ``focus_gradient`` kernel and device buffers for one grid and profile shape.
 
-    Same arguments and result as :func:`clsas.autofocus.numpy.focus_gradient` (the grid fixed):
+    Same arguments and result as :func:`clsas.focus.numpy.focus_gradient` (the grid fixed):
     (n_meas, 5) sums, accumulated in float32 per work-item and added in float64 on the host.
     """
 

@@ -110,7 +110,7 @@ class FmcwPlan(_RowPlan):
 class FftMatchedPlan(Plan):
     """Matched filter by FFT with decimation in the frequency domain (``matched_fft``).
 
-    Parameters come from :func:`clsas.compress.fft_layout`. Scratch is two arrays of N complex
+    Parameters come from :func:`clsas.compression.fft_layout`. Scratch is two arrays of N complex
     values per recording; recordings are processed in batches that keep it under
     ``max_scratch_bytes``.
     """

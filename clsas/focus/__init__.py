@@ -180,7 +180,7 @@ def autofocus(
         ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains) and ``"pga"``
         (for scenes of a few isolated strong points).
     metric : {"sharpness", "entropy"}
-        See :func:`clsas.autofocus.metrics.metric_and_weight`.
+        See :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
         Smooth functions for the line-of-sight and 3-D motion; default enough for motion up to
         ``motion_bandwidth_hz`` over the scan's duration (from ``timestamps``), else a quarter
@@ -202,7 +202,7 @@ def autofocus(
         it, only the brightest voxels of the image are kept.
     pga_min_coherence : float, optional
         ``"pga"`` uses only points whose per-stop contributions add up this coherently (0 to 1;
-        default :data:`clsas.autofocus.pga.PGA_MIN_COHERENCE`).
+        default :data:`clsas.focus.pga.PGA_MIN_COHERENCE`).
     pga_max_points : int
         Most strong points ``"pga"`` uses (the brightest that qualify).
     backend, device, force : as for :func:`clsas.reconstruct`.
