@@ -2,14 +2,21 @@
 
 Adding a command is one new module here and one line in :data:`COMMANDS`. The choices a command
 offers (formations, sparse methods, compressions, importers, backends) are read from the
-libraries' registries, not typed again here.
+libraries' registries, not typed again here. A package of the user's own registers its
+algorithms when imported; to have the command line import it, name the module under the entry-point
+group ``clsas.plugins`` in that package's pyproject.toml::
+
+    [project.entry-points."clsas.plugins"]
+    my_formation = "my_package.my_formation"
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
+from importlib.metadata import entry_points
 
 from . import (
     acquire,
@@ -26,14 +33,34 @@ from . import (
     simulate,
 )
 
-__all__ = ["COMMANDS", "build_parser", "main"]
+__all__ = ["COMMANDS", "PLUGIN_GROUP", "build_parser", "load_plugins", "main"]
+
+log = logging.getLogger("clsas.cli")
+
+#: the entry-point group whose modules the command line imports (they register their algorithms)
+PLUGIN_GROUP = "clsas.plugins"
 
 # the subcommands in the order ``clsas --help`` lists them
 COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare, devices, acquire, importing, export,
             bench)
 
 
+def load_plugins() -> list[str]:
+    """Import every module named under the entry-point group :data:`PLUGIN_GROUP`; a module that
+    fails to import is skipped with a warning naming it. Returns the modules imported."""
+    loaded = []
+    for ep in entry_points(group=PLUGIN_GROUP):
+        try:
+            importlib.import_module(ep.value.split(":")[0])
+        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not take the command line down
+            log.warning("plug-in %s (%s) not loaded: %s: %s", ep.name, ep.value, type(exc).__name__, exc)
+        else:
+            loaded.append(ep.value)
+    return loaded
+
+
 def build_parser() -> argparse.ArgumentParser:
+    load_plugins()
     p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
     sub = p.add_subparsers(dest="command", required=True)
