@@ -15,7 +15,7 @@ import numpy as np
 
 from . import _validate as v
 from .geometry import VoxelGrid
-from .imaging.image import Image
+from .image import Image
 
 __all__ = ["tcr_db", "compare", "Comparison", "PeakMatch"]
 

@@ -158,7 +158,7 @@ def test_chooser_steps_down_past_rejected_widths_and_caches_verdicts(monkeypatch
     assert cl.choose(q, "backproject") == 4
     assert calls == [("backproject", 16), ("backproject", 8), ("backproject", 4)]
     # a plan takes the chosen width; a width that was rejected is never launched
-    from clsas.imaging.opencl import BackprojectPlan
+    from clsas.formation.bp_opencl import BackprojectPlan
 
     grid = clsas.VoxelGrid.from_bounds((0, 0.1), (0, 0), (0.5, 0.6), 0.05)
     assert BackprojectPlan(grid, 3, 10, queue=q).vec == 4

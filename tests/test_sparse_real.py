@@ -10,7 +10,7 @@ import pytest
 import scipy.signal
 
 import clsas
-from clsas.imaging import path_bounds
+from clsas.rangegate import path_bounds
 from clsas.sparse import (
     SPARSE_METHODS,
     Atom,
@@ -167,7 +167,7 @@ def one_target():
 @pytest.mark.parametrize("kind, why", [("raise", "nlopt invalid_argument"), ("nan", "non-finite"),
                                        ("status", "status infeasible")])
 def test_a_failing_recording_falls_back_to_its_matched_filter(one_target, monkeypatch, caplog, kind, why):
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     ds = one_target
     gates = _gates(ds)
@@ -180,7 +180,7 @@ def test_a_failing_recording_falls_back_to_its_matched_filter(one_target, monkey
         return _failing(kind)(*args, **kwargs) if len(calls) == 2 else real(*args, **kwargs)
 
     monkeypatch.setitem(SPARSE_METHODS, "cbp-polar", flaky)
-    with caplog.at_level(logging.WARNING, logger="clsas.imaging.sparse"):
+    with caplog.at_level(logging.WARNING, logger="clsas.sparse.profiles"):
         prof, echoes = superres_profiles(ds, gates, "cbp-polar")
     assert [e.fallback for e in echoes] == [False, True, False]
     assert echoes[1].status.startswith("fallback") and len(echoes[1]) == 0
@@ -199,10 +199,10 @@ def test_a_failing_recording_falls_back_to_its_matched_filter(one_target, monkey
 
 
 def test_the_echo_cap_is_reported(measured, caplog):
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     ds, gates = measured
-    with caplog.at_level(logging.WARNING, logger="clsas.imaging.sparse"):
+    with caplog.at_level(logging.WARNING, logger="clsas.sparse.profiles"):
         _, echoes = superres_profiles(ds, gates, "bpdn", lam_frac=0.01, max_echoes=3)
     assert all(e.capped and e.info["echoes_before_cap"] > 3 for e in echoes)
     assert all(len(e) <= 3 for e in echoes)
@@ -318,7 +318,7 @@ def test_the_heard_pulse_as_the_atom_removes_the_mismatch_echoes(method):
     transducers' colouring leaves a residual at every echo and the methods add echoes beside
     the three (measured: bpdn 8-9, cbp-polar 6); with ``pulse=`` the heard pulse, exactly the
     three, on their delays."""
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     ds, gates, taus, heard = _three_echoes_of_the_heard_pulse()
     _, plain = superres_profiles(ds, gates, method)
@@ -330,7 +330,7 @@ def test_the_heard_pulse_as_the_atom_removes_the_mismatch_echoes(method):
 
 
 def test_pulse_option_is_validated():
-    from clsas.imaging.sparse import SPARSE_OPTIONS, superres_profiles
+    from clsas.sparse.profiles import SPARSE_OPTIONS, superres_profiles
 
     assert "pulse" in SPARSE_OPTIONS
     ds, gates, _, heard = _three_echoes_of_the_heard_pulse()

@@ -268,7 +268,7 @@ def test_absorbed_pulse_matches_iso_9613_attenuation(pulse):
 def test_imaging_atom_with_absorption_fits_a_simulated_echo_better():
     """A target 3 m away (6 m of air): the absorbed atom leaves less residual than the plain
     one, so sparse imaging is not fooled by the model mismatch; the path is reported."""
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     chirp = clsas.lfm_chirp(20e3, 40e3, 1e-3, FS, taper=0.2)
     ap = clsas.raster_aperture(2, 1, 0.04, 0.0)

@@ -94,7 +94,7 @@ def make_case(name: str, scale: float = 1.0):
 
 
 def _profiles(ds, grid):
-    plan = clsas.imaging.plan_reconstruction(ds, grid, [])
+    plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
     return clsas.compress(ds, gate_s=plan.gate_s)
 
 

@@ -45,7 +45,7 @@ KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
     "matched_filter": (("common.cl", "compress.cl"), "clsas.compression.opencl", "MatchedFilterPlan"),
     "fmcw_dechirp": (("common.cl", "compress.cl"), "clsas.compression.opencl", "FmcwPlan"),
     "matched_fft": (("common.cl", "compress.cl"), "clsas.compression.opencl", "FftMatchedPlan"),
-    "backproject": (("common.cl", "backproject.cl"), "clsas.imaging.opencl", "BackprojectPlan"),
+    "backproject": (("common.cl", "backproject.cl"), "clsas.formation.bp_opencl", "BackprojectPlan"),
     "focus_gradient": (("common.cl", "autofocus.cl"), "clsas.focus.opencl", "FocusGradientPlan"),
     "stolt_spread": (("common.cl", "stolt.cl"), "clsas.formation.opencl", "StoltPlan"),
     "ffbp_leaf": (("common.cl", "ffbp.cl"), "clsas.formation.ffbp_opencl", "FfbpLeafPlan"),

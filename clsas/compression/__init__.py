@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -16,131 +17,18 @@ import numpy as np
 from .. import _validate as v
 from .. import cl as _cl
 from ..dataset import Dataset
+from ..profiles import Profiles, center_frequency
+from ..registry import Registry
 from ..signals import analytic
 from . import numpy as twin
 
-__all__ = ["Profiles", "compress", "center_frequency", "profile_decimation"]
+__all__ = ["COMPRESSIONS", "Profiles", "compress", "center_frequency", "profile_decimation"]
 
 log = logging.getLogger(__name__)
 
-METHODS = ("matched", "fmcw")
-
-
-@dataclass
-class Profiles:
-    """Complex baseband range profiles, one row per measurement.
-
-    Sample ``k`` of row ``m`` is the echo at delay ``tau0_s[m] + k * dtau_s`` after the
-    transmit start, rotated to baseband by ``exp(-j 2 pi fc_hz tau)``.
-    """
-
-    data: np.ndarray
-    tau0_s: np.ndarray
-    dtau_s: float
-    fc_hz: float
-    method: str
-    backend: str
-    tx_positions: np.ndarray | None = None
-    rx_positions: np.ndarray | None = None
-    c_mps: float | np.ndarray | None = None  # one per measurement where the air changed
-    timings_s: dict = field(default_factory=dict)
-    device: str = ""
-
-    @property
-    def n_meas(self) -> int:
-        return self.data.shape[0]
-
-    @property
-    def n_lags(self) -> int:
-        return self.data.shape[1]
-
-    def delays_s(self, m: int = 0) -> np.ndarray:
-        """Delays of row ``m``'s samples after the transmit start, s."""
-        return self.tau0_s[m] + self.dtau_s * np.arange(self.n_lags)
-
-    @classmethod
-    def from_range_profiles(
-        cls,
-        data: np.ndarray,
-        *,
-        tau0_s: float | np.ndarray,
-        dtau_s: float,
-        tx_positions: np.ndarray,
-        rx_positions: np.ndarray,
-        c_mps: float | np.ndarray,
-        fc_hz: float | None = None,
-        baseband: bool = False,
-        method: str = "external",
-    ) -> Profiles:
-        """Range profiles computed elsewhere (pulse-compressed, deconvolved, ...), ready for
-        :func:`clsas.backproject`.
-
-        Parameters
-        ----------
-        data : (n_meas, n_lags) array
-            Real profiles (the matched-filter or deconvolution output at the carrier: their
-            analytic signal is taken), complex analytic profiles (``baseband=False``), or
-            complex baseband profiles (``baseband=True``, already rotated by
-            ``exp(-j 2 pi fc tau)``). NaN or Inf is refused.
-        tau0_s : float or (n_meas,) array
-            Delay after the transmit start of each row's sample 0, s (a group delay already
-            removed); may be negative.
-        dtau_s : float
-            Delay step between samples, s (``1 / fs`` for profiles at the recording's rate).
-        tx_positions, rx_positions : (n_meas, 3) arrays, m
-        c_mps : float or (n_meas,) array
-            Speed of sound, one per measurement where the air changed.
-        fc_hz : float, optional
-            Carrier (the rotation frequency to baseband); default the power-weighted mean
-            frequency of ``data`` (give it for baseband data, where it cannot be measured).
-        baseband : bool
-            ``data`` is complex baseband already.
-        method : str
-            A label for the image's provenance.
-        """
-        arr = v.array("data", data, ndim=2, dtype=None, allow_complex=True)
-        n, k = arr.shape
-        if k < 2:
-            raise ValueError(f"data must have at least 2 samples per profile, got shape {arr.shape}")
-        dtau = v.positive("dtau_s", dtau_s)
-        tau0 = np.broadcast_to(np.asarray(tau0_s, float), (n,)).copy()
-        v.array("tau0_s", tau0)
-        tx = v.array("tx_positions", tx_positions, shape=(n, 3))
-        rx = v.array("rx_positions", rx_positions, shape=(n, 3))
-        c = v.speeds("c_mps", c_mps, n)
-        if baseband and not np.iscomplexobj(arr):
-            raise ValueError("baseband=True needs complex data (real data is at the carrier)")
-        if baseband and fc_hz is None:
-            raise ValueError("fc_hz is required for baseband data (the carrier cannot be measured from it)")
-        if not np.iscomplexobj(arr):
-            arr = analytic(np.asarray(arr, np.float64))
-        if fc_hz is None:
-            spec = np.abs(np.fft.fft(arr, axis=1)) ** 2
-            f = np.fft.fftfreq(k, dtau)
-            fc_hz = float((spec.sum(axis=0) * f).sum() / max(spec.sum(), 1e-300))
-        fc = v.non_negative("fc_hz", fc_hz)
-        if not baseband and fc >= 0.5 / dtau:  # baseband rows need only the band's width, not the carrier
-            raise ValueError(f"fc_hz={fc:g} is at or above the profiles' Nyquist frequency {0.5 / dtau:g}")
-        if not baseband:
-            tau = tau0[:, None] + dtau * np.arange(k)[None, :]
-            arr = arr * np.exp(-2j * np.pi * ((fc * tau) % 1.0))
-        return cls(np.asarray(arr, np.complex128), tau0, dtau, fc, method, "numpy", tx_positions=tx,
-                   rx_positions=rx, c_mps=c)
-
-    def carrier(self) -> np.ndarray:
-        """Profiles with the carrier restored: the analytic matched-filter output."""
-        tau = self.tau0_s[:, None] + self.dtau_s * np.arange(self.n_lags)[None, :]
-        return self.data * np.exp(2j * np.pi * self.fc_hz * tau)
-
-
-def center_frequency(waveform: np.ndarray, fs_hz: float) -> float:
-    """Power-weighted mean frequency of ``waveform``, Hz."""
-    spec = np.abs(np.fft.rfft(waveform)) ** 2
-    f = np.fft.rfftfreq(len(waveform), 1 / fs_hz)
-    total = spec.sum()
-    if total <= 0:
-        raise ValueError("waveform is all zeros")
-    return float((f * spec).sum() / total)
+# name -> compression(signals, wave, fs, t0, fc, gate, selection, *, lag_step, algorithm, chirp) -> Profiles;
+# each registers itself below where it is defined
+COMPRESSIONS: Registry[Callable[..., Profiles]] = Registry("compression", "method")
 
 
 def compress(
@@ -168,8 +56,9 @@ def compress(
         Transmitted signal (needed when ``data`` is an array).
     fs_hz : float, optional
         Sample rate (needed when ``data`` is an array).
-    method : {"matched", "fmcw"}
-        ``"matched"``: correlation with the analytic transmit waveform. ``"fmcw"``: mix with
+    method : str
+        A registered compression (:data:`COMPRESSIONS`). ``"matched"``: correlation with the
+        analytic transmit waveform. ``"fmcw"``: mix with
         the transmitted chirp and Fourier transform (paper, section 4); needs the chirp
         parameters and a common ``t0``, and resolves echoes that arrive while the chirp plays.
     gate_s : (min, max), optional
@@ -200,7 +89,7 @@ def compress(
     -------
     Profiles
     """
-    v.choice("method", method, METHODS)
+    compression = COMPRESSIONS.choose(method)
     positions: dict = {}
     if isinstance(data, Dataset):
         signals = data.signals
@@ -238,14 +127,8 @@ def compress(
         raise ValueError(f"lag_step must be a power of two, got {lag_step}")
     sel = _cl.select(backend, device)
     t_start = time.perf_counter()
-    if method == "matched":
-        prof = _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm)
-    else:
-        prof = _fmcw(signals, fs, t0, fc, gate, chirp, sel)
-    prof.timings_s["compress"] = time.perf_counter() - t_start
-    for k, val in positions.items():
-        setattr(prof, k, val)
-    return prof
+    prof = compression(signals, wave, fs, t0, fc, gate, sel, lag_step=lag_step, algorithm=algorithm, chirp=chirp)
+    return replace(prof, timings_s={**prof.timings_s, "compress": time.perf_counter() - t_start}, **positions)
 
 
 # linear interpolation of a baseband profile loses at most 0.5 dB at the band edge when the
@@ -315,7 +198,8 @@ def fft_layout(ref_analytic, fs, fc, s_lo, n_in, lag_read, lag_step, n_lags, rot
     return FftLayout(s_lo, n_in, log2_n, log2_n - int(np.log2(d)), bin0, idx0, n_lags, twiddles, spec, post)
 
 
-def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm) -> Profiles:
+@COMPRESSIONS.register("matched")
+def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm, chirp=None) -> Profiles:
     n_meas, n_samples = signals.shape
     n_ref, d = len(wave), lag_step
     lag_lo = int(np.floor(np.min((gate[0] - t0) * fs))) - 1
@@ -390,7 +274,8 @@ def choose_algorithm(device: Any, n_meas: int, n_lags: int, n_ref: int, layout: 
     return "fft" if items >= per_cu * device.max_compute_units else "direct"
 
 
-def _fmcw(signals, fs, t0, fc, gate, chirp, sel) -> Profiles:
+@COMPRESSIONS.register("fmcw")
+def _fmcw(signals, wave, fs, t0, fc, gate, sel, lag_step=1, algorithm="auto", chirp=None) -> Profiles:
     chirp = chirp or {}
     missing = [k for k in ("f_start_hz", "f_stop_hz", "duration_s") if k not in chirp]
     if missing:

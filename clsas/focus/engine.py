@@ -17,9 +17,9 @@ import numpy as np
 from .. import cl as _cl
 from ..compression import Profiles, compress
 from ..dataset import Dataset
+from ..formation.bp import Backprojector
 from ..geometry import VoxelGrid
-from ..imaging import Backprojector
-from ..imaging.plan import plan_reconstruction
+from ..rangegate import plan_reconstruction
 from . import numpy as twin
 from .metrics import metric_and_weight
 

@@ -74,7 +74,7 @@ class FocusGradientPlan(Plan):
     def selftest(cls, queue, vec: int) -> float:
         """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, fewer work-items than blocks,
         voxels in and out of the window, a speed of sound per measurement."""
-        from ..imaging.opencl import selftest_scene
+        from ..formation.bp_opencl import selftest_scene
         from . import numpy as twin
 
         grid, prof, tau0, fs, tx, rx, c, rng = selftest_scene()

@@ -47,18 +47,20 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from .. import _validate as v
 from .. import cl as _cl
-from ..compression import Profiles
 from ..geometry import VoxelGrid
-from ..imaging.guard import available_memory_bytes, check_grid
-from ..imaging.image import Image
+from ..image import Image
+from ..profiles import Profiles
 from . import ffbp_numpy as twin
 from .ffbp_tree import Tree, build_tree, default_depth, estimate_band, max_depth
+from .guard import available_memory_bytes, check_grid
+from .registry import FORMATIONS
 
 __all__ = ["form", "plan_tree", "ORDERS"]
 
@@ -156,6 +158,7 @@ def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -
         log.warning("ffbp: %s; going on (force=True)", text)
 
 
+@FORMATIONS.register("ffbp")
 def form(
     profiles: Profiles,
     grid: VoxelGrid,
@@ -226,11 +229,10 @@ def form(
     data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
     opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
     if opts["depth"] == 0:
-        from ..imaging import Backprojector
+        from .bp import Backprojector
 
         image = Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
-        image.provenance = {**image.provenance, "ffbp_depth": 0}
-        return image
+        return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
     sel = _cl.select(backend, device)
     check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=force)
     t_start = time.perf_counter()
@@ -258,12 +260,10 @@ def form(
     if values is None:
         values = _run_numpy(tree, grid, args, tables, progress, timings)
     timings["ffbp"] = time.perf_counter() - t_start
-    image = Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings)
-    image.plan = tree
-    image.provenance = {**image.provenance, "ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
-                        | {"band_hz": list(tree.band_hz),
-                           "samples_per_level": [lev.samples for lev in tree.levels]}}
-    return image
+    provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
+                  | {"band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
+    return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
+                 provenance=provenance)
 
 
 def _run_numpy(tree: Tree, grid: VoxelGrid, args, tables, progress, timings: dict) -> np.ndarray:

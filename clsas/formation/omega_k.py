@@ -1,7 +1,7 @@
 """Wavenumber-domain (ω-k, Stolt) image formation for planar, uniform, bistatic apertures.
 
 ``reconstruct(dataset, grid, formation="omega-k")`` gives the image that exact backprojection
-(:func:`clsas.backproject`, reference definition in ``clsas/imaging/numpy.py``) gives, with the
+(:func:`clsas.backproject`, reference definition in ``clsas/formation/bp_numpy.py``) gives, with the
 same complex values and phase convention, at a cost of O(N^3 log N) instead of voxels x
 measurements, for apertures whose speakers and microphones lie on one plane normal to a grid
 axis, with the pairs' midpoints on a regular lattice and one fixed speaker-microphone offset
@@ -69,11 +69,12 @@ from typing import Any
 import numpy as np
 
 from .. import _validate as v
-from ..compression import Profiles
 from ..geometry import VoxelGrid
-from ..imaging.image import Image
+from ..image import Image
+from ..profiles import Profiles
 from . import stolt
 from .planar import NotPlanarUniform, planar_aperture
+from .registry import FORMATIONS
 
 __all__ = ["form", "OPTIONS", "NotPlanarUniform"]
 
@@ -234,6 +235,7 @@ def _stolt_runner(backend, device):
 
 
 # -- the formation ---------------------------------------------------------------------------
+@FORMATIONS.register("omega-k")
 def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, device: Any = None,
          progress=None, force: bool = False, **options) -> Image:
     """ω-k image of ``profiles`` on ``grid`` (see the module notes for the method and options).
@@ -326,10 +328,8 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
                         "or use formation='bp'", 100 * frac, f_top / 1e3)
     total = time.perf_counter() - t_start
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
-    image = Image(values, grid, "bp", sel.kind, sel.device, timings)
     info["backend"] = sel.kind
-    image.provenance = {"omega_k": info}
-    return image
+    return Image(values, grid, "bp", sel.kind, sel.device, timings, provenance={"omega_k": info})
 
 
 def _n_terms(alpha_max: float, u_max: float, tol: float, bistatic: bool) -> int:

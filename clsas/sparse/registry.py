@@ -19,6 +19,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import _validate as v
+from ..registry import Registry
 from .atoms import Dictionary, default_max_echoes
 from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max
 from .cbp import cbp_polar, cbp_taylor
@@ -122,12 +123,13 @@ def _cbp_polar(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echo
                              real_signal=real_signal, false_alarm=false_alarm)
 
 
-SPARSE_METHODS: dict[str, SparseMethod] = {
-    "bpdn": _bpdn,
-    "cbp-taylor": _cbp_taylor,
-    "cbp-polar": _cbp_polar,
-    "cbp-polar-socp": _cbp_polar_socp,
-}
+# name -> method(dictionary, b, lam, lam_frac, amplitudes, *, max_echoes, **options) -> Echoes; a new method
+# registers itself where it is defined: SPARSE_METHODS.register("name", function)
+SPARSE_METHODS: Registry[SparseMethod] = Registry("sparse method", "method")
+SPARSE_METHODS.register("bpdn", _bpdn)
+SPARSE_METHODS.register("cbp-taylor", _cbp_taylor)
+SPARSE_METHODS.register("cbp-polar", _cbp_polar)
+SPARSE_METHODS.register("cbp-polar-socp", _cbp_polar_socp)
 
 
 def _nothing(method: str, reason: str, t_start: float, info: dict) -> Echoes:

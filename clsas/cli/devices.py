@@ -70,3 +70,14 @@ def _print_rig_devices() -> None:
     print("serial ports (for [stage] port):" if ports else "serial ports: none found")
     for p in ports:
         print(f"  {p.device} | {p.description} | {p.hwid}")
+
+
+def add_parser(sub) -> None:
+    dv = sub.add_parser("devices", help="list OpenCL devices, audio devices and serial ports")
+    dv.add_argument("--opencl-only", action="store_true", help="only the OpenCL devices")
+    dv.add_argument("--variants", action="store_true",
+                    help="check (or read the stored verdicts of) each kernel's vector width on the device")
+    dv.add_argument("--device", default=None, help="P:D: the device for --variants (default: the one auto uses)")
+    dv.add_argument("--clear-cache", action="store_true",
+                    help="forget the stored kernel-variant verdicts (they are probed again on next use)")
+    dv.set_defaults(func=cmd_devices)

@@ -21,15 +21,15 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import _validate as v
-from ..compression import Profiles, center_frequency
 from ..dataset import Dataset
+from ..profiles import Profiles, center_frequency
 from ..signals import analytic
+from .registry import SPARSE_METHODS
 
 __all__ = ["SPARSE_OPTIONS", "superres_profiles"]
 
 log = logging.getLogger(__name__)
 
-SPARSE_METHODS = ("bpdn", "cbp-taylor", "cbp-polar")
 # the options reconstruct(..., sparse={...}) accepts
 SPARSE_OPTIONS = ("delta_s", "lam", "lam_frac", "render_width_s", "max_echoes", "guard_s", "method_options",
                   "absorption", "pulse")
@@ -46,7 +46,7 @@ def _failure_kind(exc: BaseException) -> str:
 
 def _one(method, x, atom, delta, tau0, n_atoms, gate_rel, lam, lam_frac, max_echoes, options):
     """Echoes of one recording (delays relative to its window), or a failure: (Echoes, kind)."""
-    from ..sparse import Dictionary, Echoes, sparse_echoes, succeeded
+    from . import Dictionary, Echoes, sparse_echoes, succeeded
 
     t_start = time.perf_counter()
     try:
@@ -75,8 +75,6 @@ def _check_options(method: str, method_options: dict | None) -> dict:
     """``method_options`` checked against the method's keyword arguments (a wrong name is the
     caller's error, raised once here, not a failure of every recording)."""
     import inspect
-
-    from ..sparse import SPARSE_METHODS
 
     options = dict(method_options or {})
     params = inspect.signature(SPARSE_METHODS[method]).parameters
@@ -189,9 +187,9 @@ def superres_profiles(
         reason in ``status``, no echoes, and its matched-filter profile in the rows.
     """
     from ..physics import speed_of_sound
-    from ..sparse import Atom, Echoes, absorbed_pulse
+    from . import Atom, Echoes, absorbed_pulse
 
-    v.choice("method", method, SPARSE_METHODS)
+    SPARSE_METHODS.check(method)
     fs = dataset.fs_hz
     wave = dataset.waveform  # the profiles' centre frequency and render width
     heard = wave  # the atom's waveform

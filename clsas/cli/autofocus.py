@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .common import add_device_options, grid_arg
+
 
 def add_autofocus_options(sp) -> None:
     """The autofocus options shared by ``autofocus`` and ``reconstruct --autofocus``."""
@@ -62,11 +64,9 @@ def cmd_autofocus(args) -> int:
     import clsas
     from clsas.scenes import stored_grid_and_truth
 
-    from .cli import _grid_arg
-
     ds = clsas.load(args.data)
     stored_grid, _ = stored_grid_and_truth(ds.config)
-    grid = _grid_arg(args.grid, args.spacing, stored_grid)
+    grid = grid_arg(args.grid, args.spacing, stored_grid)
     out, rep = run_autofocus(ds, grid, args)
     out.save(args.out)
     print(f"wrote {args.out}" + ("" if rep.improved else " (the input, unchanged: it did not get sharper)"))
@@ -84,7 +84,7 @@ def cmd_autofocus(args) -> int:
     return 0
 
 
-def add_parser(sub, common) -> None:
+def add_parser(sub) -> None:
     af = sub.add_parser("autofocus", help="estimate motion, sound speed and delay from the scan; write the "
                         "corrected dataset")
     af.add_argument("data", help="dataset file (HDF5)")
@@ -95,5 +95,5 @@ def add_parser(sub, common) -> None:
     af.add_argument("--png", metavar="FILE", help="write the images before and after to FILE (PNG)")
     af.add_argument("--force", action="store_true", help="go on even if the grid does not seem to fit in memory")
     add_autofocus_options(af)
-    common(af)
+    add_device_options(af)
     af.set_defaults(func=cmd_autofocus)

@@ -1,0 +1,65 @@
+"""``clsas bench``: the benchmark suite."""
+
+from __future__ import annotations
+
+
+def cmd_bench(args) -> int:
+    from clsas.bench import run, run_formation
+
+    def status(line: str) -> None:
+        if not args.quiet:
+            print(f"[bench] {line}", flush=True)
+
+    if args.formation is not None:
+        res = run_formation(full=args.full, out_dir=args.out, formations=args.formation or None, scale=args.scale,
+                            cases=args.cases, plots=not args.no_plots, status=status)
+        for c in res["cases"]:
+            for r in c["rows"]:
+                what = (f"refused ({r['refused'].split(':')[0]})" if "refused" in r else
+                        f"{r['time_s']:.2f} s" + (f", {r['speedup']:.0f}x bp, error {r['error_all_db']:.1f} dB over "
+                                                  "the grid" if "speedup" in r else "")
+                        + (f", {r['error_cone_db']:.1f} dB in the cone" if r.get("error_cone_db") is not None
+                           else ""))
+                print(f"{c['case']}: {r['formation']}: {what}")
+        for path in res["paths"].values():
+            print(f"wrote {path}")
+        return 0
+
+    res = run(full=args.full, out_dir=args.out, scheduler=args.scheduler, use_dask=True if args.dask else None,
+              plots=not args.no_plots, status=status)
+    for r in res["backprojection"]:
+        rt = r.get("ratios", {})
+        if "opencl_kernel / numpy_twin" in rt:
+            print(f"backprojection {r['workload']}: {r['opencl_kernel']['rate_per_s']:.3g} pairs/s, "
+                  f"{rt['opencl_kernel / numpy_twin']:.0f}x the NumPy twin"
+                  + (f", {rt['opencl_kernel / numba_peer']:.1f}x Numba" if "opencl_kernel / numba_peer" in rt else ""))
+    rt = res["compression"].get("ratios", {})
+    if "opencl_fft_kernel / fftconvolve" in rt:
+        print(f"compression: kernel {rt['opencl_fft_kernel / fftconvolve']:.2f}x fftconvolve, "
+              f"wall {rt['opencl_fft_wall / fftconvolve']:.2f}x")
+    if "backprojection_vs_pairs" in res["scaling"]:
+        print(f"backprojection cost ~ pairs^{res['scaling']['backprojection_vs_pairs']['exponent']:.2f}")
+    for path in res["paths"].values():
+        print(f"wrote {path}")
+    return 0
+
+
+def add_parser(sub) -> None:
+    b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time")
+    b.add_argument("--full", action="store_true", help="the full set (tens of minutes on a 2-core CPU)")
+    b.add_argument("--out", default="bench/results", help="results folder (default: bench/results)")
+    b.add_argument("--scheduler", help="address of a Dask scheduler for the sweeps and tiles (default: a local "
+                   "cluster of 2 workers with --full)")
+    b.add_argument("--dask", action="store_true", help="run the Dask part in the quick set too")
+    b.add_argument("--no-plots", action="store_true", help="no PNG")
+    b.add_argument("--formation", nargs="*", metavar="NAME", default=None,
+                   help="run only the image-formation benchmark, for these registered formations (default all; bp, "
+                   "the reference, always runs)")
+    b.add_argument("--scale", type=float, default=None,
+                   help="with --formation: size of the dense planar case (1 = 128 x 128 stops, 256 x 256 x 128 "
+                   "voxels; default 1 with --full, else 0.25)")
+    b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular"), default=None,
+                   help="with --formation: which cases (default all)")
+    b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    b.add_argument("-v", "--verbose", action="store_true", help="log details")
+    b.set_defaults(func=cmd_bench)

@@ -1,0 +1,118 @@
+"""``clsas reconstruct``: image a dataset file."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from . import autofocus as af
+from .common import add_device_options, box_arg, grid_arg, reconstruct_image
+from .preprocess import add_preprocess_options, apply_preprocessing
+
+
+def cmd_reconstruct(args) -> int:
+    import clsas
+    from clsas.scenes import stored_grid_and_truth
+
+    if args.plot and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise ValueError(f"--plot: the file must end in .png, .svg or .pdf, got {args.plot!r}")
+    ds = clsas.load(args.data)
+    partial = _partial_scan(args.data)
+    if partial:
+        print(f"warning: {partial}", file=sys.stderr)
+    stored_grid, truth = stored_grid_and_truth(ds.config)
+    grid = grid_arg(args.grid, args.spacing, stored_grid)
+    if args.preprocess:
+        n_before = len(ds.provenance)
+        ds, source = apply_preprocessing(ds, args, stored=True)
+        if not source:
+            raise ValueError("--preprocess: no steps given and no [preprocess] table in the dataset or --config")
+        print(f"preprocessed with the steps from {source}: {', '.join(p['step'] for p in ds.provenance[n_before:])}")
+    if args.autofocus:
+        ds, _ = af.run_autofocus(ds, grid, args)
+    image = reconstruct_image(ds, grid, args, not args.quiet)
+    from clsas.image import source_provenance
+
+    image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
+    out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
+    image.save(out)
+    if args.verbose and image.plan is not None:
+        print(image.plan.describe())
+    peaks = image.peaks(args.peaks, min_separation_m=0.03)
+    print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
+    from clsas.compression import center_frequency
+    from clsas.formation.lobes import grating_lobe_notes
+
+    notes = grating_lobe_notes(peaks, ds.tx_positions, ds.rx_positions, center_frequency(ds.waveform, ds.fs_hz),
+                               float(np.mean(ds.c_mps)))
+    for p, note in zip(peaks, notes, strict=True):
+        x, y, z = p.position_m
+        print(f"peak ({x:+.3f}, {y:+.3f}, {z:.3f}) m  |v| = {p.magnitude:.4g}" + (f"  [{note}]" if note else ""))
+    if partial:
+        print(f"(imaged from a partial scan: {partial.split(':')[1].split(';')[0].strip()})")
+    if args.box is not None:
+        from clsas.quality import tcr_db
+
+        print(f"target-to-clutter ratio in {args.box}: {tcr_db(image, box_arg('--box', args.box)):.1f} dB")
+    if args.png or args.plot:
+        from clsas.plots import stored_scene
+
+        kw = dict(truth_m=truth, scene=stored_scene(ds.config), aperture=ds, dynamic_range_db=args.dynamic_range)
+        for pic in ([out.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else []):
+            image.plot(pic, **kw)
+            print(f"wrote {pic}")
+    print(f"wrote {out}")
+    return 0
+
+
+def _partial_scan(path) -> str:
+    """A warning for a scan file that ``clsas acquire`` did not finish, else ``""``."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        if "complete" not in f.attrs or bool(f.attrs["complete"]):
+            return ""
+        planned = int(f.attrs.get("n_stops_planned", 0))
+        done = len(np.unique(f["stop_index"][()])) if "stop_index" in f else 0
+    return (f"partial scan: {done} of {planned} stops were taken; the image lacks the rest "
+            f"(continue it with: clsas acquire RIG.toml {path} --resume)")
+
+
+def add_parser(sub) -> None:
+    from clsas.formation import FORMATIONS
+    from clsas.pipeline import methods
+
+    r = sub.add_parser("reconstruct", help="image a dataset file")
+    r.add_argument("data", help="dataset file (HDF5, from clsas simulate, acquire, import or preprocess)")
+    r.add_argument("--grid", help="x0,x1,y0,y1,z0,z1 in m, e.g. --grid=-0.5,0.5,-0.5,0.5,1,2 "
+                   "(default: the dataset's [grid])")
+    r.add_argument("--spacing", type=float, help="voxel spacing in m")
+    r.add_argument("--method", default="bp", choices=methods(),
+                   help="bp: matched filter + backprojection (default); bpdn, cbp-taylor, cbp-polar: each recording "
+                   "super-resolved first (needs the sparse extra)")
+    r.add_argument("--compression", default="matched", choices=("matched", "fmcw"),
+                   help="matched filter (default), or FMCW dechirp (only for echoes that arrive while the chirp plays)")
+    r.add_argument("--out", help="image file (default: <data>-image.h5)")
+    r.add_argument("--png", action="store_true", help="also write the picture as <out>.png")
+    r.add_argument("--plot", metavar="FILE",
+                   help="write the picture (projections and slices through the peak) to FILE: .png, .svg or .pdf")
+    r.add_argument("--dynamic-range", type=float, default=40.0, metavar="DB",
+                   help="the picture's floor, dB below the peak (default 40)")
+    r.add_argument("--peaks", type=int, default=3, help="peaks to print")
+    r.add_argument("--force", action="store_true", help="image even if the grid does not seem to fit in memory")
+    r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
+    r.add_argument("--preprocess", action="store_true",
+                   help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
+    r.add_argument("--formation", default="bp", choices=tuple(FORMATIONS),
+                   help="how the profiles become an image: bp (exact backprojection, default), omega-k (planar uniform "
+                   "apertures, much faster), ... (see README: Fast image formation)")
+    r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
+                   help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
+    add_preprocess_options(r)
+    r.add_argument("--autofocus", action="store_true",
+                   help="estimate motion, sound speed and delay from the scan first (see clsas autofocus)")
+    af.add_autofocus_options(r)
+    add_device_options(r)
+    r.set_defaults(func=cmd_reconstruct)
