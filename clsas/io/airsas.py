@@ -50,11 +50,27 @@ Geometry
 --------
 The dataset is returned in the target's frame, origin on the turntable axis at the height of
 ``Center``, z up: for a ping at turntable angle a and stage height h, a transducer at p in the
-rig's frame is at ``R_z(s a) (p - Center) + (0, 0, h)``, with ``s = angle_sign``. The
-authors' reader uses ``R_z(+a) p - Center`` (the same when ``Center`` has x = y = 0), so the
-default is ``angle_sign=+1``; ``-1`` rotates the other way (a target turned by +a
-counter-clockwise sees the fixed transducers at -a), which mirrors the image. Check the sign
-once on a known asymmetric target.
+rig's frame is at ``R_z(s (a + a0)) (p - Center) + (0, 0, h)``, with ``s = angle_sign`` and
+``a0 = zero_angle_deg``. The defaults (``s = +1``, ``a0 = 0``) keep the rig's frame at angle
+0 (the transducers where ``SysParams.csv`` puts them, at -y on the published scans) and were
+checked on the published measured scans (``bench/airsas_compare.py``), against the photo of
+the object published with them:
+
+- the owners' figure (``20k_scene/fig-a.PNG``) shows the photo beside their delay-and-sum
+  image; that image is their ``scene.npy`` drawn with row 0 (their y = -0.3 m) at the top
+  (``bench/airsas_compare.py`` measures this: the figure's panel correlates with
+  ``scene.npy`` drawn that way, not with it flipped);
+- a photo taken from above shows the object as seen from +z; a picture with y growing
+  downward shows a right-handed (x, y, z up) frame as seen from below. So the object seen
+  from above is the owners' image mirrored in y (y -> -y);
+- the owners' own geometry puts the transducers at ``(0.85 cos(90 - a), 0.85 sin(90 - a))``
+  (``sim_csas_package``'s ``theta_start=90, theta_step=-1``): mirrored in y, that is
+  ``-90 + a``, which is this importer's default (the speaker at -y at angle 0, turning
+  counter-clockwise in the target's frame as the angle grows). The default image, drawn
+  with y up (``clsas.plots``), has the photo's handedness.
+
+``angle_sign=-1, zero_angle_deg=180`` gives the owners' frame exactly (their image's pixels,
+their handedness). ``angle_sign=-1`` alone gives the owners' image turned by 180 degrees.
 
 Timing: sample 0 is recorded ``Group Delay`` samples before the sound leaves the speaker,
 so ``t0_s = -group_delay / fs`` (negative). The speed of sound follows each ping's
@@ -101,6 +117,7 @@ def import_airsas(
     waveform_index: int | None = None,
     microphones: str = "first",
     angle_sign: float = 1.0,
+    zero_angle_deg: float = 0.0,
 ) -> Dataset:
     """Read an AirSAS scan folder into a :class:`~clsas.Dataset` (layout: :mod:`clsas.io.airsas`).
 
@@ -122,7 +139,10 @@ def import_airsas(
         ``"all"``: every column, microphone k at ``Mick`` of ``SysParams.csv``, k measurements
         per ping (ping-major order).
     angle_sign : {1, -1}
-        Direction of the turntable angle (see "Geometry" in the module docstring).
+        Direction of the turntable angle (see "Geometry" in the module docstring); ``-1``
+        mirrors the image.
+    zero_angle_deg : float
+        Added to every angle before the rotation (degrees): turns the image about the axis.
 
     Returns
     -------
@@ -148,6 +168,8 @@ def import_airsas(
         raise ValueError(f"microphones must be 'first' or 'all', got {microphones!r}")
     if angle_sign not in (1, -1):
         raise ValueError(f"angle_sign must be 1 or -1, got {angle_sign!r}")
+    if not isinstance(zero_angle_deg, int | float) or not math.isfinite(zero_angle_deg):
+        raise ValueError(f"zero_angle_deg must be a finite number of degrees, got {zero_angle_deg!r}")
 
     sys_path = _need(folder, "SysParams.csv")
     sysp = _read_sysparams(sys_path)
@@ -189,7 +211,7 @@ def import_airsas(
         log.info("%s: %d flight files, %d pings read", folder, len(flights), len(pings["flight"]))
     mics = np.array([[_param(sysp, sys_path, f"mic{k + 1} {a}") for a in "xyz"] for k in range(n_ch)])
 
-    a = np.deg2rad(pings["angle_deg"]) * angle_sign
+    a = np.deg2rad(pings["angle_deg"] + zero_angle_deg) * angle_sign
     cos, sin = np.cos(a), np.sin(a)
 
     def to_target(p: np.ndarray) -> np.ndarray:  # (3,) rig frame -> (n_pings, 3) target frame
@@ -205,6 +227,7 @@ def import_airsas(
         "step": "import", "source": str(folder), "format": "airsas", "pings": int(len(pings["flight"])),
         "microphones": int(n_ch), "fs_hz": fs, "group_delay_samples": gd, "waveform": waveform,
         "waveform_index": int(index), "angle_sign": int(angle_sign),
+        "zero_angle_deg": float(zero_angle_deg),
         "angle_deg": [float(pings["angle_deg"].min()), float(pings["angle_deg"].max())],
         "center_m": center.tolist(),
     }
@@ -220,7 +243,7 @@ def import_airsas(
         raise ValueError(f"{folder}: {exc}") from None
     if background is not None:
         bg = import_airsas(background, waveform=waveform, waveform_index=waveform_index,
-                           microphones=microphones, angle_sign=angle_sign)
+                           microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg)
         ds = ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
     log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz", folder,
              len(pings["flight"]), n_ch, ds.n_samples, fs)
