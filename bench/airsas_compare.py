@@ -134,29 +134,38 @@ def owners_das(scan: Path, bg: Path, up: int = 100) -> np.ndarray:
     return out
 
 
+def _object_crop(db: np.ndarray, shape=(120, 50), threshold_db=-12.0, sigma=1.5) -> np.ndarray:
+    """The image over the bounding box of its pixels above ``threshold_db``, resampled to
+    ``shape`` and smoothed (so that two renderings at other scales and offsets compare)."""
+    from scipy.ndimage import gaussian_filter
+
+    r, c = np.nonzero(db > threshold_db)
+    rows = np.linspace(r.min(), r.max(), shape[0]).round().astype(int)
+    cols = np.linspace(c.min(), c.max(), shape[1]).round().astype(int)
+    return gaussian_filter(db[np.ix_(rows, cols)], sigma)
+
+
 def figure_handedness(fig_png: Path, scene_yx: np.ndarray, panel=(slice(57, 266), slice(243, 455))) -> dict:
-    """Correlate the figure's DAS panel (viridis -> dB, -20..0) with ``scene.npy`` drawn with
-    row 0 at the top, and with it flipped up-down (the other handedness)."""
+    """Which way the figure's DAS panel draws ``scene.npy``: the panel (viridis -> dB, -20..0)
+    against ``scene.npy`` drawn with row 0 at the top (y growing downward), flipped up-down,
+    left-right and turned by 180 degrees; each over the object's bounding box, smoothed
+    (the panel is a smaller rendering), correlation of the dB images."""
     import matplotlib
     import matplotlib.image
 
     rgb = matplotlib.image.imread(fig_png)[panel][..., :3]
     lut = matplotlib.colormaps["viridis"](np.linspace(0, 1, 256))[:, :3]
     idx = np.argmin(((rgb[:, :, None, :] - lut[None, None]) ** 2).sum(-1), axis=-1)
-    fig_db = -20 + 20 * idx / 255.0
+    fig = _object_crop(-20 + 20 * idx / 255.0)
     mag = np.abs(scene_yx)
     db = np.clip(20 * np.log10(np.maximum(mag / mag.max(), 1e-12)), -20, 0)
-    h, w = fig_db.shape
-    rows = np.linspace(0, N_PIX - 1, h).round().astype(int)
-    cols = np.linspace(0, N_PIX - 1, w).round().astype(int)
 
-    def corr(a, b):
-        a, b = a - a.mean(), b - b.mean()
+    def corr(b):
+        a, b = fig - fig.mean(), b - b.mean()
         return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
 
-    drawn = db[np.ix_(rows, cols)]
-    out = {"row0_top": corr(fig_db, drawn), "flipped_up_down": corr(fig_db, drawn[::-1]),
-           "flipped_left_right": corr(fig_db, drawn[:, ::-1]), "turned_180": corr(fig_db, drawn[::-1, ::-1])}
+    out = {"row0_top": corr(_object_crop(db)), "flipped_up_down": corr(_object_crop(db[::-1])),
+           "flipped_left_right": corr(_object_crop(db[:, ::-1])), "turned_180": corr(_object_crop(db[::-1, ::-1]))}
     out["figure_shows"] = max(out, key=out.get)
     return out
 

@@ -113,3 +113,17 @@ def test_default_image_keeps_the_targets_handedness(scan):
         found = np.array([p.position_m for p in image.peaks(3, min_separation_m=0.015)])
         for t in TARGET * [1, sign, 1]:
             assert np.min(np.linalg.norm(found - t, axis=1)) < 0.006, (kw, found)
+
+
+def test_radius_option(scan):
+    folder, angles = scan
+    ds = clsas.io.import_airsas(folder, radius_m=0.85, microphones="all")
+    for p in (ds.tx_positions, ds.rx_positions):
+        np.testing.assert_allclose(np.hypot(p[:, 0], p[:, 1]), 0.85)
+    default = clsas.io.import_airsas(folder, microphones="all")
+    np.testing.assert_allclose(ds.rx_positions[:, 2], default.rx_positions[:, 2])
+    np.testing.assert_allclose(np.arctan2(ds.tx_positions[:, 1], ds.tx_positions[:, 0]),
+                               np.arctan2(default.tx_positions[:, 1], default.tx_positions[:, 0]))
+    assert ds.provenance[0]["radius_m"] == 0.85
+    with pytest.raises(ValueError, match="radius_m"):
+        clsas.io.import_airsas(folder, radius_m=-1.0)

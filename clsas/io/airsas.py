@@ -118,6 +118,7 @@ def import_airsas(
     microphones: str = "first",
     angle_sign: float = 1.0,
     zero_angle_deg: float = 0.0,
+    radius_m: float | None = None,
 ) -> Dataset:
     """Read an AirSAS scan folder into a :class:`~clsas.Dataset` (layout: :mod:`clsas.io.airsas`).
 
@@ -143,6 +144,12 @@ def import_airsas(
         mirrors the image.
     zero_angle_deg : float
         Added to every angle before the rotation (degrees): turns the image about the axis.
+    radius_m : float, optional
+        Put the speaker and the microphones at this horizontal distance from the turntable
+        axis (their directions and heights kept) instead of where ``SysParams.csv`` puts
+        them. The data owners' own imaging code assumes 0.85 m for every transducer of the
+        published scans; ``SysParams.csv`` says 0.8485 m (speaker) and 0.8615 m
+        (microphones). See :func:`clsas.focus.calibrate.calibrate` for estimating it.
 
     Returns
     -------
@@ -160,16 +167,7 @@ def import_airsas(
         or lengths differ from the scan's.
     """
     folder = Path(folder)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"no folder {folder} (import_airsas: folder)")
-    if waveform not in ("chirp", "recorded"):
-        raise ValueError(f"waveform must be 'chirp' or 'recorded', got {waveform!r}")
-    if microphones not in ("first", "all"):
-        raise ValueError(f"microphones must be 'first' or 'all', got {microphones!r}")
-    if angle_sign not in (1, -1):
-        raise ValueError(f"angle_sign must be 1 or -1, got {angle_sign!r}")
-    if not isinstance(zero_angle_deg, int | float) or not math.isfinite(zero_angle_deg):
-        raise ValueError(f"zero_angle_deg must be a finite number of degrees, got {zero_angle_deg!r}")
+    _check_options(folder, waveform, microphones, angle_sign, zero_angle_deg, radius_m)
 
     sys_path = _need(folder, "SysParams.csv")
     sysp = _read_sysparams(sys_path)
@@ -191,6 +189,64 @@ def import_airsas(
         raise ValueError(f"{coord_path}: no ping uses waveform {index} (the file has {kinds})")
     pings = {k: (None if v is None else v[keep]) for k, v in pings.items()}
 
+    recs, names, n_ch = _read_flights(folder, coord_path, pings, microphones)
+    mics = np.array([[_param(sysp, sys_path, f"mic{k + 1} {a}") for a in "xyz"] for k in range(n_ch)])
+
+    a = np.deg2rad(pings["angle_deg"] + zero_angle_deg) * angle_sign
+    tx = np.repeat(_to_target(speaker, center, a, pings["height_m"], radius_m, sys_path), n_ch, axis=0)
+    rx = np.stack([_to_target(m, center, a, pings["height_m"], radius_m, sys_path) for m in mics],
+                  axis=1).reshape(-1, 3)  # ping-major
+    temperature = np.repeat(pings["temp_c"], n_ch)
+
+    wave, chirp = _waveform(folder, waveform, index, fs)
+    prov: dict[str, Any] = {
+        "step": "import", "source": str(folder), "format": "airsas", "pings": int(len(pings["flight"])),
+        "microphones": int(n_ch), "fs_hz": fs, "group_delay_samples": gd, "waveform": waveform,
+        "waveform_index": int(index), "angle_sign": int(angle_sign),
+        "zero_angle_deg": float(zero_angle_deg), "radius_m": radius_m,
+        "angle_deg": [float(pings["angle_deg"].min()), float(pings["angle_deg"].max())],
+        "center_m": center.tolist(),
+    }
+    if background is not None:
+        prov["background"] = str(background)
+    try:
+        ds = Dataset(
+            signals=stack_padded(recs, names, str(folder)), tx_positions=tx, rx_positions=rx, fs_hz=fs,
+            waveform=wave, t0_s=np.full(len(recs), -gd / fs), temperature_c=temperature, chirp=chirp,
+            provenance=[prov],
+        )
+    except ValueError as exc:  # e.g. a temperature that gives no speed of sound
+        raise ValueError(f"{folder}: {exc}") from None
+    if background is not None:
+        bg = import_airsas(background, waveform=waveform, waveform_index=waveform_index,
+                           microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg,
+                           radius_m=radius_m)
+        ds = ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
+    log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz", folder,
+             len(pings["flight"]), n_ch, ds.n_samples, fs)
+    return ds
+
+
+def _check_options(folder: Path, waveform: str, microphones: str, angle_sign: float, zero_angle_deg: float,
+                   radius_m: float | None) -> None:
+    if not folder.is_dir():
+        raise FileNotFoundError(f"no folder {folder} (import_airsas: folder)")
+    if waveform not in ("chirp", "recorded"):
+        raise ValueError(f"waveform must be 'chirp' or 'recorded', got {waveform!r}")
+    if microphones not in ("first", "all"):
+        raise ValueError(f"microphones must be 'first' or 'all', got {microphones!r}")
+    if angle_sign not in (1, -1):
+        raise ValueError(f"angle_sign must be 1 or -1, got {angle_sign!r}")
+    if not isinstance(zero_angle_deg, int | float) or not math.isfinite(zero_angle_deg):
+        raise ValueError(f"zero_angle_deg must be a finite number of degrees, got {zero_angle_deg!r}")
+    if radius_m is not None and (not isinstance(radius_m, int | float) or not math.isfinite(radius_m)
+                                 or radius_m <= 0):
+        raise ValueError(f"radius_m must be a finite number of metres > 0, got {radius_m!r}")
+
+
+def _read_flights(folder: Path, coord_path: Path, pings: dict, microphones: str
+                  ) -> tuple[list[np.ndarray], list[str], int]:
+    """The recordings of the listed pings (ping-major), their names, and the channels per ping."""
     flights = _flight_files(folder)
     recs, names = [], []
     n_ch = None
@@ -209,45 +265,20 @@ def import_airsas(
             names.append(f"{path.name} column {k + 1}")
     if len(flights) > len(pings["flight"]):
         log.info("%s: %d flight files, %d pings read", folder, len(flights), len(pings["flight"]))
-    mics = np.array([[_param(sysp, sys_path, f"mic{k + 1} {a}") for a in "xyz"] for k in range(n_ch)])
+    return recs, names, int(n_ch)
 
-    a = np.deg2rad(pings["angle_deg"] + zero_angle_deg) * angle_sign
-    cos, sin = np.cos(a), np.sin(a)
 
-    def to_target(p: np.ndarray) -> np.ndarray:  # (3,) rig frame -> (n_pings, 3) target frame
-        d = p - center
-        return np.stack([cos * d[0] - sin * d[1], sin * d[0] + cos * d[1], d[2] + pings["height_m"]], axis=1)
-
-    tx = np.repeat(to_target(speaker), n_ch, axis=0)
-    rx = np.stack([to_target(m) for m in mics], axis=1).reshape(-1, 3)  # ping-major
-    temperature = np.repeat(pings["temp_c"], n_ch)
-
-    wave, chirp = _waveform(folder, waveform, index, fs)
-    prov: dict[str, Any] = {
-        "step": "import", "source": str(folder), "format": "airsas", "pings": int(len(pings["flight"])),
-        "microphones": int(n_ch), "fs_hz": fs, "group_delay_samples": gd, "waveform": waveform,
-        "waveform_index": int(index), "angle_sign": int(angle_sign),
-        "zero_angle_deg": float(zero_angle_deg),
-        "angle_deg": [float(pings["angle_deg"].min()), float(pings["angle_deg"].max())],
-        "center_m": center.tolist(),
-    }
-    if background is not None:
-        prov["background"] = str(background)
-    try:
-        ds = Dataset(
-            signals=stack_padded(recs, names, str(folder)), tx_positions=tx, rx_positions=rx, fs_hz=fs,
-            waveform=wave, t0_s=np.full(len(recs), -gd / fs), temperature_c=temperature, chirp=chirp,
-            provenance=[prov],
-        )
-    except ValueError as exc:  # e.g. a temperature that gives no speed of sound
-        raise ValueError(f"{folder}: {exc}") from None
-    if background is not None:
-        bg = import_airsas(background, waveform=waveform, waveform_index=waveform_index,
-                           microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg)
-        ds = ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
-    log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz", folder,
-             len(pings["flight"]), n_ch, ds.n_samples, fs)
-    return ds
+def _to_target(p: np.ndarray, center: np.ndarray, angle_rad: np.ndarray, height_m: np.ndarray,
+               radius_m: float | None, sys_path: Path) -> np.ndarray:
+    """The rig point ``p`` (3,) in the target's frame at each ping: (n_pings, 3)."""
+    d = p - center
+    if radius_m is not None:
+        r = math.hypot(d[0], d[1])
+        if r == 0:
+            raise ValueError(f"{sys_path}: a transducer is on the turntable axis; radius_m cannot move it")
+        d = np.array([d[0] * radius_m / r, d[1] * radius_m / r, d[2]])
+    cos, sin = np.cos(angle_rad), np.sin(angle_rad)
+    return np.stack([cos * d[0] - sin * d[1], sin * d[0] + cos * d[1], d[2] + height_m], axis=1)
 
 
 def _find(folder: Path, name: str) -> Path | None:
