@@ -14,6 +14,10 @@ def cmd_import(args) -> int:
         if fmt != "airsas":
             raise ValueError("--waveform-index is for the airsas format")
         opts["waveform_index"] = args.waveform_index
+    if getattr(args, "radius_m", None) is not None:
+        if fmt != "airsas":
+            raise ValueError("--radius-m is for the airsas format")
+        opts["radius_m"] = args.radius_m
     ds = clsas.io.import_scan(args.source, format=fmt, background=args.background, **opts)
     ds.save(args.out)
     print(f"imported {args.source} ({fmt}): {ds.n_meas} measurements x {ds.n_samples} samples "
@@ -54,4 +58,7 @@ def add_parser(sub) -> None:
                     help="layout of SOURCE (default: auto)")
     im.add_argument("--background", metavar="FOLDER", help="the empty-scene scan, same layout and stops")
     im.add_argument("--waveform-index", type=int, help="airsas: which interleaved waveform (0-based)")
+    im.add_argument("--radius-m", type=float, metavar="R",
+                    help="airsas: put the transducers R metres from the turntable axis (SysParams.csv's directions "
+                         "and heights kept)")
     im.set_defaults(func=cmd_import)

@@ -60,6 +60,8 @@ def _preprocess_args(args) -> dict:
         opts["background"] = {"path": args.background, "align_s": args.align_s}
     elif args.own_background:
         opts["background"] = {"align_s": args.align_s}
+    if getattr(args, "common", None):
+        opts["common"] = args.common
     if args.blank_direct:
         opts["blank_direct"] = True
     return opts
@@ -91,6 +93,9 @@ def add_preprocess_options(sp) -> None:
     g.add_argument("--own-background", action="store_true", help="subtract the background stored in the dataset")
     g.add_argument("--align-s", type=float, default=0.0, metavar="S",
                    help="with a background: also align each of its recordings within +-S seconds")
+    g.add_argument("--common", nargs="?", const="mean", choices=("mean", "median"),
+                   help="subtract what every recording shares at each delay (mean, or median): the "
+                        "turntable's and the room's rings; removes wanted signal on static planar scans")
     g.add_argument("--blank-direct", action="store_true",
                    help="zero each recording until the direct speaker-to-microphone sound has passed")
     g.add_argument("--config", metavar="FILE.toml", help="take the steps from this file's [preprocess] table")
@@ -102,7 +107,7 @@ def cmd_preprocess(args) -> int:
     ds = clsas.load(args.data)
     out, source = apply_preprocessing(ds, args, stored=True)
     if not source:
-        raise ValueError("nothing to do: give steps (--dc, --bandpass, --background, --blank-direct, "
+        raise ValueError("nothing to do: give steps (--dc, --bandpass, --background, --common, --blank-direct, "
                          "--group-delay-samples) or a [preprocess] table (--config, or stored in the dataset)")
     out.save(args.out)
     steps = out.provenance[len(ds.provenance):]
