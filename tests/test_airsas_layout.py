@@ -4,71 +4,17 @@ columns, the waveform name with 'tukeywin'): geometry, handedness option and zer
 
 import numpy as np
 import pytest
+from airsas_kit import HEIGHT_M, MIC1, SPEAKER, TARGET, write_scan
+from airsas_kit import truth_positions as _truth
 
 import clsas
 import clsas.io
-
-# the published scans' SysParams.csv, as written there (MATLAB-style engineering notation)
-SYSPARAMS = """Speaker x,0.000000E+0
-Speaker y,-848.500000E-3
-Speaker z,285.000000E-3
-Mic1 x,0.000000E+0
-Mic1 y,-861.500000E-3
-Mic1 z,247.000000E-3
-Mic2 x,0.000000E+0
-Mic2 y,-861.500000E-3
-Mic2 z,216.000000E-3
-Center x,0.000000E+0
-Center y,0.000000E+0
-Center z,177.500000E-3
-Fs,100.000000E+3
-Group Delay,62.329317E+0
-Input Range,0.000000E+0
-Output Range,3.500000E+0
-Input Device,USB-4431
-Output Device,USB-4431
-Bit Depth,24
-"""
-WAVE_NAME = "LFM_3.00E+4Hz_1.00E+4Hz_1.00E-3s_5.00E-1V_tukeywin_1.00E-1"
-SPEAKER, MIC1, CENTER = np.array([0, -0.8485, 0.285]), np.array([0, -0.8615, 0.247]), np.array([0, 0, 0.1775])
-HEIGHT_M = 0.150
-# an asymmetric target (an L): its handedness shows in the image
-TARGET = np.array([[0.0, 0.0, 0.0], [0.06, 0.0, 0.0], [0.0, 0.03, 0.0]])
-
-
-def _truth(p, angles_deg):
-    """The published convention, written out: the rig point p at turntable angle a is at
-    R_z(+a)(p - Center) + (0, 0, height) in the target's frame."""
-    a = np.deg2rad(angles_deg)
-    d = p - CENTER
-    return np.c_[np.cos(a) * d[0] - np.sin(a) * d[1], np.sin(a) * d[0] + np.cos(a) * d[1],
-                 np.full(len(a), d[2] + HEIGHT_M)]
-
-
-def _write(folder, pings=36):
-    folder.mkdir()
-    angles = np.arange(pings) * 360.0 / pings
-    temps = np.full(pings, 21.622)
-    wave = clsas.lfm_chirp(30e3, 10e3, 1e-3, 100e3, 0.1)
-    tx, rx = _truth(SPEAKER, angles), _truth(MIC1, angles)
-    ds = clsas.simulate(clsas.Scene(TARGET, np.ones(len(TARGET))), clsas.Aperture(tx, rx, tx), wave, 100e3,
-                        n_samples=1000, t0_s=-62.329317 / 100e3, temperature_c=temps, snr_db=40, seed=1)
-    for i in range(pings):  # two columns, like the published Flight files (mic 2: noise here)
-        cols = np.c_[ds.signals[i], 0.005 + 1e-4 * np.sin(np.arange(1000))]
-        np.savetxt(folder / f"Flight-{i + 1:06d}.csv", cols, fmt="%.9f", delimiter=",")
-    rows = ["Flight #,Angle,Height,Temp,Waveform"]
-    rows += [f"{i + 1:.3f},{angles[i]:.3f},{HEIGHT_M * 1e3:.3f},{temps[i]:.3f},0.000" for i in range(pings)]
-    (folder / "Coordinates.csv").write_text("\n".join(rows) + "\n")
-    (folder / "SysParams.csv").write_text(SYSPARAMS)
-    (folder / "WaveformParams.csv").write_text(WAVE_NAME + "\n")
-    np.savetxt(folder / "Waveforms.csv", wave[:, None], fmt="%.9f")
-    return angles
 
 
 @pytest.fixture(scope="module")
 def scan(tmp_path_factory):
     folder = tmp_path_factory.mktemp("airsas") / "small_features_cutout_20k"
-    return folder, _write(folder)
+    return folder, write_scan(folder)
 
 
 def test_published_layout_geometry(scan):

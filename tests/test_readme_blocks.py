@@ -1,0 +1,162 @@
+"""Every code block of the README is run by a test, or listed here as not run with the reason.
+
+A block is known by the heading it sits under, its language and its place among that
+heading's blocks; a new block fails ``test_every_block_is_run_or_excused`` until it is given a
+runner here (or a reason not to run it), so a snippet cannot drift from the code unnoticed.
+"""
+
+import re
+import shlex
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import clsas
+
+README = Path(__file__).resolve().parent.parent / "README.md"
+
+# (heading, language, n-th block under it) -> where it is run
+RUN_ELSEWHERE = {
+    ("Python API in ten lines", "python", 0):
+        "tests/test_first_hour.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
+}
+RUN_HERE = {
+    ("Your own data", "python", 0): "test_your_own_data_python",
+    ("Your own data", "bash", 0): "test_your_own_data_command_line",
+    ("Your own data", "toml", 0): "test_your_own_data_preprocess_table",
+    ("Command line", "toml", 0): "test_command_line_scene_file",
+    ("Fast image formation", "python", 0): "test_fragments_on_a_small_scan",
+    ("Fast image formation", "python", 1): "test_fragments_on_a_small_scan",
+}
+NOT_RUN = {
+    ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
+                                     "test suite (what CI does)",
+    ("Super-resolution (sparse recovery)", "python", 0): "not yet run: a fragment (recording, chirp, dataset, "
+                                                         "grid come from the text around it)",
+    ("Fast image formation", "bash", 0): "a synopsis with [optional] parts, not a command line",
+    ("Autofocus: motion, sound speed and delay from the scan itself", "python", 0):
+        "not yet run: a fragment (ds, grid from the text around it); autofocus is tested in test_autofocus.py",
+    ("Autofocus: motion, sound speed and delay from the scan itself", "bash", 0):
+        "not yet run: needs scan.h5 from a real or emulated scan",
+    ("Building and running a rig", "bash", 0): "runs a scan against the GRBL and audio emulators (about a "
+                                               "minute); tests/test_rig.py runs the same commands",
+    ("Building and running a rig", "", 0): "a wiring diagram, not code",
+    ("Building and running a rig", "toml", 0): "not yet run: a rig file excerpt (test_rig.py checks rig files)",
+    ("How it is organised", "", 0): "a map of the source tree, not code",
+    ("Benchmarks", "bash", 0): "runs the benchmark suite (minutes)",
+}
+
+
+def blocks() -> list[tuple[tuple[str, str, int], str]]:
+    """((heading, language, index under the heading), code) of every fenced block."""
+    out, heading, seen = [], "", {}
+    lines = README.read_text().splitlines()
+    i = 0
+    while i < len(lines):
+        line = lines[i]
+        m = re.match(r"^#{2,3} (.*)", line)
+        if m:
+            heading = m.group(1).strip()
+        elif line.startswith("```"):
+            lang = line[3:].strip()
+            j = i + 1
+            while not lines[j].startswith("```"):
+                j += 1
+            key = (heading, lang)
+            out.append(((heading, lang, seen.get(key, 0)), "\n".join(lines[i + 1: j])))
+            seen[key] = seen.get(key, 0) + 1
+            i = j
+        i += 1
+    return out
+
+
+def block(heading: str, lang: str, index: int = 0) -> str:
+    return dict(blocks())[(heading, lang, index)]
+
+
+def test_every_block_is_run_or_excused():
+    known = set(RUN_ELSEWHERE) | set(RUN_HERE) | set(NOT_RUN)
+    found = [k for k, _ in blocks()]
+    assert not [k for k in found if k not in known], "README blocks with no runner and no reason"
+    assert not [k for k in known if k not in found], "runners or reasons for blocks the README no longer has"
+    for name in set(RUN_HERE.values()):
+        assert callable(globals().get(name)), name
+
+
+@pytest.fixture
+def airsas_folders(tmp_path, monkeypatch):
+    """The folder names of the README's AirSAS example, in the published layout."""
+    from airsas_kit import write_scan
+
+    write_scan(tmp_path / "small_features_cutout_20k")
+    write_scan(tmp_path / "bg_20k", target=None)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("CLSAS_BACKEND", "numpy")
+    return tmp_path
+
+
+def test_your_own_data_python(airsas_folders):
+    from airsas_kit import TARGET
+
+    env: dict = {}
+    exec(compile(block("Your own data", "python"), "README.md (Your own data)", "exec"), env)  # noqa: S102
+    image = env["image"]
+    found = np.array([p.position_m for p in image.peaks(3, min_separation_m=0.015)])
+    for t in TARGET:
+        assert np.min(np.linalg.norm(found - t, axis=1)) < 0.006
+    assert clsas.tcr_db(image, ((-0.07, 0.07), (-0.11, 0.11), None)) > 15
+    assert [p["step"] for p in env["ds"].provenance][-3:] == ["background", "common", "blank_direct"]
+
+
+def test_your_own_data_command_line(airsas_folders, capsys):
+    from clsas.cli import main
+
+    for line in block("Your own data", "bash").splitlines():
+        argv = shlex.split(line.split("#")[0])
+        assert argv[0] == "clsas"
+        assert main(argv[1:]) == 0, line
+    assert (airsas_folders / "clean.h5").exists()
+    assert list(airsas_folders.glob("*.png"))
+    steps = [p["step"] for p in clsas.load(airsas_folders / "clean.h5").provenance]
+    assert steps[-3:] == ["background", "common", "blank_direct"]
+
+
+def test_your_own_data_preprocess_table(tmp_path):
+    from clsas import preprocess as pp
+    from clsas.synthetic import turntable_scan
+
+    scan = turntable_scan(12, snr_db=40)
+    scan.background.save(tmp_path / "empty.h5")
+    (tmp_path / "steps.toml").write_text(block("Your own data", "toml"))
+    import tomllib
+
+    from clsas.config import preprocess_table
+
+    cfg = tomllib.loads((tmp_path / "steps.toml").read_text())
+    table = preprocess_table(cfg, str(tmp_path / "steps.toml"))
+    table["background"] = str(tmp_path / table["background"])
+    out = pp.from_table(scan.dataset, table)
+    assert [p["step"] for p in out.provenance][1:] == ["group_delay", "dc", "bandpass", "background", "common",
+                                                      "blank_direct"]
+
+
+def test_command_line_scene_file(tmp_path):
+    from clsas.scenes import load_config
+
+    (tmp_path / "scene.toml").write_text(block("Command line", "toml"))
+    cfg = load_config(tmp_path / "scene.toml")
+    assert cfg is not None
+
+
+def test_fragments_on_a_small_scan():
+    """The formation fragments, with ``dataset`` and ``grid`` a small planar scan."""
+    fs = 96e3
+    chirp = clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.1)
+    dataset = clsas.simulate(clsas.Scene(np.array([[0.0, 0.0, 0.6]])), clsas.raster_aperture(36, 36, 0.1, 0.1),
+                             chirp, fs, n_samples=900, snr_db=30)
+    grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.05, 0.05), (0.55, 0.65), 0.01)
+    for k in (0, 1):
+        env = {"clsas": clsas, "dataset": dataset, "grid": grid}
+        exec(compile(block("Fast image formation", "python", k), f"README.md (formation {k})", "exec"), env)  # noqa: S102
+        assert env["image"].values.shape == grid.shape
