@@ -27,6 +27,7 @@ from . import (
     devices,
     export,
     importing,
+    inspecting,
     limits,
     preprocess,
     reconstruct,
@@ -41,8 +42,8 @@ log = logging.getLogger("clsas.cli")
 PLUGIN_GROUP = "clsas.plugins"
 
 # the subcommands in the order ``clsas --help`` lists them
-COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare, devices, acquire, importing, export,
-            bench)
+COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare, devices, acquire, importing,
+            inspecting, export, bench)
 
 
 def load_plugins() -> list[str]:
