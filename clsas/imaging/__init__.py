@@ -17,6 +17,7 @@ from ..geometry import VoxelGrid
 from . import numpy as twin
 from .guard import check_grid
 from .image import Image, Peak
+from .opencl import BackprojectPlan
 from .plan import ReconstructionPlan, path_bounds, plan_reconstruction
 
 __all__ = ["Backprojector", "Image", "Peak", "ReconstructionPlan", "backproject", "reconstruct", "path_bounds"]
@@ -36,12 +37,14 @@ class Backprojector:
     Parameters
     ----------
     grid : VoxelGrid
-    backend : {"auto", "opencl", "numpy"}, optional
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"``. With ``"auto"``, a device that cannot
         build the kernel (:class:`clsas.cl.BuildError`) falls back to the NumPy twin with one
-        warning naming the device and the reason; ``"opencl"`` raises instead.
+        warning naming the device and the reason; ``"opencl"`` raises instead. A Selection
+        resolved by the caller (:func:`clsas.cl.select`) keeps its request.
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
-        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one).
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one); None with a
+        Selection.
     chunk : int, optional
         Measurements per kernel launch.
     force : bool
@@ -49,8 +52,8 @@ class Backprojector:
         gives the numbers and a spacing that fits; see :func:`clsas.imaging.guard.check_grid`).
     """
 
-    def __init__(self, grid: VoxelGrid, *, backend: str | None = None, device: Any = None, chunk: int | None = None,
-                 force: bool = False):
+    def __init__(self, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
+                 chunk: int | None = None, force: bool = False):
         if not isinstance(grid, VoxelGrid):
             raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
         if chunk is not None:
@@ -58,8 +61,7 @@ class Backprojector:
         self.grid = grid
         self.chunk = chunk
         self.selection = _cl.select(backend, device)
-        sel = self.selection
-        check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=force)
+        check_grid(grid, self.selection.kind, self.selection.cl_device, force=force)
         self._plan = None
 
     @property
@@ -68,15 +70,10 @@ class Backprojector:
         return self.selection.kind
 
     def _opencl_plan(self, n_meas: int, n_lags: int):
-        from .opencl import BackprojectPlan
-
         p = self._plan
         if p is None or p.n_meas != n_meas or p.n_lags < n_lags:
-            self._plan = None
-            try:
-                self._plan = BackprojectPlan(self.grid, n_meas, n_lags, queue=self.selection.queue, chunk=self.chunk)
-            except _cl.BuildError as exc:
-                self.selection = self.selection.fall_back(exc)
+            self._plan, self.selection = self.selection.plan(
+                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk))
         return self._plan
 
     def __call__(
@@ -120,7 +117,7 @@ def backproject(
     tx_positions: np.ndarray | None = None,
     rx_positions: np.ndarray | None = None,
     c_mps: float | np.ndarray | None = None,
-    backend: str | None = None,
+    backend: str | _cl.Selection | None = None,
     device: Any = None,
     chunk: int | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -136,7 +133,7 @@ def backproject(
 
     Parameters
     ----------
-    backend : {"auto", "opencl", "numpy"}, optional
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"`` (see :class:`Backprojector`).
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
 
