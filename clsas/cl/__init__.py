@@ -7,6 +7,7 @@ Selection is passed down (every function that takes ``backend`` takes one), and
 :meth:`Selection.plan` builds an OpenCL plan or, when a kernel cannot be built
 (:class:`BuildError`) and ``"auto"`` was asked for, says "run the NumPy twin" with one warning.
 
+- :mod:`.errors`: :class:`OpenCLUnavailable` and :class:`BuildError` (which carries the build log).
 - :mod:`.device`: which device, one queue per device, the Selection a call runs on.
 - :mod:`.program`: kernel sources, memoised builds that must hold the kernel and carry no
   vector-ABI warning.

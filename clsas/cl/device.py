@@ -14,13 +14,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
+from .errors import BuildError, OpenCLUnavailable
+
 log = logging.getLogger("clsas.cl")
 
 BACKENDS = ("auto", "opencl", "numpy")
-
-
-class OpenCLUnavailable(RuntimeError):
-    """No usable OpenCL platform or device."""
 
 
 def _cl():
@@ -217,8 +215,6 @@ class Selection:
         """
         if not self.opencl:
             return None, self
-        from .program import BuildError
-
         try:
             return factory(self.queue), self
         except BuildError as exc:
