@@ -100,7 +100,7 @@ def reconstruct(
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
     selection = cl.select(backend, device)
     if not force:  # the image must fit before any work starts (with force, the formation warns)
-        check_grid(grid, selection.kind, selection.queue.device if selection.opencl else None)
+        check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
         image = _form(dataset, grid, formation, fopts, selection, progress, force)
@@ -155,8 +155,7 @@ def _compressed(dataset: Dataset, plan: ReconstructionPlan, compression: str, se
     """Stage: pulse compression over the plan's gate -> (profiles, no echoes, plan with the lags)."""
     if compression == "fmcw":
         plan = replace(plan, notes=[*plan.notes, "fmcw: delays are gated; the mixed window is the whole chirp overlap"])
-    prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=_request(selection),
-                    device=selection.queue)
+    prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=selection)
     return prof, None, replace(plan, lags=prof.n_lags, lag_step=int(round(prof.dtau_s * dataset.fs_hz)))
 
 
@@ -174,11 +173,4 @@ def _form(prof: Profiles, grid: VoxelGrid, formation: str, options: dict, select
     """Stage: the registered formation -> Image (its name recorded in the provenance)."""
     from .formation import form
 
-    return form(prof, grid, formation, backend=_request(selection), device=selection.queue, progress=progress,
-                force=force, **options)
-
-
-def _request(selection: cl.Selection) -> str:
-    """The backend request handed down: the caller's (so "auto" can still fall back where a kernel will
-    not build), or "numpy" where the selection found no device."""
-    return selection.requested if selection.opencl else "numpy"
+    return form(prof, grid, formation, backend=selection, progress=progress, force=force, **options)

@@ -30,6 +30,10 @@ def cmd_devices(args) -> int:
 
 def _print_variants(cl, rows) -> None:
     """The kernel width each kernel gets on each device, and why wider ones were refused."""
+    import importlib
+
+    for module in ("clsas.focus.engine", "clsas.formation.ffbp", "clsas.formation.omega_k"):
+        importlib.import_module(module)  # their plans register their kernels in cl.KERNELS
     if not rows:
         print("--variants: no such device (see the P:D numbers above)")
     for r in rows:

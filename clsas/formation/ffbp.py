@@ -58,6 +58,7 @@ from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import ffbp_numpy as twin
+from .ffbp_opencl import FfbpPipeline
 from .ffbp_tree import Tree, build_tree, default_depth, estimate_band, max_depth
 from .guard import available_memory_bytes, check_grid
 from .registry import FORMATIONS
@@ -163,7 +164,7 @@ def form(
     profiles: Profiles,
     grid: VoxelGrid,
     *,
-    backend: str | None = None,
+    backend: str | _cl.Selection | None = None,
     device: Any = None,
     progress: Callable[[int, int], None] | None = None,
     force: bool = False,
@@ -186,9 +187,12 @@ def form(
     grid : VoxelGrid
         Must lie in front of the aperture: within 72 degrees of each sub-aperture's line of
         sight to the grid's centre (else a ``ValueError`` names ``formation='bp'``).
-    backend : {"auto", "opencl", "numpy"}, optional
-        As :func:`clsas.backproject`; the NumPy path works alone.
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
+        As :func:`clsas.backproject`; the NumPy path works alone. ``"auto"`` (or a Selection
+        that asked for it) falls back to it with one warning when a kernel will not build,
+        ``"opencl"`` raises :class:`clsas.cl.BuildError`.
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+        None with a Selection.
     progress : callable(done, total), optional
         Called after each level (leaves, each merge, the final interpolation).
     force : bool
@@ -234,11 +238,11 @@ def form(
         image = Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
         return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
     sel = _cl.select(backend, device)
-    check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=force)
+    check_grid(grid, sel.kind, sel.cl_device, force=force)
     t_start = time.perf_counter()
     tree = _tree(data, dtau, fc, tx, rx, c, grid, opts)
     timings = {"ffbp_plan": time.perf_counter() - t_start}
-    _check_memory(tree, grid, sel.kind, sel.queue.device if sel.opencl else None, force)
+    _check_memory(tree, grid, sel.kind, sel.cl_device, force)
     for line in tree.describe().splitlines():
         log.info("ffbp: %s", line)
     o = tree.order
@@ -246,18 +250,11 @@ def form(
     taps = opts["order"] + 1
     tables = (twin.weight_table(taps, opts["range_oversample"], opts["interpolator"]),
               twin.weight_table(taps, opts["oversample"], opts["interpolator"]))
-    values = None
-    if sel.opencl:
-        from .ffbp_opencl import FfbpPipeline
-
-        try:
-            pipe = FfbpPipeline(tree, grid, data.shape[1], tables, queue=sel.queue)
-        except _cl.BuildError as exc:
-            sel = sel.fall_back(exc)
-        else:
-            values = pipe(*args, progress=progress)
-            timings.update(pipe.timings_s)
-    if values is None:
+    pipe, sel = sel.plan(lambda q: FfbpPipeline(tree, grid, data.shape[1], tables, queue=q))
+    if pipe is not None:
+        values = pipe(*args, progress=progress)
+        timings.update(pipe.timings_s)
+    else:
         values = _run_numpy(tree, grid, args, tables, progress, timings)
     timings["ffbp"] = time.perf_counter() - t_start
     provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}

@@ -69,10 +69,12 @@ from typing import Any
 import numpy as np
 
 from .. import _validate as v
+from .. import cl as _cl
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import stolt
+from .opencl import StoltPlan
 from .planar import NotPlanarUniform, planar_aperture
 from .registry import FORMATIONS
 
@@ -220,23 +222,14 @@ def _max_sine(g, pu, pv, depth_min) -> float:
 
 
 def _stolt_runner(backend, device):
-    """The spreading step: the OpenCL plan when the backend is OpenCL, else the twin."""
-    from .. import cl as _cl
-
-    sel = _cl.select(backend, device)
-    if sel.opencl:
-        from .opencl import StoltPlan
-
-        try:
-            return StoltPlan(queue=sel.queue), sel
-        except _cl.BuildError as exc:
-            sel = sel.fall_back(exc)
-    return None, sel
+    """The spreading step: the OpenCL plan when the backend is OpenCL (``None``: the twin), and
+    the selection it runs on (NumPy after a fallback)."""
+    return _cl.select(backend, device).plan(lambda q: StoltPlan(queue=q))
 
 
 # -- the formation ---------------------------------------------------------------------------
 @FORMATIONS.register("omega-k")
-def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, device: Any = None,
+def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
          progress=None, force: bool = False, **options) -> Image:
     """ω-k image of ``profiles`` on ``grid`` (see the module notes for the method and options).
 
@@ -247,10 +240,12 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
         :meth:`clsas.Profiles.from_range_profiles`) with speaker and microphone positions.
     grid : VoxelGrid
         On one side of the aperture's plane.
-    backend : {"auto", "opencl", "numpy"}, optional
-        Where the Stolt step runs (the FFTs run on the host, scipy.fft).
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
+        Where the Stolt step runs (the FFTs run on the host, scipy.fft); ``"auto"`` (or a
+        Selection that asked for it) falls back to the twin with one warning when the kernel
+        will not build, ``"opencl"`` raises :class:`clsas.cl.BuildError`.
     device : optional
-        OpenCL device or queue.
+        OpenCL device or queue (None with a Selection).
     progress : callable(done, total), optional
         Called after each chunk of spatial-frequency columns.
     force : bool
