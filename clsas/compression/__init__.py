@@ -94,18 +94,7 @@ def compress(
     Profiles
     """
     compression = COMPRESSIONS.choose(method)
-    positions: dict = {}
-    if isinstance(data, Dataset):
-        signals = data.signals
-        waveform = data.waveform if waveform is None else waveform
-        fs_hz = data.fs_hz if fs_hz is None else fs_hz
-        t0_s = data.t0_s if t0_s is None else t0_s
-        chirp = data.chirp if chirp is None else chirp
-        positions = dict(tx_positions=data.tx_positions, rx_positions=data.rx_positions, c_mps=data.c_mps)
-    else:
-        signals = data
-        if waveform is None or fs_hz is None:
-            raise ValueError("waveform and fs_hz are required when data is an array")
+    signals, waveform, fs_hz, t0_s, chirp, positions = _inputs(data, waveform, fs_hz, t0_s, chirp)
     signals = v.array("signals", signals, ndim=2, dtype=None)
     if not np.issubdtype(signals.dtype, np.floating):
         signals = signals.astype(np.float64)
@@ -117,12 +106,7 @@ def compress(
     fc = center_frequency(wave, fs) if fc_hz is None else v.non_negative("fc_hz", fc_hz)
     if fc >= fs / 2:
         raise ValueError(f"fc_hz={fc:g} is at or above the Nyquist frequency {fs / 2:g}")
-    if gate_s is None:
-        gate = (float(t0.min()), float(t0.max() + (n_samples - 1) / fs))
-    else:
-        gate = tuple(v.array("gate_s", gate_s, shape=(2,)))
-        if gate[1] < gate[0]:
-            raise ValueError(f"gate_s must be (min, max) with min <= max, got {gate_s}")
+    gate = _gate(gate_s, t0, n_samples, fs)
     v.choice("algorithm", algorithm, ("auto", "fft", "direct"))
     if lag_step is None:
         lag_step = profile_decimation(wave, fs, fc) if method == "matched" else 1
@@ -133,6 +117,27 @@ def compress(
     t_start = time.perf_counter()
     prof = compression(signals, wave, fs, t0, fc, gate, sel, lag_step=lag_step, algorithm=algorithm, chirp=chirp)
     return replace(prof, timings_s={**prof.timings_s, "compress": time.perf_counter() - t_start}, **positions)
+
+
+def _inputs(data, waveform, fs_hz, t0_s, chirp):
+    """(signals, waveform, fs_hz, t0_s, chirp, positions): a Dataset's own, where not given."""
+    if not isinstance(data, Dataset):
+        if waveform is None or fs_hz is None:
+            raise ValueError("waveform and fs_hz are required when data is an array")
+        return data, waveform, fs_hz, t0_s, chirp, {}
+    positions = dict(tx_positions=data.tx_positions, rx_positions=data.rx_positions, c_mps=data.c_mps)
+    return (data.signals, data.waveform if waveform is None else waveform, data.fs_hz if fs_hz is None else fs_hz,
+            data.t0_s if t0_s is None else t0_s, data.chirp if chirp is None else chirp, positions)
+
+
+def _gate(gate_s, t0: np.ndarray, n_samples: int, fs: float) -> tuple[float, float]:
+    """The delays to cover: ``gate_s`` checked, else the whole recording."""
+    if gate_s is None:
+        return (float(t0.min()), float(t0.max() + (n_samples - 1) / fs))
+    gate = tuple(v.array("gate_s", gate_s, shape=(2,)))
+    if gate[1] < gate[0]:
+        raise ValueError(f"gate_s must be (min, max) with min <= max, got {gate_s}")
+    return gate
 
 
 # linear interpolation of a baseband profile loses at most 0.5 dB at the band edge when the

@@ -106,23 +106,9 @@ def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample
             "order": int(order), "interpolator": interpolator, "band_hz": band_hz, "band_tail": band_tail}
 
 
-def _inputs(profiles: Profiles):
-    n = profiles.n_meas
-    tx = v.array("profiles.tx_positions", profiles.tx_positions, shape=(n, 3))
-    rx = v.array("profiles.rx_positions", profiles.rx_positions, shape=(n, 3))
-    c = v.speeds("profiles.c_mps", profiles.c_mps, n)
-    data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
-    if data.shape[1] < 2:
-        raise ValueError(f"profiles.data must have at least 2 samples per profile, got shape {data.shape}")
-    tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
-    dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
-    fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
-    return data, tau0, dtau, fc, tx, rx, np.broadcast_to(np.asarray(c, float), (n,)).copy()
-
-
 def plan_tree(profiles: Profiles, grid: VoxelGrid, **options) -> Tree:
     """The sub-aperture tree and sub-image grids FFBP would use (``options`` as :func:`form`'s)."""
-    data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), **options)
     return _tree(data, dtau, fc, tx, rx, c, grid, opts)
 
@@ -161,21 +147,10 @@ def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -
 
 @FORMATIONS.register("ffbp")
 def form(
-    profiles: Profiles,
-    grid: VoxelGrid,
-    *,
-    backend: str | _cl.Selection | None = None,
-    device: Any = None,
-    progress: Callable[[int, int], None] | None = None,
-    force: bool = False,
-    depth: int | None = None,
-    factor: int = 4,
-    oversample: float = 2.0,
-    range_oversample: float = 2.0,
-    order: int = 3,
-    interpolator: str = "lsq",
-    band_hz: tuple[float, float] | None = None,
-    band_tail: float = 1e-4,
+    profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
+    progress: Callable[[int, int], None] | None = None, force: bool = False, depth: int | None = None,
+    factor: int = 4, oversample: float = 2.0, range_oversample: float = 2.0, order: int = 3,
+    interpolator: str = "lsq", band_hz: tuple[float, float] | None = None, band_tail: float = 1e-4,
 ) -> Image:
     """Image ``profiles`` on ``grid`` by fast factorized backprojection.
 
@@ -230,7 +205,7 @@ def form(
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
     if opts["depth"] == 0:
         from .bp import Backprojector
@@ -245,22 +220,28 @@ def form(
     _check_memory(tree, grid, sel.kind, sel.cl_device, force)
     for line in tree.describe().splitlines():
         log.info("ffbp: %s", line)
+    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings)
+    timings["ffbp"] = time.perf_counter() - t_start
+    provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
+                  | {"band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
+    return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
+                 provenance=provenance)
+
+
+def _run(tree: Tree, grid: VoxelGrid, arrays: tuple, opts: dict, sel: _cl.Selection, progress, timings: dict):
+    """The tree's levels on the device (or the twin where the kernels will not build): (values, selection)."""
+    data, tau0, dtau, fc, tx, rx, c = arrays
     o = tree.order
     args = (data[o], tau0[o], dtau, fc, tx[o], rx[o], c[o])
     taps = opts["order"] + 1
     tables = (twin.weight_table(taps, opts["range_oversample"], opts["interpolator"]),
               twin.weight_table(taps, opts["oversample"], opts["interpolator"]))
     pipe, sel = sel.plan(lambda q: FfbpPipeline(tree, grid, data.shape[1], tables, queue=q))
-    if pipe is not None:
-        values = pipe(*args, progress=progress)
-        timings.update(pipe.timings_s)
-    else:
-        values = _run_numpy(tree, grid, args, tables, progress, timings)
-    timings["ffbp"] = time.perf_counter() - t_start
-    provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
-                  | {"band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
-    return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
-                 provenance=provenance)
+    if pipe is None:
+        return _run_numpy(tree, grid, args, tables, progress, timings), sel
+    values = pipe(*args, progress=progress)
+    timings.update(pipe.timings_s)
+    return values, sel
 
 
 def _run_numpy(tree: Tree, grid: VoxelGrid, args, tables, progress, timings: dict) -> np.ndarray:

@@ -271,17 +271,7 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     o = _options(options)
     workers = o["workers"] or os.cpu_count() or 1
-    n = profiles.n_meas
-    if profiles.tx_positions is None or profiles.rx_positions is None or profiles.c_mps is None:
-        raise ValueError("profiles: positions and speed of sound are needed (compress a Dataset, or give them to "
-                         "Profiles.from_range_profiles)")
-    tx = v.array("tx_positions", profiles.tx_positions, shape=(n, 3))
-    rx = v.array("rx_positions", profiles.rx_positions, shape=(n, 3))
-    c = v.speeds("c_mps", profiles.c_mps, n)
-    data = v.array("profiles.data", profiles.data, ndim=2, dtype=np.complex128, allow_complex=True)
-    tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
-    dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
-    fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays(np.complex128)
     t_start = time.perf_counter()
     # the geometry first (a refusal costs nothing); the tolerance is a hundredth of the
     # wavelength at 1.5 times the carrier (the band's top, about)
@@ -312,19 +302,24 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     inv = np.argsort(ap.perm)
     values = np.transpose(values, inv)
     if o["upsample"] == 1:
-        from .planar import well_sampled_cone
-
-        frac = float(well_sampled_cone(tx, rx, grid, f_top, c_ref, tol_m=tol).mean())
-        info["cone_fraction"] = frac
-        if frac < 0.5:
-            log.warning("omega-k: the aperture's lattice samples only %.0f %% of the grid unaliased at %.0f kHz "
-                        "(its well-sampled cone); elsewhere backprojection also forms aliased angles (grating "
-                        "lobes), which omega-k leaves out: formation_options={'upsample': 'auto'} forms them, "
-                        "or use formation='bp'", 100 * frac, f_top / 1e3)
+        info["cone_fraction"] = _warn_outside_cone(tx, rx, grid, f_top, c_ref, tol)
     total = time.perf_counter() - t_start
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
     info["backend"] = sel.kind
     return Image(values, grid, "bp", sel.kind, sel.device, timings, provenance={"omega_k": info})
+
+
+def _warn_outside_cone(tx, rx, grid: VoxelGrid, f_top: float, c_ref: float, tol: float) -> float:
+    """The share of the grid in the aperture's well-sampled cone, with a warning where it is under half."""
+    from .planar import well_sampled_cone
+
+    frac = float(well_sampled_cone(tx, rx, grid, f_top, c_ref, tol_m=tol).mean())
+    if frac < 0.5:
+        log.warning("omega-k: the aperture's lattice samples only %.0f %% of the grid unaliased at %.0f kHz "
+                    "(its well-sampled cone); elsewhere backprojection also forms aliased angles (grating "
+                    "lobes), which omega-k leaves out: formation_options={'upsample': 'auto'} forms them, "
+                    "or use formation='bp'", 100 * frac, f_top / 1e3)
+    return frac
 
 
 def _n_terms(alpha_max: float, u_max: float, tol: float, bistatic: bool) -> int:
