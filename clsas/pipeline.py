@@ -54,9 +54,8 @@ def reconstruct(
 ) -> Image:
     """Image a dataset on a grid.
 
-    The plan computes only what the grid needs: range profiles over the exact delay gate of
-    the grid (min and max bistatic path over all voxels and stops), and only the kernels
-    the pipeline uses. ``plan.describe()`` on the result says what was skipped.
+    Only what the grid needs is computed: range profiles over the exact delay gate of the grid
+    (min and max bistatic path over all voxels and stops); ``image.plan.describe()`` says what was skipped.
 
     Parameters
     ----------
@@ -84,10 +83,9 @@ def reconstruct(
         dictionary reaches this far past each end of the gate, so echoes straddling it are
         fitted there and dropped), ``method_options`` (passed to the method), ``absorption``
         (model ISO 9613-1 air absorption in the atom at each gate's mean path), ``pulse`` (the
-        atom's waveform: the transmit waveform as heard through the transducers' response;
-        default the dataset's waveform). A recording whose
-        sparse recovery fails falls back to its matched-filter profile and says so in
-        ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
+        atom's waveform as heard through the transducers; default the dataset's waveform). A
+        recording whose sparse recovery fails falls back to its matched-filter profile and says so
+        in ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
     force : bool
         Image a grid even if it does not seem to fit in memory.
     formation : str
