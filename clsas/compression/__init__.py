@@ -57,12 +57,11 @@ def compress(
     waveform : (n_wave,) array, optional
         Transmitted signal (needed when ``data`` is an array).
     fs_hz : float, optional
-        Sample rate (needed when ``data`` is an array).
+        Sample rate, Hz (needed when ``data`` is an array).
     method : str
         A registered compression (:data:`COMPRESSIONS`). ``"matched"``: correlation with the
-        analytic transmit waveform. ``"fmcw"``: mix with
-        the transmitted chirp and Fourier transform (paper, section 4); needs the chirp
-        parameters and a common ``t0``, and resolves echoes that arrive while the chirp plays.
+        analytic transmit waveform. ``"fmcw"``: mix with the transmitted chirp and Fourier transform
+        (paper, section 4; needs the chirp and a common ``t0``; echoes that arrive while it plays).
     gate_s : (min, max), optional
         Delays after the transmit start that the profiles must cover, s; only those lags are
         computed. Default: the whole recording.
@@ -83,11 +82,10 @@ def compress(
         compute the same profile (the twin's), which is a direct correlation.
     backend : {"auto", "opencl", "numpy"}, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"``: OpenCL where a device exists and its kernel
-        variant builds, else the NumPy twin with one warning. ``"opencl"`` raises instead. Or
-        a :class:`clsas.cl.Selection` already resolved by the caller (its request is kept).
+        variant builds, else the NumPy twin with one warning; ``"opencl"`` raises instead. Or a
+        :class:`clsas.cl.Selection` resolved by the caller (its request is kept; ``device`` None).
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
-        The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one);
-        None with a Selection.
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one).
 
     Returns
     -------
@@ -103,9 +101,7 @@ def compress(
     n_meas, n_samples = signals.shape
     t0 = np.broadcast_to(np.asarray(0.0 if t0_s is None else t0_s, float), (n_meas,)).copy()
     v.array("t0_s", t0)
-    fc = center_frequency(wave, fs) if fc_hz is None else v.non_negative("fc_hz", fc_hz)
-    if fc >= fs / 2:
-        raise ValueError(f"fc_hz={fc:g} is at or above the Nyquist frequency {fs / 2:g}")
+    fc = _carrier(wave, fs, fc_hz)
     gate = _gate(gate_s, t0, n_samples, fs)
     v.choice("algorithm", algorithm, ("auto", "fft", "direct"))
     if lag_step is None:
@@ -128,6 +124,14 @@ def _inputs(data, waveform, fs_hz, t0_s, chirp):
     positions = dict(tx_positions=data.tx_positions, rx_positions=data.rx_positions, c_mps=data.c_mps)
     return (data.signals, data.waveform if waveform is None else waveform, data.fs_hz if fs_hz is None else fs_hz,
             data.t0_s if t0_s is None else t0_s, data.chirp if chirp is None else chirp, positions)
+
+
+def _carrier(wave: np.ndarray, fs: float, fc_hz: float | None) -> float:
+    """``fc_hz`` checked (below Nyquist), else the waveform's power-weighted mean frequency."""
+    fc = center_frequency(wave, fs) if fc_hz is None else v.non_negative("fc_hz", fc_hz)
+    if fc >= fs / 2:
+        raise ValueError(f"fc_hz={fc:g} is at or above the Nyquist frequency {fs / 2:g}")
+    return fc
 
 
 def _gate(gate_s, t0: np.ndarray, n_samples: int, fs: float) -> tuple[float, float]:
