@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .dataset import Dataset
 from .geometry import Aperture, Scene
 from .physics import air_absorption_db_per_m, speed_of_sound

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .dataset import Dataset
 from .geometry import Aperture, Scene
 from .signals import lfm_chirp

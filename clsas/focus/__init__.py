@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from ..physics import speed_of_sound

@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from ..compression import Profiles, center_frequency
 from ..dataset import Dataset
 from ..signals import analytic

@@ -21,8 +21,8 @@ import numpy as np
 import scipy.fft
 import scipy.signal
 
-from .. import _validate as v
-from .._validate import install_hint
+from .. import validate as v
+from ..validate import install_hint
 from ..geometry import Aperture, Scene
 from ..simulation import simulate
 

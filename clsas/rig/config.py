@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .. import config as c
 from ..geometry import Scene, VoxelGrid, raster_aperture
 

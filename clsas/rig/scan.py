@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._validate import install_hint
+from ..validate import install_hint
 from ..physics import speed_of_sound
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig

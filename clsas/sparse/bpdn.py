@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .atoms import Dictionary
 from .gram import fista_gram
 

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .atoms import Dictionary
 from .bpdn import MODES, ShiftOperator, _check
 from .noise import colour_factor, echo_threshold
-from .refined import _bounds, _mainlobe_s, _real_dof, _rss_floor, _VarPro
+from .refined import rss_floor
+from .varpro import VarPro, delay_bounds, mainlobe_s, real_dof
 
 __all__ = ["detect_echoes"]
 
@@ -82,15 +83,15 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
     if not isinstance(real_signal, (bool, np.bool_)):
         raise TypeError(f"real_signal must be True or False, got {real_signal!r}")
     real = bool(real_signal) and amplitudes == "complex"
-    lo, hi = _bounds(dictionary, bounds_s)
+    lo, hi = delay_bounds(dictionary, bounds_s)
     atom = dictionary.atom
     t = echo_threshold(atom, hi - lo, amplitudes, false_alarm=false_alarm)
-    n_real = _real_dof(b, amplitudes, real)
-    vp = _VarPro(atom, b, amplitudes, real)  # the fits, CBP-Polar's (the real part where ``real``)
+    n_real = real_dof(b, amplitudes, real)
+    vp = VarPro(atom, b, amplitudes, real)  # the fits, CBP-Polar's (the real part where ``real``)
     # the polish's joint fit of atoms and derivative atoms: unconstrained least squares
-    joint = _VarPro(atom, b, "complex" if amplitudes == "complex" else "real", real)
-    floor = _rss_floor(dictionary, lam, amplitudes) if lam > 0 else 1e-300
-    half = _mainlobe_s(atom)
+    joint = VarPro(atom, b, "complex" if amplitudes == "complex" else "real", real)
+    floor = rss_floor(dictionary, lam, amplitudes) if lam > 0 else 1e-300
+    half = mainlobe_s(atom)
     step_max = 0.25 * half
 
     def polish(ts):
