@@ -71,7 +71,7 @@ class VarPro:
         self.y = real_part_target(b) if self.real else b
         self.evals = 0
 
-    def _fit(self, A):
+    def fit_columns(self, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(amplitudes, residual) for the atom columns A."""
         if not self.real:
             a = _amplitudes(A, self.b, self.mode)
@@ -89,7 +89,7 @@ class VarPro:
             dA = -df if want_grad else None  # d/dtau f(t - tau) = -f'(t - tau)
         else:
             A, dA = self.atom.matrix(taus), (self.atom.dmatrix(taus) if want_grad else None)
-        a, r = self._fit(A)
+        a, r = self.fit_columns(A)
         if want_grad:
             if self.real:  # r = sqrt(2) Re(b - A a): d RSS / d tau_k = -2 sqrt(2) Re(a_k dA_k^T r)
                 grad[:] = -2 * np.sqrt(2.0) * np.real(a * (dA.T @ r))
@@ -101,12 +101,12 @@ class VarPro:
         """The RSS with the amplitudes refit and the delays kept (no evaluation counted)."""
         if not len(taus):
             return float(np.vdot(self.y, self.y).real)
-        return float(np.vdot(*(2 * [self._fit(self.atom.matrix(taus, fast=True))[1]])).real)
+        return float(np.vdot(*(2 * [self.fit_columns(self.atom.matrix(taus, fast=True))[1]])).real)
 
     def _result(self, taus, status):
         if not len(taus):
             return taus, np.zeros(0), float(np.vdot(self.y, self.y).real), status
-        a, r = self._fit(self.atom.matrix(taus, fast=True))
+        a, r = self.fit_columns(self.atom.matrix(taus, fast=True))
         return taus, a, float(np.vdot(r, r).real), status
 
     def fit(self, taus0, lo: float, hi: float, min_gap: float = 0.0, max_eval: int = 300):
