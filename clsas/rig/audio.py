@@ -22,9 +22,9 @@ import scipy.fft
 import scipy.signal
 
 from .. import validate as v
-from ..validate import install_hint
 from ..geometry import Aperture, Scene
 from ..simulation import simulate
+from ..validate import install_hint
 
 __all__ = ["AudioError", "Take", "Recorder", "SoundDeviceIO", "SimulatedIO", "find_onset", "import_sounddevice",
            "list_audio_devices"]

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..validate import install_hint
 from ..physics import speed_of_sound
+from ..validate import install_hint
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig
 from .emulator import Faults, GrblEmulator
