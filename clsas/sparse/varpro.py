@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import validate as v
+from .atoms import Atom, Dictionary
 from .bpdn import real_part_columns, real_part_target
 
 __all__ = ["VarPro", "best_pair", "delay_bounds", "mainlobe_s", "real_dof"]
@@ -64,9 +65,24 @@ class VarPro:
     ``real_signal``: ``b`` is the analytic signal of a real recording, and the RSS is that of
     its real part, ``2 |Re(b) - Re(A a)|^2`` (complex amplitudes, real least squares on
     ``[Re a, Im a]``): the analytic RSS in the window's interior, and exact for echoes that the
-    window cuts (see :class:`clsas.sparse.bpdn.RealPartOperator`)."""
+    window cuts (see :class:`clsas.sparse.bpdn.RealPartOperator`).
 
-    def __init__(self, atom, b, mode, real_signal: bool = False):
+    Parameters
+    ----------
+    atom : Atom
+        The echo's shape (its ``matrix`` gives the columns ``A(taus)``, delays in s).
+    b : (n_samples,) array
+        The signal (analytic for complex amplitudes), in any unit; the RSS is in its unit squared.
+    mode : {"positive", "real", "complex"}
+        The amplitudes: NNLS for ``"positive"``, else least squares.
+    real_signal : bool
+        Fit the real part of ``b`` (complex amplitudes only).
+
+    Calling it with delays (and nlopt's gradient array) counts an evaluation (``evals``);
+    :meth:`fit` minimises the RSS over sorted delays in a gate, :meth:`rss` evaluates it.
+    """
+
+    def __init__(self, atom: Atom, b: np.ndarray, mode: str, real_signal: bool = False):
         self.atom, self.b, self.mode, self.real = atom, b, mode, bool(real_signal)
         self.y = real_part_target(b) if self.real else b
         self.evals = 0
@@ -81,7 +97,8 @@ class VarPro:
         k = A.shape[1]
         return z[:k] + 1j * z[k:], self.y - M @ z
 
-    def __call__(self, taus, grad=None):
+    def __call__(self, taus: np.ndarray, grad: np.ndarray | None = None) -> float:
+        """The RSS at ``taus`` (s), the amplitudes refit; ``grad`` (k,) is filled with d RSS / d tau where given."""
         self.evals += 1
         want_grad = grad is not None and grad.size
         if self.atom.sampled is not None:
@@ -97,7 +114,7 @@ class VarPro:
                 grad[:] = -2 * np.real(np.conj(a) * (dA.conj().T @ r))
         return float(np.vdot(r, r).real)
 
-    def rss(self, taus):
+    def rss(self, taus: np.ndarray) -> float:
         """The RSS with the amplitudes refit and the delays kept (no evaluation counted)."""
         if not len(taus):
             return float(np.vdot(self.y, self.y).real)
@@ -183,8 +200,8 @@ def _nlopt_name(exc: BaseException) -> str:
     return name
 
 
-def mainlobe_s(atom) -> float:
-    """Half-power half-width of the atom's autocorrelation |<f(t), f(t - s)>|, s (cached)."""
+def mainlobe_s(atom: Atom) -> float:
+    """Half-power half-width of the atom's autocorrelation |<f(t), f(t - s)>|, s (cached on the atom)."""
     if getattr(atom, "_mainlobe", None) is None:
         step = 1.0 / (8 * atom.fs)
         f0 = atom.matrix([0.0])[:, 0]
@@ -201,9 +218,12 @@ def mainlobe_s(atom) -> float:
     return atom._mainlobe
 
 
-def best_pair(atom, r, centre, half, mode, n_grid=24):
-    """The two delays within centre +- half that best explain r by least squares: an exhaustive
-    search on a grid of step half / n_grid, in closed form from the grid's Gram matrix."""
+def best_pair(atom: Atom, r: np.ndarray, centre: float, half: float, mode: str,
+              n_grid: int = 24) -> tuple[float, float]:
+    """The two delays (s) within ``centre +- half`` (s) that best explain the residual ``r``
+    (n_samples,) by least squares (real coefficients unless ``mode`` is ``"complex"``): an
+    exhaustive search on a grid of step ``half / n_grid``, in closed form from the grid's Gram
+    matrix."""
     grid = centre + half * np.arange(-n_grid, n_grid + 1) / n_grid
     F = atom.matrix(grid, fast=True)
     G = F.conj().T @ F
@@ -221,7 +241,9 @@ def best_pair(atom, r, centre, half, mode, n_grid=24):
     return float(grid[i]), float(grid[j])
 
 
-def delay_bounds(dictionary, bounds_s):
+def delay_bounds(dictionary: Dictionary, bounds_s: tuple[float, float] | None) -> tuple[float, float]:
+    """The gate the delays are kept in, s: ``bounds_s`` (checked: finite, min <= max), else the
+    dictionary's first and last delay."""
     if bounds_s is None:
         return float(dictionary.taus[0]), float(dictionary.taus[-1])
     lo, hi = (v.finite("bounds_s", x) for x in bounds_s)
