@@ -15,8 +15,8 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-from . import _validate as v
 from . import cl
+from . import validate as v
 from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
 from .formation import FORMATIONS

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .signals import analytic
 
 __all__ = ["Profiles", "center_frequency"]

@@ -66,7 +66,7 @@ def _print_rig_devices() -> None:
     try:
         from serial.tools import list_ports
     except ImportError:
-        from clsas._validate import install_hint
+        from clsas.validate import install_hint
 
         print(f"serial ports: unavailable ({install_hint('rig')} for pyserial)")
         return

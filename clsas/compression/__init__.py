@@ -14,8 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
 from .. import cl as _cl
+from .. import validate as v
 from ..dataset import Dataset
 from ..profiles import Profiles, center_frequency
 from ..registry import Registry

@@ -41,7 +41,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from ..physics import speed_of_sound
@@ -146,27 +146,13 @@ class AutofocusReport:
         return out
 
 
-def autofocus(
-    dataset: Dataset,
-    grid: VoxelGrid,
-    *,
-    methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
-    metric: str = "sharpness",
-    n_basis: int | None = None,
-    motion_bandwidth_hz: float = 5.0,
-    temperature_range_c: float = 15.0,
-    max_delay_s: float = 5e-4,
-    per_stop_delay: bool = True,
-    max_iter: int = 40,
-    phase_sweeps: int = 4,
-    max_stop_bytes: int = 1 << 30,
-    pga_min_coherence: float | None = None,
-    pga_max_points: int = 32,
-    backend: str | None = None,
-    device: Any = None,
-    progress: Callable[[str, int, float], None] | None = None,
-    force: bool = False,
-) -> tuple[Dataset, AutofocusReport]:
+def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
+              metric: str = "sharpness", n_basis: int | None = None, motion_bandwidth_hz: float = 5.0,
+              temperature_range_c: float = 15.0, max_delay_s: float = 5e-4, per_stop_delay: bool = True,
+              max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
+              pga_min_coherence: float | None = None, pga_max_points: int = 32, backend: str | None = None,
+              device: Any = None, progress: Callable[[str, int, float], None] | None = None,
+              force: bool = False) -> tuple[Dataset, AutofocusReport]:
     """Estimate motion, sound speed and delay from the scan, and correct the dataset.
 
     Parameters
@@ -216,6 +202,19 @@ def autofocus(
         along the line of sight; a provenance record ``autofocus``), or the input itself when
         the image did not get sharper.
     """
+    options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
+                       max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
+                       pga_max_points, progress)
+    from .run import run
+
+    return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
+               started=time.perf_counter(), **options)
+
+
+def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c, max_delay_s,
+             per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence, pga_max_points,
+             progress) -> dict:
+    """:func:`autofocus`'s arguments checked, as the keyword arguments of :func:`clsas.focus.run.run`."""
     if not isinstance(dataset, Dataset):
         raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
     if not isinstance(grid, VoxelGrid):
@@ -245,13 +244,10 @@ def autofocus(
         raise TypeError("progress must be callable(step, n_images, metric)")
     if dataset.n_meas < 4:
         raise ValueError(f"dataset: autofocus needs at least 4 measurements, got {dataset.n_meas}")
-    from .run import run
-
-    return run(dataset, grid, methods=tuple(methods), metric=metric, n_basis=n_basis, bandwidth_hz=bw,
-               temperature_range_c=t_range, max_delay_s=max_delay, per_stop_delay=bool(per_stop_delay),
-               max_iter=max_iter, backend=backend, device=device, progress=progress, force=force,
-               started=time.perf_counter(), phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes,
-               pga_options=pga_options)
+    return {"methods": tuple(methods), "metric": metric, "n_basis": n_basis, "bandwidth_hz": bw,
+            "temperature_range_c": t_range, "max_delay_s": max_delay, "per_stop_delay": bool(per_stop_delay),
+            "max_iter": max_iter, "phase_sweeps": phase_sweeps, "max_stop_bytes": max_stop_bytes,
+            "pga_options": pga_options}
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:

@@ -68,8 +68,8 @@ from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
 from .. import cl as _cl
+from .. import validate as v
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
