@@ -7,19 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .stats import jsonable
+
 __all__ = ["write_report", "markdown"]
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
 
 
 def write_report(res: dict, out_dir: Path, stem: str, plots: bool = True) -> dict:
@@ -28,7 +18,7 @@ def write_report(res: dict, out_dir: Path, stem: str, plots: bool = True) -> dic
     if plots:
         paths["png"] = out_dir / f"{stem}.png"
     paths_s = {k: str(v) for k, v in paths.items()}
-    paths["json"].write_text(json.dumps(_jsonable({**res, "paths": paths_s}), indent=1))
+    paths["json"].write_text(json.dumps(jsonable({**res, "paths": paths_s}), indent=1))
     paths["markdown"].write_text(markdown(res, paths.get("png")))
     if plots:
         _plot(res, paths["png"])
