@@ -8,13 +8,13 @@ import time
 import numpy as np
 
 from ..physics import speed_of_sound
-from . import AutofocusReport
 from .direct import direct_arrivals
 from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, los_directions, motion_basis, optimise_los, optimise_xyz, stops_of
 from .pga import pga_refine
 from .phases import PHASE_MIN_GAIN, phase_to_path, stop_phase_search
+from .report import AutofocusReport
 
 log = logging.getLogger("clsas.autofocus")
 
