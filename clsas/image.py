@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .dataset import _json_default
+from .dataset import json_default
 from .geometry import VoxelGrid
 
 if TYPE_CHECKING:
@@ -156,13 +156,13 @@ class Image:
                 formation=str(prov.get("formation", "")), backend=self.backend, device=self.device,
                 clsas_version=str(prov["clsas_version"]),
                 spacing_m=np.array(self.grid.spacing()),
-                provenance_json=json.dumps(prov, default=_json_default),
+                provenance_json=json.dumps(prov, default=json_default),
             )
             for key in ("source_sha256", "source_path"):
                 if key in prov:
                     f.attrs[key] = str(prov[key])
             if "dataset_provenance" in prov:
-                f.attrs["dataset_provenance_json"] = json.dumps(prov["dataset_provenance"], default=_json_default)
+                f.attrs["dataset_provenance_json"] = json.dumps(prov["dataset_provenance"], default=json_default)
             for k, val in self.timings_s.items():
                 f.attrs[f"time_{k}_s"] = val
         return path

@@ -15,8 +15,8 @@ from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
-from . import _validate as v
 from . import cl
+from . import validate as v
 from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
 from .formation import FORMATIONS
@@ -54,9 +54,8 @@ def reconstruct(
 ) -> Image:
     """Image a dataset on a grid.
 
-    The plan computes only what the grid needs: range profiles over the exact delay gate of
-    the grid (min and max bistatic path over all voxels and stops), and only the kernels
-    the pipeline uses. ``plan.describe()`` on the result says what was skipped.
+    Only what the grid needs is computed: range profiles over the exact delay gate of the grid
+    (min and max bistatic path over all voxels and stops); ``image.plan.describe()`` says what was skipped.
 
     Parameters
     ----------
@@ -84,10 +83,9 @@ def reconstruct(
         dictionary reaches this far past each end of the gate, so echoes straddling it are
         fitted there and dropped), ``method_options`` (passed to the method), ``absorption``
         (model ISO 9613-1 air absorption in the atom at each gate's mean path), ``pulse`` (the
-        atom's waveform: the transmit waveform as heard through the transducers' response;
-        default the dataset's waveform). A recording whose
-        sparse recovery fails falls back to its matched-filter profile and says so in
-        ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
+        atom's waveform as heard through the transducers; default the dataset's waveform). A
+        recording whose sparse recovery fails falls back to its matched-filter profile and says so
+        in ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
     force : bool
         Image a grid even if it does not seem to fit in memory.
     formation : str
@@ -100,7 +98,7 @@ def reconstruct(
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
     selection = cl.select(backend, device)
     if not force:  # the image must fit before any work starts (with force, the formation warns)
-        check_grid(grid, selection.kind, selection.queue.device if selection.opencl else None)
+        check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
         image = _form(dataset, grid, formation, fopts, selection, progress, force)
@@ -155,8 +153,7 @@ def _compressed(dataset: Dataset, plan: ReconstructionPlan, compression: str, se
     """Stage: pulse compression over the plan's gate -> (profiles, no echoes, plan with the lags)."""
     if compression == "fmcw":
         plan = replace(plan, notes=[*plan.notes, "fmcw: delays are gated; the mixed window is the whole chirp overlap"])
-    prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=_request(selection),
-                    device=selection.queue)
+    prof = compress(dataset, method=compression, gate_s=plan.gate_s, backend=selection)
     return prof, None, replace(plan, lags=prof.n_lags, lag_step=int(round(prof.dtau_s * dataset.fs_hz)))
 
 
@@ -174,11 +171,4 @@ def _form(prof: Profiles, grid: VoxelGrid, formation: str, options: dict, select
     """Stage: the registered formation -> Image (its name recorded in the provenance)."""
     from .formation import form
 
-    return form(prof, grid, formation, backend=_request(selection), device=selection.queue, progress=progress,
-                force=force, **options)
-
-
-def _request(selection: cl.Selection) -> str:
-    """The backend request handed down: the caller's (so "auto" can still fall back where a kernel will
-    not build), or "numpy" where the selection found no device."""
-    return selection.requested if selection.opencl else "numpy"
+    return form(prof, grid, formation, backend=selection, progress=progress, force=force, **options)

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .signals import analytic
 
 __all__ = ["Profiles", "center_frequency"]
@@ -116,6 +116,28 @@ class Profiles:
             arr = arr * np.exp(-2j * np.pi * ((fc * tau) % 1.0))
         return cls(np.asarray(arr, np.complex128), tau0, dtau, fc, method, "numpy", tx_positions=tx,
                    rx_positions=rx, c_mps=c)
+
+    def arrays(self, dtype=None) -> tuple:
+        """The fields a formation reads, each checked (finite, the right shape), naming the field.
+
+        Returns ``(data, tau0_s, dtau_s, fc_hz, tx_positions, rx_positions, c_mps)`` with ``c_mps``
+        one speed per measurement; ``dtype``: the data's dtype (default as stored). Profiles
+        without positions or speed of sound (range profiles alone) are refused.
+        """
+        n = self.n_meas
+        if self.tx_positions is None or self.rx_positions is None or self.c_mps is None:
+            raise ValueError("profiles: positions and speed of sound are needed (compress a Dataset, or give them to "
+                             "Profiles.from_range_profiles)")
+        tx = v.array("profiles.tx_positions", self.tx_positions, shape=(n, 3))
+        rx = v.array("profiles.rx_positions", self.rx_positions, shape=(n, 3))
+        c = np.broadcast_to(np.asarray(v.speeds("profiles.c_mps", self.c_mps, n), float), (n,)).copy()
+        data = v.array("profiles.data", self.data, ndim=2, dtype=dtype, allow_complex=True)
+        if data.shape[1] < 2:
+            raise ValueError(f"profiles.data must have at least 2 samples per profile, got shape {data.shape}")
+        tau0 = v.array("profiles.tau0_s", self.tau0_s, shape=(n,))
+        dtau = v.positive("profiles.dtau_s", self.dtau_s)
+        fc = v.non_negative("profiles.fc_hz", self.fc_hz)
+        return data, tau0, dtau, fc, tx, rx, c
 
     def carrier(self) -> np.ndarray:
         """Profiles with the carrier restored: the analytic matched-filter output."""

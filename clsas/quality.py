@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .geometry import VoxelGrid
 from .image import Image
 

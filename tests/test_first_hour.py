@@ -164,7 +164,7 @@ def test_a_partial_scan_is_flagged_when_imaged(tmp_path, capsys):
 
 
 def test_install_hints_fit_a_source_checkout():
-    from clsas._validate import install_hint
+    from clsas.validate import install_hint
 
     hint = install_hint("rig")
     assert hint.startswith("pip install -e '") and hint.endswith("[rig]'")  # tests run from the checkout

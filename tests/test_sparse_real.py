@@ -22,7 +22,7 @@ from clsas.sparse import (
     lam_noise,
     superres,
 )
-from clsas.sparse.refined import _VarPro
+from clsas.sparse.varpro import VarPro
 
 pytest.importorskip("nlopt", reason="the sparse methods need the 'sparse' extra (pip install 'clsas[sparse]')")
 pytest.importorskip("cvxpy", reason="the sparse methods need the 'sparse' extra (pip install 'clsas[sparse]')")
@@ -101,17 +101,17 @@ def test_refined_delays_stay_inside_the_bounds(rng):
         amps = r.uniform(0.5, 3, len(taus)) * np.exp(2j * np.pi * r.uniform(size=len(taus)))
         b = at.matrix(taus) @ amps + 0.02 * (r.normal(size=600) + 1j * r.normal(size=600))
         seen = []
-        vp_call = _VarPro.__call__
+        vp_call = VarPro.__call__
 
         def spy(self, t, grad=None, seen=seen, vp_call=vp_call):
             seen.append(np.asarray(t).copy())
             return vp_call(self, t, grad)
 
-        _VarPro.__call__ = spy
+        VarPro.__call__ = spy
         try:
             e = cbp_polar_refined(d, b, lam_noise(d, b, "complex"), max_echoes=8)
         finally:
-            _VarPro.__call__ = vp_call
+            VarPro.__call__ = vp_call
         tried = np.concatenate(seen)
         assert tried.min() >= lo and tried.max() <= hi
         assert e.status.startswith(("optimal", "roundoff", "stalled", "max_eval")), e.status
@@ -136,7 +136,7 @@ def test_the_recording_that_made_nlopt_raise_now_fits():
 def test_fit_starts_outside_the_bounds_and_more_echoes_than_fit():
     at = Atom(CHIRP, FS, 300, complex=True)
     b = at.matrix([1.0e-3, 1.3e-3]) @ np.array([1.0, 0.5j])
-    vp = _VarPro(at, b, "complex")
+    vp = VarPro(at, b, "complex")
     taus, a, rss, status = vp.fit([0.2e-3, 1.3e-3, 9e-3], 0.9e-3, 1.5e-3, 1e-5)
     assert len(taus) == 3 and np.all((taus >= 0.9e-3) & (taus <= 1.5e-3)) and np.all(np.diff(taus) >= 1e-5 * 0.999)
     # ten echoes at least 0.1 ms apart do not fit in 0.2 ms: three are kept, none fails

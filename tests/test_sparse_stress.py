@@ -340,12 +340,12 @@ def test_refined_gradient_is_the_objective_s_derivative(pulse, real_signal):
     minima with nlopt's runtime_error)."""
     from clsas.signals import analytic
     from clsas.sparse import Atom
-    from clsas.sparse.refined import _VarPro
+    from clsas.sparse.varpro import VarPro
 
     rng = np.random.default_rng(3)
     taus = np.array([40.3, 52.8, 100.1]) / FS
     x = _profile(pulse, taus, [1.0, -0.7, 0.5]) + 0.05 * rng.normal(size=N)
-    vp = _VarPro(Atom(pulse, FS, N, complex=True), analytic(x), "complex", real_signal)
+    vp = VarPro(Atom(pulse, FS, N, complex=True), analytic(x), "complex", real_signal)
     t = taus + np.array([0.2, -0.3, 0.1]) / FS
     g = np.empty(3)
     vp(t, g)

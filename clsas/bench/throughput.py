@@ -102,7 +102,7 @@ def opencl_device_info() -> dict | None:
         return None
     d = q.device
     return {"name": ccl.device_info(q), "platform": d.platform.name, "driver": d.driver_version,
-            "opencl": d.version, "type": __import__("pyopencl").device_type.to_string(d.type),
+            "opencl": d.version, "type": ccl.device_kind(d),
             "compute_units": d.max_compute_units, "clock_mhz": d.max_clock_frequency,
             "vector_width_float": d.preferred_vector_width_float, "global_mem_mib": d.global_mem_size // 2**20}
 

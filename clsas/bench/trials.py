@@ -134,13 +134,13 @@ def _fmcw(task, b):
 def _ml2(task, b):
     """Two-echo maximum likelihood, the number of echoes known: exhaustive pair search over
     the gate, then nlopt refinement (the reference the issue quotes)."""
-    from ..sparse.refined import _best_pair, _mainlobe_s, _VarPro
+    from ..sparse.varpro import VarPro, best_pair, mainlobe_s
 
     y, d = _envelope(task, b)
     centre = d.taus[int(np.argmax(y))]
-    pair = _best_pair(task.atom, b, centre, 2 * _mainlobe_s(task.atom), task.amplitudes, n_grid=40)
-    vp = _VarPro(task.atom, b, task.amplitudes)
-    taus, a, rss, status = vp.fit(pair, task.gate_s[0], task.gate_s[1], _mainlobe_s(task.atom) / 16)
+    pair = best_pair(task.atom, b, centre, 2 * mainlobe_s(task.atom), task.amplitudes, n_grid=40)
+    vp = VarPro(task.atom, b, task.amplitudes)
+    taus, a, rss, status = vp.fit(pair, task.gate_s[0], task.gate_s[1], mainlobe_s(task.atom) / 16)
     return Echoes(taus, a, "ml2", status, vp.evals)
 
 

@@ -16,7 +16,8 @@ class FocusGradientPlan(Plan):
     (n_meas, 5) sums, accumulated in float32 per work-item and added in float64 on the host.
     """
 
-    kernel_name = "focus_gradient"
+    KERNEL = "focus_gradient"
+    SOURCES = ("common.cl", "autofocus.cl")
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
                  n_items: int | None = None):

@@ -10,12 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
 from .. import cl as _cl
+from .. import validate as v
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import bp_numpy as twin
+from .bp_opencl import BackprojectPlan
 from .guard import check_grid
 from .registry import FORMATIONS
 
@@ -34,12 +35,14 @@ class Backprojector:
     Parameters
     ----------
     grid : VoxelGrid
-    backend : {"auto", "opencl", "numpy"}, optional
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"``. With ``"auto"``, a device that cannot
         build the kernel (:class:`clsas.cl.BuildError`) falls back to the NumPy twin with one
-        warning naming the device and the reason; ``"opencl"`` raises instead.
+        warning naming the device and the reason; ``"opencl"`` raises instead. A Selection
+        resolved by the caller (:func:`clsas.cl.select`) keeps its request.
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
-        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one).
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one); None with a
+        Selection.
     chunk : int, optional
         Measurements per kernel launch.
     force : bool
@@ -47,8 +50,8 @@ class Backprojector:
         gives the numbers and a spacing that fits; see :func:`clsas.formation.guard.check_grid`).
     """
 
-    def __init__(self, grid: VoxelGrid, *, backend: str | None = None, device: Any = None, chunk: int | None = None,
-                 force: bool = False):
+    def __init__(self, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
+                 chunk: int | None = None, force: bool = False):
         if not isinstance(grid, VoxelGrid):
             raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
         if chunk is not None:
@@ -56,8 +59,7 @@ class Backprojector:
         self.grid = grid
         self.chunk = chunk
         self.selection = _cl.select(backend, device)
-        sel = self.selection
-        check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=force)
+        check_grid(grid, self.selection.kind, self.selection.cl_device, force=force)
         self._plan = None
 
     @property
@@ -66,15 +68,10 @@ class Backprojector:
         return self.selection.kind
 
     def _opencl_plan(self, n_meas: int, n_lags: int):
-        from .bp_opencl import BackprojectPlan
-
         p = self._plan
         if p is None or p.n_meas != n_meas or p.n_lags < n_lags:
-            self._plan = None
-            try:
-                self._plan = BackprojectPlan(self.grid, n_meas, n_lags, queue=self.selection.queue, chunk=self.chunk)
-            except _cl.BuildError as exc:
-                self.selection = self.selection.fall_back(exc)
+            self._plan, self.selection = self.selection.plan(
+                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk))
         return self._plan
 
     def __call__(
@@ -118,7 +115,7 @@ def backproject(
     tx_positions: np.ndarray | None = None,
     rx_positions: np.ndarray | None = None,
     c_mps: float | np.ndarray | None = None,
-    backend: str | None = None,
+    backend: str | _cl.Selection | None = None,
     device: Any = None,
     chunk: int | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -134,7 +131,7 @@ def backproject(
 
     Parameters
     ----------
-    backend : {"auto", "opencl", "numpy"}, optional
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"`` (see :class:`Backprojector`).
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
 
@@ -150,7 +147,7 @@ def backproject(
 
 
 @FORMATIONS.register("bp")
-def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, device: Any = None,
+def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
          progress: Callable[[int, int], None] | None = None, force: bool = False, **options) -> Image:
     """The ``"bp"`` formation: :class:`Backprojector` (it takes no options)."""
     if options:

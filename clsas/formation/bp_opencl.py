@@ -17,7 +17,8 @@ class BackprojectPlan(Plan):
     a chunk stay in cache); the image accumulates on the device.
     """
 
-    kernel_name = "backproject"
+    KERNEL = "backproject"
+    SOURCES = ("common.cl", "backproject.cl")
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None):
         super().__init__(queue, vec)

@@ -88,9 +88,9 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import cell_number
 from ..dataset import Dataset
 from ..signals import lfm_chirp
+from ..validate import cell_number
 from ._common import attach_background, is_number, read_numbers, stack_padded
 from .registry import IMPORTERS, Importer
 

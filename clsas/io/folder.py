@@ -81,9 +81,9 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import cell_number
 from ..dataset import Dataset
 from ..signals import lfm_chirp
+from ..validate import cell_number
 from ._common import attach_background, read_numbers, read_settings, read_wav, sniff_delimiter, stack_padded
 from .registry import IMPORTERS, Importer
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._validate import install_hint
 from ..physics import speed_of_sound
+from ..validate import install_hint
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig
 from .emulator import Faults, GrblEmulator
@@ -175,6 +175,38 @@ def acquire(
     _check_config(config)
     out = Path(out)
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
+    sim_stage, sim_audio = _checked_request(config, out, resume, simulate, faults, stage)
+    resuming = resume and out.exists()
+    air = _stored_air(out) if resuming else config.read_air()
+    recorder = recorder_for(config, audio_io if audio_io is not None else audio_for(config, sim_audio, air))
+    store = store_for(config, out, resuming, air)
+    start_done = store.stops_done
+    time_scale = float(config.simulate.get("time_scale", 0.01))
+    emulator = None
+    t_start = time.monotonic()
+    try:
+        if start_done >= config.n_stops:
+            log.info("%s already holds all %d stops", out, config.n_stops)
+            store.close(complete=True)
+            return ScanResult(out, config.n_stops, start_done, 0, 0.0, 0)
+        if stage is None:
+            if sim_stage:
+                travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
+                emulator = GrblEmulator(faults=faults or Faults(), time_scale=time_scale, travel_mm=travel).start()
+            stage = stage_for(config, emulator.port if emulator else None)
+        retried = _run_safely(config, stage, recorder, store, out, hint, progress,
+                              settle_s=config.settle_s * (time_scale if sim_stage else 1.0))
+    finally:
+        if emulator is not None:
+            emulator.stop()
+        store.close()
+    done = config.n_stops
+    return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
+
+
+def _checked_request(config: RigConfig, out: Path, resume: bool, simulate, faults, stage) -> tuple[bool, bool]:
+    """:func:`acquire`'s request checked before any file is written: (simulate the stage,
+    simulate the audio)."""
     if simulate not in (False, True, "all", "stage", "audio"):
         raise ValueError(f"simulate must be True, False, 'all', 'stage' or 'audio', got {simulate!r}")
     sim_stage = simulate in (True, "all", "stage")
@@ -190,57 +222,40 @@ def acquire(
 
         if find_spec("serial") is None:  # before any file is written
             raise ImportError(f"the stage (and its emulator) needs pyserial: {install_hint('rig')}")
-    resuming = resume and out.exists()
-    air = _stored_air(out) if resuming else config.read_air()
-    recorder = recorder_for(config, audio_io if audio_io is not None else audio_for(config, sim_audio, air))
-    store = store_for(config, out, resuming, air)
-    start_done = store.stops_done
-    time_scale = float(config.simulate.get("time_scale", 0.01))
-    emulator = None
-    t_start = time.monotonic()
-    i = start_done
+    return sim_stage, sim_audio
+
+
+def _run_safely(config: RigConfig, stage, recorder, store, out: Path, hint: str, progress, settle_s: float) -> int:
+    """:func:`run_stops` on the opened stage, the file completed at the end; a fault or Ctrl-C
+    sends a feed hold, closes the file with the stops so far and raises ScanAborted or
+    ScanInterrupted naming the stop and how to resume. Returns the stops that needed a retry."""
+    i = store.stops_done
 
     def at(stop: int) -> None:
         nonlocal i
         i = stop
 
     try:
-        if start_done >= config.n_stops:
-            log.info("%s already holds all %d stops", out, config.n_stops)
-            store.close(complete=True)
-            return ScanResult(out, config.n_stops, start_done, 0, 0.0, 0)
-        if stage is None:
-            if sim_stage:
-                travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
-                emulator = GrblEmulator(faults=faults or Faults(), time_scale=time_scale, travel_mm=travel).start()
-            stage = stage_for(config, emulator.port if emulator else None)
-        try:
-            stage.open()
-            retried = run_stops(config, stage, recorder, store, progress=progress, on_stop=at,
-                                settle_s=config.settle_s * (time_scale if sim_stage else 1.0))
-            store.close(complete=True)
-        except KeyboardInterrupt:
-            stage.feed_hold()
-            done = store.stops_done
-            store.close()
-            raise ScanInterrupted(f"interrupted at stop {i + 1} of {config.n_stops}; {done} stops are saved in "
-                                  f"{out}; {hint}", done) from None
-        except (StageError, AudioError, OSError) as exc:
-            held = stage.feed_hold()
-            done = store.stops_done
-            store.close()
-            safe = ("The stage was sent a feed hold" if held else
-                    "No feed hold could be sent (the port is lost): check that the machine has stopped")
-            raise ScanAborted(f"scan stopped at stop {i + 1} of {config.n_stops}: {exc}. {safe}; {done} stops are "
-                              f"saved in {out}. Fix the cause, then {hint}", done) from exc
-        finally:
-            stage.close()
-    finally:
-        if emulator is not None:
-            emulator.stop()
+        stage.open()
+        retried = run_stops(config, stage, recorder, store, progress=progress, on_stop=at, settle_s=settle_s)
+        store.close(complete=True)
+    except KeyboardInterrupt:
+        stage.feed_hold()
+        done = store.stops_done
         store.close()
-    done = config.n_stops
-    return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
+        raise ScanInterrupted(f"interrupted at stop {i + 1} of {config.n_stops}; {done} stops are saved in "
+                              f"{out}; {hint}", done) from None
+    except (StageError, AudioError, OSError) as exc:
+        held = stage.feed_hold()
+        done = store.stops_done
+        store.close()
+        safe = ("The stage was sent a feed hold" if held else
+                "No feed hold could be sent (the port is lost): check that the machine has stopped")
+        raise ScanAborted(f"scan stopped at stop {i + 1} of {config.n_stops}: {exc}. {safe}; {done} stops are "
+                          f"saved in {out}. Fix the cause, then {hint}", done) from exc
+    finally:
+        stage.close()
+    return retried
 
 
 def _stored_air(path: Path) -> tuple[float, float]:

@@ -18,14 +18,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from ..registry import Registry
 from .atoms import Dictionary, default_max_echoes
 from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import Echoes
 from .noise import lam_noise, noise_lam
-from .refined import _mainlobe_s, cbp_polar_refined
+from .refined import cbp_polar_refined
+from .varpro import mainlobe_s
 
 __all__ = ["SPARSE_METHODS", "cap_echoes", "sparse_echoes", "succeeded", "superres"]
 
@@ -76,7 +77,7 @@ def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=No
     info = {"lam": res.lam, "gap": res.gap, **res.info, "atoms": int(np.count_nonzero(res.x))}
     if group:
         if max_run is None:
-            max_run = max(1, int(np.ceil(2 * _mainlobe_s(dictionary.atom) / dictionary.delta)))
+            max_run = max(1, int(np.ceil(2 * mainlobe_s(dictionary.atom) / dictionary.delta)))
         taus, amps, weights = group_atoms(dictionary, res.x, rel_threshold=rel_threshold, max_run=max_run)
     else:
         mag = np.abs(res.x)
