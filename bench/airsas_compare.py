@@ -21,7 +21,9 @@ What it measures (JSON + Markdown + PNG under --out):
    put into clsas's frame by that mirror, nothing else.
 3. The same with the owners' ring radius (0.85 m for both transducers instead of
    SysParams.csv's 0.8485 and 0.8615 m), to show what the remaining difference is.
-4. With ``--calibrate``: ``clsas.focus.calibrate`` of the ring radius on each scan.
+4. ``t0_s`` from the direct sound (``clsas.focus.direct``) instead of ``Group Delay``.
+5. With ``--calibrate``: ``clsas.focus.calibrate`` of the ring radius, the group delay and the
+   transducers' height on each scan (each alone), and the image with the radius applied.
 """
 
 from __future__ import annotations
@@ -241,17 +243,42 @@ def run_scan(name: str, root: Path, backend: str, calibrate: bool) -> tuple[dict
     owners_r = image(with_radius(ds, OWNERS_RADIUS_M), backend)
     row["owners_radius_vs_port"] = metrics(owners_r, port)
     pics[f"clsas, ring radius {OWNERS_RADIUS_M} m"] = owners_r
+    shift = direct_sound_shift(scan)
+    row["direct_sound_t0_shift_s"] = shift
+    row["direct_sound_vs_port"] = metrics(image(ds.replace(t0_s=ds.t0_s + shift), backend), port)
     if calibrate:
-        from clsas.focus.calibrate import calibrate as cal_fn
-
-        grid = clsas.VoxelGrid.from_bounds(BOX[0], BOX[1], (0.0, 0.0), 0.0015)
-        t = time.perf_counter()
-        fixed, cal = cal_fn(ds, grid, "radius", span=0.02, step=0.002, apply=True, backend=backend)
-        row["calibration"] = {**cal.as_dict(), "time_s": time.perf_counter() - t}
+        row["calibration"], fixed = calibrations(ds, backend)
         calibrated = image(fixed, backend)
         row["calibrated_vs_port"] = metrics(calibrated, port)
-        pics[f"clsas, radius calibrated ({cal.estimate * 1e3:+.1f} mm)"] = calibrated
+        pics[f"clsas, radius calibrated ({row['calibration']['radius']['estimate'] * 1e3:+.1f} mm)"] = calibrated
     return row, pics
+
+
+def direct_sound_shift(scan: Path) -> float:
+    """How much later sample 0 is than ``Group Delay`` says, from the direct sound's arrival
+    at the stated speaker-microphone spacing (median over pings), s."""
+    from clsas.focus.direct import direct_arrivals
+
+    raw = pp.apply(clsas.io.import_airsas(scan), dc=True, bandpass=True)
+    found = direct_arrivals(raw)
+    t0 = found.t0_s(raw.c_per_meas, raw.t0_s)
+    return float(np.median(t0 - raw.t0_s))
+
+
+def calibrations(ds: clsas.Dataset, backend: str) -> tuple[dict, clsas.Dataset]:
+    """Radius, group delay and height by focus (each with the others as stated), on a grid
+    over the target box; the dataset with the radius applied."""
+    from clsas.focus.calibrate import calibrate as cal_fn
+
+    grid = clsas.VoxelGrid.from_bounds(BOX[0], BOX[1], (0.0, 0.0), 0.0015)
+    out, fixed = {}, ds
+    for par, span, step in (("radius", 0.02, 0.002), ("group_delay", 1.2e-4, 6e-6), ("height", 0.08, 0.008)):
+        t = time.perf_counter()
+        applied, cal = cal_fn(ds, grid, par, span=span, step=step, apply=par == "radius", backend=backend)
+        out[par] = {**cal.as_dict(), "time_s": time.perf_counter() - t}
+        if par == "radius":
+            fixed = applied
+    return out, fixed
 
 
 def picture(path: Path, name: str, pics: dict) -> None:
@@ -286,6 +313,7 @@ def markdown(out: dict) -> str:
     for row in out["scans"]:
         for key, label in (("vs_scene_npy", "README pipeline vs scene.npy"), ("vs_port", "README pipeline vs port"),
                            ("owners_radius_vs_port", "radius 0.85 m vs port"),
+                           ("direct_sound_vs_port", "t0 from the direct sound vs port"),
                            ("calibrated_vs_port", "radius calibrated vs port")):
             if key in row:
                 m = row[key]
@@ -296,11 +324,13 @@ def markdown(out: dict) -> str:
         if "port_vs_scene_npy_complex_correlation" in row:
             lines.append(f"\nPort of the owners' delay-and-sum vs their scene.npy ({row['scan']}): complex "
                          f"correlation {row['port_vs_scene_npy_complex_correlation']:.5f}.")
-        if "calibration" in row:
-            c = row["calibration"]
-            lines.append(f"\nRadius calibration ({row['scan']}): {c['estimate'] * 1e3:+.2f} mm +- "
-                         f"{c['uncertainty'] * 1e3:.2f} mm (halves {c['halves'][0] * 1e3:+.2f}, "
-                         f"{c['halves'][1] * 1e3:+.2f} mm), {c['time_s']:.0f} s.")
+        lines.append(f"\nDirect sound ({row['scan']}): sample 0 is {row['direct_sound_t0_shift_s'] * 1e6:+.1f} us "
+                     "later than Group Delay says (at the stated speaker-microphone spacing).")
+        for par, c in row.get("calibration", {}).items():
+            k, u = (1e6, "us") if c["unit"] == "s" else (1e3, "mm")
+            lines.append(f"\nCalibration by focus, {par} ({row['scan']}): {c['estimate'] * k:+.2f} {u} +- "
+                         f"{c['uncertainty'] * k:.2f} {u} (halves {c['halves'][0] * k:+.2f}, {c['halves'][1] * k:+.2f} "
+                         f"{u}){'; at the edge of the range' if c['at_edge'] else ''}, {c['time_s']:.0f} s.")
     return "\n".join(lines) + "\n"
 
 

@@ -10,10 +10,12 @@ best candidate and its neighbours.
 
 Uncertainty: the same scan on two disjoint halves of the measurements (the first and second
 half in order: for a turntable, two opposite half-turns, which look at the target from
-different sides) gives two estimates; their half-difference is reported as the uncertainty
-(the spread of the mean of two estimates whose errors are independent), and their
-disagreement also flags a model error that a single curve cannot show (e.g. an axis that is
-not where the geometry says). The metric's curvature at the peak is reported too, as the
+different sides) gives two estimates. The uncertainty reported is their half-difference (the
+spread of the mean of two estimates whose errors are independent) or the distance from the
+whole data's estimate to their mean, whichever is larger. Their disagreement also flags a
+model error that a single curve cannot show (e.g. an axis that is not where the geometry
+says); their agreement does not prove the model right (a metric with two peaks can put both
+halves on the same wrong one). The metric's curvature at the peak is reported too, as the
 offset at which the log-metric drops by 0.01 (a width, not a standard deviation).
 
 What can and cannot be told apart: a ring radius error moves every path by about twice the
@@ -32,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 
@@ -58,7 +60,8 @@ class Calibration:
     estimate : float
         The offset that focuses best (full data), in the parameter's unit.
     uncertainty : float
-        Half the difference between the two halves' estimates.
+        Half the difference between the two halves' estimates, or the distance from
+        ``estimate`` to their mean, whichever is larger.
     halves : (float, float)
         The estimates from the first and the second half of the measurements.
     width : float
@@ -224,7 +227,9 @@ def calibrate(
     half = dataset.n_meas // 2
     halves = tuple(_peak(offsets, curve(dataset.subset(rows)))[0]
                    for rows in (slice(0, half), slice(half, dataset.n_meas)))
-    cal = Calibration(parameter=parameter, estimate=est, uncertainty=abs(halves[0] - halves[1]) / 2,
+    # the halves' spread, or how far the whole data's estimate lies from theirs, whichever is larger
+    spread = max(abs(halves[0] - halves[1]) / 2, abs(est - 0.5 * (halves[0] + halves[1])))
+    cal = Calibration(parameter=parameter, estimate=est, uncertainty=spread,
                       halves=(float(halves[0]), float(halves[1])), width=width, offsets=offsets, metric=full,
                       at_edge=edge, metric_name=metric)
     if edge:
