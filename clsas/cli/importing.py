@@ -43,6 +43,7 @@ def cmd_import(args) -> int:
         grid = f"{-r:.2f},{r:.2f},{-r:.2f},{r:.2f},0,0"
     else:
         grid = "x0,x1,y0,y1,z0,z1"
+    print(f"look first: clsas inspect {args.out} --grid={grid}  (paths, recordings, warnings)")
     print(f"next: clsas reconstruct {args.out} --grid={grid} --spacing 0.005  (metres, in the dataset's frame)")
     return 0
 
