@@ -10,7 +10,8 @@ sensible order and is what the ``[preprocess]`` table of a scene or preprocessin
     ds = clsas.preprocess.apply(ds, dc=True, bandpass=True, background=empty_scan,
                           blank_direct=True, group_delay_s=62.33 / ds.fs_hz)
 
-The order is: group delay (it only moves ``t0_s``), DC, band-pass, background subtraction,
+The order is: group delay and the clock from the direct sound (they only move ``t0_s``), DC,
+band-pass, background subtraction,
 shared-clutter removal (:func:`remove_common`), direct-path blanking. Band-passing before
 subtracting means the same filter is applied to the background recordings (they are filtered
 with the scan).
@@ -28,14 +29,15 @@ from .dataset import Dataset
 
 __all__ = [
     "COMMON_STATISTICS", "PREPROCESS_KEYS", "apply", "attach_background", "bandpass", "blank_direct",
-    "chirp_band", "from_table", "remove_common", "remove_dc", "remove_delay", "subtract_background",
+    "chirp_band", "clock_from_direct", "from_table", "remove_common", "remove_dc", "remove_delay",
+    "subtract_background",
 ]
 
 log = logging.getLogger(__name__)
 
 # keys of a [preprocess] table and of apply()'s keyword arguments
-PREPROCESS_KEYS = ("group_delay_s", "group_delay_samples", "dc", "bandpass", "background", "common",
-                   "blank_direct")
+PREPROCESS_KEYS = ("group_delay_s", "group_delay_samples", "direct_clock", "dc", "bandpass", "background",
+                   "common", "blank_direct")
 
 #: what :func:`remove_common` subtracts at each delay
 COMMON_STATISTICS = ("mean", "median")
@@ -390,6 +392,47 @@ def remove_common(ds: Dataset, statistic: str = "mean") -> Dataset:
                       provenance=_step(ds, "common", statistic=statistic, rms_before=before, rms_after=after))
 
 
+def clock_from_direct(ds: Dataset, *, max_delay_s: float = 5e-4, min_snr_db: float = 15.0) -> Dataset:
+    """Set the clock (``t0_s``) from the direct speaker-to-microphone sound of the scan itself.
+
+    The direct sound travels the stated ``|tx - rx|`` and arrives ``|tx - rx| / c - t0``
+    after sample 0 (:func:`clsas.focus.direct.direct_arrivals` finds it to a fraction of a
+    sample). One shift, the median over the recordings where it is found, is added to every
+    ``t0_s``: a common ``t0_s`` stays common. An attached background (on the same samples)
+    stays aligned; :func:`apply` shifts a background dataset given to it by the same amount.
+    Run it before the direct sound is subtracted (background) or blanked.
+
+    What it assumes: the stated speaker-microphone spacing is right, and the direct path (off
+    the transducers' axes) is delayed by the chain as the echoes are. On the AirSAS scans it
+    moves ``t0_s`` by +11.0 us (20k) and +14.6 us (5k) from ``Group Delay`` (README, "Your own
+    data").
+
+    Raises
+    ------
+    ValueError
+        The direct sound was not found in most recordings (too weak, already blanked, or
+        ``t0_s`` more than ``max_delay_s`` off).
+    """
+    from .focus.direct import direct_arrivals
+
+    ds = _check_ds(ds)
+    found = direct_arrivals(ds, max_delay_s=v.positive("max_delay_s", max_delay_s), min_snr_db=min_snr_db)
+    if not found.found:
+        raise ValueError(f"clock_from_direct: the direct sound was not found in most recordings (in "
+                         f"{int(found.detected.sum())} of {ds.n_meas}, {min_snr_db:g} dB above the rest, within "
+                         f"{max_delay_s * 1e6:.0f} us of where t0_s puts it): run it before background subtraction "
+                         "and blanking")
+    est = found.distance_m / ds.c_per_meas - found.arrival_s
+    d = (est - ds.t0_s)[found.detected]
+    shift = float(np.median(d))
+    spread = float(np.median(np.abs(d - shift)))
+    log.info("clock from the direct sound: t0_s %+.2f us (found in %d of %d recordings, spread %.2f us)",
+             shift * 1e6, int(found.detected.sum()), ds.n_meas, spread * 1e6)
+    return ds.replace(t0_s=ds.t0_s + shift,
+                      provenance=_step(ds, "direct_clock", shift_s=shift, spread_s=spread,
+                                       found=int(found.detected.sum())))
+
+
 def remove_delay(ds: Dataset, delay_s: float | np.ndarray) -> Dataset:
     """Remove a known system delay (transducer and converter group delay) from the time axis.
 
@@ -410,10 +453,11 @@ def remove_delay(ds: Dataset, delay_s: float | np.ndarray) -> Dataset:
 # apply() takes arguments named like the steps; these names reach the step functions
 _bandpass_step = bandpass
 _blank_step = blank_direct
+_clock_step = clock_from_direct
 
 
 def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_samples: float | None = None,
-               dc: bool = False, bandpass: bool | dict | tuple = False,
+               direct_clock: bool = False, dc: bool = False, bandpass: bool | dict | tuple = False,
                background: bool | str | Dataset | np.ndarray | dict | None = None,
                common: bool | str = False, blank_direct: bool | dict = False) -> Dataset:
     """Several preprocessing steps in their natural order (see the module docstring).
@@ -422,6 +466,9 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
     ----------
     group_delay_s, group_delay_samples : float, optional
         System delay to remove (:func:`remove_delay`), in seconds or in samples.
+    direct_clock : bool
+        :func:`clock_from_direct`, after the group delay (on the recordings as given, before
+        the background is attached or anything is filtered).
     dc : bool
         :func:`remove_dc`.
     bandpass : bool, (f_lo_hz, f_hi_hz) or dict
@@ -462,9 +509,15 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
         group_delay_s = v.finite("group_delay_samples", group_delay_samples) / ds.fs_hz
     if group_delay_s is not None:
         ds = remove_delay(ds, group_delay_s)
+    clock_shift = 0.0
+    if _flag("direct_clock", direct_clock):
+        ds = _clock_step(ds)
+        clock_shift = ds.provenance[-1]["shift_s"]
     if background is not None and background is not False and src is not True:
         if isinstance(src, Dataset) and group_delay_s is not None:
             src = remove_delay(src, group_delay_s)  # the same rig, the same delay
+        if isinstance(src, Dataset) and clock_shift:
+            src = src.replace(t0_s=src.t0_s + clock_shift)  # the same rig, the same clock
         ds = attach_background(ds, src)
     if _flag("dc", dc):
         ds = remove_dc(ds)

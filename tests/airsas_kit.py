@@ -48,8 +48,9 @@ def truth_positions(p, angles_deg):
 
 
 def write_scan(folder: Path, pings: int = 36, *, target: np.ndarray | None = TARGET, room_seed: int = 7) -> np.ndarray:
-    """An AirSAS folder: ``target`` (or nothing: an empty scene) on the turntable, plus the same
-    static room echo in every ping (what an empty-scene scan also records). Returns the angles."""
+    """An AirSAS folder: ``target`` (or nothing: an empty scene) on the turntable, plus the direct
+    sound and a static room echo, the same in every ping (what an empty-scene scan also
+    records). Returns the angles."""
     folder.mkdir(parents=True)
     angles = np.arange(pings) * 360.0 / pings
     temps = np.full(pings, 21.622)
@@ -61,9 +62,16 @@ def write_scan(folder: Path, pings: int = 36, *, target: np.ndarray | None = TAR
         ds = clsas.simulate(clsas.Scene(target, np.ones(len(target))), clsas.Aperture(tx, rx, tx), wave, 100e3,
                             n_samples=n, t0_s=-GD_SAMPLES / 100e3, temperature_c=temps, snr_db=40, seed=1)
         sig += ds.signals
+    level = 1e-3 if target is None else float(np.abs(sig).max())
     room = np.zeros(n)  # a static echo 1.2 m of path away, 3x the target's peak, in every ping
     k = int(GD_SAMPLES + 1.2 / 344.2 * 100e3)
-    room[k:k + len(wave)] = 3 * wave * (np.abs(sig).max() if target is not None else 1e-3)
+    room[k:k + len(wave)] = 3 * wave * level
+    # the direct sound: a point halfway between speaker and microphone (path |tx - rx|), in the
+    # rig's frame (it does not turn), 10x the target's peak
+    fixed = clsas.Aperture(np.tile(SPEAKER, (pings, 1)), np.tile(MIC1, (pings, 1)), np.tile(SPEAKER, (pings, 1)))
+    direct = clsas.simulate(clsas.Scene((0.5 * (SPEAKER + MIC1))[None, :]), fixed, wave, 100e3, n_samples=n,
+                            t0_s=-GD_SAMPLES / 100e3, temperature_c=temps, absorption=False).signals
+    sig += 10 * level * direct / np.abs(direct).max()
     sig += room + np.random.default_rng(room_seed).normal(0, 1e-6, n)
     for i in range(pings):  # two columns, like the published Flight files (mic 2: a tone here)
         cols = np.c_[sig[i], 0.005 + 1e-4 * np.sin(np.arange(n))]

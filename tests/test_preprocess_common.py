@@ -94,3 +94,20 @@ def test_remove_common_checks():
     steps = [p["step"] for p in pp.apply(with_bg, background=True, common="median", blank_direct=True).provenance]
     assert steps[-3:] == ["background", "common", "blank_direct"]
     assert pp.apply(ds, common=True).provenance[-1]["statistic"] == "mean"
+
+
+def test_clock_from_direct_finds_a_hidden_delay():
+    """turntable_scan hides a 62.33-sample group delay: the direct sound gives it back."""
+    scan = turntable_scan(24, snr_db=40)
+    fixed = pp.clock_from_direct(scan.dataset, max_delay_s=1e-3)
+    np.testing.assert_allclose(fixed.t0_s, -scan.group_delay_s, atol=0.05 / scan.dataset.fs_hz)
+    step = fixed.provenance[-1]
+    assert step["step"] == "direct_clock" and step["found"] == 24 and step["spread_s"] < 1e-6
+    # a group delay stated 30 us short: the clock finds the rest, for the scan and its background
+    again = pp.apply(scan.dataset, group_delay_s=scan.group_delay_s - 3e-5, direct_clock=True,
+                     background=scan.background)
+    np.testing.assert_allclose(again.t0_s, -scan.group_delay_s, atol=0.05 / scan.dataset.fs_hz)
+    assert [p["step"] for p in again.provenance][-3:] == ["group_delay", "direct_clock", "background"]
+    assert again.provenance[-1]["rms_after"] < 0.2 * again.provenance[-1]["rms_before"]  # aligned: it cancels
+    with pytest.raises(ValueError, match="direct sound was not found"):
+        pp.clock_from_direct(pp.blank_direct(pp.remove_delay(scan.dataset, scan.group_delay_s)))

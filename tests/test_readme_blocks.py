@@ -28,6 +28,7 @@ RUN_HERE = {
     ("Command line", "toml", 0): "test_command_line_scene_file",
     ("Fast image formation", "python", 0): "test_fragments_on_a_small_scan",
     ("Fast image formation", "python", 1): "test_fragments_on_a_small_scan",
+    ("Extending clsas: one module and one line", "python", 0): "test_extending_registers_a_formation",
 }
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
@@ -137,8 +138,8 @@ def test_your_own_data_preprocess_table(tmp_path):
     table = preprocess_table(cfg, str(tmp_path / "steps.toml"))
     table["background"] = str(tmp_path / table["background"])
     out = pp.from_table(scan.dataset, table)
-    assert [p["step"] for p in out.provenance][1:] == ["group_delay", "dc", "bandpass", "background", "common",
-                                                      "blank_direct"]
+    assert [p["step"] for p in out.provenance][1:] == ["group_delay", "direct_clock", "dc", "bandpass", "background",
+                                                      "common", "blank_direct"]
 
 
 def test_command_line_scene_file(tmp_path):
@@ -160,3 +161,19 @@ def test_fragments_on_a_small_scan():
         env = {"clsas": clsas, "dataset": dataset, "grid": grid}
         exec(compile(block("Fast image formation", "python", k), f"README.md (formation {k})", "exec"), env)  # noqa: S102
         assert env["image"].values.shape == grid.shape
+
+
+def test_extending_registers_a_formation():
+    from clsas.formation import FORMATIONS
+
+    env: dict = {}
+    code = block("Extending clsas: one module and one line", "python")
+    exec(compile(code, "README.md (Extending clsas)", "exec"), env)  # noqa: S102
+    try:
+        ds = clsas.simulate(clsas.Scene(np.array([[0.0, 0.0, 0.5]])), clsas.raster_aperture(3, 3, 0.1, 0.1),
+                            clsas.lfm_chirp(20e3, 30e3, 1e-3, 96e3), 96e3, n_samples=600)
+        grid = clsas.VoxelGrid.from_bounds((-0.02, 0.02), (-0.02, 0.02), (0.5, 0.5), 0.01)
+        image = clsas.reconstruct(ds, grid, formation="sum-of-magnitudes", backend="numpy")
+        assert np.allclose(image.values, image.values.flat[0]) and abs(image.values.flat[0]) > 0
+    finally:
+        FORMATIONS.unregister("sum-of-magnitudes")

@@ -45,6 +45,8 @@ def _preprocess_args(args) -> dict:
     opts: dict = {}
     if args.group_delay_samples is not None:
         opts["group_delay_samples"] = args.group_delay_samples
+    if getattr(args, "direct_clock", False):
+        opts["direct_clock"] = True
     if args.dc:
         opts["dc"] = True
     if args.bandpass is not None:
@@ -85,6 +87,8 @@ def add_preprocess_options(sp) -> None:
                               "the dataset's stored configuration)")
     g.add_argument("--group-delay-samples", type=float, metavar="N",
                    help="system (transducer) delay to remove, in samples (t0_s becomes t0_s - N/fs)")
+    g.add_argument("--direct-clock", action="store_true",
+                   help="set t0 from the direct speaker-to-microphone sound of the scan itself (one shift)")
     g.add_argument("--dc", action="store_true", help="subtract each recording's mean")
     g.add_argument("--bandpass", nargs="?", const="chirp", metavar="F_LO,F_HI",
                    help="zero-phase band-pass: the chirp's band (no value) or F_LO,F_HI in Hz")
