@@ -486,23 +486,7 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
         :func:`blank_direct`, with a dict for its keyword arguments.
     """
     ds = _check_ds(ds)
-    bg_opts: dict = {}
-    src = None
-    if background is not None and background is not False:
-        # the empty scene goes through the same steps as the scan: attach it first
-        src = background
-        if isinstance(background, dict):
-            bg_opts = _only(background, "background", ("path", "align_s", "fit_gain"))
-            src = bg_opts.pop("path", True)
-        if isinstance(src, str):
-            from .dataset import load
-
-            bg_opts["label"] = src
-            src = load(src)
-        elif isinstance(src, Dataset):
-            bg_opts["label"] = "background dataset"
-        if src is True and ds.background is None:
-            raise ValueError("background=True: the dataset has no background scan of its own")
+    src, bg_opts = _background_source(ds, background)
     if group_delay_s is not None and group_delay_samples is not None:
         raise ValueError("give group_delay_s or group_delay_samples, not both")
     if group_delay_samples is not None:
@@ -521,15 +505,7 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
         ds = attach_background(ds, src)
     if _flag("dc", dc):
         ds = remove_dc(ds)
-    if isinstance(bandpass, tuple | list):
-        if len(bandpass) != 2:
-            raise ValueError(f"bandpass must be (f_lo_hz, f_hi_hz), got {bandpass!r}")
-        ds = _bandpass_step(ds, *bandpass)
-    elif isinstance(bandpass, dict):
-        ds = _bandpass_step(ds, **_only(bandpass, "bandpass", ("f_lo_hz", "f_hi_hz", "margin_hz",
-                                                                       "transition_hz")))
-    elif _flag("bandpass", bandpass):
-        ds = _bandpass_step(ds)
+    ds = _bandpass_option(ds, bandpass)
     if background is not None and background is not False:
         ds = subtract_background(ds, **bg_opts)
     if isinstance(common, str):
@@ -541,6 +517,40 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
     elif _flag("blank_direct", blank_direct):
         ds = _blank_step(ds)
     return ds
+
+
+def _background_source(ds: Dataset, background) -> tuple[Any, dict]:
+    """apply()'s ``background``: (True for the dataset's own, a Dataset, an array, or None;
+    subtract_background's keyword arguments). A path is loaded here."""
+    if background is None or background is False:
+        return None, {}
+    # the empty scene goes through the same steps as the scan: attach it first
+    bg_opts: dict = {}
+    src = background
+    if isinstance(background, dict):
+        bg_opts = _only(background, "background", ("path", "align_s", "fit_gain"))
+        src = bg_opts.pop("path", True)
+    if isinstance(src, str):
+        from .dataset import load
+
+        bg_opts["label"] = src
+        src = load(src)
+    elif isinstance(src, Dataset):
+        bg_opts["label"] = "background dataset"
+    if src is True and ds.background is None:
+        raise ValueError("background=True: the dataset has no background scan of its own")
+    return src, bg_opts
+
+
+def _bandpass_option(ds: Dataset, bandpass) -> Dataset:
+    """apply()'s ``bandpass``: True, (f_lo_hz, f_hi_hz) or a dict of options."""
+    if isinstance(bandpass, tuple | list):
+        if len(bandpass) != 2:
+            raise ValueError(f"bandpass must be (f_lo_hz, f_hi_hz), got {bandpass!r}")
+        return _bandpass_step(ds, *bandpass)
+    if isinstance(bandpass, dict):
+        return _bandpass_step(ds, **_only(bandpass, "bandpass", ("f_lo_hz", "f_hi_hz", "margin_hz", "transition_hz")))
+    return _bandpass_step(ds) if _flag("bandpass", bandpass) else ds
 
 
 def _flag(name: str, value: Any) -> bool:
