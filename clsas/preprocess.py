@@ -10,8 +10,8 @@ sensible order and is what the ``[preprocess]`` table of a scene or preprocessin
     ds = clsas.preprocess.apply(ds, dc=True, bandpass=True, background=empty_scan,
                           blank_direct=True, group_delay_s=62.33 / ds.fs_hz)
 
-The order is: group delay and the clock from the direct sound (they only move ``t0_s``), DC,
-band-pass, background subtraction,
+The order is: group delay (it only moves ``t0_s``), DC, band-pass, the clock from the direct
+sound (it only moves ``t0_s``), background subtraction,
 shared-clutter removal (:func:`remove_common`), direct-path blanking. Band-passing before
 subtracting means the same filter is applied to the background recordings (they are filtered
 with the scan).
@@ -398,9 +398,9 @@ def clock_from_direct(ds: Dataset, *, max_delay_s: float = 5e-4, min_snr_db: flo
     The direct sound travels the stated ``|tx - rx|`` and arrives ``|tx - rx| / c - t0``
     after sample 0 (:func:`clsas.focus.direct.direct_arrivals` finds it to a fraction of a
     sample). One shift, the median over the recordings where it is found, is added to every
-    ``t0_s``: a common ``t0_s`` stays common. An attached background (on the same samples)
-    stays aligned; :func:`apply` shifts a background dataset given to it by the same amount.
-    Run it before the direct sound is subtracted (background) or blanked.
+    ``t0_s``: a common ``t0_s`` stays common, and an attached background (on the same
+    samples) stays aligned. Run it before the direct sound is subtracted (background) or
+    blanked, and after filtering (:func:`apply` runs it after DC removal and band-pass).
 
     What it assumes: the stated speaker-microphone spacing is right, and the direct path (off
     the transducers' axes) is delayed by the chain as the echoes are. On the AirSAS scans it
@@ -467,8 +467,9 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
     group_delay_s, group_delay_samples : float, optional
         System delay to remove (:func:`remove_delay`), in seconds or in samples.
     direct_clock : bool
-        :func:`clock_from_direct`, after the group delay (on the recordings as given, before
-        the background is attached or anything is filtered).
+        :func:`clock_from_direct`, after DC removal and band-pass (on the filtered recordings,
+        before the background subtraction removes the direct sound; an attached background,
+        on the same samples, keeps its alignment).
     dc : bool
         :func:`remove_dc`.
     bandpass : bool, (f_lo_hz, f_hi_hz) or dict
@@ -493,19 +494,15 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
         group_delay_s = v.finite("group_delay_samples", group_delay_samples) / ds.fs_hz
     if group_delay_s is not None:
         ds = remove_delay(ds, group_delay_s)
-    clock_shift = 0.0
-    if _flag("direct_clock", direct_clock):
-        ds = _clock_step(ds)
-        clock_shift = ds.provenance[-1]["shift_s"]
     if background is not None and background is not False and src is not True:
         if isinstance(src, Dataset) and group_delay_s is not None:
             src = remove_delay(src, group_delay_s)  # the same rig, the same delay
-        if isinstance(src, Dataset) and clock_shift:
-            src = src.replace(t0_s=src.t0_s + clock_shift)  # the same rig, the same clock
         ds = attach_background(ds, src)
     if _flag("dc", dc):
         ds = remove_dc(ds)
     ds = _bandpass_option(ds, bandpass)
+    if _flag("direct_clock", direct_clock):  # on the filtered recordings; the background moves with them
+        ds = _clock_step(ds)
     if background is not None and background is not False:
         ds = subtract_background(ds, **bg_opts)
     if isinstance(common, str):

@@ -138,7 +138,7 @@ def test_your_own_data_preprocess_table(tmp_path):
     table = preprocess_table(cfg, str(tmp_path / "steps.toml"))
     table["background"] = str(tmp_path / table["background"])
     out = pp.from_table(scan.dataset, table)
-    assert [p["step"] for p in out.provenance][1:] == ["group_delay", "direct_clock", "dc", "bandpass", "background",
+    assert [p["step"] for p in out.provenance][1:] == ["group_delay", "dc", "bandpass", "direct_clock", "background",
                                                       "common", "blank_direct"]
 
 

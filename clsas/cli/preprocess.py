@@ -87,11 +87,11 @@ def add_preprocess_options(sp) -> None:
                               "the dataset's stored configuration)")
     g.add_argument("--group-delay-samples", type=float, metavar="N",
                    help="system (transducer) delay to remove, in samples (t0_s becomes t0_s - N/fs)")
-    g.add_argument("--direct-clock", action="store_true",
-                   help="set t0 from the direct speaker-to-microphone sound of the scan itself (one shift)")
     g.add_argument("--dc", action="store_true", help="subtract each recording's mean")
     g.add_argument("--bandpass", nargs="?", const="chirp", metavar="F_LO,F_HI",
                    help="zero-phase band-pass: the chirp's band (no value) or F_LO,F_HI in Hz")
+    g.add_argument("--direct-clock", action="store_true",
+                   help="set t0 from the direct speaker-to-microphone sound of the scan itself (one shift)")
     g.add_argument("--background", metavar="EMPTY.h5",
                    help="subtract this empty-scene scan (same stops), stretched to the scan's air")
     g.add_argument("--own-background", action="store_true", help="subtract the background stored in the dataset")
