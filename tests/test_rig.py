@@ -161,7 +161,7 @@ def test_timeouts_default_from_grbl_settings():
     with GrblEmulator(time_scale=0.01) as emu, GrblStage(emu.port, feed_mm_min=6000) as st:
         # $25=500 mm/min seek over 1.5 x 1000 mm, twice, plus 30 s
         assert st.home_timeout() == pytest.approx(2 * 1.5 * 1000 / 500 * 60 + 30)
-        assert st.move_timeout(1000.0) == pytest.approx(3 * 1000 / 6000 * 60 + 10)
+        assert st.move_timeout((0, 0), (-1000, 0)) == pytest.approx(3 * st.move_time((0, 0), (-1000, 0)) + 10)
     assert GrblStage("unused", home_timeout_s=7, move_timeout_s=3).home_timeout() == 7
 
 

@@ -15,7 +15,7 @@ from ..physics import speed_of_sound
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig
 from .emulator import Faults, GrblEmulator
-from .grbl import GrblStage, StageError
+from .grbl import GrblStage, StageError, StageRefused
 from .store import ScanFile
 
 __all__ = ["acquire", "stage_for", "audio_for", "recorder_for", "store_for", "run_stops", "ScanResult", "ScanAborted",
@@ -181,6 +181,9 @@ def acquire(
     sim_audio = simulate in (True, "all", "audio")
     if faults is not None and not sim_stage:
         raise ValueError("faults can only be injected into an emulated stage (simulate=True, 'all' or 'stage')")
+    if out.exists() and holds_no_stop(out):  # a scan that stopped before its first stop: start it again
+        log.info("%s holds no stop yet: starting it again", out)
+        out.unlink()
     if out.exists() and not resume:
         raise FileExistsError(f"{out} exists: resume it (--resume) or choose another file name")
     if not sim_stage and stage is None and not config.port:
@@ -215,10 +218,19 @@ def acquire(
                 emulator = GrblEmulator(faults=faults or Faults(), time_scale=time_scale, travel_mm=travel).start()
             stage = stage_for(config, emulator.port if emulator else None)
         try:
-            stage.open()
+            _open_stage(stage, store, out)
+        except BaseException:
+            stage.close()
+            raise
+        try:
             retried = run_stops(config, stage, recorder, store, progress=progress, on_stop=at,
                                 settle_s=config.settle_s * (time_scale if sim_stage else 1.0))
             store.close(complete=True)
+        except StageRefused as exc:  # before any move (homing refused): nothing to hold
+            done = store.stops_done
+            _drop_if_empty(store, out)
+            raise StageRefused(f"{exc}. " + (_NOTHING_MOVED if not done else f"Nothing was moved in this run; the "
+                               f"{done} stops saved in {out} are kept: fix it, then {hint}")) from None
         except KeyboardInterrupt:
             stage.feed_hold()
             done = store.stops_done
@@ -241,6 +253,40 @@ def acquire(
         store.close()
     done = config.n_stops
     return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
+
+
+_NOTHING_MOVED = "Nothing was moved and no stop recorded; fix it, then run the same command again"
+
+
+def _open_stage(stage: GrblStage, store: ScanFile, out: Path) -> None:
+    """Connect to the stage; a port that cannot be opened, or no controller on it, stops the
+    scan before it starts (nothing moved, the empty file removed)."""
+    try:
+        stage.open()
+    except StageError as exc:
+        _drop_if_empty(store, out)
+        cls = StageRefused if isinstance(exc, StageRefused) else StageError
+        raise cls(f"{exc}. {_NOTHING_MOVED}") from None
+
+
+def _drop_if_empty(store: ScanFile, out: Path) -> None:
+    """Close the scan file, and remove it if it holds no stop (so the same command starts it again)."""
+    done = store.stops_done
+    store.close()
+    if done == 0:
+        out.unlink(missing_ok=True)
+
+
+def holds_no_stop(path: str | Path) -> bool:
+    """Whether ``path`` is a scan file ``clsas acquire`` started that holds no stop yet."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return ("n_stops_planned" in f.attrs and not bool(f.attrs.get("complete", False))
+                    and "signals" in f and f["signals"].shape[0] == 0)
+    except OSError:
+        return False
 
 
 def _stored_air(path: Path) -> tuple[float, float]:
