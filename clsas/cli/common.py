@@ -4,6 +4,28 @@ and imaging a dataset with the command's flags."""
 from __future__ import annotations
 
 from contextlib import contextmanager
+from pathlib import Path
+
+#: the arguments that name an input HDF5 file (dataset or image), in any command
+H5_INPUTS = ("data", "a", "b", "image", "background")
+
+
+def check_input_files(args) -> None:
+    """Refuse an input HDF5 file that cannot be opened (truncated, corrupt, not HDF5), naming it,
+    before any work (a ``ValueError``: exit 2)."""
+    import h5py
+
+    for name in H5_INPUTS:
+        path = getattr(args, name, None)
+        if not isinstance(path, str) or not Path(path).is_file():
+            continue  # a missing file is the command's to report; an import's background is a folder
+        try:
+            with h5py.File(path, "r"):
+                pass
+        except OSError as exc:
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ValueError(f"{path} is not a readable HDF5 file ({why}): it may be truncated or corrupt; "
+                             "write it again (or restore a copy)") from None
 
 
 @contextmanager
@@ -98,3 +120,59 @@ def add_device_options(sp) -> None:
                     help="OpenCL platform:device numbers from `clsas devices` (default: $PYOPENCL_CTX or the best)")
     sp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sp.add_argument("-v", "--verbose", action="store_true", help="log what is computed and skipped")
+
+
+#: the packages each super-resolution method imports (the ``sparse`` extra), checked before any work
+METHOD_NEEDS = {"cbp-taylor": ("cvxpy",), "cbp-polar": ("nlopt",), "cbp-polar-socp": ("cvxpy",)}
+
+
+def check_method_dependencies(method: str | None) -> None:
+    """Refuse a sparse method whose solver is not installed, naming the extra (ImportError: exit 1),
+    instead of every recording falling back to the matched filter."""
+    from importlib.util import find_spec
+
+    from clsas._validate import install_hint
+
+    missing = [m for m in METHOD_NEEDS.get(method or "", ()) if find_spec(m) is None]
+    if missing:
+        raise ImportError(f"--method {method} needs {' and '.join(missing)} (the sparse extra), which is not "
+                          f"installed: {install_hint('sparse')}; or image with --method bp (or bpdn, which needs "
+                          "neither)")
+
+
+def is_simulator(platform: str) -> bool:
+    """Whether an OpenCL platform is a simulator (Oclgrind: checks kernels, 100-1000x slower)."""
+    return "oclgrind" in platform.lower()
+
+
+def check_device_request(args) -> None:
+    """``--device P:D`` must name a device ``clsas devices`` lists (else a ValueError: exit 2), not
+    fall back to NumPy unasked; a simulator is used only with a note that says so."""
+    import re
+    import sys
+
+    spec = getattr(args, "device", None)
+    if spec is None or getattr(args, "command", "") == "devices":
+        return
+    if getattr(args, "backend", None) == "numpy":
+        raise ValueError(f"--device {spec} picks an OpenCL device, but --backend numpy runs without one: "
+                         "give one of them")
+    m = re.fullmatch(r"\s*(\d*)(?::(\d*))?\s*", str(spec))
+    if m is None:
+        raise ValueError(f"--device must be P:D, the platform and device numbers `clsas devices` lists "
+                         f"(e.g. --device 1:0), got {spec!r}")
+    index = f"{int(m.group(1) or 0)}:{int(m.group(2) or 0)}"
+    from clsas import cl
+
+    try:
+        rows = cl.list_devices()
+    except cl.OpenCLUnavailable:
+        rows = []
+    row = next((r for r in rows if r.index == index), None)
+    if row is None:
+        listed = ", ".join(f"{r.index} ({r.device.strip()})" for r in rows) or "none (no OpenCL platform)"
+        raise ValueError(f"--device {spec}: no such OpenCL device; the devices are: {listed}. Leave --device out "
+                         "to use the best one (or NumPy where there is none)")
+    if is_simulator(row.platform):
+        print(f"note: --device {index} is {row.device.strip()}, a simulator for checking kernels, 100 to 1000 "
+              "times slower than a real device", file=sys.stderr)

@@ -236,6 +236,7 @@ class GrblStage(GrblLink):
         word = "G0" if self.feed_mm_min is None else "G1"
         feed = "" if self.feed_mm_min is None else f" F{self.feed_mm_min:.0f}"
         now = self.status()  # where the move starts (idle between moves), else the worst case
+        self._polled_at = time.monotonic()
         start = now.position_mm[:2] if now.state == "Idle" else self._farthest_corner(x_mm, y_mm)
         timeout = self.move_timeout(start, (x_mm, y_mm))
         log.debug("move to (%.3f, %.3f) mm: %s s planned, timeout %.1f s", x_mm, y_mm,
@@ -251,6 +252,7 @@ class GrblStage(GrblLink):
     def wait_idle(self, timeout_s: float) -> Status:
         """Poll ``?`` at ``poll_hz`` until the state is ``Idle``."""
         deadline = time.monotonic() + timeout_s
+        time.sleep(max(0.0, self.poll_s - (time.monotonic() - getattr(self, "_polled_at", -np.inf))))
         while True:
             t = time.monotonic()
             st = self.status()
