@@ -149,7 +149,7 @@ def test_hard_limit_alarm_then_jogging_off_retrips_unless_hard_limits_are_off(gr
 
 # GRBL 1.1h's factory settings ($110 = $111 = 500 mm/min, $120 = $121 = 10 mm/s^2, $25 = 500 mm/min,
 # homing and limits off, 200 mm travel) with the edits the README's "GRBL settings" table asks for
-README_EDITS = ["$20=1", "$21=1", "$22=1", "$130=1000", "$131=1000"]
+README_EDITS = ["$22=1", "$20=1", "$21=1", "$130=1000", "$131=1000"]  # $20 after $22 (else error:10)
 
 
 @pytest.mark.slow
@@ -168,8 +168,9 @@ def test_sample_config_scans_a_stock_board_after_the_readme_edits(grbl_exe, tmp_
         text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{g.port}"')
         # two stops 800 mm apart, as far out as the sample's aperture reaches (its edge stops at x = 0 would
         # sit on the home switch); feed_mm_min, the work area and the origin are the sample's
-        small = (text.replace("nx = 18", "nx = 2").replace("ny = 12", "ny = 1").replace("width_m = 1.0", "width_m = 0.8")
-                 .replace("settle_s = 0.5", "settle_s = 0").replace("repeats = 4", "repeats = 1"))
+        small = (text.replace("nx = 18", "nx = 2").replace("ny = 12", "ny = 1")
+                 .replace("width_m = 1.0", "width_m = 0.8").replace("settle_s = 0.5", "settle_s = 0")
+                 .replace("repeats = 4", "repeats = 1"))
         assert "feed_mm_min = 3000" in small and small != text
         conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
         conf.write_text(small)

@@ -28,17 +28,74 @@ def check_input_files(args) -> None:
                              "write it again (or restore a copy)") from None
 
 
+#: the methods the CLI offers instead of a slow one, fastest last (README: Super-resolution)
+FASTER = {"cbp-taylor": ("cbp-polar", "bpdn", "bp"), "cbp-polar-socp": ("cbp-polar", "bpdn", "bp"),
+          "cbp-polar": ("bpdn", "bp"), "bpdn": ("bp",)}
+#: a job estimated to take longer than this is announced with the faster alternatives
+SLOW_JOB_S = 60.0
+
+
 @contextmanager
-def progress_bar(desc: str, total: int, enabled: bool = True):
+def progress_bar(desc: str | tuple[str, ...], total: int, enabled: bool = True, announce=None):
+    """A progress bar (on stderr) named for the step it measures.
+
+    ``desc`` may name several steps that report through the same callback one after the other
+    (a sparse method super-resolves every recording, then backprojects): the bar takes the next
+    name when the count starts again. ``announce(step, elapsed_s, done, total)`` is called once
+    per step, after its first report, to warn of a long job.
+    """
+    import time
+
     from tqdm import tqdm
 
-    with tqdm(total=total, desc=desc, unit="stop", disable=not enabled, leave=False) as bar:
+    steps = (desc,) if isinstance(desc, str) else tuple(desc)
+    state = {"step": 0, "t0": time.perf_counter(), "announced": set()}
+    with tqdm(total=total, desc=steps[0], unit="stop", disable=not enabled, leave=False) as bar:
         def update(done: int, _total: int) -> None:
+            n, n_total = state.get("n", 0), state.get("total", total)
+            restarted = done < n or n >= n_total  # the step before finished: this is the next one
+            if restarted and state["step"] < len(steps) - 1:  # the next step reports through the same callback
+                state["step"] += 1
+                state["t0"] = time.perf_counter()
+                bar.set_description_str(steps[state["step"]])
+                bar.reset(total=_total)
             if bar.total != _total:  # a formation counts its own steps (ω-k: spatial-frequency columns)
                 bar.total = _total
             bar.update(done - bar.n)
+            state["n"], state["total"] = done, _total
+            step = state["step"]
+            if announce is not None and done > 0 and step not in state["announced"]:
+                state["announced"].add(step)
+                announce(steps[step], time.perf_counter() - state["t0"], done, _total)
 
         yield update
+
+
+def slow_job_notice(method: str):
+    """An ``announce`` for :func:`progress_bar`: after the first recording of a sparse method,
+    the estimated time of the whole job on stderr when it is over :data:`SLOW_JOB_S`, with the
+    faster methods."""
+    import sys
+
+    def announce(step: str, elapsed_s: float, done: int, total: int) -> None:
+        if not step.startswith("super-resolve") or done <= 0:
+            return
+        estimate = elapsed_s / done * total
+        if estimate > SLOW_JOB_S:
+            faster = ", ".join(f"--method {m}" for m in FASTER.get(method, ()))
+            print(f"\nnote: {method} took {elapsed_s:.1f} s for the first {done} of {total} recordings: about "
+                  f"{_duration(estimate)} for all of them (Ctrl-C stops it; faster: {faster})",
+                  file=sys.stderr, flush=True)
+
+    return announce
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds // 3600:.0f} h {seconds % 3600 / 60:.0f} min"
 
 
 def grid_arg(text: str | None, spacing: float | None, fallback):
@@ -102,8 +159,11 @@ def reconstruct_image(ds, grid, args, progress=True):
 
     formation = getattr(args, "formation", "bp")
     options = formation_options(getattr(args, "formation_option", None)) or None
-    with progress_bar("backproject" if formation == "bp" else formation, ds.n_meas, progress) as cb:
-        return clsas.reconstruct(ds, grid, method=getattr(args, "method", "bp"),
+    method = getattr(args, "method", "bp")
+    form = "backproject" if formation == "bp" else f"form ({formation})"
+    steps = (form,) if method == "bp" else (f"super-resolve ({method})", form)
+    with progress_bar(steps, ds.n_meas, progress, announce=slow_job_notice(method)) as cb:
+        return clsas.reconstruct(ds, grid, method=method,
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
                                  force=getattr(args, "force", False), formation=formation,
@@ -176,3 +236,16 @@ def check_device_request(args) -> None:
     if is_simulator(row.platform):
         print(f"note: --device {index} is {row.device.strip()}, a simulator for checking kernels, 100 to 1000 "
               "times slower than a real device", file=sys.stderr)
+
+
+def check_grids_fit(grids, args) -> None:
+    """The memory guard for every grid a command will image, run before any of the work starts
+    (``clsas demo`` images two scenes; ``reconstruct --autofocus`` works for minutes first)."""
+    from clsas import cl
+    from clsas.imaging.guard import check_grid
+
+    if getattr(args, "formation", "bp") != "bp":
+        return  # a formation checks its own memory (its tree or spectrum, not the grid alone)
+    sel = cl.select(getattr(args, "backend", None), getattr(args, "device", None))
+    for grid in grids:
+        check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=getattr(args, "force", False))

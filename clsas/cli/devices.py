@@ -35,7 +35,7 @@ def cmd_devices(args) -> int:
 def _print_variants(cl, rows) -> None:
     """The kernel width each kernel gets on each device, and why wider ones were refused."""
     if not rows:
-        print("--variants: no such device (see the P:D numbers above)")
+        raise ValueError("--variants --device: no such device (see the P:D numbers above)")
     for r in rows:
         q = cl.get_queue(r.index)
         print(f"kernel variants on {r.index} {r.device} (verdicts in {cl.cache_dir()}):")

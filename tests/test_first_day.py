@@ -1,0 +1,209 @@
+"""A user's first day, round two (issue 29): no silent downgrades, honest progress, guards before
+work, one exit-code table, and the README's hurdles."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from clsas.cli import COMMANDS, build_parser, main
+from clsas.cli.common import progress_bar, slow_job_notice
+
+SCENE = """
+[chirp]
+f_start_hz = 20000.0
+f_stop_hz = 30000.0
+duration_s = 0.002
+fs_hz = 96000.0
+
+[aperture]
+nx = 5
+ny = 4
+width_m = 0.3
+height_m = 0.2
+
+[[points]]
+position_m = [0.02, -0.01, 0.6]
+
+[grid]
+x_m = [-0.05, 0.05]
+y_m = [-0.05, 0.05]
+z_m = [0.55, 0.65]
+spacing_m = 0.01
+"""
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    d = tmp_path_factory.mktemp("first_day")
+    (d / "scene.toml").write_text(SCENE)
+    assert main(["simulate", str(d / "scene.toml"), str(d / "scan.h5"), "-q", "--backend", "numpy"]) == 0
+    assert main(["reconstruct", str(d / "scan.h5"), "-q", "--backend", "numpy"]) == 0
+    return d / "scan.h5"
+
+
+# -- 6: -q and -v before the command ----------------------------------------------------------
+
+@pytest.mark.parametrize("argv,quiet,verbose", [
+    (["-q", "limits"], True, False), (["limits", "-q"], True, False), (["-v", "devices"], False, True),
+    (["devices", "--verbose"], False, True), (["limits"], False, False), (["-q", "demo", "-v"], True, True),
+])
+def test_quiet_and_verbose_before_or_after_the_command(argv, quiet, verbose):
+    args = build_parser().parse_args(argv)
+    assert (args.quiet, args.verbose, args.debug) == (quiet, verbose, False)
+
+
+def test_quiet_before_the_command_runs_it(capsys):
+    assert main(["-q", "limits"]) == 0 and main(["-v", "limits", "--nx", "4"]) == 0
+    assert "range resolution" in capsys.readouterr().out.lower()
+
+
+# -- 7: one exit-code table, every command ------------------------------------------------------
+
+def _bad_input(tmp: Path) -> dict[str, list[str]]:
+    missing = str(tmp / "missing.h5")
+    return {
+        "demo": ["demo", "--out", str(tmp / "d"), "--spacing", "-0.01"],
+        "simulate": ["simulate", str(tmp / "missing.toml"), str(tmp / "x.h5")],
+        "reconstruct": ["reconstruct", missing],
+        "autofocus": ["autofocus", missing, str(tmp / "x.h5")],
+        "preprocess": ["preprocess", missing, str(tmp / "x.h5"), "--dc"],
+        "limits": ["limits", "--f-start", "30000", "--f-stop", "20000"],
+        "compare": ["compare", missing, missing],
+        "devices": ["devices", "--opencl-only", "--variants", "--device", "7:3"],
+        "acquire": ["acquire", str(tmp / "missing-rig.toml"), str(tmp / "x.h5")],
+        "import": ["import", str(tmp / "no-such-folder"), str(tmp / "x.h5")],
+        "export": ["export", missing, str(tmp / "x.npy")],
+        "bench": ["bench", "--formation", "no-such-formation", "--out", str(tmp / "b")],
+    }
+
+
+def test_every_command_exits_2_on_bad_input_with_one_line(tmp_path, capsys):
+    cases = _bad_input(tmp_path)
+    names = {sp.prog.split()[-1] for sp in build_parser()._subparsers._group_actions[0].choices.values()}
+    assert names == set(cases) and len(COMMANDS) == len(cases)  # a new command needs its case here
+    for name, argv in cases.items():
+        assert main(argv) == 2, name
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and "error" in err, (name, err)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "not-hdf5"])
+def test_a_damaged_h5_exits_2_naming_the_file(scan, tmp_path, capsys, damage):
+    bad = tmp_path / "bad.h5"
+    data = scan.read_bytes()
+    bad.write_bytes(data[: len(data) // 2] if damage == "truncated" else b"not an HDF5 file at all" * 100)
+    image = scan.with_name("scan-image.h5")
+    for argv in (["reconstruct", str(bad)], ["preprocess", str(bad), str(tmp_path / "o.h5"), "--dc"],
+                 ["autofocus", str(bad), str(tmp_path / "o.h5")], ["export", str(bad), str(tmp_path / "o.npy")],
+                 ["compare", str(image), str(bad)]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert str(bad) in err and "truncated or corrupt" in err and err.count("\n") == 1, err
+
+
+# -- 2: no silent downgrades --------------------------------------------------------------------
+
+@pytest.mark.parametrize("device,match", [("gpu", "must be P:D"), ("7:3", "no such OpenCL device")])
+def test_a_device_that_does_not_exist_is_an_error_not_numpy(scan, tmp_path, capsys, device, match):
+    out = tmp_path / "img.h5"
+    assert main(["reconstruct", str(scan), "--device", device, "--out", str(out), "-q"]) == 2
+    assert match in capsys.readouterr().err and not out.exists()
+    assert main(["reconstruct", str(scan), "--device", "1:0", "--backend", "numpy", "--out", str(out)]) == 2
+
+
+def test_devices_labels_the_simulator_and_auto_never_picks_it(capsys):
+    from clsas import cl
+
+    rows = cl.list_devices()
+    if not any("oclgrind" in r.platform.lower() for r in rows):
+        pytest.skip("no Oclgrind platform here")
+    assert main(["devices", "--opencl-only"]) == 0
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "Oclgrind" in ln]
+    assert lines and all("SIMULATOR" in ln and not ln.startswith("*") for ln in lines)
+
+
+def test_a_sparse_method_without_its_solver_is_refused_before_any_work(scan, tmp_path, capsys, monkeypatch):
+    import importlib.util
+
+    import clsas
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "cvxpy" else real(name, *a))
+    monkeypatch.setattr(clsas, "reconstruct", lambda *a, **k: pytest.fail("work started"))
+    out = tmp_path / "img.h5"
+    assert main(["reconstruct", str(scan), "--method", "cbp-taylor", "--out", str(out), "-q"]) == 1
+    err = capsys.readouterr().err
+    assert "needs cvxpy (the sparse extra)" in err and "[sparse]'" in err and "pip install" in err
+    assert not out.exists()
+
+
+# -- 1: progress bars name their step; a long job says so ----------------------------------------
+
+def test_progress_names_each_step_it_measures(scan, tmp_path, capsys):
+    pytest.importorskip("scipy.optimize")
+    assert main(["reconstruct", str(scan), "--method", "bpdn", "--backend", "numpy",
+                 "--out", str(tmp_path / "i.h5")]) == 0
+    err = capsys.readouterr().err
+    assert "super-resolve (bpdn)" in err and "backproject" in err
+
+
+def test_progress_bar_switches_name_when_the_count_starts_again():
+    seen = []
+    with progress_bar(("super-resolve (cbp-taylor)", "backproject"), 3, enabled=False,
+                      announce=lambda step, *a: seen.append(step)) as cb:
+        for i in (1, 2, 3, 1, 2, 3):
+            cb(i, 3)
+    assert seen == ["super-resolve (cbp-taylor)", "backproject"]
+
+
+def test_a_job_over_a_minute_is_announced_with_the_faster_methods(capsys):
+    notice = slow_job_notice("cbp-taylor")
+    notice("super-resolve (cbp-taylor)", 352.0, 1, 216)
+    err = capsys.readouterr().err
+    assert "about 21 h 7 min for all of them" in err and "--method cbp-polar, --method bpdn, --method bp" in err
+    notice("super-resolve (cbp-taylor)", 0.2, 1, 216)  # 43 s: said nothing
+    notice("backproject", 100.0, 1, 216)
+    assert capsys.readouterr().err == ""
+
+
+# -- 5: guards for all the work before any of it --------------------------------------------------
+
+def test_demo_checks_every_scene_memory_before_the_first_starts(tmp_path, monkeypatch, capsys):
+    import clsas
+    from clsas.imaging import guard
+    from clsas.scenes import demo_configs, parse_config
+
+    sizes = [parse_config(t).grid.size for t in demo_configs(0.01).values()]
+    assert sizes[0] < sizes[1]  # front fits, corner does not
+    per_voxel = guard.bytes_per_voxel("numpy")
+    monkeypatch.setattr(guard, "available_memory_bytes", lambda: int(per_voxel * (sizes[0] + sizes[1]) / 2 / 0.8))
+    monkeypatch.setattr(clsas, "simulate", lambda *a, **k: pytest.fail("work started before the guard"))
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--backend", "numpy", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert f"= {sizes[1]:.3g} voxels" in err and "(at most 80% of it is used)" in err
+    assert not (tmp_path / "demo").exists()
+
+
+# -- 10: README hurdles ----------------------------------------------------------------------------
+
+def test_submodules_work_after_a_plain_import():
+    code = ("import clsas; assert callable(clsas.synthetic.turntable_scan); assert callable(clsas.io.import_folder); "
+            "print('ok')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.stdout.strip() == "ok", out.stderr
+
+
+def test_bandpass_outside_the_chirp_band_is_refused(scan, tmp_path, capsys):
+    out = tmp_path / "p.h5"
+    assert main(["preprocess", str(scan), str(out), "--bandpass", "40000,45000"]) == 2
+    err = capsys.readouterr().err
+    assert "outside the chirp's band 20000-30000 Hz" in err and not out.exists()
+    assert main(["preprocess", str(scan), str(out), "--bandpass", "30000,20000"]) == 2
+    assert main(["preprocess", str(scan), str(out), "--bandpass", "18000,32000", "-q"]) == 0
+
+
+def test_limits_refuses_a_band_given_high_to_low(capsys):
+    assert main(["limits", "--f-start", "30000", "--f-stop", "20000"]) == 2
+    assert "above --f-stop" in capsys.readouterr().err
