@@ -207,3 +207,17 @@ def test_bandpass_outside_the_chirp_band_is_refused(scan, tmp_path, capsys):
 def test_limits_refuses_a_band_given_high_to_low(capsys):
     assert main(["limits", "--f-start", "30000", "--f-stop", "20000"]) == 2
     assert "above --f-stop" in capsys.readouterr().err
+
+
+def test_the_readme_scene_and_rig_files_are_shipped():
+    from clsas import rig
+    from clsas.scenes import parse_config
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    block = readme.split("A scene file (this one is `examples/scene.toml`", 1)[1].split("```toml\n", 1)[1]
+    block = block.split("```", 1)[0]
+    shipped = (root / "examples" / "scene.toml").read_text()
+    assert shipped.split("\n", 1)[1] == block  # the README's text, after one comment line
+    assert parse_config(shipped).aperture.n_meas == 216
+    assert (root / "examples" / "rig.toml").read_text() == rig.SAMPLE_RIG_TOML

@@ -120,6 +120,11 @@ class GrblStage(GrblLink):
                         f"coordinates run from -{travel:g} to 0 mm, so set [stage] work_area_mm within "
                         f"[-{travel:g}, 0] and [scan] origin_mm inside it (or set ${130 + 'xy'.index(axis)} "
                         "to the stage's real travel)")
+        pulloff = st.get(27, 1.0)
+        if int(st.get(21, 0)) == 1 and (self.work_area_mm[:, 1] > -pulloff).any():
+            log.warning("GRBL's hard limits are on ($21=1) and stage.work_area_mm reaches machine 0, where homing "
+                        "found the switches: a stop there presses a switch and raises ALARM:1; keep work_area_mm's "
+                        "upper ends at most -%g mm (the pull-off, $27)", pulloff)
         capped = [k for k in (110, 111) if self.feed_mm_min is not None and 0 < st.get(k, np.inf) < self.feed_mm_min]
         if capped:
             log.warning("stage.feed_mm_min = %g mm/min is above GRBL's maximum rate %s: GRBL moves at most at that "
