@@ -250,3 +250,49 @@ def test_fig4_errors_in_the_readme_are_what_the_example_gives(tmp_path):
              "refined CBP-P": "CBP-Polar (refined)"}
     for short, full in names.items():
         assert float(quoted[short]) == pytest.approx(ran[full], rel=0.1), short
+
+
+def test_a_warning_repeated_word_for_word_is_said_once_per_command(monkeypatch, caplog):
+    import logging
+
+    from clsas.cli import limits
+
+    def noisy(args):
+        for _ in range(8):
+            logging.getLogger("clsas.compression").warning("FMCW: the echoes overlap the chirp by 40%")
+        logging.getLogger("clsas.compression").warning("another warning")
+        return 0
+
+    monkeypatch.setattr(limits, "cmd_limits", noisy)
+    with caplog.at_level(logging.WARNING):
+        assert main(["limits"]) == 0
+        assert main(["limits"]) == 0  # once per command, not once per process
+    texts = [r.getMessage() for r in caplog.records]
+    assert texts.count("FMCW: the echoes overlap the chirp by 40%") == 2 and texts.count("another warning") == 2
+
+
+def test_the_readme_bench_figures_are_the_results_file():
+    """The figures the README quotes for the latest full run are the ones its results file holds."""
+    import json
+    import re
+
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    para = readme.split("Latest full run, with the C/OpenMP peer (`", 1)[1].split("\n\n", 1)[0]
+    stem = para.split(".*`", 1)[0]
+    res = json.loads((root / (stem + ".json")).read_text())
+    (demo, cube) = res["backprojection"][:2]
+    flat = " ".join(para.split())
+    m = re.search(r"backprojection ([\d.e+]+) pairs/s on the demo grid × 216 stops and ([\d.e+]+) on 64³", flat)
+    assert float(m.group(1)) == pytest.approx(demo["opencl_kernel"]["rate_per_s"], rel=0.05)
+    assert float(m.group(2)) == pytest.approx(cube["opencl_kernel"]["rate_per_s"], rel=0.05)
+    m = re.search(r"\(([\d.]+)× and ([\d.]+)×\), (\d+)× the NumPy twin and (\d+)-(\d+)× the Numba peer", flat)
+    assert float(m.group(1)) == pytest.approx(demo["ratios"]["opencl_kernel / c_openmp_peer"], abs=0.01)
+    assert float(m.group(2)) == pytest.approx(cube["ratios"]["opencl_kernel / c_openmp_peer"], abs=0.01)
+    assert int(m.group(3)) == round(demo["ratios"]["opencl_kernel / numpy_twin"])
+    numba = sorted(r["ratios"]["opencl_kernel / numba_peer"] for r in (demo, cube))
+    assert (int(m.group(4)), int(m.group(5))) == (round(numba[0]), round(numba[1]))
+    comp = res["compression"]["ratios"]
+    m = re.search(r"ran ([\d.]+)× scipy's `fftconvolve` \(kernel time; ([\d.]+)× in wall time", flat)
+    assert float(m.group(1)) == pytest.approx(comp["opencl_fft_kernel / fftconvolve"], abs=0.05)
+    assert float(m.group(2)) == pytest.approx(comp["opencl_fft_wall / fftconvolve"], abs=0.01)

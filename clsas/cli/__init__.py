@@ -42,6 +42,23 @@ BAD_INPUT = (ValueError, TypeError, FileNotFoundError, FileExistsError, IsADirec
 _COMMON = ("quiet", "verbose", "debug")
 
 
+class _Once(logging.Filter):
+    """Pass each distinct warning once per process (info and debug lines always)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[tuple[str, str]] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING:
+            return True
+        key = (record.name, record.getMessage())
+        if key in self.seen:
+            return False
+        self.seen.add(key)
+        return True
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging",
                                 epilog="exit status: 0 done, 1 failed, 2 bad input (the message says what to fix), "
@@ -67,11 +84,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status (0 done, 1 failed, 2 bad input, 3 scan interrupted)."""
-    from clsas.rig.grbl_link import StageRefused
-
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    # a warning repeated word for word (bench's FMCW) is said once per command (one filter per handler)
+    filters = [(handler, _Once()) for handler in logging.getLogger().handlers]
+    for handler, once in filters:
+        handler.addFilter(once)
+    try:
+        return _run(args)
+    finally:
+        for handler, once in filters:
+            handler.removeFilter(once)
+
+
+def _run(args) -> int:
+    from clsas.rig.grbl_link import StageRefused
+
     if not args.quiet:
         # the first run on a machine checks each kernel variant in a child process: say so
         logging.getLogger("clsas.cl.variants").setLevel(logging.INFO)
