@@ -296,3 +296,43 @@ def test_the_readme_bench_figures_are_the_results_file():
     m = re.search(r"ran ([\d.]+)× scipy's `fftconvolve` \(kernel time; ([\d.]+)× in wall time", flat)
     assert float(m.group(1)) == pytest.approx(comp["opencl_fft_kernel / fftconvolve"], abs=0.05)
     assert float(m.group(2)) == pytest.approx(comp["opencl_fft_wall / fftconvolve"], abs=0.01)
+
+
+def test_autofocus_reports_one_group_delay_with_one_sign(scan):
+    """An error-free scan: the summary's group delay and the note on the delay from sharpness
+    alone are one number (they were printed with opposite signs: +2.36 us, then -2.4 us)."""
+    import re
+
+    import clsas
+    from clsas.scenes import stored_grid_and_truth
+
+    ds = clsas.load(scan)
+    grid, _ = stored_grid_and_truth(ds.config)
+    _, rep = clsas.autofocus(ds, grid, methods=("delay",), backend="numpy", max_iter=5)
+    text = rep.summary()
+    summary = float(re.search(r"group delay ([-+][\d.]+) us", text).group(1))
+    note = float(re.search(r"group delay from sharpness alone .*: ([-+][\d.]+) us", text).group(1))
+    assert note == pytest.approx(summary, abs=0.051)
+
+
+def test_pictures_hold_no_marker_that_is_not_drawn_and_titles_fit(tmp_path):
+    """The corner picture's legend showed the hidden reflector's marker, drawn nowhere (it is
+    outside the grid); a plane image's long title was clipped at the figure's edges."""
+    import numpy as np
+
+    import clsas
+
+    ds = clsas.simulate(clsas.Scene(np.array([[0.0, 0.0, 0.6], [0.5, 0.0, 0.6]]), visible=[True, False]),
+                        clsas.raster_aperture(4, 3, 0.3, 0.2), clsas.lfm_chirp(20e3, 30e3, 2e-3, 96e3), 96e3)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.6, 0.6), 0.01)  # a plane
+    image = clsas.reconstruct(ds, grid, backend="numpy")
+    scene = clsas.Scene(np.array([[0.0, 0.0, 0.6], [0.5, 0.0, 0.6]]), visible=[True, False])
+    fig = image.plot(None, scene=scene, title="a long title " * 25)
+    renderer = fig.canvas.get_renderer()
+    fig.draw(renderer)
+    box = fig._suptitle.get_window_extent(renderer)
+    assert box.x0 >= 0 and box.x1 <= fig.bbox.x1  # the whole title is inside the figure
+    for ax in fig.axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            if hasattr(handle, "get_xdata") and handle.get_marker() not in ("", "None", None):
+                assert len(handle.get_xdata()) > 0, f"legend entry {label!r} has a marker drawn nowhere"

@@ -139,8 +139,8 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
 
         dd, m_d, n_ev = _bounded_search(f_delay, -max_delay_s, max_delay_s, step=max_delay_s / 10, tol=2e-7)
         t0_est = t0_est + dd
-        rep.notes.append(f"delay from sharpness alone (weakly determined: it mostly shifts the image): "
-                         f"{dd * 1e6:+.1f} us")
+        rep.notes.append(f"group delay from sharpness alone (weakly determined: it mostly shifts the image): "
+                         f"{-dd * 1e6:+.1f} us")  # the summary's sign: t0_s lowered by it
         rep.stages.append({"step": "delay", "metric": m_d, "evaluations": n_ev, "delay_s": dd,
                            "time_s": time.perf_counter() - t})
 
