@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import add_device_options, grid_arg
+from .common import add_device_options, check_grids_fit, grid_arg
 
 
 def add_autofocus_options(sp) -> None:
@@ -68,6 +68,7 @@ def cmd_autofocus(args) -> int:
     ds = clsas.load(args.data)
     stored_grid, _ = stored_grid_and_truth(ds.config)
     grid = grid_arg(args.grid, args.spacing, stored_grid)
+    check_grids_fit([grid], args)  # before the minutes of focusing, not at the first image
     out, rep = run_autofocus(ds, grid, args)
     out.save(args.out)
     print(f"wrote {args.out}" + ("" if rep.improved else " (the input, unchanged: it did not get sharper)"))
