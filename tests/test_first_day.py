@@ -336,3 +336,15 @@ def test_pictures_hold_no_marker_that_is_not_drawn_and_titles_fit(tmp_path):
         for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
             if hasattr(handle, "get_xdata") and handle.get_marker() not in ("", "None", None):
                 assert len(handle.get_xdata()) > 0, f"legend entry {label!r} has a marker drawn nowhere"
+
+
+def test_bench_help_and_readme_agree_on_how_long_the_sets_take():
+    root = Path(__file__).resolve().parents[1]
+    readme = (root / "README.md").read_text()
+    quick = readme.split("clsas bench                     # the quick set, ", 1)[1].split(" on a", 1)[0]
+    full = readme.split("clsas bench --full              # the full set, ", 1)[1].split(" on a", 1)[0]
+    sub = build_parser()._subparsers._group_actions[0].choices["bench"]
+    helps = " ".join(a.help or "" for a in sub._actions) + " " + (sub.description or "")
+    assert f"the full set ({full} on a 2-core CPU" in helps and f"the quick set: {quick} on a 2-core CPU" in " ".join(
+        a.help or "" for a in build_parser()._subparsers._group_actions[0]._choices_actions if a.dest == "bench")
+    assert quick == "about 2 minutes" and full == "3 to 8 minutes"
