@@ -348,3 +348,24 @@ def test_bench_help_and_readme_agree_on_how_long_the_sets_take():
     assert f"the full set ({full} on a 2-core CPU" in helps and f"the quick set: {quick} on a 2-core CPU" in " ".join(
         a.help or "" for a in build_parser()._subparsers._group_actions[0]._choices_actions if a.dest == "bench")
     assert quick == "about 2 minutes" and full == "3 to 8 minutes"
+
+
+def test_a_convex_method_over_a_minute_is_announced_before_any_work(scan, capsys):
+    """CBP-Taylor on the README's scene: about 350 s per recording, 21 h for the scan; said before
+    the first recording starts, not after it ends."""
+    import clsas
+    from clsas.cli.common import announce_slow_method, estimated_sparse_s
+    from clsas.scenes import parse_config, stored_grid_and_truth
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = parse_config((root / "examples" / "scene.toml").read_text())
+    ds = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=20, seed=0, chirp=cfg.chirp)
+    est = estimated_sparse_s(ds, cfg.grid, "cbp-taylor")
+    assert 10 * 3600 < est < 40 * 3600
+    assert estimated_sparse_s(ds, cfg.grid, "cbp-polar") is None
+    announce_slow_method(ds, cfg.grid, "cbp-taylor")
+    err = capsys.readouterr().err
+    assert "note: cbp-taylor solves a convex program per recording: roughly 2" in err and "--method bpdn" in err
+    small = clsas.load(scan)
+    announce_slow_method(small, stored_grid_and_truth(small.config)[0], "bpdn")  # timed on its first recording
+    assert capsys.readouterr().err == ""

@@ -90,6 +90,41 @@ def slow_job_notice(method: str):
     return announce
 
 
+#: CBP-Taylor's time per recording, s, at a number of atoms (about one per sample of the gate
+#: plus a pulse each side): about 350 s at the README scene's 1470 (issue 29, a 2-core CPU). The
+#: time grows more slowly than the cube of the size (the atoms are short, so the problem is
+#: sparse); an exponent of 1.5 is assumed, and the first recording's measured time corrects it
+CONVEX_S_PER_RECORDING = {"cbp-taylor": (350.0, 1470), "cbp-polar-socp": (350.0, 1470)}
+CONVEX_EXPONENT = 1.5
+
+
+def estimated_sparse_s(ds, grid, method: str) -> float | None:
+    """A rough time (s) for super-resolving every recording of ``ds`` on ``grid`` by a convex
+    (cvxpy) method, from the gates' lengths, before any solve; None for the other methods."""
+    import numpy as np
+
+    from clsas.imaging.plan import plan_reconstruction
+
+    if method not in CONVEX_S_PER_RECORDING:
+        return None
+    t_ref, k_ref = CONVEX_S_PER_RECORDING[method]
+    gates = plan_reconstruction(ds, grid, []).gates_s
+    k = (gates[:, 1] - gates[:, 0] + 2 * len(ds.waveform) / ds.fs_hz) * ds.fs_hz + 1  # atoms at one per sample
+    return float(np.sum(t_ref * (k / k_ref) ** CONVEX_EXPONENT))
+
+
+def announce_slow_method(ds, grid, method: str) -> None:
+    """Before any work: say when a convex method's rough estimate for the job is over a minute."""
+    import sys
+
+    est = estimated_sparse_s(ds, grid, method)
+    if est is not None and est > SLOW_JOB_S:
+        faster = ", ".join(f"--method {m}" for m in FASTER.get(method, ()))
+        print(f"note: {method} solves a convex program per recording: roughly {_duration(est)} for these "
+              f"{ds.n_meas} recordings on a 2-core CPU (the first recording's time will say more; Ctrl-C "
+              f"stops it; faster: {faster})", file=sys.stderr, flush=True)
+
+
 def _duration(seconds: float) -> str:
     if seconds < 120:
         return f"{seconds:.0f} s"
@@ -162,6 +197,7 @@ def reconstruct_image(ds, grid, args, progress=True):
     method = getattr(args, "method", "bp")
     form = "backproject" if formation == "bp" else f"form ({formation})"
     steps = (form,) if method == "bp" else (f"super-resolve ({method})", form)
+    announce_slow_method(ds, grid, method)
     with progress_bar(steps, ds.n_meas, progress, announce=slow_job_notice(method)) as cb:
         return clsas.reconstruct(ds, grid, method=method,
                                  compression=getattr(args, "compression", "matched"),
