@@ -369,3 +369,24 @@ def test_a_convex_method_over_a_minute_is_announced_before_any_work(scan, capsys
     small = clsas.load(scan)
     announce_slow_method(small, stored_grid_and_truth(small.config)[0], "bpdn")  # timed on its first recording
     assert capsys.readouterr().err == ""
+
+
+def test_a_pyopencl_ctx_that_names_no_device_is_an_error_too(scan, tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("PYOPENCL_CTX", "7:3")
+    out = tmp_path / "img.h5"
+    assert main(["reconstruct", str(scan), "--out", str(out), "-q"]) == 2
+    assert "PYOPENCL_CTX=7:3: no such OpenCL device" in capsys.readouterr().err and not out.exists()
+    assert main(["reconstruct", str(scan), "--out", str(out), "-q", "--backend", "numpy"]) == 0
+
+
+def test_an_interrupted_scan_exits_3(tmp_path, monkeypatch, capsys):
+    from clsas import rig
+
+    def interrupted(*a, **k):
+        raise rig.ScanInterrupted("interrupted at stop 3 of 12; 2 stops are saved in x.h5; resume with: ...", 2)
+
+    monkeypatch.setattr(rig, "acquire", interrupted)
+    conf = tmp_path / "rig.toml"
+    conf.write_text(rig.SAMPLE_RIG_TOML)
+    assert main(["acquire", str(conf), str(tmp_path / "x.h5"), "-q"]) == 3
+    assert "2 stops are saved" in capsys.readouterr().err

@@ -244,19 +244,26 @@ def is_simulator(platform: str) -> bool:
 def check_device_request(args) -> None:
     """``--device P:D`` must name a device ``clsas devices`` lists (else a ValueError: exit 2), not
     fall back to NumPy unasked; a simulator is used only with a note that says so."""
+    import os
     import re
     import sys
 
-    spec = getattr(args, "device", None)
-    if spec is None or getattr(args, "command", "") == "devices":
+    if getattr(args, "command", "") == "devices" or not hasattr(args, "backend"):
+        return
+    spec, what = getattr(args, "device", None), "--device"
+    if spec is None and os.environ.get("PYOPENCL_CTX", "").strip():
+        spec, what = os.environ["PYOPENCL_CTX"].strip(), "PYOPENCL_CTX"  # as explicit a request as --device
+    if spec is None:
         return
     if getattr(args, "backend", None) == "numpy":
+        if what == "PYOPENCL_CTX":
+            return  # the environment's choice does not bind a NumPy run
         raise ValueError(f"--device {spec} picks an OpenCL device, but --backend numpy runs without one: "
                          "give one of them")
     m = re.fullmatch(r"\s*(\d*)(?::(\d*))?\s*", str(spec))
     if m is None:
-        raise ValueError(f"--device must be P:D, the platform and device numbers `clsas devices` lists "
-                         f"(e.g. --device 1:0), got {spec!r}")
+        raise ValueError(f"{what} must be P:D, the platform and device numbers `clsas devices` lists "
+                         f"(e.g. 1:0), got {spec!r}")
     index = f"{int(m.group(1) or 0)}:{int(m.group(2) or 0)}"
     from clsas import cl
 
@@ -267,10 +274,10 @@ def check_device_request(args) -> None:
     row = next((r for r in rows if r.index == index), None)
     if row is None:
         listed = ", ".join(f"{r.index} ({r.device.strip()})" for r in rows) or "none (no OpenCL platform)"
-        raise ValueError(f"--device {spec}: no such OpenCL device; the devices are: {listed}. Leave --device out "
+        raise ValueError(f"{what}={spec}: no such OpenCL device; the devices are: {listed}. Leave it out "
                          "to use the best one (or NumPy where there is none)")
     if is_simulator(row.platform):
-        print(f"note: --device {index} is {row.device.strip()}, a simulator for checking kernels, 100 to 1000 "
+        print(f"note: {what}={index} is {row.device.strip()}, a simulator for checking kernels, 100 to 1000 "
               "times slower than a real device", file=sys.stderr)
 
 
