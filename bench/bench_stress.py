@@ -49,9 +49,9 @@ def stalls(n_seeds: int) -> dict:
     from clsas.bench.kecho import _task_for, draw_k
     from clsas.sparse import delay_error, lam_noise, sparse_echoes
 
-    refined = importlib.import_module("clsas.sparse.refined")
+    varpro = importlib.import_module("clsas.sparse.varpro")
     counts: collections.Counter = collections.Counter()
-    fit = refined._VarPro.fit
+    fit = varpro.VarPro.fit
 
     def counted(self, *args, **kwargs):
         out = fit(self, *args, **kwargs)
@@ -60,7 +60,7 @@ def stalls(n_seeds: int) -> dict:
         return out
 
     load, t = _load(), time.perf_counter()
-    refined._VarPro.fit = counted
+    varpro.VarPro.fit = counted
     try:
         for k in (2, 3, 4, 5):
             for ratio in (1.0, 0.5):
@@ -75,7 +75,7 @@ def stalls(n_seeds: int) -> dict:
                     counts["answers " + e.status.split(" (")[0]] += 1
                     counts["succeeded"] += bool(ok)
     finally:
-        refined._VarPro.fit = fit
+        varpro.VarPro.fit = fit
     return {**dict(counts), "time_s": time.perf_counter() - t, "load": load}
 
 

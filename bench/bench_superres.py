@@ -76,8 +76,8 @@ def bpdn_vs_cvxpy(n_atoms=3600, modes=("positive", "real")):
 
 def measured(n_recordings: int, methods=("bpdn", "cbp-polar")) -> list[dict]:
     """Each method on the same measured-like recordings, one at a time (time per recording)."""
-    from clsas.imaging.sparse import superres_profiles
     from clsas.sparse import gram
+    from clsas.sparse.profiles import superres_profiles
 
     ds, gates = measured_like(n_recordings)
     rows = []

@@ -6,16 +6,20 @@ __version__ = "0.1.0"
 
 from . import preprocess  # a module: clsas.preprocess.apply(ds, ...)
 from .apertures import aperture_from_csv, circular_aperture, helical_aperture
-from .compression import Profiles, compress
+from .compression import compress
 from .dataset import Dataset, load
 
 # the function, not its package: clsas.autofocus(dataset, grid) (the package's other names are
 # imported from it: from clsas.focus import AutofocusReport, score)
 from .focus import autofocus
+from .formation.bp import Backprojector, backproject
 from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
-from .imaging import Backprojector, Image, ReconstructionPlan, backproject, reconstruct
+from .image import Image
 from .physics import air_absorption_db_per_m, resolution_limits, speed_of_sound
+from .pipeline import reconstruct
+from .profiles import Profiles
 from .quality import compare, tcr_db
+from .rangegate import ReconstructionPlan
 from .signals import analytic, lfm_chirp
 from .simulation import simulate
 

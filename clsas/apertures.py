@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _validate as v
-from .geometry import _BISTATIC, _STAGE, _TX_OFFSET, Aperture, _mic_offsets, _per_mic
+from . import validate as v
+from .geometry import BISTATIC_COLUMNS, STAGE_COLUMNS, TX_OFFSET_M, Aperture, aperture_from_stops, mic_offsets
 
 __all__ = ["circular_aperture", "helical_aperture", "aperture_from_csv"]
 
@@ -31,7 +31,7 @@ def _ring(azimuth_rad: np.ndarray, radius: float, z_m: np.ndarray, center: np.nd
                       np.stack([-cs, -sn, zero], 1)], 1)  # local z: towards the axis
     tx = stage + np.einsum("c,ncd->nd", txo, frame)
     rx = stage[:, None, :] + np.einsum("kc,ncd->nkd", rxo, frame)
-    return _per_mic(stage, tx, rx)
+    return aperture_from_stops(stage, tx, rx)
 
 
 def _ring_args(radius_m, center_m, height_m, mode, tx_offset_m, rx_offset_m, rx_offsets_m):
@@ -40,7 +40,7 @@ def _ring_args(radius_m, center_m, height_m, mode, tx_offset_m, rx_offset_m, rx_
     h = v.finite("height_m", height_m)
     v.choice("mode", mode, ("turntable", "arc"))
     txo = v.array("tx_offset_m", tx_offset_m, shape=(3,))
-    return r, c, h, (-1.0 if mode == "turntable" else 1.0), txo, _mic_offsets(rx_offset_m, rx_offsets_m)
+    return r, c, h, (-1.0 if mode == "turntable" else 1.0), txo, mic_offsets(rx_offset_m, rx_offsets_m)
 
 
 def circular_aperture(
@@ -52,7 +52,7 @@ def circular_aperture(
     start_deg: float = 0.0,
     stop_deg: float | None = None,
     mode: str = "turntable",
-    tx_offset_m: tuple[float, float, float] = _TX_OFFSET,
+    tx_offset_m: tuple[float, float, float] = TX_OFFSET_M,
     rx_offset_m: tuple[float, float, float] | None = None,
     rx_offsets_m: np.ndarray | None = None,
 ) -> Aperture:
@@ -124,7 +124,7 @@ def helical_aperture(
     height_m: float = 0.0,
     start_deg: float = 0.0,
     mode: str = "turntable",
-    tx_offset_m: tuple[float, float, float] = _TX_OFFSET,
+    tx_offset_m: tuple[float, float, float] = TX_OFFSET_M,
     rx_offset_m: tuple[float, float, float] | None = None,
     rx_offsets_m: np.ndarray | None = None,
 ) -> Aperture:
@@ -213,32 +213,59 @@ def aperture_from_csv(
     """
     v.choice("units", units, ("m", "mm"))
     scale = 1e-3 if units == "mm" else 1.0
-    names = {k: k for k in _BISTATIC + _STAGE}
+    names = _column_names(columns)
+    path = Path(path)
+    rows = list(_csv_rows(path))
+    col, keys, bistatic, has_stage = _csv_layout(path, rows, names)
+    table = _csv_table(path, rows, col, keys, names) * scale
+    if bistatic:
+        if tx_offset_m is not None or rx_offset_m is not None or rx_offsets_m is not None:
+            raise ValueError(f"{path} gives speaker and microphone positions (tx_x..rx_z): "
+                             "tx_offset_m, rx_offset_m and rx_offsets_m apply only to the x,y,z layout")
+        tx, rx = table[:, 0:3], table[:, 3:6]
+        return Aperture(tx, rx, table[:, 6:9] if has_stage else tx)
+    txo = v.array("tx_offset_m", TX_OFFSET_M if tx_offset_m is None else tx_offset_m, shape=(3,))
+    rxo = mic_offsets(rx_offset_m, rx_offsets_m)
+    return aperture_from_stops(table, table + txo, table[:, None, :] + rxo[None])
+
+
+def _column_names(columns: Mapping[str, str] | None) -> dict[str, str]:
+    """The header name of each standard column: its own name, or the one ``columns`` gives."""
+    names = {k: k for k in BISTATIC_COLUMNS + STAGE_COLUMNS}
     for key, header in (columns or {}).items():
         if key not in names:
             raise ValueError(f"columns has an unknown key {key!r}; the keys are {', '.join(names)}")
         if not isinstance(header, str):
             raise TypeError(f"columns[{key!r}] must be a header name (str), got {header!r}")
         names[key] = header
-    path = Path(path)
-    rows = list(_csv_rows(path))
+    return names
+
+
+def _csv_layout(path: Path, rows: list, names: dict[str, str]):
+    """From the header row: (field index of each column or None, the columns to read in order,
+    whether the layout is bistatic, whether stage columns are there)."""
     if not rows:
         raise ValueError(f"{path}: no header row (the file is empty)")
     hline, header = rows[0]
     where = {h.strip().lower(): i for i, h in enumerate(header)}
     col = {k: where.get(h.strip().lower()) for k, h in names.items()}
-    bistatic = any(col[k] is not None for k in _BISTATIC)
-    need = _BISTATIC if bistatic else _STAGE
+    bistatic = any(col[k] is not None for k in BISTATIC_COLUMNS)
+    need = BISTATIC_COLUMNS if bistatic else STAGE_COLUMNS
     missing = [names[k] for k in need if col[k] is None]
     if missing:
         raise ValueError(
             f"{path}, line {hline}: missing column(s) {', '.join(missing)} (the header has "
             f"{', '.join(h.strip() for h in header)}); expected tx_x,tx_y,tx_z,rx_x,rx_y,rx_z (one "
             "measurement per row) or x,y,z (one stop per row, with tx_offset_m and rx_offset_m)")
-    has_stage = all(col[k] is not None for k in _STAGE)
-    keys = need + (_STAGE if bistatic and has_stage else ())
+    has_stage = all(col[k] is not None for k in STAGE_COLUMNS)
+    keys = need + (STAGE_COLUMNS if bistatic and has_stage else ())
     if len(rows) < 2:
         raise ValueError(f"{path}: no data rows after the header on line {hline}")
+    return col, keys, bistatic, has_stage
+
+
+def _csv_table(path: Path, rows: list, col: dict, keys: tuple[str, ...], names: dict[str, str]) -> np.ndarray:
+    """(n_rows, len(keys)) the numbers of the data rows, in the file's unit."""
     table = np.empty((len(rows) - 1, len(keys)))
     for r, (line, row) in enumerate(rows[1:]):
         for j, key in enumerate(keys):
@@ -247,16 +274,7 @@ def aperture_from_csv(
                 raise ValueError(f"{path}, line {line}: {len(row)} field(s), but column {names[key]!r} "
                                  f"is field {i + 1} of the header")
             table[r, j] = _number(path, line, names[key], row[i])
-    table *= scale
-    if bistatic:
-        if tx_offset_m is not None or rx_offset_m is not None or rx_offsets_m is not None:
-            raise ValueError(f"{path} gives speaker and microphone positions (tx_x..rx_z): "
-                             "tx_offset_m, rx_offset_m and rx_offsets_m apply only to the x,y,z layout")
-        tx, rx = table[:, 0:3], table[:, 3:6]
-        return Aperture(tx, rx, table[:, 6:9] if has_stage else tx)
-    txo = v.array("tx_offset_m", _TX_OFFSET if tx_offset_m is None else tx_offset_m, shape=(3,))
-    rxo = _mic_offsets(rx_offset_m, rx_offsets_m)
-    return _per_mic(table, table + txo, table[:, None, :] + rxo[None])
+    return table
 
 
 def _csv_rows(path: Path):

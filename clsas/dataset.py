@@ -8,14 +8,15 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .physics import speed_of_sound
 
-__all__ = ["Dataset", "load", "FORMAT_VERSION"]
+__all__ = ["Dataset", "load", "FORMAT_VERSION", "UNITS", "json_default"]
 
 FORMAT_VERSION = 1
 
-_UNITS = {
+# the unit written on each array of the file (its "units" attribute)
+UNITS = {
     "signals": "arbitrary (microphone output)",
     "tx_positions": "m",
     "rx_positions": "m",
@@ -201,7 +202,7 @@ def _write_truth(f, truth: dict) -> None:
         elif isinstance(val, int | float | str | np.generic) and not isinstance(val, bool):
             g.attrs[k] = val
         else:
-            g.attrs[f"{k}__json"] = json.dumps(val, default=_json_default)
+            g.attrs[f"{k}__json"] = json.dumps(val, default=json_default)
 
 
 def _read_truth(f) -> dict:
@@ -226,7 +227,7 @@ def _attrs(ds: Dataset, version: str) -> dict:
         "fs_hz": ds.fs_hz,
         "config_toml": ds.config,
         "chirp_json": json.dumps(ds.chirp),
-        "provenance_json": json.dumps(ds.provenance, default=_json_default),
+        "provenance_json": json.dumps(ds.provenance, default=json_default),
     }
     for k in _AIR:  # per-measurement values are arrays (see _write_arrays); the mean for readers
         attrs[k] = float(np.mean(getattr(ds, k)))
@@ -256,7 +257,7 @@ def _write_arrays(f, ds: Dataset) -> None:
         if arr is None:
             continue
         d = f.create_dataset(name, data=arr)
-        d.attrs["units"] = _UNITS[name]
+        d.attrs["units"] = UNITS[name]
         written[name] = d
     _attach_scales(f, written, ds)
 
@@ -353,9 +354,13 @@ def load(path: str | Path) -> Dataset:
         )
 
 
-def _json_default(obj):
+def json_default(obj):
+    """``json.dumps``'s ``default=`` for the provenance: NumPy scalars and arrays as numbers and
+    lists, anything else as its ``str``."""
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     return str(obj)
+
+

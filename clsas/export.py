@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from .imaging.image import Image
+    from .image import Image
 
 __all__ = ["to_vti", "to_npy", "read_vti", "export"]
 

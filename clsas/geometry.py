@@ -29,16 +29,18 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .physics import speed_of_sound
 
-__all__ = ["Aperture", "raster_aperture", "VoxelGrid", "Wall", "Scene"]
+__all__ = ["Aperture", "raster_aperture", "VoxelGrid", "Wall", "Scene", "TX_OFFSET_M", "RX_OFFSET_M",
+           "BISTATIC_COLUMNS", "STAGE_COLUMNS", "mic_offsets", "aperture_from_stops"]
 
-_TX_OFFSET = (-0.02, 0.0, 0.0)
-_RX_OFFSET = (0.02, 0.0, 0.0)
+# the default speaker and microphone offsets from the rig's reference point, metres, rig frame
+TX_OFFSET_M = (-0.02, 0.0, 0.0)
+RX_OFFSET_M = (0.02, 0.0, 0.0)
 # the columns of an aperture CSV table (see clsas.apertures.aperture_from_csv)
-_BISTATIC = ("tx_x", "tx_y", "tx_z", "rx_x", "rx_y", "rx_z")
-_STAGE = ("x", "y", "z")
+BISTATIC_COLUMNS = ("tx_x", "tx_y", "tx_z", "rx_x", "rx_y", "rx_z")
+STAGE_COLUMNS = ("x", "y", "z")
 
 
 @dataclass(frozen=True)
@@ -94,21 +96,22 @@ class Aperture:
         table = np.hstack([self.tx_positions, self.rx_positions, self.stage_positions])
         with path.open("w", newline="", encoding="utf-8") as f:
             w = csv.writer(f)
-            w.writerow(_BISTATIC + _STAGE)
+            w.writerow(BISTATIC_COLUMNS + STAGE_COLUMNS)
             w.writerows([[repr(float(x)) for x in row] for row in table])
         return path
 
 
-def _mic_offsets(rx_offset_m, rx_offsets_m) -> np.ndarray:
+def mic_offsets(rx_offset_m: tuple[float, float, float] | None,
+                rx_offsets_m: np.ndarray | None) -> np.ndarray:
     """(k, 3) microphone offsets from ``rx_offset_m`` (one) or ``rx_offsets_m`` (several)."""
     if rx_offsets_m is None:
-        return v.array("rx_offset_m", _RX_OFFSET if rx_offset_m is None else rx_offset_m, shape=(3,))[None]
+        return v.array("rx_offset_m", RX_OFFSET_M if rx_offset_m is None else rx_offset_m, shape=(3,))[None]
     if rx_offset_m is not None:
         raise ValueError("give rx_offset_m (one microphone) or rx_offsets_m (several), not both")
     return v.array("rx_offsets_m", rx_offsets_m, shape=(None, 3))
 
 
-def _per_mic(stage: np.ndarray, tx: np.ndarray, rx: np.ndarray) -> Aperture:
+def aperture_from_stops(stage: np.ndarray, tx: np.ndarray, rx: np.ndarray) -> Aperture:
     """Aperture from stops: ``stage``, ``tx`` (n, 3) and ``rx`` (n, k, 3), stop-major."""
     k = rx.shape[1]
     return Aperture(np.repeat(tx, k, axis=0), rx.reshape(-1, 3), np.repeat(stage, k, axis=0), k)
@@ -121,7 +124,7 @@ def raster_aperture(
     height_m: float,
     *,
     center_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    tx_offset_m: tuple[float, float, float] = _TX_OFFSET,
+    tx_offset_m: tuple[float, float, float] = TX_OFFSET_M,
     rx_offset_m: tuple[float, float, float] | None = None,
     pattern: str = "serpentine",
     rx_offsets_m: np.ndarray | None = None,
@@ -152,7 +155,7 @@ def raster_aperture(
     v.choice("pattern", pattern, ("serpentine", "raster"))
     c = v.array("center_m", center_m, shape=(3,))
     txo = v.array("tx_offset_m", tx_offset_m, shape=(3,))
-    rxo = _mic_offsets(rx_offset_m, rx_offsets_m)
+    rxo = mic_offsets(rx_offset_m, rx_offsets_m)
     xs = np.linspace(-w / 2, w / 2, nx) if nx > 1 else np.zeros(1)
     ys = np.linspace(-h / 2, h / 2, ny) if ny > 1 else np.zeros(1)
     stops = []
@@ -160,7 +163,7 @@ def raster_aperture(
         row = xs[::-1] if (pattern == "serpentine" and j % 2) else xs
         stops += [(x, y, 0.0) for x in row]
     stage = np.asarray(stops) + c
-    return _per_mic(stage, stage + txo, stage[:, None, :] + rxo[None])
+    return aperture_from_stops(stage, stage + txo, stage[:, None, :] + rxo[None])
 
 
 # no machine images more than this many voxels along one axis; refusing here keeps a mistyped

@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 
 __all__ = [
     "speed_of_sound",

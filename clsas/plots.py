@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -28,8 +28,20 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-    from .geometry import Scene
-    from .imaging.image import Image
+    from .geometry import Scene, VoxelGrid
+
+
+class Image(Protocol):
+    """What the pictures read of a :class:`clsas.Image` (named structurally, so that this module,
+    which presents images, is not imported by the type it presents)."""
+
+    values: np.ndarray
+    grid: VoxelGrid
+    method: str
+    device: str
+    provenance: dict
+
+    def db(self, floor_db: float = -60.0) -> np.ndarray: ...
 
 __all__ = ["plot_image", "plot_slices", "mip_png", "stored_scene", "FORMATS"]
 

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .dataset import Dataset
 
 __all__ = [

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .geometry import VoxelGrid
-from .imaging.image import Image
+from .image import Image
 
 __all__ = ["tcr_db", "compare", "Comparison", "PeakMatch"]
 

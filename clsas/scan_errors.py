@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 
 __all__ = ["HandMotion", "hand_motion", "stop_index"]
 

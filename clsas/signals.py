@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 
 __all__ = ["lfm_chirp", "analytic", "chirp_times", "tukey_taper"]
 

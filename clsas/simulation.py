@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .dataset import Dataset
 from .geometry import Aperture, Scene
 from .physics import air_absorption_db_per_m, speed_of_sound
@@ -18,27 +18,12 @@ __all__ = ["simulate"]
 log = logging.getLogger(__name__)
 
 
-def simulate(
-    scene: Scene,
-    aperture: Aperture,
-    waveform: np.ndarray,
-    fs_hz: float,
-    *,
-    n_samples: int | None = None,
-    t0_s: float | np.ndarray = 0.0,
-    snr_db: float | None = None,
-    seed: int | None = 0,
-    absorption: bool = True,
-    chirp: dict | None = None,
-    config: str = "",
-    temperature_c: float | np.ndarray | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    position_error: float | HandMotion | np.ndarray | None = None,
-    temperature_error_c: float = 0.0,
-    group_delay_s: float = 0.0,
-    timing_jitter_s: float = 0.0,
-    direct_gain: float | None = None,
-) -> Dataset:
+def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: float, *, n_samples: int | None = None,
+             t0_s: float | np.ndarray = 0.0, snr_db: float | None = None, seed: int | None = 0, absorption: bool = True,
+             chirp: dict | None = None, config: str = "", temperature_c: float | np.ndarray | None = None,
+             progress: Callable[[int, int], None] | None = None,
+             position_error: float | HandMotion | np.ndarray | None = None, temperature_error_c: float = 0.0,
+             group_delay_s: float = 0.0, timing_jitter_s: float = 0.0, direct_gain: float | None = None) -> Dataset:
     """Simulate the recordings of a scan.
 
     Every reflector (and its first-order mirror image in each wall) returns the waveform
@@ -98,6 +83,25 @@ def simulate(
     -------
     Dataset
     """
+    fs, wave, t0, snr_db, temperature_c = _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c)
+    err = _errors(aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s)
+    true_temp, c, t0_true = _true_air_and_t0(temperature_c, t0, err, aperture.n_meas)
+    tx, rx, path, gain, n_sources = _paths(scene, aperture, err["position_error_m"], direct_gain)
+    delay = path / c[:, None] - t0_true[:, None]  # delay into the recording, s
+    n_samples = v.positive_int("n_samples", _n_samples(delay, fs, len(wave)) if n_samples is None else n_samples)
+    signals = _recordings(wave, fs, path, gain, delay, n_samples, n_sources,
+                          scene.humidity_pct, float(np.mean(true_temp)) if absorption else None, progress)
+    _add_noise(signals, snr_db, seed)
+    truth = _truth(err, tx, rx, t0_true, true_temp, c) if err["any"] else {}
+    return Dataset(signals, aperture.tx_positions, aperture.rx_positions, fs, wave, t0_s=t0,
+                   temperature_c=temperature_c, humidity_pct=scene.humidity_pct,
+                   stage_positions=aperture.stage_positions, chirp=chirp or {}, config=config,
+                   timestamps=err["stop_time_s"] if err["moved"] else None, truth=truth)
+
+
+def _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c):
+    """:func:`simulate`'s scene, aperture, rate, waveform, t0, SNR and temperature checked:
+    (fs, waveform, t0 per measurement, snr_db, temperature_c)."""
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a clsas.Scene, got {type(scene).__name__}")
     if not isinstance(aperture, Aperture):
@@ -113,16 +117,40 @@ def simulate(
         temperature_c = scene.temperature_c
     elif np.ndim(temperature_c):
         temperature_c = v.array("temperature_c", temperature_c, shape=(n_meas,))
-    err = _errors(aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s)
+    return fs, wave, t0, snr_db, temperature_c
+
+
+def _true_air_and_t0(temperature_c, t0: np.ndarray, err: dict, n_meas: int):
+    """The true air temperature (the stated one plus the error), °C, its speed of sound per
+    measurement, m/s, and the true t0 per measurement (less the unknown delays), s."""
     true_temp = np.asarray(temperature_c, float) + err["temperature_error_c"]
     c = np.broadcast_to(np.asarray(speed_of_sound(true_temp), float), (n_meas,))
-    t_mean = float(np.mean(true_temp))
-    t0_true = t0 - err["group_delay_s"] - err["timing_jitter_s"]
+    return true_temp, c, t0 - err["group_delay_s"] - err["timing_jitter_s"]
+
+
+def _n_samples(delay: np.ndarray, fs: float, n_wave: int) -> int:
+    """The default recording length: the latest echo's delay (s) plus the waveform and 16 samples."""
+    return int(np.ceil((delay.max(initial=0.0) * fs) + n_wave)) + 16
+
+
+def _truth(err: dict, tx: np.ndarray, rx: np.ndarray, t0_true: np.ndarray, true_temp, c: np.ndarray) -> dict:
+    """``Dataset.truth`` of a scan simulated with errors (see :func:`simulate`)."""
+    return {"tx_positions": tx, "rx_positions": rx, "position_error_m": err["position_error_m"],
+            "t0_s": t0_true, "group_delay_s": err["group_delay_s"], "timing_jitter_s": err["timing_jitter_s"],
+            "temperature_c": true_temp if np.ndim(true_temp) else float(true_temp),
+            "c_mps": c.copy(), "stop_time_s": err["stop_time_s"], "stop_index": err["stop_index"],
+            "errors": err["spec"]}
+
+
+def _paths(scene: Scene, aperture: Aperture, displacement_m: np.ndarray, direct_gain: float | None):
+    """The true speaker and microphone positions (the aperture's moved by ``displacement_m``),
+    every echo's two-way path (n_meas, n_echoes), m, and its amplitude (spreading, wall
+    reflectivity, direct sound), and the number of (image) sources: the reflectors and their
+    mirror images first, then each wall's echo (where ``scene.wall_echo``), then the direct sound."""
     if direct_gain is not None:
         direct_gain = v.non_negative("direct_gain", direct_gain)
-
+    tx, rx = aperture.tx_positions + displacement_m, aperture.rx_positions + displacement_m
     src, amp = scene.image_sources()
-    tx, rx = aperture.tx_positions + err["position_error_m"], aperture.rx_positions + err["position_error_m"]
     r_tx = np.linalg.norm(src[None, :, :] - tx[:, None, :], axis=2)  # (n_meas, k)
     r_rx = np.linalg.norm(src[None, :, :] - rx[:, None, :], axis=2)
     path = r_tx + r_rx
@@ -136,27 +164,32 @@ def simulate(
         p = np.linalg.norm(tx - rx, axis=1)[:, None]
         path = np.concatenate([path, p], axis=1)
         gain = np.concatenate([gain, direct_gain / np.maximum(p, 1e-6)], axis=1)
-    delay = path / c[:, None] - t0_true[:, None]  # delay into the recording, s
-    if n_samples is None:
-        n_samples = int(np.ceil((delay.max(initial=0.0) * fs) + len(wave))) + 16
-    n_samples = v.positive_int("n_samples", n_samples)
+    return tx, rx, path, gain, src.shape[0]
 
-    # long enough that no echo (early or late) wraps around into the kept samples
-    span = max(n_samples, delay.max(initial=0.0) * fs) + max(0.0, -delay.min(initial=0.0)) * fs
+
+def _recordings(wave: np.ndarray, fs: float, path: np.ndarray, gain: np.ndarray, delay: np.ndarray, n_samples: int,
+                n_sources: int, humidity_pct: float, absorption_temperature_c: float | None,
+                progress: Callable[[int, int], None] | None) -> np.ndarray:
+    """(n_meas, n_samples) the noise-free recordings: each echo the waveform delayed by
+    ``delay`` (s, exact: a phase ramp per frequency), scaled by ``gain`` and absorbed over
+    ``path`` (m) at ``absorption_temperature_c`` (None: no absorption), summed in blocks of
+    measurements (``progress`` after each)."""
     import scipy.fft
 
+    n_meas = len(path)
+    # long enough that no echo (early or late) wraps around into the kept samples
+    span = max(n_samples, delay.max(initial=0.0) * fs) + max(0.0, -delay.min(initial=0.0)) * fs
     n_fft = scipy.fft.next_fast_len(int(np.ceil(span)) + len(wave) + 16)
     spec = scipy.fft.rfft(wave, n_fft)
     freqs = scipy.fft.rfftfreq(n_fft, 1 / fs)
     keep = np.abs(spec) > 1e-7 * np.abs(spec).max(initial=0.0)  # only bins with energy
     spec_k, f_k = spec[keep], freqs[keep]
-    log.debug("simulate: %d sources, %d of %d frequency bins", src.shape[0], keep.sum(), len(freqs))
+    log.debug("simulate: %d sources, %d of %d frequency bins", n_sources, keep.sum(), len(freqs))
     beta = (
-        air_absorption_db_per_m(f_k, t_mean, scene.humidity_pct) * np.log(10) / 20
-        if absorption
+        air_absorption_db_per_m(f_k, absorption_temperature_c, humidity_pct) * np.log(10) / 20
+        if absorption_temperature_c is not None
         else np.zeros_like(f_k)
     )
-
     signals = np.zeros((n_meas, n_samples), dtype=np.float64)
     block = max(1, int(2e7 // max(1, path.shape[1] * len(f_k))))
     for start in range(0, n_meas, block):
@@ -169,35 +202,17 @@ def simulate(
         signals[sl] = scipy.fft.irfft(full, n_fft, axis=1)[:, :n_samples]
         if progress is not None:
             progress(sl.stop, n_meas)
+    return signals
 
-    if snr_db is not None:
-        rng = np.random.default_rng(seed)
-        p_sig = float(np.mean(signals**2))
-        sigma = np.sqrt(p_sig / 10 ** (snr_db / 10)) if p_sig > 0 else 0.0
-        signals += rng.normal(0.0, sigma, signals.shape)
 
-    truth = {}
-    if err["any"]:
-        truth = {"tx_positions": tx, "rx_positions": rx, "position_error_m": err["position_error_m"],
-                 "t0_s": t0_true, "group_delay_s": err["group_delay_s"], "timing_jitter_s": err["timing_jitter_s"],
-                 "temperature_c": true_temp if np.ndim(true_temp) else float(true_temp),
-                 "c_mps": c.copy(), "stop_time_s": err["stop_time_s"], "stop_index": err["stop_index"],
-                 "errors": err["spec"]}
-    return Dataset(
-        signals=signals,
-        tx_positions=aperture.tx_positions,
-        rx_positions=aperture.rx_positions,
-        fs_hz=fs,
-        waveform=wave,
-        t0_s=t0,
-        temperature_c=temperature_c,
-        humidity_pct=scene.humidity_pct,
-        stage_positions=aperture.stage_positions,
-        chirp=chirp or {},
-        config=config,
-        timestamps=err["stop_time_s"] if err["moved"] else None,
-        truth=truth,
-    )
+def _add_noise(signals: np.ndarray, snr_db: float | None, seed: int | None) -> None:
+    """Add white Gaussian noise at ``snr_db`` below the mean signal power, in place (None: none)."""
+    if snr_db is None:
+        return
+    rng = np.random.default_rng(seed)
+    p_sig = float(np.mean(signals**2))
+    sigma = np.sqrt(p_sig / 10 ** (snr_db / 10)) if p_sig > 0 else 0.0
+    signals += rng.normal(0.0, sigma, signals.shape)
 
 
 def _errors(aperture: Aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s) -> dict:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import _validate as v
+from . import validate as v
 from .dataset import Dataset
 from .geometry import Aperture, Scene
 from .signals import lfm_chirp
@@ -62,6 +62,24 @@ def curve_target(n: int = 24, radius_m: float = 0.08, center_m=(0.0, 0.0, 0.0)) 
     return np.vstack([arc, bar]) + v.array("center_m", center_m, shape=(3,))
 
 
+def _turntable_apertures(n: int, range_m: float):
+    """The speaker and microphone in the room frame (fixed, m), and the aperture in the target's
+    frame (turning with it) and in the room's, for ``n`` pings over one turn."""
+    # transducers in the room frame (fixed): on the -x side, looking at the axis
+    tx_room = np.array([-range_m, -0.025, 0.0])
+    rx_room = np.array([-range_m, 0.025, 0.0])
+    # in the target's frame the transducers turn by -theta about z
+    theta = 2 * np.pi * np.arange(n) / n
+    c, s = np.cos(-theta), np.sin(-theta)
+
+    def rot(p):
+        return np.c_[c * p[0] - s * p[1], s * p[0] + c * p[1], np.full(n, p[2])]
+
+    ap_target = Aperture(rot(tx_room), rot(rx_room), np.zeros((n, 3)))
+    ap_room = Aperture(np.tile(tx_room, (n, 1)), np.tile(rx_room, (n, 1)), np.zeros((n, 3)))
+    return tx_room, rx_room, ap_target, ap_room
+
+
 def turntable_scan(
     n_pings: int = 90,
     *,
@@ -99,18 +117,7 @@ def turntable_scan(
     wave = lfm_chirp(f_start_hz, f_stop_hz, duration_s, fs_hz, taper=0.1)
     chirp = {"f_start_hz": f_start_hz, "f_stop_hz": f_stop_hz, "duration_s": duration_s, "taper": 0.1}
     target = curve_target() if target_m is None else v.array("target_m", target_m, shape=(None, 3))
-    # transducers in the room frame (fixed): on the -x side, looking at the axis
-    tx_room = np.array([-range_m, -0.025, 0.0])
-    rx_room = np.array([-range_m, 0.025, 0.0])
-    # in the target's frame the transducers turn by -theta about z
-    theta = 2 * np.pi * np.arange(n) / n
-    c, s = np.cos(-theta), np.sin(-theta)
-
-    def rot(p):
-        return np.c_[c * p[0] - s * p[1], s * p[0] + c * p[1], np.full(n, p[2])]
-
-    ap_target = Aperture(rot(tx_room), rot(rx_room), np.zeros((n, 3)))
-    ap_room = Aperture(np.tile(tx_room, (n, 1)), np.tile(rx_room, (n, 1)), np.zeros((n, 3)))
+    tx_room, rx_room, ap_target, ap_room = _turntable_apertures(n, range_m)
     temps = np.linspace(temperature_c[0], temperature_c[1], n)
     t_bg = float(np.mean(temperature_c)) if background_temperature_c is None else background_temperature_c
     gd = group_delay_samples / fs_hz

@@ -74,3 +74,18 @@ def grbl_exe(tmp_path_factory):
     from grbl_kit import build_grbl
 
     return build_grbl(tmp_path_factory.mktemp("grbl_real"))
+
+
+def pytest_collection_modifyitems(config, items):
+    """Markers that say what a test needs, applied where the need is declared, so that ``-m opencl``,
+    ``-m oclgrind`` and ``-m hw`` select what they say: a test skipped without an OpenCL device
+    (``needs_opencl``, or the ``opencl`` backend parameter) is ``opencl``; a test that runs the real
+    GRBL firmware (``grbl_exe``) or the rig is ``hw``."""
+    for item in items:
+        skips = [m for m in item.iter_markers("skipif") if str(m.kwargs.get("reason", "")).startswith("no OpenCL")]
+        if skips:
+            item.add_marker(pytest.mark.opencl)
+        if "grbl_exe" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.hw)
+        if item.get_closest_marker("oclgrind") is not None:
+            item.add_marker(pytest.mark.opencl)

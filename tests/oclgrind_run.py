@@ -14,9 +14,9 @@ import clsas
 from clsas.compression import fft_layout
 from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 from clsas.focus.opencl import FocusGradientPlan
+from clsas.formation.bp_opencl import BackprojectPlan
 from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
 from clsas.formation.opencl import StoltPlan
-from clsas.imaging.opencl import BackprojectPlan
 
 FS = 96e3
 

@@ -280,7 +280,7 @@ def test_3d_step_keeps_the_line_of_sight_on_a_rigid_carriage():
 
 def test_pga_point_samples_are_the_backprojection_terms():
     from clsas.focus.pga import point_samples
-    from clsas.imaging import numpy as bp_twin
+    from clsas.formation import bp_numpy as bp_twin
 
     ds = scan(nx=5, ny=4)
     eng = FocusEngine(ds, GRID, backend="numpy")

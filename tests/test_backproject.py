@@ -5,8 +5,8 @@ import pytest
 from conftest import BACKENDS, TOL, needs_opencl, small_dataset, width_or_skip
 
 import clsas
-from clsas.imaging import numpy as twin
-from clsas.imaging.plan import path_bounds
+from clsas.formation import bp_numpy as twin
+from clsas.rangegate import path_bounds
 
 
 @needs_opencl
@@ -15,7 +15,7 @@ from clsas.imaging.plan import path_bounds
     "shape", [(13, 11, 9), (17, 1, 23), (1, 1, 50)], ids=["volume", "plane", "line"]
 )
 def test_backproject_opencl_equals_twin(rng, vec, shape):
-    from clsas.imaging.opencl import BackprojectPlan
+    from clsas.formation.bp_opencl import BackprojectPlan
 
     width_or_skip("backproject", vec)
     ds = small_dataset([[0.02, -0.01, 0.6]])

@@ -129,7 +129,7 @@ def test_bench_names_what_to_install_before_any_work(monkeypatch, tmp_path):
 def test_c_openmp_peer_equals_the_twin(rng):
     """The compiled peer of `clsas bench` computes the same image (float32) as the NumPy twin."""
     from clsas.bench import cpeer, throughput
-    from clsas.imaging import numpy as twin
+    from clsas.formation import bp_numpy as twin
 
     fn, why = cpeer.load()
     if fn is None:

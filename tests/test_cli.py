@@ -36,7 +36,7 @@ def test_simulate_then_reconstruct(tmp_path, capsys):
     assert main(["reconstruct", str(data), "-q", "--png", "--backend", "numpy"]) == 0
     out = capsys.readouterr().out
     assert "peak (+0.020, -0.010, 0.600) m" in out
-    image = clsas.imaging.Image.load(tmp_path / "scan-image.h5")
+    image = clsas.Image.load(tmp_path / "scan-image.h5")
     assert image.values.shape == (21, 21, 21)
     assert (tmp_path / "scan-image.png").stat().st_size > 1000
 
@@ -79,4 +79,4 @@ def test_demo_writes_datasets_images_and_pictures(tmp_path, capsys):
             assert (tmp_path / f"{name}{suffix}").exists()
     out = capsys.readouterr().out
     assert out.count("from the nearest true (image) reflector") == 2
-    assert np.all(np.isfinite(clsas.imaging.Image.load(tmp_path / "corner-image.h5").values))
+    assert np.all(np.isfinite(clsas.Image.load(tmp_path / "corner-image.h5").values))

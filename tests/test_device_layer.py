@@ -158,7 +158,7 @@ def test_chooser_steps_down_past_rejected_widths_and_caches_verdicts(monkeypatch
     assert cl.choose(q, "backproject") == 4
     assert calls == [("backproject", 16), ("backproject", 8), ("backproject", 4)]
     # a plan takes the chosen width; a width that was rejected is never launched
-    from clsas.imaging.opencl import BackprojectPlan
+    from clsas.formation.bp_opencl import BackprojectPlan
 
     grid = clsas.VoxelGrid.from_bounds((0, 0.1), (0, 0), (0.5, 0.6), 0.05)
     assert BackprojectPlan(grid, 3, 10, queue=q).vec == 4
@@ -269,3 +269,69 @@ def test_clean_exit_after_every_build_outcome(tmp_path):
     assert res.stdout.strip().endswith("done")
     for bad in ("LLVM ERROR", "Aborted", "can't release LLVM context"):
         assert bad not in res.stderr
+
+
+# ---- the layer's place: below everything, the only importer of pyopencl ------------------------
+
+
+def _imports(path):
+    """(module names imported, relative levels used) of one source file, function bodies included."""
+    import ast
+
+    names, levels = [], []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            names += [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            names.append(node.module or "")
+            levels.append(node.level)
+    return names, levels
+
+
+def test_the_device_layer_imports_nothing_above_it():
+    from pathlib import Path
+
+    for path in sorted(Path(cl.__file__).parent.glob("*.py")):
+        names, levels = _imports(path)
+        assert all(level <= 1 for level in levels), f"{path.name} imports from above clsas.cl"
+        above = [n for n in names if n.startswith("clsas") and not n.startswith("clsas.cl")]
+        assert not above, f"{path.name} imports {above}"
+
+
+def test_only_the_device_layer_imports_pyopencl():
+    from pathlib import Path
+
+    root = Path(clsas.__file__).parent
+    importers = sorted(str(p.relative_to(root)) for p in root.rglob("*.py")
+                       if any(n.split(".")[0] == "pyopencl" for n in _imports(p)[0]))
+    assert importers and all(p.startswith("cl/") for p in importers), importers
+
+
+def test_a_plan_declares_its_kernel_and_registers_itself():
+    spec = cl.kernel_spec("backproject")
+    assert spec.sources == ("common.cl", "backproject.cl")
+    assert (spec.module, spec.qualname) == ("clsas.formation.bp_opencl", "BackprojectPlan")
+    try:
+        class ToyPlan(cl.Plan):
+            KERNEL = "toy_kernel"
+            SOURCES = ("common.cl", "toy.cl")
+
+        toy = cl.kernel_spec("toy_kernel")
+        assert (toy.module, toy.qualname, toy.sources) == (__name__, ToyPlan.__qualname__, ("common.cl", "toy.cl"))
+
+        before = dict(cl.KERNELS)
+
+        class Base(cl.Plan):  # no kernel of its own: nothing registered
+            pass
+
+        assert cl.KERNELS == before
+        with pytest.raises(ValueError, match="already run by"):
+            class Other(cl.Plan):
+                KERNEL = "toy_kernel"
+                SOURCES = ("toy.cl",)
+        with pytest.raises(TypeError, match="names no KERNEL"):
+            Base()
+    finally:
+        cl.KERNELS.pop("toy_kernel", None)
+    with pytest.raises(ValueError, match="unknown kernel 'toy_kernel'"):
+        cl.check(None, "toy_kernel", 4)

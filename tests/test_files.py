@@ -7,7 +7,7 @@ import pytest
 
 import clsas
 from clsas.export import read_vti, to_npy, to_vti
-from clsas.imaging.image import Image, source_provenance
+from clsas.image import Image, source_provenance
 
 xr = pytest.importorskip("xarray")
 pytest.importorskip("h5netcdf")

@@ -173,7 +173,7 @@ def test_a_job_over_a_minute_is_announced_with_the_faster_methods(capsys):
 
 def test_demo_checks_every_scene_memory_before_the_first_starts(tmp_path, monkeypatch, capsys):
     import clsas
-    from clsas.imaging import guard
+    from clsas.formation import guard
     from clsas.scenes import demo_configs, parse_config
 
     sizes = [parse_config(t).grid.size for t in demo_configs(0.01).values()]

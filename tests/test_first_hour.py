@@ -9,7 +9,7 @@ from conftest import small_dataset
 
 import clsas
 from clsas.cli import main
-from clsas.imaging import guard
+from clsas.formation import guard
 
 
 def test_import_clsas_is_light():
@@ -58,7 +58,7 @@ def test_a_grid_that_does_not_fit_is_refused_with_the_numbers(monkeypatch, backe
     def no_work(*a, **k):
         raise AssertionError("work started before the guard")
 
-    monkeypatch.setattr(clsas.imaging, "compress", no_work)
+    monkeypatch.setattr(clsas.pipeline, "compress", no_work)
     with pytest.raises(ValueError, match=r"21 x 21 x 21 = 9.26e\+03 voxels needs about .* a spacing of .* m or more"):
         clsas.reconstruct(ds, grid, backend=backend)
     monkeypatch.undo()
@@ -135,7 +135,7 @@ def test_limits_reads_a_scene_file(tmp_path, capsys):
 
 def test_grating_lobes_of_an_undersampled_aperture_are_flagged():
     from clsas.compression import center_frequency
-    from clsas.imaging.lobes import grating_lobe_notes
+    from clsas.formation.lobes import grating_lobe_notes
 
     fs = 96e3
     w = clsas.lfm_chirp(24e3, 26e3, 2e-3, fs, taper=0.1)  # narrow band: sharp lobes
@@ -164,7 +164,7 @@ def test_a_partial_scan_is_flagged_when_imaged(tmp_path, capsys):
 
 
 def test_install_hints_fit_a_source_checkout():
-    from clsas._validate import install_hint
+    from clsas.validate import install_hint
 
     hint = install_hint("rig")
     assert hint.startswith("pip install -e '") and hint.endswith("[rig]'")  # tests run from the checkout

@@ -47,14 +47,14 @@ def test_detection_success_matches_the_fitted_likelihood_ratio_on_noise_draws():
     """The order test's pass rate at an echo's true delay (amplitude and delay fitted, noise
     known): measured on 200 draws, it is the formula's noncentral chi-square (3 degrees of freedom)."""
     from clsas.bench.kecho import detection_success
-    from clsas.sparse.refined import _VarPro
+    from clsas.sparse.varpro import VarPro
 
     task = _task_for(1, 2.0)
     threshold, n, hits = 18.1, 200, 0
     lo, hi = task.gate_s
     for seed in range(n):
         b, truth, sigma = draw_k(task, 1, 1.0, 2.0, -12.0, seed)
-        _, _, rss, _ = _VarPro(task.atom, b, "complex").fit(truth.delays_s.copy(), lo, hi)
+        _, _, rss, _ = VarPro(task.atom, b, "complex").fit(truth.delays_s.copy(), lo, hi)
         hits += (np.vdot(b, b).real - rss) / (sigma**2 / 2) > threshold
     p = detection_success(task, truth, sigma, threshold)
     assert 0.6 < p < 0.95  # the level where the test is sensitive

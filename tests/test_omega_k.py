@@ -1,5 +1,7 @@
 """ω-k (wavenumber-domain) formation: against backprojection, its refusals, its Stolt kernel."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from conftest import BACKENDS, TOL, needs_opencl
@@ -30,7 +32,7 @@ TARGETS = [[0.008, -0.004, 0.25], [-0.012, 0.012, 0.262]]
 def _profiles(ds, grid):
     """Compressed over the grid's gate (on OpenCL where there is a device: the NumPy twin of
     compression is slow, and it is not what is tested here)."""
-    return clsas.compress(ds, gate_s=clsas.imaging.plan_reconstruction(ds, grid, []).gate_s)
+    return clsas.compress(ds, gate_s=clsas.rangegate.plan_reconstruction(ds, grid, []).gate_s)
 
 
 @pytest.fixture(scope="module")
@@ -101,14 +103,14 @@ def test_two_microphones_and_air_that_changes():
     assert img.provenance["omega_k"]["groups"] == 2
     assert error_to_signal_db(img, ref, _cone(ds, grid)) < STATED_DB
     # one mean c instead would be far off: the per-measurement speeds are used
-    prof.c_mps = float(np.mean(ds.c_mps))
+    prof = dataclasses.replace(prof, c_mps=float(np.mean(ds.c_mps)))  # Profiles are immutable once built
     assert error_to_signal_db(form(prof, grid, "omega-k", backend="numpy"), ref) > -20
 
 
 def test_range_profiles_from_elsewhere_and_fmcw(scan):
     ds, _, _ = scan
     # analytic profiles at the recording's rate, as an outside deconvolution would give them
-    gate = clsas.imaging.plan_reconstruction(ds, GRID, []).gate_s
+    gate = clsas.rangegate.plan_reconstruction(ds, GRID, []).gate_s
     prof = clsas.compress(ds, gate_s=gate, lag_step=1)
     ext = clsas.Profiles.from_range_profiles(prof.carrier(), tau0_s=prof.tau0_s, dtau_s=prof.dtau_s,
                                              tx_positions=ds.tx_positions, rx_positions=ds.rx_positions,
@@ -251,7 +253,7 @@ def test_cli_reconstruct_with_a_formation(tmp_path, capsys):
     assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "pad_time=2",
                  "--formation-option", "window=hann", "--out", str(out), "-q"]) == 0
     assert "peak (+0.008, -0.004, 0.250)" in capsys.readouterr().out
-    from clsas.imaging import Image
+    from clsas.image import Image
 
     assert Image.load(out).provenance["formation"] == "omega-k"
     assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "bogus=1", "-q"]) == 2

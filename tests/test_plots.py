@@ -5,7 +5,7 @@ import pytest
 
 import clsas
 from clsas.geometry import Scene, Wall
-from clsas.imaging.image import Image
+from clsas.image import Image
 
 pytest.importorskip("matplotlib")
 

@@ -6,7 +6,7 @@ from conftest import small_dataset
 
 import clsas
 from clsas.cli import main
-from clsas.imaging import Image
+from clsas.image import Image
 from clsas.quality import box_mask, compare, same_grid, tcr_db
 
 SP = 0.01

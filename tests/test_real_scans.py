@@ -104,8 +104,8 @@ def test_per_measurement_sound_speed_on_every_backend(quiet_scan, backend):
 @needs_opencl
 @pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
 def test_backproject_kernel_per_measurement_c_equals_twin(quiet_scan, vec):
-    from clsas.imaging import numpy as twin
-    from clsas.imaging.opencl import BackprojectPlan
+    from clsas.formation import bp_numpy as twin
+    from clsas.formation.bp_opencl import BackprojectPlan
 
     width_or_skip("backproject", vec)
     ds = pp.remove_delay(quiet_scan.dataset, quiet_scan.group_delay_s)

@@ -8,7 +8,7 @@ import pytest
 import clsas
 from clsas.bench.kecho import _task_for, draw_k
 from clsas.sparse import Atom, Dictionary, ShiftOperator, delay_error, echo_threshold, lam_noise, sparse_echoes
-from clsas.sparse.refined import _real_dof
+from clsas.sparse.varpro import real_dof
 
 pytest.importorskip("nlopt", reason="nlopt is an optional dependency (pip install 'clsas[sparse]')")
 
@@ -69,9 +69,9 @@ def test_echo_threshold_refuses_bad_input(pulse, kw, match):
 def test_analytic_signal_has_half_the_degrees_of_freedom():
     rng = np.random.default_rng(0)
     x = rng.normal(size=256)
-    assert _real_dof(_analytic(x), "complex") == 256
-    assert _real_dof(rng.normal(size=256) + 1j * rng.normal(size=256), "complex") == 512
-    assert _real_dof(x, "real") == 256
+    assert real_dof(_analytic(x), "complex") == 256
+    assert real_dof(rng.normal(size=256) + 1j * rng.normal(size=256), "complex") == 512
+    assert real_dof(x, "real") == 256
 
 
 def _analytic(x):

@@ -10,7 +10,7 @@ import pytest
 import scipy.signal
 
 import clsas
-from clsas.imaging import path_bounds
+from clsas.rangegate import path_bounds
 from clsas.sparse import (
     SPARSE_METHODS,
     Atom,
@@ -22,7 +22,7 @@ from clsas.sparse import (
     lam_noise,
     superres,
 )
-from clsas.sparse.refined import _VarPro
+from clsas.sparse.varpro import VarPro
 
 pytest.importorskip("nlopt", reason="the sparse methods need the 'sparse' extra (pip install 'clsas[sparse]')")
 pytest.importorskip("cvxpy", reason="the sparse methods need the 'sparse' extra (pip install 'clsas[sparse]')")
@@ -101,17 +101,17 @@ def test_refined_delays_stay_inside_the_bounds(rng):
         amps = r.uniform(0.5, 3, len(taus)) * np.exp(2j * np.pi * r.uniform(size=len(taus)))
         b = at.matrix(taus) @ amps + 0.02 * (r.normal(size=600) + 1j * r.normal(size=600))
         seen = []
-        vp_call = _VarPro.__call__
+        vp_call = VarPro.__call__
 
         def spy(self, t, grad=None, seen=seen, vp_call=vp_call):
             seen.append(np.asarray(t).copy())
             return vp_call(self, t, grad)
 
-        _VarPro.__call__ = spy
+        VarPro.__call__ = spy
         try:
             e = cbp_polar_refined(d, b, lam_noise(d, b, "complex"), max_echoes=8)
         finally:
-            _VarPro.__call__ = vp_call
+            VarPro.__call__ = vp_call
         tried = np.concatenate(seen)
         assert tried.min() >= lo and tried.max() <= hi
         assert e.status.startswith(("optimal", "roundoff", "stalled", "max_eval")), e.status
@@ -136,7 +136,7 @@ def test_the_recording_that_made_nlopt_raise_now_fits():
 def test_fit_starts_outside_the_bounds_and_more_echoes_than_fit():
     at = Atom(CHIRP, FS, 300, complex=True)
     b = at.matrix([1.0e-3, 1.3e-3]) @ np.array([1.0, 0.5j])
-    vp = _VarPro(at, b, "complex")
+    vp = VarPro(at, b, "complex")
     taus, a, rss, status = vp.fit([0.2e-3, 1.3e-3, 9e-3], 0.9e-3, 1.5e-3, 1e-5)
     assert len(taus) == 3 and np.all((taus >= 0.9e-3) & (taus <= 1.5e-3)) and np.all(np.diff(taus) >= 1e-5 * 0.999)
     # ten echoes at least 0.1 ms apart do not fit in 0.2 ms: three are kept, none fails
@@ -167,7 +167,7 @@ def one_target():
 @pytest.mark.parametrize("kind, why", [("raise", "nlopt invalid_argument"), ("nan", "non-finite"),
                                        ("status", "status infeasible")])
 def test_a_failing_recording_falls_back_to_its_matched_filter(one_target, monkeypatch, caplog, kind, why):
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     ds = one_target
     gates = _gates(ds)
@@ -180,7 +180,7 @@ def test_a_failing_recording_falls_back_to_its_matched_filter(one_target, monkey
         return _failing(kind)(*args, **kwargs) if len(calls) == 2 else real(*args, **kwargs)
 
     monkeypatch.setitem(SPARSE_METHODS, "cbp-polar", flaky)
-    with caplog.at_level(logging.WARNING, logger="clsas.imaging.sparse"):
+    with caplog.at_level(logging.WARNING, logger="clsas.sparse.profiles"):
         prof, echoes = superres_profiles(ds, gates, "cbp-polar")
     assert [e.fallback for e in echoes] == [False, True, False]
     assert echoes[1].status.startswith("fallback") and len(echoes[1]) == 0
@@ -199,10 +199,10 @@ def test_a_failing_recording_falls_back_to_its_matched_filter(one_target, monkey
 
 
 def test_the_echo_cap_is_reported(measured, caplog):
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     ds, gates = measured
-    with caplog.at_level(logging.WARNING, logger="clsas.imaging.sparse"):
+    with caplog.at_level(logging.WARNING, logger="clsas.sparse.profiles"):
         _, echoes = superres_profiles(ds, gates, "bpdn", lam_frac=0.01, max_echoes=3)
     assert all(e.capped and e.info["echoes_before_cap"] > 3 for e in echoes)
     assert all(len(e) <= 3 for e in echoes)
@@ -318,7 +318,7 @@ def test_the_heard_pulse_as_the_atom_removes_the_mismatch_echoes(method):
     transducers' colouring leaves a residual at every echo and the methods add echoes beside
     the three (measured: bpdn 8-9, cbp-polar 6); with ``pulse=`` the heard pulse, exactly the
     three, on their delays."""
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     ds, gates, taus, heard = _three_echoes_of_the_heard_pulse()
     _, plain = superres_profiles(ds, gates, method)
@@ -330,7 +330,7 @@ def test_the_heard_pulse_as_the_atom_removes_the_mismatch_echoes(method):
 
 
 def test_pulse_option_is_validated():
-    from clsas.imaging.sparse import SPARSE_OPTIONS, superres_profiles
+    from clsas.sparse.profiles import SPARSE_OPTIONS, superres_profiles
 
     assert "pulse" in SPARSE_OPTIONS
     ds, gates, _, heard = _three_echoes_of_the_heard_pulse()

@@ -268,7 +268,7 @@ def test_absorbed_pulse_matches_iso_9613_attenuation(pulse):
 def test_imaging_atom_with_absorption_fits_a_simulated_echo_better():
     """A target 3 m away (6 m of air): the absorbed atom leaves less residual than the plain
     one, so sparse imaging is not fooled by the model mismatch; the path is reported."""
-    from clsas.imaging.sparse import superres_profiles
+    from clsas.sparse.profiles import superres_profiles
 
     chirp = clsas.lfm_chirp(20e3, 40e3, 1e-3, FS, taper=0.2)
     ap = clsas.raster_aperture(2, 1, 0.04, 0.0)
@@ -340,12 +340,12 @@ def test_refined_gradient_is_the_objective_s_derivative(pulse, real_signal):
     minima with nlopt's runtime_error)."""
     from clsas.signals import analytic
     from clsas.sparse import Atom
-    from clsas.sparse.refined import _VarPro
+    from clsas.sparse.varpro import VarPro
 
     rng = np.random.default_rng(3)
     taus = np.array([40.3, 52.8, 100.1]) / FS
     x = _profile(pulse, taus, [1.0, -0.7, 0.5]) + 0.05 * rng.normal(size=N)
-    vp = _VarPro(Atom(pulse, FS, N, complex=True), analytic(x), "complex", real_signal)
+    vp = VarPro(Atom(pulse, FS, N, complex=True), analytic(x), "complex", real_signal)
     t = taus + np.array([0.2, -0.3, 0.1]) / FS
     g = np.empty(3)
     vp(t, g)

@@ -111,9 +111,7 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     dict
         The results, as written to the JSON file, plus ``paths``.
     """
-    import clsas
-
-    from . import accuracy, throughput
+    from . import throughput
     from .report import write_report
 
     say = status or (lambda s: log.info("%s", s))
@@ -131,6 +129,35 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
                  "system": platform.platform()},
         "versions": _versions(), "repeats": cfg["repeats"], "sizes": {k: v for k, v in cfg.items() if k != "repeats"},
     }
+
+    _throughput_part(res, cfg, rng, opencl, device, say)
+    _accuracy_part(res, cfg, say)
+    if cfg.get("autofocus"):
+        from . import autofocus as af
+
+        say("autofocus: focus restored against the size of the error (demo mannequin)")
+        rows = af.run_cases(af.CASES_FULL if cfg["autofocus"] == "full" else af.CASES_QUICK, status=say)
+        res["autofocus"] = {"rows": rows, "markdown": af.markdown(rows)}
+
+    from . import formation
+
+    say("image formation against exact backprojection")
+    fcfg = formation.FULL if full else formation.QUICK
+    res["formation"] = formation.run(fcfg["cases"], scale=fcfg["scale"], sides=fcfg["sides"], status=say)
+
+    if use_dask:
+        res["dask"] = _dask_part(cfg, res, scheduler, say)
+
+    stem = f"{dt.date.today()}-{re.sub(r'[^A-Za-z0-9]+', '-', device).strip('-')[:60]}" + ("" if full else "-quick")
+    res["paths"] = write_report(res, Path(out_dir), stem, plots=plots)
+    return res
+
+
+def _throughput_part(res: dict, cfg: dict, rng, opencl: bool, device: str, say) -> None:
+    """The throughput benchmarks of :func:`run` (backprojection, compression, scaling, plans), into ``res``."""
+    import clsas
+
+    from . import throughput
 
     say(f"backprojection throughput on {device}")
     res["backprojection"] = []
@@ -155,6 +182,11 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     res["plan_saving"] = throughput.bench_plan_saving(repeats=cfg["repeats"], backend="auto",
                                                       spacing_m=cfg["plan_spacing_m"])
 
+
+def _accuracy_part(res: dict, cfg: dict, say) -> None:
+    """The accuracy benchmarks of :func:`run` (two-echo, K-echo, Delta x lam), into ``res``."""
+    from . import accuracy
+
     say("error against run time: two-echo task")
     res["two_echo"] = accuracy.two_echo(**cfg["two_echo"])
     if "two_echo_convex" in cfg:
@@ -164,26 +196,6 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     res["k_echo"] = accuracy.k_echo(**cfg["k_echo"])
     say("error against run time: the paper's Delta x lam grid")
     res["delta_lambda"] = accuracy.delta_lambda(**cfg["grid"])
-
-    if cfg.get("autofocus"):
-        from . import autofocus as af
-
-        say("autofocus: focus restored against the size of the error (demo mannequin)")
-        rows = af.run_cases(af.CASES_FULL if cfg["autofocus"] == "full" else af.CASES_QUICK, status=say)
-        res["autofocus"] = {"rows": rows, "markdown": af.markdown(rows)}
-
-    from . import formation
-
-    say("image formation against exact backprojection")
-    fcfg = formation.FULL if full else formation.QUICK
-    res["formation"] = formation.run(fcfg["cases"], scale=fcfg["scale"], sides=fcfg["sides"], status=say)
-
-    if use_dask:
-        res["dask"] = _dask_part(cfg, res, scheduler, say)
-
-    stem = f"{dt.date.today()}-{re.sub(r'[^A-Za-z0-9]+', '-', device).strip('-')[:60]}" + ("" if full else "-quick")
-    res["paths"] = write_report(res, Path(out_dir), stem, plots=plots)
-    return res
 
 
 def run_formation(full: bool = False, out_dir: str | Path = "bench/results", *, formations=None,

@@ -88,7 +88,7 @@ def tiles(grid: VoxelGrid, n_tiles: int) -> list[tuple[slice, VoxelGrid]]:
 
 
 def _backproject_tile(profiles, sub: VoxelGrid, backend: str | None):
-    from ..imaging import backproject
+    from ..formation.bp import backproject
 
     image = backproject(profiles, sub, backend=backend)
     return image.values, image.device

@@ -30,7 +30,7 @@ import numpy as np
 import clsas
 
 from ..formation import FORMATIONS, error_to_signal_db, form
-from .stats import fit_exponent
+from .stats import fit_exponent, jsonable
 
 __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", "markdown", "write"]
 
@@ -94,7 +94,7 @@ def make_case(name: str, scale: float = 1.0):
 
 
 def _profiles(ds, grid):
-    plan = clsas.imaging.plan_reconstruction(ds, grid, [])
+    plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
     return clsas.compress(ds, gate_s=plan.gate_s)
 
 
@@ -245,7 +245,6 @@ def write(res: dict, out_dir, stem: str, plots: bool = True) -> dict:
     import json
     from pathlib import Path
 
-    from .report import _jsonable
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -253,7 +252,7 @@ def write(res: dict, out_dir, stem: str, plots: bool = True) -> dict:
     if plots:
         paths["png"] = out_dir / f"{stem}.png"
     res = {**res, "paths": {k: str(v) for k, v in paths.items()}}
-    paths["json"].write_text(json.dumps(_jsonable(res), indent=1))
+    paths["json"].write_text(json.dumps(jsonable(res), indent=1))
     head = [f"# clsas formation benchmark, {res.get('date', '')}", "", f"Device: {res.get('device', '?')}. "
             f"Host: {res.get('host', '?')}.", ""]
     if plots:

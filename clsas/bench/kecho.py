@@ -63,14 +63,14 @@ def draw_k(task: TwoEchoTask, k: int, ratio: float, spacing_b: float, snr_db: fl
 def ml_known_count(task: TwoEchoTask, b, k: int) -> Echoes:
     """Known-count maximum likelihood, a local search: greedy seeds, the joint fit, one pass of
     moving each echo to the residual's largest correlation (kept where the RSS drops)."""
-    from ..sparse.refined import _mainlobe_s, _VarPro
+    from ..sparse.varpro import VarPro, mainlobe_s
 
     over = 4
     d = task.dictionary(1.0 / (over * task.fs_hz))
     start = int(round(d.tau0 * over * task.fs_hz))
     lo, hi = task.gate_s
-    gap = _mainlobe_s(task.atom) / 16
-    vp = _VarPro(task.atom, b, "complex")
+    gap = mainlobe_s(task.atom) / 16
+    vp = VarPro(task.atom, b, "complex")
 
     def best_place(r):
         y = np.abs(task.atom.correlate(r, over)[start:start + len(d.taus)])
@@ -134,7 +134,7 @@ def run_k_trial(method: str, k: int, ratio: float, seed: int, *, spacing_b: floa
     """One profile, one method: a dict of the setting, success, echoes found, run time, bound success."""
     from ..sparse import lam_noise, sparse_echoes
     from ..sparse.noise import echo_threshold
-    from ..sparse.refined import _bounds
+    from ..sparse.varpro import delay_bounds
 
     if method not in KECHO_METHODS:
         raise ValueError(f"method must be one of {KECHO_METHODS}, got {method!r}")
@@ -150,7 +150,7 @@ def run_k_trial(method: str, k: int, ratio: float, seed: int, *, spacing_b: floa
                             max_echoes=max(2 * k, 8), rel_threshold=0.02, **extra)
     elapsed = time.perf_counter() - t
     err = delay_error(est, truth, tol_s=tol_b / task.bandwidth_hz)
-    lo, hi = _bounds(task.dictionary(), None)  # CBP-Polar's order threshold over its bounds
+    lo, hi = delay_bounds(task.dictionary(), None)  # CBP-Polar's order threshold over its bounds
     bound = bound_success(task, truth, sigma, tol_b)
     detect = detection_success(task, truth, sigma, echo_threshold(task.atom, hi - lo, "complex"))
     return {"method": method, "k": k, "ratio": ratio, "seed": seed, "spacing_b": spacing_b, "snr_db": snr_db,

@@ -7,19 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .stats import jsonable
+
 __all__ = ["write_report", "markdown"]
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, float) and not np.isfinite(x):
-        return None
-    return x
 
 
 def write_report(res: dict, out_dir: Path, stem: str, plots: bool = True) -> dict:
@@ -28,7 +18,7 @@ def write_report(res: dict, out_dir: Path, stem: str, plots: bool = True) -> dic
     if plots:
         paths["png"] = out_dir / f"{stem}.png"
     paths_s = {k: str(v) for k, v in paths.items()}
-    paths["json"].write_text(json.dumps(_jsonable({**res, "paths": paths_s}), indent=1))
+    paths["json"].write_text(json.dumps(jsonable({**res, "paths": paths_s}), indent=1))
     paths["markdown"].write_text(markdown(res, paths.get("png")))
     if plots:
         _plot(res, paths["png"])
@@ -43,6 +33,37 @@ def _rate(row, key):
 
 
 def markdown(res: dict, png: Path | None = None) -> str:
+    """The report of :func:`clsas.bench.run`'s results ``res`` as Markdown (``png``: the plots' file)."""
+    md = _md_header(res, png)
+    md += _md_backprojection(res)
+    md += _md_compression(res)
+    md += _md_scaling(res)
+    md += _md_accuracy(res)
+    if "formation" in res:
+        from .formation import markdown as formation_markdown
+
+        md += ["", *formation_markdown(res["formation"])]
+    if "dask" in res:
+        md += _md_dask(res["dask"])
+    return "\n".join(md) + "\n"
+
+
+def _md_dask(d: dict) -> list[str]:
+    """The Dask part: the sweeps' times and equality to the serial ones, the tiled volume."""
+    md = ["", "## Dask", "", f"Cluster: {d['scheduler']} ({d['workers']} workers).", "",
+           f"- Two-echo sweep: {d['two_echo_s']:.1f} s on Dask; equal to the serial sweep: "
+           f"**{d['two_echo_equals_serial']}**.",
+           f"- Delta x lam grid: {d['delta_lambda_s']:.1f} s on Dask; equal to the serial grid: "
+           f"**{d['delta_lambda_equals_serial']}**."]
+    if "tiled_s" in d:
+        md.append(f"- Volume of {d['voxels']} voxels in {d['n_tiles']} tiles on {', '.join(d['tile_devices'])}: "
+                  f"{d['tiled_s']:.2f} s (one call: {d['untiled_s']:.2f} s); largest difference "
+                  f"{d['tiled_max_diff_rel']:.1e} of the peak.")
+    return md
+
+
+def _md_header(res: dict, png: Path | None) -> list[str]:
+    """The title, device, host and versions (and the plots)."""
     dev = res["device"]
     md = [f"# clsas benchmark ({res['mode']}), {res['date']}", "",
           f"Device: **{dev['name']}**" + (f" (driver {dev.get('driver')}, {dev.get('opencl')}, "
@@ -53,8 +74,12 @@ def markdown(res: dict, png: Path | None = None) -> str:
           "Versions: " + ", ".join(f"{k} {v}" for k, v in res["versions"].items() if v) + ".", ""]
     if png is not None:
         md += [f"![plots]({png.name})", ""]
+    return md
 
-    md += ["## Backprojection (voxel-measurement pairs/s)", "",
+
+def _md_backprojection(res: dict) -> list[str]:
+    """The backprojection table, the C peer and the compute bound."""
+    md = ["## Backprojection (voxel-measurement pairs/s)", "",
            "| workload | pairs | VEC | OpenCL kernel | OpenCL wall | NumPy twin | Numba peer | C/OpenMP peer | "
            "kernel / twin | kernel / Numba | kernel / C | wall / C |", "|---" * 12 + "|"]
     for r in res["backprojection"]:
@@ -83,7 +108,12 @@ def markdown(res: dict, png: Path | None = None) -> str:
     md += ["", "The NumPy twin and the Numba peer (a float64 `prange` loop over voxels, as one would write it) "
                "run the number of measurements shown in brackets; their cost is linear in measurements and the "
                "rates are per pair.", ""]
+    return md
 
+
+def _md_compression(res: dict) -> list[str]:
+    """The pulse-compression table."""
+    md = []
     c = res["compression"]
     md += ["## Pulse compression (input samples/s)", "", f"{c['workload']}.", "",
            "| OpenCL FFT kernel | OpenCL FFT wall | OpenCL direct kernel | scipy fftconvolve | scipy oaconvolve "
@@ -96,8 +126,12 @@ def markdown(res: dict, png: Path | None = None) -> str:
                "and a complex64 reference already in memory and returns every lag at the full rate; clsas returns "
                "baseband profiles every 2 samples (the same band-limited signal), its wall time including "
                "transfers.", ""]
+    return md
 
-    md += ["## Scaling", "", "| cost of | against | fixed | decades | fitted exponent | upper half |",
+
+def _md_scaling(res: dict) -> list[str]:
+    """The scaling exponents and the plan savings."""
+    md = ["## Scaling", "", "| cost of | against | fixed | decades | fitted exponent | upper half |",
            "|---|---|---|---|---|---|"]
     for key, s in res["scaling"].items():
         what = key.split("_vs_")[0]
@@ -106,8 +140,12 @@ def markdown(res: dict, png: Path | None = None) -> str:
     md += ["", "| plan (demo front scene) | voxels | time | saving |", "|---|---|---|---|"]
     for k, v in res["plan_saving"].items():
         md.append(f"| {k} | {v['voxels']} | {v['median_s'] * 1e3:.1f} ms | {v['saving_x']:.1f}x |")
+    return md
 
-    md += ["", "## Error against run time", ""]
+
+def _md_accuracy(res: dict) -> list[str]:
+    """Error against run time: two-echo, K-echo, autofocus, Delta x lam."""
+    md = ["", "## Error against run time", ""]
     for key in ("two_echo", "two_echo_convex"):
         if key not in res:
             continue
@@ -138,23 +176,7 @@ def markdown(res: dict, png: Path | None = None) -> str:
     for m, b in g["best"].items():
         md.append(f"| {m} | {b['delta_s']:g} s | {b['lam_frac']:g} | {b['error']:.3g} | {b['time_s'] * 1e3:.1f} ms | "
                   f"{b['median_error']:.3g} | {b['median_time_s'] * 1e3:.1f} ms |")
-
-    if "formation" in res:
-        from .formation import markdown as formation_markdown
-
-        md += ["", *formation_markdown(res["formation"])]
-    if "dask" in res:
-        d = res["dask"]
-        md += ["", "## Dask", "", f"Cluster: {d['scheduler']} ({d['workers']} workers).", "",
-               f"- Two-echo sweep: {d['two_echo_s']:.1f} s on Dask; equal to the serial sweep: "
-               f"**{d['two_echo_equals_serial']}**.",
-               f"- Delta x lam grid: {d['delta_lambda_s']:.1f} s on Dask; equal to the serial grid: "
-               f"**{d['delta_lambda_equals_serial']}**."]
-        if "tiled_s" in d:
-            md.append(f"- Volume of {d['voxels']} voxels in {d['n_tiles']} tiles on {', '.join(d['tile_devices'])}: "
-                      f"{d['tiled_s']:.2f} s (one call: {d['untiled_s']:.2f} s); largest difference "
-                      f"{d['tiled_max_diff_rel']:.1e} of the peak.")
-    return "\n".join(md) + "\n"
+    return md
 
 
 def _x(v):

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-__all__ = ["timed", "fit_exponent"]
+__all__ = ["timed", "fit_exponent", "jsonable"]
 
 
 def timed(fn: Callable[[], object], repeats: int, warmup: bool = True) -> list[float]:
@@ -35,3 +35,17 @@ def fit_exponent(sizes, times) -> float:
     if len(x) < 2 or not np.all(np.isfinite(x)) or not np.all(np.isfinite(y)) or np.ptp(x) == 0:
         raise ValueError("fit_exponent needs at least two distinct positive sizes and positive times")
     return float(np.polyfit(x, y, 1)[0])
+
+
+def jsonable(x):
+    """``x`` with NumPy scalars as Python numbers, tuples as lists, keys as strings and NaN/Inf as
+    None (``null``), so that ``json.dumps`` writes it."""
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [jsonable(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, float) and not np.isfinite(x):
+        return None
+    return x

@@ -15,8 +15,8 @@ import scipy.signal
 import clsas
 
 from ..compression import compress
-from ..imaging import numpy as twin
-from ..imaging.plan import path_bounds
+from ..formation import bp_numpy as twin
+from ..rangegate import path_bounds
 from .stats import fit_exponent, timed
 
 log = logging.getLogger(__name__)
@@ -102,7 +102,7 @@ def opencl_device_info() -> dict | None:
         return None
     d = q.device
     return {"name": ccl.device_info(q), "platform": d.platform.name, "driver": d.driver_version,
-            "opencl": d.version, "type": __import__("pyopencl").device_type.to_string(d.type),
+            "opencl": d.version, "type": ccl.device_kind(d),
             "compute_units": d.max_compute_units, "clock_mhz": d.max_clock_frequency,
             "vector_width_float": d.preferred_vector_width_float, "global_mem_mib": d.global_mem_size // 2**20}
 
@@ -115,7 +115,7 @@ def bench_backprojection(name, grid, n_meas, *, repeats, twin_meas, numba_meas, 
     row = {"workload": name, "voxels": grid.size, "measurements": n_meas, "lags": wl["data"].shape[1],
            "pairs": pairs}
     if opencl:
-        from ..imaging.opencl import BackprojectPlan
+        from ..formation.bp_opencl import BackprojectPlan
 
         plan = BackprojectPlan(grid, n_meas, wl["data"].shape[1])
         row["opencl_vec"] = plan.vec
@@ -197,7 +197,7 @@ def bench_scaling(*, voxel_sides, meas_counts, sample_counts, repeats, rng, open
     """Cost against voxels, measurements and samples, with the fitted exponents."""
     out = {}
     if opencl:
-        from ..imaging.opencl import BackprojectPlan
+        from ..formation.bp_opencl import BackprojectPlan
 
         def bp_time(side, n_meas):
             g = clsas.VoxelGrid.from_bounds((-0.3, 0.3), (-0.3, 0.3), (1.0, 1.6), 0.6 / (side - 1))

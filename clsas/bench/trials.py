@@ -134,13 +134,13 @@ def _fmcw(task, b):
 def _ml2(task, b):
     """Two-echo maximum likelihood, the number of echoes known: exhaustive pair search over
     the gate, then nlopt refinement (the reference the issue quotes)."""
-    from ..sparse.refined import _best_pair, _mainlobe_s, _VarPro
+    from ..sparse.varpro import VarPro, best_pair, mainlobe_s
 
     y, d = _envelope(task, b)
     centre = d.taus[int(np.argmax(y))]
-    pair = _best_pair(task.atom, b, centre, 2 * _mainlobe_s(task.atom), task.amplitudes, n_grid=40)
-    vp = _VarPro(task.atom, b, task.amplitudes)
-    taus, a, rss, status = vp.fit(pair, task.gate_s[0], task.gate_s[1], _mainlobe_s(task.atom) / 16)
+    pair = best_pair(task.atom, b, centre, 2 * mainlobe_s(task.atom), task.amplitudes, n_grid=40)
+    vp = VarPro(task.atom, b, task.amplitudes)
+    taus, a, rss, status = vp.fit(pair, task.gate_s[0], task.gate_s[1], mainlobe_s(task.atom) / 16)
     return Echoes(taus, a, "ml2", status, vp.evals)
 
 
@@ -270,7 +270,7 @@ def grid_sweep(methods=GRID_METHODS, deltas=GRID_DELTAS, lam_fracs=GRID_LAM_FRAC
 def measured_like(n_recordings: int = 4, *, seed: int = 0, snr_db: float = 20.0, n_samples: int = 1000,
                   fs_hz: float = 100e3, colour: bool = True):
     """Recordings like the measured ones of issue 12, and the gate to search, for timing the
-    sparse methods on the imaging path (:func:`clsas.imaging.sparse.superres_profiles`).
+    sparse methods on the imaging path (:func:`clsas.sparse.profiles.superres_profiles`).
 
     LFM 30 -> 10 kHz, 1 ms, Tukey 0.2, at ``fs_hz``; in each recording an extended reflector
     (a curve of 30 scatterers over 3-8 ms, random phases), a static clutter echo 10x stronger

@@ -1,15 +1,20 @@
 """The device layer: device and queue choice, verified kernel variants, builds, plans, fallback.
 
-The only place that imports pyopencl. "No OpenCL" is a normal state: :func:`select` returns
-a NumPy :class:`Selection` (one warning) where ``backend="auto"`` finds no device, and
-:meth:`Selection.fall_back` does the same when a kernel cannot be built (:class:`BuildError`).
+The only place that imports pyopencl, and it imports nothing of clsas above it. "No OpenCL" is
+a normal state: :func:`select` resolves a public function's ``backend`` and ``device`` once
+into a :class:`Selection`, NumPy (one warning) where ``backend="auto"`` finds no device; the
+Selection is passed down (every function that takes ``backend`` takes one), and
+:meth:`Selection.plan` builds an OpenCL plan or, when a kernel cannot be built
+(:class:`BuildError`) and ``"auto"`` was asked for, says "run the NumPy twin" with one warning.
 
-- :mod:`.device`: which device, one queue per device, the backend a call runs on.
+- :mod:`.errors`: :class:`OpenCLUnavailable` and :class:`BuildError` (which carries the build log).
+- :mod:`.device`: which device, one queue per device, the Selection a call runs on.
 - :mod:`.program`: kernel sources, memoised builds that must hold the kernel and carry no
   vector-ABI warning.
 - :mod:`.variants`: the vector width per device, verified once in a child process and cached
   on disk (:func:`cache_dir`, :func:`clear_cache`).
-- :mod:`.plan`: the :class:`Plan` base class of the compression and backprojection plans.
+- :mod:`.plan`: the :class:`Plan` base class; each plan declares its ``KERNEL`` and ``SOURCES``
+  and registers them in :data:`KERNELS` when its module is imported.
 """
 
 from __future__ import annotations
@@ -24,19 +29,32 @@ from .device import (
     default_backend,
     describe,
     device_info,
+    device_kind,
     get_queue,
+    is_cpu,
     resolve_backend,
     select,
 )
 from .plan import Plan
 from .program import BuildError, build, kernel, kernel_source, override_source
-from .variants import KERNELS, Verdict, cache_dir, candidate_widths, check, choose, clear_cache
+from .variants import (
+    KERNELS,
+    KernelSpec,
+    Verdict,
+    cache_dir,
+    candidate_widths,
+    check,
+    choose,
+    clear_cache,
+    kernel_spec,
+    register_kernel,
+)
 
 __all__ = [
-    "BACKENDS", "BuildError", "DeviceRow", "KERNELS", "OpenCLUnavailable", "Plan", "Selection", "Verdict",
-    "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend", "describe",
-    "device_info", "get_queue", "kernel", "kernel_source", "list_devices", "override_source", "resolve_backend",
-    "select",
+    "BACKENDS", "BuildError", "DeviceRow", "KERNELS", "KernelSpec", "OpenCLUnavailable", "Plan", "Selection",
+    "Verdict", "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend",
+    "describe", "device_info", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source", "kernel_spec",
+    "list_devices", "override_source", "register_kernel", "resolve_backend", "select",
 ]
 
 
@@ -52,11 +70,6 @@ class DeviceRow:
     selected: bool
     driver: str = ""
     preferred_vec: int = 0
-
-
-def _kind(cl, type_bits: int) -> str:
-    names = [n for n in ("GPU", "CPU", "ACCELERATOR", "CUSTOM") if type_bits & getattr(cl.device_type, n, 0)]
-    return "+".join(names) or "OTHER"
 
 
 def list_devices() -> list[DeviceRow]:
@@ -75,7 +88,7 @@ def list_devices() -> list[DeviceRow]:
         for j, d in enumerate(p.get_devices()):
             rows.append(
                 DeviceRow(
-                    f"{i}:{j}", p.name.strip(), d.name.strip(), _kind(cl, d.type), d.max_compute_units,
+                    f"{i}:{j}", p.name.strip(), d.name.strip(), device_kind(d), d.max_compute_units,
                     d.global_mem_size // 2**20, bool(d.double_fp_config),
                     selected is not None and d.int_ptr == selected.int_ptr,
                     d.driver_version.strip(), int(d.preferred_vector_width_float),

@@ -10,16 +10,15 @@ from __future__ import annotations
 import functools
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
+
+from .errors import BuildError, OpenCLUnavailable
 
 log = logging.getLogger("clsas.cl")
 
 BACKENDS = ("auto", "opencl", "numpy")
-
-
-class OpenCLUnavailable(RuntimeError):
-    """No usable OpenCL platform or device."""
 
 
 def _cl():
@@ -126,6 +125,18 @@ def device_info(queue: Any | None = None) -> str:
     return describe((queue or get_queue()).device)
 
 
+def device_kind(device: Any) -> str:
+    """``"GPU"``, ``"CPU"``, ``"ACCELERATOR"``, ``"CUSTOM"`` (joined by ``+``), or ``"OTHER"``."""
+    cl = _cl()
+    names = [n for n in ("GPU", "CPU", "ACCELERATOR", "CUSTOM") if device.type & getattr(cl.device_type, n, 0)]
+    return "+".join(names) or "OTHER"
+
+
+def is_cpu(device: Any) -> bool:
+    """Whether ``device`` (a ``pyopencl.Device``) is a CPU."""
+    return bool(device.type & _cl().device_type.CPU)
+
+
 def default_backend(backend: str | None) -> str:
     """``backend``, or ``CLSAS_BACKEND`` (default ``"auto"``) where it is None; checked."""
     if backend is None:
@@ -137,12 +148,19 @@ def default_backend(backend: str | None) -> str:
     return backend
 
 
-@dataclass
-class Selection:
-    """Where a call runs: ``kind`` is ``"opencl"`` (with ``queue``) or ``"numpy"``.
+P = TypeVar("P")
 
-    ``requested`` is what the caller asked for (``"auto"``, ``"opencl"`` or ``"numpy"``); a
-    ``"opencl"`` request never becomes NumPy: :meth:`fall_back` re-raises instead.
+
+@dataclass(frozen=True)
+class Selection:
+    """Where a call runs, resolved once at the public boundary and passed down.
+
+    ``kind`` is ``"opencl"`` (with ``queue``) or ``"numpy"``; ``requested`` is what the caller
+    asked for (``"auto"``, ``"opencl"`` or ``"numpy"``) and travels with it, so that a kernel
+    that will not build deep inside a call still falls back (``"auto"``) or raises
+    (``"opencl"``) as the caller asked. Every function that takes ``backend`` also takes a
+    Selection there (see :func:`select`); :meth:`plan` builds an OpenCL plan or says "run the
+    NumPy twin".
     """
 
     kind: str
@@ -151,14 +169,26 @@ class Selection:
 
     @property
     def opencl(self) -> bool:
+        """Whether calls run on the OpenCL device."""
         return self.kind == "opencl"
 
     @property
     def device(self) -> str:
+        """'<device> on <platform>', or ``"NumPy (float64)"``."""
         return device_info(self.queue) if self.opencl else "NumPy (float64)"
 
+    @property
+    def cl_device(self) -> Any:
+        """The ``pyopencl.Device`` (for its memory limits), or None on NumPy."""
+        return self.queue.device if self.opencl else None
+
     def fall_back(self, exc: Exception) -> Selection:
-        """After a failed kernel build (``BuildError``): NumPy with one warning, or raise."""
+        """After a failed kernel build (``BuildError``): NumPy with one warning, or raise.
+
+        ``requested="opencl"`` re-raises ``exc`` (its message carries the compiler log);
+        otherwise the warning names the device and the first line of the reason, once per
+        process and reason.
+        """
         if self.requested == "opencl":
             raise exc
         text = _first_line(exc)
@@ -167,13 +197,42 @@ class Selection:
         _warn_once(f"{text}: using the NumPy backend")
         return Selection("numpy", self.requested)
 
+    def plan(self, factory: Callable[[Any], P]) -> tuple[P | None, Selection]:
+        """Build an OpenCL plan here, or say that its NumPy twin runs.
 
-def select(backend: str | None = None, device: Any = None) -> Selection:
+        Parameters
+        ----------
+        factory : callable(queue) -> plan
+            Builds the plan on this selection's queue (a :class:`~clsas.cl.Plan` or anything
+            whose construction raises :class:`~clsas.cl.BuildError` when a kernel will not build).
+
+        Returns
+        -------
+        (plan, selection)
+            ``(plan, self)`` when it builds; ``(None, self)`` on NumPy; ``(None, NumPy
+            selection)`` after a :class:`~clsas.cl.BuildError` with ``requested="auto"`` (one
+            warning, see :meth:`fall_back`). With ``requested="opencl"`` the BuildError is raised.
+        """
+        if not self.opencl:
+            return None, self
+        try:
+            return factory(self.queue), self
+        except BuildError as exc:
+            return None, self.fall_back(exc)
+
+
+def select(backend: str | Selection | None = None, device: Any = None) -> Selection:
     """Resolve ``backend`` (None reads ``CLSAS_BACKEND``) and ``device`` into a Selection.
 
     ``"auto"`` picks OpenCL where a device exists, else NumPy with one warning naming the
-    reason; ``"opencl"`` raises :class:`OpenCLUnavailable` where there is none.
+    reason; ``"opencl"`` raises :class:`OpenCLUnavailable` where there is none. A Selection
+    is returned as it is (its request kept), so a function may be handed either the request
+    or what the public boundary resolved; ``device`` must then be None or its own queue.
     """
+    if isinstance(backend, Selection):
+        if device is not None and device is not backend.queue:
+            raise ValueError("device: a resolved clsas.cl.Selection carries its device; give device=None with it")
+        return backend
     backend = default_backend(backend)
     if backend == "numpy":
         return Selection("numpy", backend)
@@ -187,7 +246,7 @@ def select(backend: str | None = None, device: Any = None) -> Selection:
     return Selection("opencl", backend, queue)
 
 
-def resolve_backend(backend: str | None, device: Any = None) -> str:
+def resolve_backend(backend: str | Selection | None, device: Any = None) -> str:
     """``"opencl"`` or ``"numpy"``: the kind :func:`select` picks."""
     return select(backend, device).kind
 

@@ -1,20 +1,26 @@
 """The base of every OpenCL plan: queue, verified kernel variant, device buffers, timings.
 
 A plan is built once for a shape (kernel chosen and compiled, buffers allocated) and called
-many times. Subclasses name their kernel and sources, allocate in ``__init__`` after calling
-``super().__init__``, and launch through :meth:`Plan.launch` so that kernel time is measured
+many times. A subclass declares what it runs as class attributes, ``KERNEL`` (the kernel's
+name) and ``SOURCES`` (the files under ``kernels/`` it is built from, in order), and a
+``selftest(queue, vec) -> float`` classmethod (its error against the NumPy twin on a small
+input, relative to the peak) that the variant probe runs; defining the class registers the
+kernel with the device layer (:data:`clsas.cl.KERNELS`). Extra build defines of an instance
+come from :meth:`Plan.defines`. It allocates in ``__init__`` after calling
+``super().__init__`` and launches through :meth:`Plan.launch` so that kernel time is measured
 from profiling events.
 """
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Sequence
+from typing import Any, ClassVar
 
 import numpy as np
 
 from .device import _cl, describe, get_queue
 from .program import kernel
-from .variants import KERNELS, choose
+from .variants import choose, register_kernel
 
 __all__ = ["Plan"]
 
@@ -31,17 +37,29 @@ class Plan:
         :class:`~clsas.cl.BuildError`. Default: the widest width the device passes.
     """
 
-    kernel_name: str = ""
+    KERNEL: ClassVar[str] = ""
+    SOURCES: ClassVar[tuple[str, ...]] = ()
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if cls.__dict__.get("KERNEL"):  # a base without a kernel of its own registers nothing
+            register_kernel(cls.KERNEL, cls.SOURCES, cls.__module__, cls.__qualname__)
 
     def __init__(self, queue: Any = None, vec: int | None = None):
+        if not self.KERNEL:
+            raise TypeError(f"{type(self).__name__} names no KERNEL")
         self.cl = _cl()
         self.queue = get_queue(queue)
         self.context = self.queue.context
-        files = KERNELS[self.kernel_name][0]
-        self.vec = choose(self.queue, self.kernel_name, vec)
-        self.kernel = kernel(self.context, files, self.kernel_name, {"VEC": self.vec})
+        self.vec = choose(self.queue, self.KERNEL, vec)
+        self.kernel = kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), "VEC": self.vec})
         self.last_kernel_s = 0.0
         self._events: list = []
+
+    def defines(self) -> dict[str, Any]:
+        """Build defines of this instance besides ``VEC`` (the variant the probe verifies is
+        built without them); set what they depend on before calling ``super().__init__``."""
+        return {}
 
     # -- buffers -------------------------------------------------------------------------
     def alloc(self, nbytes: int, access: str = "rw") -> Any:
@@ -61,12 +79,23 @@ class Plan:
     def write(self, buf: Any, arr: np.ndarray, dtype: Any) -> None:
         self.cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(arr, dtype=dtype))
 
-    def read(self, buf: Any, shape: tuple[int, ...], dtype: Any) -> np.ndarray:
-        """Copy ``buf`` back after every launch since :meth:`begin` has ended."""
+    def read(self, buf: Any, shape: tuple[int, ...], dtype: Any, after: Sequence[Any] | None = None) -> np.ndarray:
+        """Copy ``buf`` back once the launches it depends on have ended.
+
+        ``after``: those launches' events (of this or another plan on the same queue);
+        default every launch of this plan since :meth:`begin`. ``last_kernel_s`` becomes their
+        kernel time, s.
+        """
+        events = list(self._events if after is None else after)
         out = np.empty(shape, dtype)
-        self.cl.enqueue_copy(self.queue, out, buf, wait_for=self._events or None)
-        self.last_kernel_s = sum((e.profile.end - e.profile.start) * 1e-9 for e in self._events)
+        self.cl.enqueue_copy(self.queue, out, buf, wait_for=events or None)
+        self.last_kernel_s = sum(self.seconds(e) for e in events)
         return out
+
+    @staticmethod
+    def seconds(event: Any) -> float:
+        """Kernel time of a finished launch's event (profiling counters), s."""
+        return (event.profile.end - event.profile.start) * 1e-9
 
     # -- launches ------------------------------------------------------------------------
     def begin(self) -> None:
@@ -83,4 +112,4 @@ class Plan:
         return describe(self.queue.device)
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.kernel_name}, VEC={self.vec}, {self.device})"
+        return f"{type(self).__name__}({self.KERNEL}, VEC={self.vec}, {self.device})"

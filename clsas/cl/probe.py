@@ -1,9 +1,10 @@
 """Child process of :mod:`clsas.cl.variants`: build one kernel variant, launch it, check it.
 
-Reads a JSON spec on stdin (platform and device names, kernel, width, source texts), runs the
-plan class's ``selftest`` (a small input against the NumPy twin) on that device and prints one
-JSON line ``{"ok": ..., "reason": ..., "log": ...}``. A crash of the OpenCL runtime kills only
-this process; the parent reads that from the exit status.
+Reads a JSON spec on stdin (platform and device names, kernel, width, the plan class's module
+and qualified name, source texts), runs the plan class's ``selftest`` (a small input against
+the NumPy twin) on that device and prints one JSON line ``{"ok": ..., "reason": ..., "log":
+...}``. A crash of the OpenCL runtime kills only this process; the parent reads that from the
+exit status.
 """
 
 from __future__ import annotations
@@ -29,17 +30,24 @@ def _device(platform: str, name: str):
     raise LookupError(f"device {name!r} on {platform!r} not found")
 
 
+def _plan_class(module: str, qualname: str):
+    """The plan class the parent named (its module imported here: this layer names none)."""
+    obj = importlib.import_module(module)
+    for part in qualname.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
 def run(spec: dict) -> dict:
     cl = _cl()
     variants._IN_PROBE = True
-    name, vec = spec["kernel"], int(spec["vec"])
-    files, module, cls = variants.KERNELS[name]
+    vec = int(spec["vec"])
     device = _device(spec["platform"], spec["device"])
     queue = cl.CommandQueue(cl.Context([device]), properties=cl.command_queue_properties.PROFILING_ENABLE)
     with contextlib.ExitStack() as stack:
         for f, text in spec.get("sources", {}).items():
             stack.enter_context(override_source(f, text))
-        plan_cls = getattr(importlib.import_module(module), cls)
+        plan_cls = _plan_class(spec["module"], spec["qualname"])
         try:
             err = plan_cls.selftest(queue, vec)
         except BuildError as exc:

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from .device import _cl, describe
+from .errors import BuildError
 
 __all__ = ["BuildError", "kernel_source", "sources_hash", "build", "kernel", "override_source"]
 
@@ -26,20 +27,6 @@ __all__ = ["BuildError", "kernel_source", "sources_hash", "build", "kernel", "ov
 ABI_WARNING = re.compile(r"changes the ABI", re.IGNORECASE)
 
 BUILD_OPTIONS = ("-cl-mad-enable",)
-
-
-class BuildError(RuntimeError):
-    """An OpenCL program or kernel variant could not be built; ``.log`` holds the build log."""
-
-    def __init__(self, files: tuple[str, ...], device: str, reason: str, build_log: str = ""):
-        self.files = tuple(files)
-        self.device = device
-        self.reason = reason
-        self.log = build_log
-        text = f"building {', '.join(files)} for {device}: {reason}"
-        if build_log.strip():
-            text += f"\n--- build log ---\n{build_log.strip()[-6000:]}"
-        super().__init__(text)
 
 
 _OVERRIDES: dict[str, str] = {}

@@ -36,21 +36,58 @@ from typing import Any
 from .device import _cl, describe
 from .program import BuildError, kernel, kernel_source, sources_hash
 
-__all__ = ["KERNELS", "Verdict", "cache_dir", "clear_cache", "candidate_widths", "check", "choose"]
+__all__ = [
+    "KERNELS", "KernelSpec", "Verdict", "cache_dir", "candidate_widths", "check", "choose", "clear_cache",
+    "kernel_spec", "register_kernel",
+]
 
 log = logging.getLogger("clsas.cl.variants")
 
-# kernel name -> (source files, module and plan class whose ``selftest`` the probe runs)
-KERNELS: dict[str, tuple[tuple[str, ...], str, str]] = {
-    "matched_filter": (("common.cl", "compress.cl"), "clsas.compression.opencl", "MatchedFilterPlan"),
-    "fmcw_dechirp": (("common.cl", "compress.cl"), "clsas.compression.opencl", "FmcwPlan"),
-    "matched_fft": (("common.cl", "compress.cl"), "clsas.compression.opencl", "FftMatchedPlan"),
-    "backproject": (("common.cl", "backproject.cl"), "clsas.imaging.opencl", "BackprojectPlan"),
-    "focus_gradient": (("common.cl", "autofocus.cl"), "clsas.focus.opencl", "FocusGradientPlan"),
-    "stolt_spread": (("common.cl", "stolt.cl"), "clsas.formation.opencl", "StoltPlan"),
-    "ffbp_leaf": (("common.cl", "ffbp.cl"), "clsas.formation.ffbp_opencl", "FfbpLeafPlan"),
-    "ffbp_merge": (("common.cl", "ffbp.cl"), "clsas.formation.ffbp_opencl", "FfbpMergePlan"),
-}
+
+
+@dataclass(frozen=True)
+class KernelSpec:
+    """A kernel as its plan declares it: the sources it is built from, and the plan class
+    (module and qualified name) whose ``selftest(queue, vec)`` the probe runs."""
+
+    name: str
+    sources: tuple[str, ...]
+    module: str
+    qualname: str
+
+
+# kernel name -> KernelSpec, filled by each Plan subclass that names a KERNEL when its module
+# is imported (see clsas.cl.plan.Plan); this layer names none of them itself
+KERNELS: dict[str, KernelSpec] = {}
+
+
+def register_kernel(name: str, sources: tuple[str, ...], module: str, qualname: str) -> KernelSpec:
+    """Record that the plan ``module.qualname`` runs kernel ``name`` built from ``sources``.
+
+    Called by :class:`clsas.cl.Plan` for each subclass that sets ``KERNEL``; a second class
+    claiming the same kernel is a ``ValueError`` (re-importing the same class is not).
+    """
+    if not name or not isinstance(name, str):
+        raise ValueError(f"kernel name must be a non-empty string, got {name!r}")
+    if not sources or not all(isinstance(f, str) and f for f in sources):
+        raise ValueError(f"kernel {name!r}: sources must be file names under kernels/, got {sources!r}")
+    spec = KernelSpec(name, tuple(sources), module, qualname)
+    old = KERNELS.get(name)
+    if old is not None and (old.module, old.qualname) != (module, qualname):
+        raise ValueError(f"kernel {name!r} is already run by {old.module}.{old.qualname}")
+    KERNELS[name] = spec
+    return spec
+
+
+def kernel_spec(name: str) -> KernelSpec:
+    """The registered :class:`KernelSpec` of kernel ``name`` (``ValueError`` names the known ones)."""
+    try:
+        return KERNELS[name]
+    except KeyError:
+        raise ValueError(f"unknown kernel {name!r}; registered: {sorted(KERNELS)} (a Plan subclass registers "
+                         "its KERNEL when its module is imported)") from None
+
+
 WIDTHS = (16, 8, 4)
 PROBE_TIMEOUT_S = 300.0
 FORMAT = 1
@@ -120,10 +157,10 @@ def _plan_code_hash(module: str) -> str:
 
 
 def _key(device: Any, name: str, vec: int) -> tuple[str, dict]:
-    files, module, _ = KERNELS[name]
+    spec = kernel_spec(name)
     ident = {
-        **_device_identity(device), "kernel": name, "vec": vec, "sources": sources_hash(files),
-        "plan_code": _plan_code_hash(module), "format": FORMAT,
+        **_device_identity(device), "kernel": name, "vec": vec, "sources": sources_hash(spec.sources),
+        "plan_code": _plan_code_hash(spec.module), "format": FORMAT,
     }
     digest = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:32]
     return digest, ident
@@ -158,10 +195,10 @@ def _probe_command() -> list[str]:
 
 def _run_probe(device: Any, name: str, vec: int) -> tuple[Verdict, bool]:
     """Run the variant in a child process; returns the verdict and whether it is definitive."""
-    files = KERNELS[name][0]
+    kspec = kernel_spec(name)
     spec = {
         "platform": device.platform.name, "device": device.name, "kernel": name, "vec": vec,
-        "sources": {f: kernel_source(f) for f in files},
+        "module": kspec.module, "qualname": kspec.qualname, "sources": {f: kernel_source(f) for f in kspec.sources},
     }
     env = dict(os.environ)
     pkg_root = str(Path(__file__).resolve().parents[2])
@@ -210,8 +247,7 @@ def _is_simulator(device: Any) -> bool:
 
 def check(queue: Any, name: str, vec: int) -> Verdict:
     """Verdict for kernel ``name`` at width ``vec`` on the queue's device (memoised, cached on disk)."""
-    if name not in KERNELS:
-        raise ValueError(f"unknown kernel {name!r}; known: {sorted(KERNELS)}")
+    spec = kernel_spec(name)
     if vec not in WIDTHS:
         raise ValueError(f"vec must be one of {WIDTHS}, got {vec!r}")
     device = queue.device
@@ -228,7 +264,7 @@ def check(queue: Any, name: str, vec: int) -> Verdict:
     if verdict is None or verdict.ok:
         # the in-process checks: the build holds the kernel, the log has no vector-ABI warning
         try:
-            kernel(queue.context, KERNELS[name][0], name, {"VEC": vec})
+            kernel(queue.context, spec.sources, name, {"VEC": vec})
             verdict = verdict or Verdict(True, f"VEC={vec}: built in-process (a simulator: not probed)",
                                          source="in-process")
         except BuildError as exc:
@@ -245,6 +281,7 @@ def choose(queue: Any, name: str, vec: int | None = None) -> int:
     ``vec`` given: that width, if its verdict is good, else :class:`BuildError` (a variant is
     never launched blind). ``vec`` None: the widest good one of :func:`candidate_widths`.
     """
+    kernel_spec(name)  # an unknown kernel is a ValueError before anything is probed
     device = queue.device
     widths = [vec] if vec is not None else candidate_widths(device)
     rejected = []
@@ -255,7 +292,7 @@ def choose(queue: Any, name: str, vec: int | None = None) -> int:
                 log.info("kernel %s on %s: VEC=%d (wider rejected)", name, describe(device), w)
             return w
         rejected.append(verdict)
-    files = KERNELS[name][0]
+    files = kernel_spec(name).sources
     if vec is not None:
         raise BuildError(files, describe(device), rejected[0].reason, rejected[0].log)
     reasons = "; ".join(r.reason for r in rejected)

@@ -2,14 +2,21 @@
 
 Adding a command is one new module here and one line in :data:`COMMANDS`. The choices a command
 offers (formations, sparse methods, compressions, importers, backends) are read from the
-libraries' registries, not typed again here.
+libraries' registries, not typed again here. A package of the user's own registers its
+algorithms when imported; to have the command line import it, name the module under the entry-point
+group ``clsas.plugins`` in that package's pyproject.toml::
+
+    [project.entry-points."clsas.plugins"]
+    my_formation = "my_package.my_formation"
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
+from importlib.metadata import entry_points
 
 from . import (
     acquire,
@@ -27,7 +34,13 @@ from . import (
 )
 from .common import check_device_request, check_input_files, check_method_dependencies
 
-__all__ = ["COMMANDS", "EXIT_BAD_INPUT", "EXIT_FAILURE", "EXIT_OK", "EXIT_RESUMABLE", "build_parser", "main"]
+__all__ = ["COMMANDS", "EXIT_BAD_INPUT", "EXIT_FAILURE", "EXIT_OK", "EXIT_RESUMABLE", "PLUGIN_GROUP", "build_parser",
+           "load_plugins", "main"]
+
+log = logging.getLogger("clsas.cli")
+
+#: the entry-point group whose modules the command line imports (they register their algorithms)
+PLUGIN_GROUP = "clsas.plugins"
 
 # the subcommands in the order ``clsas --help`` lists them
 COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare, devices, acquire, importing, export,
@@ -59,7 +72,22 @@ class _Once(logging.Filter):
         return True
 
 
+def load_plugins() -> list[str]:
+    """Import every module named under the entry-point group :data:`PLUGIN_GROUP`; a module that
+    fails to import is skipped with a warning naming it. Returns the modules imported."""
+    loaded = []
+    for ep in entry_points(group=PLUGIN_GROUP):
+        try:
+            importlib.import_module(ep.value.split(":")[0])
+        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not take the command line down
+            log.warning("plug-in %s (%s) not loaded: %s: %s", ep.name, ep.value, type(exc).__name__, exc)
+        else:
+            loaded.append(ep.value)
+    return loaded
+
+
 def build_parser() -> argparse.ArgumentParser:
+    load_plugins()
     p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging",
                                 epilog="exit status: 0 done, 1 failed, 2 bad input (the message says what to fix), "
                                 "3 scan interrupted (resume it with --resume)")

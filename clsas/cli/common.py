@@ -103,7 +103,7 @@ def estimated_sparse_s(ds, grid, method: str) -> float | None:
     (cvxpy) method, from the gates' lengths, before any solve; None for the other methods."""
     import numpy as np
 
-    from clsas.imaging.plan import plan_reconstruction
+    from clsas.rangegate import plan_reconstruction
 
     if method not in CONVEX_S_PER_RECORDING:
         return None
@@ -227,7 +227,7 @@ def check_method_dependencies(method: str | None) -> None:
     instead of every recording falling back to the matched filter."""
     from importlib.util import find_spec
 
-    from clsas._validate import install_hint
+    from clsas.validate import install_hint
 
     missing = [m for m in METHOD_NEEDS.get(method or "", ()) if find_spec(m) is None]
     if missing:
@@ -285,7 +285,7 @@ def check_grids_fit(grids, args) -> None:
     """The memory guard for every grid a command will image, run before any of the work starts
     (``clsas demo`` images two scenes; ``reconstruct --autofocus`` works for minutes first)."""
     from clsas import cl
-    from clsas.imaging.guard import check_grid
+    from clsas.formation.guard import check_grid
 
     if getattr(args, "formation", "bp") != "bp":
         return  # a formation checks its own memory (its tree or spectrum, not the grid alone)

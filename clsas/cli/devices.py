@@ -34,6 +34,10 @@ def cmd_devices(args) -> int:
 
 def _print_variants(cl, rows) -> None:
     """The kernel width each kernel gets on each device, and why wider ones were refused."""
+    import importlib
+
+    for module in ("clsas.focus.engine", "clsas.formation.ffbp", "clsas.formation.omega_k"):
+        importlib.import_module(module)  # their plans register their kernels in cl.KERNELS
     if not rows:
         raise ValueError("--variants --device: no such device (see the P:D numbers above)")
     for r in rows:
@@ -66,7 +70,7 @@ def _print_rig_devices() -> None:
     try:
         from serial.tools import list_ports
     except ImportError:
-        from clsas._validate import install_hint
+        from clsas.validate import install_hint
 
         print(f"serial ports: unavailable ({install_hint('rig')} for pyserial)")
         return

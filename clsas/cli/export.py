@@ -5,7 +5,7 @@ from __future__ import annotations
 
 def cmd_export(args) -> int:
     from clsas.export import export
-    from clsas.imaging.image import Image
+    from clsas.image import Image
 
     for path in export(Image.load(args.image), args.out):
         print(f"wrote {path}")

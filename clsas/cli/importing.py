@@ -44,12 +44,13 @@ def cmd_import(args) -> int:
 
 
 def add_parser(sub) -> None:
-    from clsas.io import FORMATS
+    from clsas.io import IMPORTERS
 
-    im = sub.add_parser("import", help="import measured recordings (a WAV/CSV folder or the AirSAS layout)")
+    im = sub.add_parser("import", help="import measured recordings (" + "; ".join(
+        f"{name}: {imp.summary}" for name, imp in IMPORTERS.items()) + ")")
     im.add_argument("source", help="the scan's folder")
     im.add_argument("out", help="dataset file to write (HDF5)")
-    im.add_argument("--format", choices=("auto", *FORMATS), default="auto",
+    im.add_argument("--format", choices=("auto", *IMPORTERS), default="auto",
                     help="layout of SOURCE (default: auto)")
     im.add_argument("--background", metavar="FOLDER", help="the empty-scene scan, same layout and stops")
     im.add_argument("--waveform-index", type=int, help="airsas: which interleaved waveform (0-based)")

@@ -34,7 +34,7 @@ def cmd_reconstruct(args) -> int:
     if args.autofocus:
         ds, _ = af.run_autofocus(ds, grid, args)
     image = reconstruct_image(ds, grid, args, not args.quiet)
-    from clsas.imaging.image import source_provenance
+    from clsas.image import source_provenance
 
     image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
     out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
@@ -44,7 +44,7 @@ def cmd_reconstruct(args) -> int:
     peaks = image.peaks(args.peaks, min_separation_m=0.03)
     print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
     from clsas.compression import center_frequency
-    from clsas.imaging.lobes import grating_lobe_notes
+    from clsas.formation.lobes import grating_lobe_notes
 
     notes = grating_lobe_notes(peaks, ds.tx_positions, ds.rx_positions, center_frequency(ds.waveform, ds.fs_hz),
                                float(np.mean(ds.c_mps)))
@@ -83,14 +83,14 @@ def _partial_scan(path) -> str:
 
 def add_parser(sub) -> None:
     from clsas.formation import FORMATIONS
-    from clsas.imaging import METHODS
+    from clsas.pipeline import methods
 
     r = sub.add_parser("reconstruct", help="image a dataset file")
     r.add_argument("data", help="dataset file (HDF5, from clsas simulate, acquire, import or preprocess)")
     r.add_argument("--grid", help="x0,x1,y0,y1,z0,z1 in m, e.g. --grid=-0.5,0.5,-0.5,0.5,1,2 "
                    "(default: the dataset's [grid])")
     r.add_argument("--spacing", type=float, help="voxel spacing in m")
-    r.add_argument("--method", default="bp", choices=METHODS,
+    r.add_argument("--method", default="bp", choices=methods(),
                    help="bp: matched filter + backprojection (default); bpdn, cbp-taylor, cbp-polar: each recording "
                    "super-resolved first (needs the sparse extra)")
     r.add_argument("--compression", default="matched", choices=("matched", "fmcw"),

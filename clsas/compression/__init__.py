@@ -8,139 +8,29 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
 from .. import cl as _cl
+from .. import validate as v
 from ..dataset import Dataset
+from ..profiles import Profiles, center_frequency
+from ..registry import Registry
 from ..signals import analytic
 from . import numpy as twin
+from .layout import FftLayout, fft_layout
+from .opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 
-__all__ = ["Profiles", "compress", "center_frequency", "profile_decimation"]
+__all__ = ["COMPRESSIONS", "Profiles", "compress", "center_frequency", "profile_decimation"]
 
 log = logging.getLogger(__name__)
 
-METHODS = ("matched", "fmcw")
-
-
-@dataclass
-class Profiles:
-    """Complex baseband range profiles, one row per measurement.
-
-    Sample ``k`` of row ``m`` is the echo at delay ``tau0_s[m] + k * dtau_s`` after the
-    transmit start, rotated to baseband by ``exp(-j 2 pi fc_hz tau)``.
-    """
-
-    data: np.ndarray
-    tau0_s: np.ndarray
-    dtau_s: float
-    fc_hz: float
-    method: str
-    backend: str
-    tx_positions: np.ndarray | None = None
-    rx_positions: np.ndarray | None = None
-    c_mps: float | np.ndarray | None = None  # one per measurement where the air changed
-    timings_s: dict = field(default_factory=dict)
-    device: str = ""
-
-    @property
-    def n_meas(self) -> int:
-        return self.data.shape[0]
-
-    @property
-    def n_lags(self) -> int:
-        return self.data.shape[1]
-
-    def delays_s(self, m: int = 0) -> np.ndarray:
-        """Delays of row ``m``'s samples after the transmit start, s."""
-        return self.tau0_s[m] + self.dtau_s * np.arange(self.n_lags)
-
-    @classmethod
-    def from_range_profiles(
-        cls,
-        data: np.ndarray,
-        *,
-        tau0_s: float | np.ndarray,
-        dtau_s: float,
-        tx_positions: np.ndarray,
-        rx_positions: np.ndarray,
-        c_mps: float | np.ndarray,
-        fc_hz: float | None = None,
-        baseband: bool = False,
-        method: str = "external",
-    ) -> Profiles:
-        """Range profiles computed elsewhere (pulse-compressed, deconvolved, ...), ready for
-        :func:`clsas.backproject`.
-
-        Parameters
-        ----------
-        data : (n_meas, n_lags) array
-            Real profiles (the matched-filter or deconvolution output at the carrier: their
-            analytic signal is taken), complex analytic profiles (``baseband=False``), or
-            complex baseband profiles (``baseband=True``, already rotated by
-            ``exp(-j 2 pi fc tau)``). NaN or Inf is refused.
-        tau0_s : float or (n_meas,) array
-            Delay after the transmit start of each row's sample 0, s (a group delay already
-            removed); may be negative.
-        dtau_s : float
-            Delay step between samples, s (``1 / fs`` for profiles at the recording's rate).
-        tx_positions, rx_positions : (n_meas, 3) arrays, m
-        c_mps : float or (n_meas,) array
-            Speed of sound, one per measurement where the air changed.
-        fc_hz : float, optional
-            Carrier (the rotation frequency to baseband); default the power-weighted mean
-            frequency of ``data`` (give it for baseband data, where it cannot be measured).
-        baseband : bool
-            ``data`` is complex baseband already.
-        method : str
-            A label for the image's provenance.
-        """
-        arr = v.array("data", data, ndim=2, dtype=None, allow_complex=True)
-        n, k = arr.shape
-        if k < 2:
-            raise ValueError(f"data must have at least 2 samples per profile, got shape {arr.shape}")
-        dtau = v.positive("dtau_s", dtau_s)
-        tau0 = np.broadcast_to(np.asarray(tau0_s, float), (n,)).copy()
-        v.array("tau0_s", tau0)
-        tx = v.array("tx_positions", tx_positions, shape=(n, 3))
-        rx = v.array("rx_positions", rx_positions, shape=(n, 3))
-        c = v.speeds("c_mps", c_mps, n)
-        if baseband and not np.iscomplexobj(arr):
-            raise ValueError("baseband=True needs complex data (real data is at the carrier)")
-        if baseband and fc_hz is None:
-            raise ValueError("fc_hz is required for baseband data (the carrier cannot be measured from it)")
-        if not np.iscomplexobj(arr):
-            arr = analytic(np.asarray(arr, np.float64))
-        if fc_hz is None:
-            spec = np.abs(np.fft.fft(arr, axis=1)) ** 2
-            f = np.fft.fftfreq(k, dtau)
-            fc_hz = float((spec.sum(axis=0) * f).sum() / max(spec.sum(), 1e-300))
-        fc = v.non_negative("fc_hz", fc_hz)
-        if not baseband and fc >= 0.5 / dtau:  # baseband rows need only the band's width, not the carrier
-            raise ValueError(f"fc_hz={fc:g} is at or above the profiles' Nyquist frequency {0.5 / dtau:g}")
-        if not baseband:
-            tau = tau0[:, None] + dtau * np.arange(k)[None, :]
-            arr = arr * np.exp(-2j * np.pi * ((fc * tau) % 1.0))
-        return cls(np.asarray(arr, np.complex128), tau0, dtau, fc, method, "numpy", tx_positions=tx,
-                   rx_positions=rx, c_mps=c)
-
-    def carrier(self) -> np.ndarray:
-        """Profiles with the carrier restored: the analytic matched-filter output."""
-        tau = self.tau0_s[:, None] + self.dtau_s * np.arange(self.n_lags)[None, :]
-        return self.data * np.exp(2j * np.pi * self.fc_hz * tau)
-
-
-def center_frequency(waveform: np.ndarray, fs_hz: float) -> float:
-    """Power-weighted mean frequency of ``waveform``, Hz."""
-    spec = np.abs(np.fft.rfft(waveform)) ** 2
-    f = np.fft.rfftfreq(len(waveform), 1 / fs_hz)
-    total = spec.sum()
-    if total <= 0:
-        raise ValueError("waveform is all zeros")
-    return float((f * spec).sum() / total)
+# name -> compression(signals, wave, fs, t0, fc, gate, selection, *, lag_step, algorithm, chirp) -> Profiles;
+# each registers itself below where it is defined
+COMPRESSIONS: Registry[Callable[..., Profiles]] = Registry("compression", "method")
 
 
 def compress(
@@ -155,7 +45,7 @@ def compress(
     chirp: dict | None = None,
     lag_step: int | None = None,
     algorithm: str = "auto",
-    backend: str | None = None,
+    backend: str | _cl.Selection | None = None,
     device: Any = None,
 ) -> Profiles:
     """Pulse-compress recordings into complex baseband range profiles.
@@ -167,11 +57,11 @@ def compress(
     waveform : (n_wave,) array, optional
         Transmitted signal (needed when ``data`` is an array).
     fs_hz : float, optional
-        Sample rate (needed when ``data`` is an array).
-    method : {"matched", "fmcw"}
-        ``"matched"``: correlation with the analytic transmit waveform. ``"fmcw"``: mix with
-        the transmitted chirp and Fourier transform (paper, section 4); needs the chirp
-        parameters and a common ``t0``, and resolves echoes that arrive while the chirp plays.
+        Sample rate, Hz (needed when ``data`` is an array).
+    method : str
+        A registered compression (:data:`COMPRESSIONS`). ``"matched"``: correlation with the
+        analytic transmit waveform. ``"fmcw"``: mix with the transmitted chirp and Fourier transform
+        (paper, section 4; needs the chirp and a common ``t0``; echoes that arrive while it plays).
     gate_s : (min, max), optional
         Delays after the transmit start that the profiles must cover, s; only those lags are
         computed. Default: the whole recording.
@@ -192,27 +82,17 @@ def compress(
         compute the same profile (the twin's), which is a direct correlation.
     backend : {"auto", "opencl", "numpy"}, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"``: OpenCL where a device exists and its kernel
-        variant builds, else the NumPy twin with one warning. ``"opencl"`` raises instead.
+        variant builds, else the NumPy twin with one warning; ``"opencl"`` raises instead. Or a
+        :class:`clsas.cl.Selection` resolved by the caller (its request is kept; ``device`` None).
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
-        The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one).
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one).
 
     Returns
     -------
     Profiles
     """
-    v.choice("method", method, METHODS)
-    positions: dict = {}
-    if isinstance(data, Dataset):
-        signals = data.signals
-        waveform = data.waveform if waveform is None else waveform
-        fs_hz = data.fs_hz if fs_hz is None else fs_hz
-        t0_s = data.t0_s if t0_s is None else t0_s
-        chirp = data.chirp if chirp is None else chirp
-        positions = dict(tx_positions=data.tx_positions, rx_positions=data.rx_positions, c_mps=data.c_mps)
-    else:
-        signals = data
-        if waveform is None or fs_hz is None:
-            raise ValueError("waveform and fs_hz are required when data is an array")
+    compression = COMPRESSIONS.choose(method)
+    signals, waveform, fs_hz, t0_s, chirp, positions = _inputs(data, waveform, fs_hz, t0_s, chirp)
     signals = v.array("signals", signals, ndim=2, dtype=None)
     if not np.issubdtype(signals.dtype, np.floating):
         signals = signals.astype(np.float64)
@@ -221,15 +101,8 @@ def compress(
     n_meas, n_samples = signals.shape
     t0 = np.broadcast_to(np.asarray(0.0 if t0_s is None else t0_s, float), (n_meas,)).copy()
     v.array("t0_s", t0)
-    fc = center_frequency(wave, fs) if fc_hz is None else v.non_negative("fc_hz", fc_hz)
-    if fc >= fs / 2:
-        raise ValueError(f"fc_hz={fc:g} is at or above the Nyquist frequency {fs / 2:g}")
-    if gate_s is None:
-        gate = (float(t0.min()), float(t0.max() + (n_samples - 1) / fs))
-    else:
-        gate = tuple(v.array("gate_s", gate_s, shape=(2,)))
-        if gate[1] < gate[0]:
-            raise ValueError(f"gate_s must be (min, max) with min <= max, got {gate_s}")
+    fc = _carrier(wave, fs, fc_hz)
+    gate = _gate(gate_s, t0, n_samples, fs)
     v.choice("algorithm", algorithm, ("auto", "fft", "direct"))
     if lag_step is None:
         lag_step = profile_decimation(wave, fs, fc) if method == "matched" else 1
@@ -238,14 +111,37 @@ def compress(
         raise ValueError(f"lag_step must be a power of two, got {lag_step}")
     sel = _cl.select(backend, device)
     t_start = time.perf_counter()
-    if method == "matched":
-        prof = _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm)
-    else:
-        prof = _fmcw(signals, fs, t0, fc, gate, chirp, sel)
-    prof.timings_s["compress"] = time.perf_counter() - t_start
-    for k, val in positions.items():
-        setattr(prof, k, val)
-    return prof
+    prof = compression(signals, wave, fs, t0, fc, gate, sel, lag_step=lag_step, algorithm=algorithm, chirp=chirp)
+    return replace(prof, timings_s={**prof.timings_s, "compress": time.perf_counter() - t_start}, **positions)
+
+
+def _inputs(data, waveform, fs_hz, t0_s, chirp):
+    """(signals, waveform, fs_hz, t0_s, chirp, positions): a Dataset's own, where not given."""
+    if not isinstance(data, Dataset):
+        if waveform is None or fs_hz is None:
+            raise ValueError("waveform and fs_hz are required when data is an array")
+        return data, waveform, fs_hz, t0_s, chirp, {}
+    positions = dict(tx_positions=data.tx_positions, rx_positions=data.rx_positions, c_mps=data.c_mps)
+    return (data.signals, data.waveform if waveform is None else waveform, data.fs_hz if fs_hz is None else fs_hz,
+            data.t0_s if t0_s is None else t0_s, data.chirp if chirp is None else chirp, positions)
+
+
+def _carrier(wave: np.ndarray, fs: float, fc_hz: float | None) -> float:
+    """``fc_hz`` checked (below Nyquist), else the waveform's power-weighted mean frequency."""
+    fc = center_frequency(wave, fs) if fc_hz is None else v.non_negative("fc_hz", fc_hz)
+    if fc >= fs / 2:
+        raise ValueError(f"fc_hz={fc:g} is at or above the Nyquist frequency {fs / 2:g}")
+    return fc
+
+
+def _gate(gate_s, t0: np.ndarray, n_samples: int, fs: float) -> tuple[float, float]:
+    """The delays to cover: ``gate_s`` checked, else the whole recording."""
+    if gate_s is None:
+        return (float(t0.min()), float(t0.max() + (n_samples - 1) / fs))
+    gate = tuple(v.array("gate_s", gate_s, shape=(2,)))
+    if gate[1] < gate[0]:
+        raise ValueError(f"gate_s must be (min, max) with min <= max, got {gate_s}")
+    return gate
 
 
 # linear interpolation of a baseband profile loses at most 0.5 dB at the band edge when the
@@ -276,46 +172,8 @@ def profile_decimation(waveform: np.ndarray, fs_hz: float, fc_hz: float) -> int:
     return d
 
 
-@dataclass
-class FftLayout:
-    """Sizes and tables of the FFT matched filter (``matched_fft`` in kernels/compress.cl)."""
-
-    s_lo: int
-    n_in: int
-    log2_n: int
-    log2_nd: int
-    bin0: int
-    idx0: int
-    n_lags: int
-    twiddles: np.ndarray
-    spec: np.ndarray
-    post: np.ndarray
-
-    @property
-    def n_fft(self) -> int:
-        return 1 << self.log2_n
-
-
-def fft_layout(ref_analytic, fs, fc, s_lo, n_in, lag_read, lag_step, n_lags, rot) -> FftLayout:
-    """FFT sizes so that no gated lag wraps around, and the reference spectrum on the kept bins."""
-    n_ref, d = len(ref_analytic), lag_step
-    l_max = lag_read + d * (n_lags - 1)
-    need = max(n_in - min(lag_read, 0), l_max + n_ref, 2 * d)
-    log2_n = int(np.ceil(np.log2(need)))
-    n = 1 << log2_n
-    nd = n // d
-    bin0 = int(round(fc * n / fs))
-    jj = np.where(np.arange(nd) < nd // 2, np.arange(nd), np.arange(nd) - nd)
-    spec = np.conj(np.fft.fft(ref_analytic, n))[(bin0 + jj) % n] / n
-    k = np.arange(n_lags)
-    shift = (bin0 * (lag_read + d * k)) % n  # exact: integers
-    post = rot * np.exp(2j * np.pi * shift / n)
-    twiddles = np.exp(-2j * np.pi * np.arange(n) / n)
-    idx0 = (lag_read % n) // d
-    return FftLayout(s_lo, n_in, log2_n, log2_n - int(np.log2(d)), bin0, idx0, n_lags, twiddles, spec, post)
-
-
-def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm) -> Profiles:
+@COMPRESSIONS.register("matched")
+def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm, chirp=None) -> Profiles:
     n_meas, n_samples = signals.shape
     n_ref, d = len(wave), lag_step
     lag_lo = int(np.floor(np.min((gate[0] - t0) * fs))) - 1
@@ -339,27 +197,23 @@ def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm) -> Profi
         n_lags * d, total, 100 * max(0.0, 1 - n_lags * d / total), d,
     )
     timings = {}
+    plan = None
     if sel.opencl:
-        from .opencl import FftMatchedPlan, MatchedFilterPlan
-
         layout = None
         if algorithm != "direct":
             layout = fft_layout(ref_a, fs, fc, 0, signals.shape[1], lag_read, d, n_lags, rot)
         if algorithm == "auto":
-            algorithm = choose_algorithm(sel.queue.device, n_meas, n_lags, n_ref, layout)
-        try:
-            if algorithm == "fft":
-                plan = FftMatchedPlan(n_meas, signals.shape[1], layout, rot0, queue=sel.queue)
-            else:
-                plan = MatchedFilterPlan(n_meas, signals.shape[1], ref_conj, lag_read, n_lags, rot, rot0, d,
-                                         queue=sel.queue)
-        except _cl.BuildError as exc:
-            sel = sel.fall_back(exc)
+            algorithm = choose_algorithm(sel.cl_device, n_meas, n_lags, n_ref, layout)
+        if algorithm == "fft":
+            plan, sel = sel.plan(lambda q: FftMatchedPlan(n_meas, signals.shape[1], layout, rot0, queue=q))
         else:
-            out = plan(signals)
-            timings["compress_kernel"] = plan.last_kernel_s
-            log.info("matched filter on OpenCL: %s algorithm, VEC=%d", algorithm, plan.vec)
-    if not sel.opencl:
+            plan, sel = sel.plan(lambda q: MatchedFilterPlan(n_meas, signals.shape[1], ref_conj, lag_read, n_lags,
+                                                             rot, rot0, d, queue=q))
+    if plan is not None:
+        out = plan(signals)
+        timings["compress_kernel"] = plan.last_kernel_s
+        log.info("matched filter on OpenCL: %s algorithm, VEC=%d", algorithm, plan.vec)
+    else:
         out = twin.matched_filter(signals, ref_conj, lag_read, n_lags, rot, rot0, d)
     return Profiles(out, t0 + lag0 / fs, d / fs, fc, "matched", sel.kind, timings_s=timings, device=sel.device)
 
@@ -377,20 +231,19 @@ def choose_algorithm(device: Any, n_meas: int, n_lags: int, n_ref: int, layout: 
     chosen only with at least 256 of its work-items per compute unit (a rule from occupancy,
     not yet measured on a GPU); otherwise the direct kernel.
     """
-    import pyopencl as cl
-
     n, nd = layout.n_fft, layout.n_fft >> (layout.log2_n - layout.log2_nd)
     fft_cost = 5 * (n * layout.log2_n + nd * layout.log2_nd)
     if fft_cost >= 2 * n_lags * n_ref:
         return "direct"
-    if device.type & cl.device_type.CPU:
+    if _cl.is_cpu(device):
         return "fft"
     per_cu = 256
     items = -(-n_meas // 4)  # at the GPU width
     return "fft" if items >= per_cu * device.max_compute_units else "direct"
 
 
-def _fmcw(signals, fs, t0, fc, gate, chirp, sel) -> Profiles:
+@COMPRESSIONS.register("fmcw")
+def _fmcw(signals, wave, fs, t0, fc, gate, sel, lag_step=1, algorithm="auto", chirp=None) -> Profiles:
     chirp = chirp or {}
     missing = [k for k in ("f_start_hz", "f_stop_hz", "duration_s") if k not in chirp]
     if missing:
@@ -428,17 +281,11 @@ def _fmcw(signals, fs, t0, fc, gate, chirp, sel) -> Profiles:
     rvp = np.exp(2j * np.pi * (((f1 + slope * t_c - fc) * taus - 0.5 * slope * taus**2) % 1.0))
     log.info("fmcw: %d delays from %.3f to %.3f ms, %d samples mixed", n_lags, 1e3 * taus[0], 1e3 * taus[-1], n_mix)
     timings = {}
-    if sel.opencl:
-        from .opencl import FmcwPlan
-
-        try:
-            plan = FmcwPlan(signals.shape[0], n_samples, ref, slope, fs, taus, rvp, queue=sel.queue)
-        except _cl.BuildError as exc:
-            sel = sel.fall_back(exc)
-        else:
-            out = plan(signals)
-            timings["compress_kernel"] = plan.last_kernel_s
-    if not sel.opencl:
+    plan, sel = sel.plan(lambda q: FmcwPlan(signals.shape[0], n_samples, ref, slope, fs, taus, rvp, queue=q))
+    if plan is not None:
+        out = plan(signals)
+        timings["compress_kernel"] = plan.last_kernel_s
+    else:
         out = twin.fmcw_dechirp(signals, ref, slope, fs, taus, rvp)
     tau0 = np.full(signals.shape[0], taus[0])
     return Profiles(out, tau0, 1 / fs, fc, "fmcw", sel.kind, timings_s=timings, device=sel.device)

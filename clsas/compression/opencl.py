@@ -11,6 +11,7 @@ import numpy as np
 
 from ..cl import Plan
 from . import numpy as twin
+from .layout import fft_layout
 
 _FS = 96e3
 
@@ -47,7 +48,8 @@ class _RowPlan(Plan):
 class MatchedFilterPlan(_RowPlan):
     """Matched filter over a fixed lag window for recordings of a fixed shape."""
 
-    kernel_name = "matched_filter"
+    KERNEL = "matched_filter"
+    SOURCES = ("common.cl", "compress.cl")
 
     def __init__(self, n_meas, n_samples, ref_conj, lag0, n_lags, rot, rot0, lag_step=1, queue=None, vec=None):
         super().__init__(n_meas, n_samples, n_lags, queue, vec)
@@ -79,7 +81,8 @@ class MatchedFilterPlan(_RowPlan):
 class FmcwPlan(_RowPlan):
     """FMCW dechirp + DFT at gated delays for recordings of a fixed shape."""
 
-    kernel_name = "fmcw_dechirp"
+    KERNEL = "fmcw_dechirp"
+    SOURCES = ("common.cl", "compress.cl")
 
     def __init__(self, n_meas, n_samples, ref, slope_hz_per_s, fs_hz, taus_s, rvp, queue=None, vec=None):
         n_lags = len(taus_s)
@@ -110,12 +113,13 @@ class FmcwPlan(_RowPlan):
 class FftMatchedPlan(Plan):
     """Matched filter by FFT with decimation in the frequency domain (``matched_fft``).
 
-    Parameters come from :func:`clsas.compression.fft_layout`. Scratch is two arrays of N complex
+    Parameters come from :func:`clsas.compression.layout.fft_layout`. Scratch is two arrays of N complex
     values per recording; recordings are processed in batches that keep it under
     ``max_scratch_bytes``.
     """
 
-    kernel_name = "matched_fft"
+    KERNEL = "matched_fft"
+    SOURCES = ("common.cl", "compress.cl")
 
     def __init__(self, n_meas, n_samples, layout, rot0, queue=None, vec=None, max_scratch_bytes=256 << 20):
         super().__init__(queue, vec)
@@ -148,8 +152,6 @@ class FftMatchedPlan(Plan):
     @classmethod
     def selftest(cls, queue, vec: int) -> float:
         """Lag step 1 against the direct twin, rows in two batches (more rows than one work-item)."""
-        from . import fft_layout
-
         rng, ref_a, _ = _selftest_inputs()
         rows = rng.normal(size=(2 * vec + 3, 120))
         n_lags, lag0 = 130, -10

@@ -36,16 +36,16 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from ..physics import speed_of_sound
 from .metrics import METRICS
+from .report import AutofocusReport
 
 __all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"]
 
@@ -55,118 +55,13 @@ METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
 DEFAULT_METHODS = ("direct", "temperature", "delay", "phase", "3d")
 
 
-@dataclass
-class AutofocusReport:
-    """What :func:`autofocus` estimated and whether the image got sharper.
-
-    Attributes
-    ----------
-    improved : bool
-        The corrected image is sharper than the input's (else the input was returned).
-    metric, metric_before, metric_after : str, float, float
-        The focus metric and its value on the input and on the returned dataset.
-    history : list of float
-        The metric at every image the search formed, in order.
-    methods : list of str
-        What was tried; ``notes`` says what was found or skipped and why.
-    t0_s : (n_meas,) array
-        The estimated time of sample 0 (stated ``t0_s`` where no delay was estimated), s.
-    group_delay_s : float
-        Stated minus estimated ``t0_s``, median over measurements (the unknown delay), s.
-    timing_jitter_rms_s : float
-        RMS of the per-measurement delay about that median, s.
-    temperature_c, c_mps : float
-        Estimated air temperature (°C) and speed of sound (m/s, mean over measurements).
-    temperature_offset_c : float
-        Estimated minus stated temperature, °C.
-    los_path_m : (n_stops,) array
-        Estimated true-minus-stated bistatic path per stop at the focus centre, m.
-    position_correction_m : (n_meas, 3) array
-        What was added to the positions: half the path correction along the line of sight.
-    stop_index : (n_meas,) array
-        The stop of each measurement.
-    focus_centre_m : (3,) array
-        Where the lines of sight point (the image's intensity centroid), m.
-    n_basis : int
-        Functions of the motion basis (after the unobservable ones were removed).
-    direct_snr_db : float
-        Median level of the direct sound over the matched filter's RMS elsewhere (NaN: none).
-    time_s : float
-    stages : list of dict
-        Per step: name, metric after, evaluations, time.
-    notes : list of str
-    """
-
-    improved: bool = False
-    metric: str = "sharpness"
-    metric_before: float = float("nan")
-    metric_after: float = float("nan")
-    history: list = field(default_factory=list)
-    methods: list = field(default_factory=list)
-    t0_s: np.ndarray | None = None
-    group_delay_s: float = 0.0
-    timing_jitter_rms_s: float = 0.0
-    temperature_c: float = float("nan")
-    c_mps: float = float("nan")
-    temperature_offset_c: float = 0.0
-    los_path_m: np.ndarray | None = None
-    position_correction_m: np.ndarray | None = None
-    stop_index: np.ndarray | None = None
-    focus_centre_m: np.ndarray | None = None
-    n_basis: int = 0
-    direct_snr_db: float = float("nan")
-    time_s: float = 0.0
-    backend: str = ""
-    device: str = ""
-    stages: list = field(default_factory=list)
-    notes: list = field(default_factory=list)
-
-    def summary(self) -> str:
-        """A few lines for people."""
-        lines = [f"autofocus ({', '.join(self.methods)}; metric {self.metric}) on {self.device}: "
-                 f"{self.metric_before:.4g} -> {self.metric_after:.4g} in {self.time_s:.1f} s"
-                 + ("" if self.improved else " (not sharper: the input is returned)"),
-                 f"  group delay {self.group_delay_s * 1e6:+.2f} us, "
-                 f"timing jitter {self.timing_jitter_rms_s * 1e6:.2f} us RMS; air {self.temperature_c:.2f} C "
-                 f"({self.temperature_offset_c:+.2f} C), c {self.c_mps:.2f} m/s"]
-        if self.los_path_m is not None:
-            lines.append(f"  line-of-sight corrections: {f'{self.n_basis} functions' if self.n_basis else 'per stop'}, "
-                         f"{np.sqrt(np.mean(self.los_path_m ** 2)) / 2 * 1e3:.2f} mm RMS (one way)")
-        lines += [f"  {n}" for n in self.notes]
-        return "\n".join(lines)
-
-    def as_dict(self) -> dict:
-        """JSON-friendly summary (no per-measurement arrays)."""
-        keep = ("improved", "metric", "metric_before", "metric_after", "methods", "group_delay_s",
-                "timing_jitter_rms_s", "temperature_c", "c_mps", "temperature_offset_c", "n_basis", "direct_snr_db",
-                "time_s", "backend", "device", "stages", "notes")
-        out = {k: getattr(self, k) for k in keep}
-        if self.los_path_m is not None:
-            out["los_rms_m"] = float(np.sqrt(np.mean(self.los_path_m ** 2)) / 2)
-        return out
-
-
-def autofocus(
-    dataset: Dataset,
-    grid: VoxelGrid,
-    *,
-    methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
-    metric: str = "sharpness",
-    n_basis: int | None = None,
-    motion_bandwidth_hz: float = 5.0,
-    temperature_range_c: float = 15.0,
-    max_delay_s: float = 5e-4,
-    per_stop_delay: bool = True,
-    max_iter: int = 40,
-    phase_sweeps: int = 4,
-    max_stop_bytes: int = 1 << 30,
-    pga_min_coherence: float | None = None,
-    pga_max_points: int = 32,
-    backend: str | None = None,
-    device: Any = None,
-    progress: Callable[[str, int, float], None] | None = None,
-    force: bool = False,
-) -> tuple[Dataset, AutofocusReport]:
+def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
+              metric: str = "sharpness", n_basis: int | None = None, motion_bandwidth_hz: float = 5.0,
+              temperature_range_c: float = 15.0, max_delay_s: float = 5e-4, per_stop_delay: bool = True,
+              max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
+              pga_min_coherence: float | None = None, pga_max_points: int = 32, backend: str | None = None,
+              device: Any = None, progress: Callable[[str, int, float], None] | None = None,
+              force: bool = False) -> tuple[Dataset, AutofocusReport]:
     """Estimate motion, sound speed and delay from the scan, and correct the dataset.
 
     Parameters
@@ -216,6 +111,19 @@ def autofocus(
         along the line of sight; a provenance record ``autofocus``), or the input itself when
         the image did not get sharper.
     """
+    options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
+                       max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
+                       pga_max_points, progress)
+    from .run import run
+
+    return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
+               started=time.perf_counter(), **options)
+
+
+def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c, max_delay_s,
+             per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence, pga_max_points,
+             progress) -> dict:
+    """:func:`autofocus`'s arguments checked, as the keyword arguments of :func:`clsas.focus.run.run`."""
     if not isinstance(dataset, Dataset):
         raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
     if not isinstance(grid, VoxelGrid):
@@ -245,13 +153,10 @@ def autofocus(
         raise TypeError("progress must be callable(step, n_images, metric)")
     if dataset.n_meas < 4:
         raise ValueError(f"dataset: autofocus needs at least 4 measurements, got {dataset.n_meas}")
-    from .run import run
-
-    return run(dataset, grid, methods=tuple(methods), metric=metric, n_basis=n_basis, bandwidth_hz=bw,
-               temperature_range_c=t_range, max_delay_s=max_delay, per_stop_delay=bool(per_stop_delay),
-               max_iter=max_iter, backend=backend, device=device, progress=progress, force=force,
-               started=time.perf_counter(), phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes,
-               pga_options=pga_options)
+    return {"methods": tuple(methods), "metric": metric, "n_basis": n_basis, "bandwidth_hz": bw,
+            "temperature_range_c": t_range, "max_delay_s": max_delay, "per_stop_delay": bool(per_stop_delay),
+            "max_iter": max_iter, "phase_sweeps": phase_sweeps, "max_stop_bytes": max_stop_bytes,
+            "pga_options": pga_options}
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:

@@ -17,11 +17,12 @@ import numpy as np
 from .. import cl as _cl
 from ..compression import Profiles, compress
 from ..dataset import Dataset
+from ..formation.bp import Backprojector
 from ..geometry import VoxelGrid
-from ..imaging import Backprojector
-from ..imaging.plan import plan_reconstruction
+from ..rangegate import plan_reconstruction
 from . import numpy as twin
 from .metrics import metric_and_weight
+from .opencl import FocusGradientPlan
 
 __all__ = ["FocusEngine"]
 
@@ -42,28 +43,31 @@ class FocusEngine:
         And this fraction of the gate's delays (the largest relative change of c).
     metric : str
         See :func:`clsas.focus.metrics.metric_and_weight`.
-    backend, device : as for :func:`clsas.reconstruct`.
+    backend, device : as for :func:`clsas.reconstruct`
+        (``backend`` may be a :class:`clsas.cl.Selection`, resolved once and shared by the
+        compression, the backprojection and the gradient; each kernel that will not build
+        falls back to its twin on ``"auto"`` with one warning and raises on ``"opencl"``).
     """
 
     def __init__(self, dataset: Dataset, grid: VoxelGrid, *, margin_s: float = 5e-4, rel_margin: float = 0.0,
                  metric: str = "sharpness",
-                 backend: str | None = None, device: Any = None, force: bool = False):
+                 backend: str | _cl.Selection | None = None, device: Any = None, force: bool = False):
         self.ds, self.grid, self.metric = dataset, grid, metric
-        sel = _cl.select(backend, device)
-        kind = sel.requested if sel.opencl else "numpy"
+        self.selection = _cl.select(backend, device)
         plan = plan_reconstruction(dataset, grid, [])
         gate = (max(0.0, plan.gate_s[0] * (1 - rel_margin) - margin_s), plan.gate_s[1] * (1 + rel_margin) + margin_s)
-        self.prof: Profiles = compress(dataset, gate_s=gate, backend=kind, device=sel.queue)
-        self.bp = Backprojector(grid, backend=kind, device=sel.queue, force=force)
+        self.prof: Profiles = compress(dataset, gate_s=gate, backend=self.selection)
+        self.bp = Backprojector(grid, backend=self.selection, force=force)
         self._grad_plan = None
+        self._grad_selection = self.selection  # NumPy once the gradient kernel fell back
         self._stop_bp: Backprojector | None = None
-        self._grad_opencl = self.bp.backend == "opencl"
         self.n_images = 0
         self.n_gradients = 0
 
     @property
     def backend(self) -> str:
-        return "opencl" if (self.bp.backend == "opencl" and self._grad_opencl) else self.bp.backend
+        """``"opencl"`` where the images and the gradient both run there, else ``"numpy"``."""
+        return "opencl" if (self.bp.backend == "opencl" and self._grad_selection.opencl) else "numpy"
 
     @property
     def device(self) -> str:
@@ -101,8 +105,7 @@ class FocusEngine:
         n_stops = int(stop.max()) + 1
         out = np.empty((n_stops, self.grid.size if voxels is None else len(voxels)), np.complex64)
         if self._stop_bp is None:
-            self._stop_bp = Backprojector(self.grid, backend=self.bp.backend, device=self.bp.selection.queue,
-                                          force=True)
+            self._stop_bp = Backprojector(self.grid, backend=self.bp.selection, force=True)
         for s in range(n_stops):
             rows = np.flatnonzero(stop == s)
             prof = Profiles(data[rows], tau0[rows], p.dtau_s, p.fc_hz, p.method, p.backend,
@@ -121,20 +124,11 @@ class FocusEngine:
         args = (data, tau0, p.dtau_s, p.fc_hz, self.ds.tx_positions if tx is None else tx,
                 self.ds.rx_positions if rx is None else rx, c_mps)
         self.n_gradients += 1
-        if self._grad_opencl:
-            if self._grad_plan is None:
-                from .opencl import FocusGradientPlan
-
-                try:
-                    self._grad_plan = FocusGradientPlan(self.grid, p.n_meas, p.n_lags, queue=self.bp.selection.queue)
-                except _cl.BuildError as exc:
-                    if self.bp.selection.requested == "opencl":
-                        raise
-                    log.warning("autofocus: the gradient kernel cannot be built on %s (%s); its NumPy twin "
-                                "runs instead", self.device, exc.reason)
-                    self._grad_opencl = False
-            if self._grad_plan is not None:
-                return self._grad_plan(*args, weight)
+        if self._grad_plan is None and self._grad_selection.opencl:
+            self._grad_plan, self._grad_selection = self._grad_selection.plan(
+                lambda q: FocusGradientPlan(self.grid, p.n_meas, p.n_lags, queue=q))
+        if self._grad_plan is not None:
+            return self._grad_plan(*args, weight)
         return twin.focus_gradient(*args, self.grid.points(), weight)
 
     def evaluate(self, shift_s: np.ndarray, c_mps: np.ndarray, gradient: bool = True, tx: np.ndarray | None = None,

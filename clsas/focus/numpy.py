@@ -24,7 +24,7 @@ def focus_gradient(
 ) -> np.ndarray:
     """Per-measurement sums that give a focus metric's gradient through backprojection.
 
-    The image is ``I(v) = sum_m s_m(tau_m(v))`` (:func:`clsas.imaging.numpy.backproject`):
+    The image is ``I(v) = sum_m s_m(tau_m(v))`` (:func:`clsas.formation.bp_numpy.backproject`):
     ``s_m`` is the analytic profile (baseband ``data`` with the carrier restored, linearly
     interpolated) and ``tau_m(v) = path_m(v) / c_m`` with ``path_m(v) = |v - tx_m| + |v - rx_m|``.
     For a metric ``M`` with ``dM = sum_v Re(conj(G(v)) dI(v))``, let

@@ -16,7 +16,8 @@ class FocusGradientPlan(Plan):
     (n_meas, 5) sums, accumulated in float32 per work-item and added in float64 on the host.
     """
 
-    kernel_name = "focus_gradient"
+    KERNEL = "focus_gradient"
+    SOURCES = ("common.cl", "autofocus.cl")
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
                  n_items: int | None = None):
@@ -74,7 +75,7 @@ class FocusGradientPlan(Plan):
     def selftest(cls, queue, vec: int) -> float:
         """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, fewer work-items than blocks,
         voxels in and out of the window, a speed of sound per measurement."""
-        from ..imaging.opencl import selftest_scene
+        from ..formation.bp_opencl import selftest_scene
         from . import numpy as twin
 
         grid, prof, tau0, fs, tx, rx, c, rng = selftest_scene()

@@ -66,7 +66,7 @@ def point_samples(engine, shift_s, c_mps, tx, rx, points_m) -> tuple[np.ndarray,
     -------
     a : (n_meas, K) complex128
         The measurement's analytic profile read at its delay to the point (what it adds to the
-        image there: :func:`clsas.imaging.numpy.backproject` term by term).
+        image there: :func:`clsas.formation.bp_numpy.backproject` term by term).
     g : (n_meas, K, 3) float64
         ``d path / d (carriage shift)``: ``-(u_tx + u_rx)``, unit vectors from each
         transducer to the point.

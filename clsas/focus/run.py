@@ -8,13 +8,13 @@ import time
 import numpy as np
 
 from ..physics import speed_of_sound
-from . import AutofocusReport
 from .direct import direct_arrivals
 from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, los_directions, motion_basis, optimise_los, optimise_xyz, stops_of
 from .pga import pga_refine
 from .phases import PHASE_MIN_GAIN, phase_to_path, stop_phase_search
+from .report import AutofocusReport
 
 log = logging.getLogger("clsas.autofocus")
 
@@ -51,14 +51,11 @@ def _bounded_search(f, lo: float, hi: float, step: float, tol: float) -> tuple[f
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
         smooth_start=True, pga_options=None) -> tuple:
+    """The stages of :func:`clsas.autofocus` in turn: the direct sound, the temperature, a
+    global delay, per-stop phases, line-of-sight motion, 3-D motion, PGA; then the corrected
+    dataset (or the input, where the image did not get sharper) and the report."""
     rep = AutofocusReport(metric=metric, methods=list(methods))
-    history = rep.history
     temp0 = np.broadcast_to(np.asarray(ds.temperature_c, float), (ds.n_meas,)).copy()
-    c_stated = ds.c_per_meas
-
-    def c_at(dt):  # the stated c scaled as a temperature offset dt scales it
-        return c_stated * np.asarray(speed_of_sound(temp0 + dt), float) / np.asarray(speed_of_sound(temp0), float)
-
     # profiles reach past the grid's gate by the largest delay change searched: the delay, the
     # motion (0.1 ms: 34 mm of path) and c (|dc / c| <= dT / (2 (273.15 + T)))
     rel = 0.5 * temperature_range_c / (273.15 + float(temp0.min()) - temperature_range_c) if "temperature" in methods \
@@ -66,23 +63,77 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     engine = FocusEngine(ds, grid, margin_s=max_delay_s + 1e-4, rel_margin=rel, metric=metric, backend=backend,
                          device=device, force=force)
     rep.backend, rep.device = engine.backend, engine.device
-
-    def image_metric(shift, c, step, tx=None, rx=None):
-        m = metric_and_weight(engine.image(shift, c, tx, rx), metric)[0]
-        history.append(m)
-        if progress is not None:
-            progress(step, len(history), m)
-        return m
-
-    zero = np.zeros(ds.n_meas)
-    m0 = image_metric(zero, c_stated, "input")
+    fo = _Focus(ds, engine, rep, metric, progress, temp0, per_stop_delay)
+    m0 = fo.image_metric(np.zeros(ds.n_meas), fo.c_stated, "input")
     rep.metric_before = m0
     stop, t_stop, xy = stops_of(ds)
     first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]  # each stop's first measurement
+    if "direct" in methods:  # 1. the direct sound: each recording's t0 at a given c
+        fo.find_direct(max_delay_s)
+    d_temp = 0.0  # 2. temperature (c) from sharpness; the direct-path delays follow c
+    if "temperature" in methods and temperature_range_c > 0:
+        d_temp = fo.temperature(temperature_range_c)
+    c_est = fo.c_at(d_temp)
+    t0_est = fo.t0_at(c_est)
+    if "delay" in methods and fo.direct is None and max_delay_s > 0:  # 3. a global delay, where no direct sound
+        t0_est = fo.global_delay(t0_est, c_est, max_delay_s)
+    # 4. per-stop phases by coordinate ascent: the global start for large motion
+    shift = t0_est - ds.t0_s
+    p_stop = np.zeros(len(t_stop))
+    if "phase" in methods:
+        p_stop = _phase_step(engine, ds, grid, shift, c_est, stop, phase_sweeps, max_stop_bytes, fo.image_metric,
+                             rep.history, progress, rep)
+    if "los" in methods:  # 5. line-of-sight motion
+        p_stop = fo.line_of_sight(shift, c_est, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter)
+    # the corrected dataset: t0 and air as estimated, positions moved along the line of sight
+    centre = _focus_centre(engine, grid, shift - p_stop[stop] / c_est, c_est)
+    rep.focus_centre_m = centre
+    move = (-0.5 * p_stop[stop])[:, None] * los_directions(ds, centre)  # a path shorter by p: the pair was p/2 nearer
+    if "3d" in methods:  # 6. the carriage's 3-D displacement per stop, from the line of sight on
+        move = fo.carriage_3d(t0_est - ds.t0_s, c_est, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter,
+                              smooth_start)
+        p_stop = _los_path(ds, centre, move, first)
+    if "pga" in methods:  # 7. phase-gradient autofocus on strong points: per-stop 3-D refinement
+        move, changed = _pga_step(engine, ds, t0_est - ds.t0_s, c_est, stop, xy, move, pga_options or {},
+                                  fo.image_metric, rep)
+        if changed:
+            p_stop = _los_path(ds, centre, move, first)
+    return _finish(ds, engine, rep, methods, m0, t0_est, c_est, d_temp, temp0, p_stop, move, stop, started)
 
-    # 1. the direct sound: each recording's t0 at a given c
-    direct = None
-    if "direct" in methods:
+
+class _Focus:
+    """What the stages of :func:`run` share: the dataset, the engine, the report (its history of
+    metrics), the stated air, and the direct sound once found; the scalar stages as methods."""
+
+    def __init__(self, ds, engine, rep, metric, progress, temp0, per_stop_delay):
+        self.ds, self.engine, self.rep, self.metric, self.progress = ds, engine, rep, metric, progress
+        self.temp0, self.per_stop_delay = temp0, per_stop_delay
+        self.c_stated = ds.c_per_meas
+        self.direct = None
+
+    def c_at(self, dt):  # the stated c scaled as a temperature offset dt scales it
+        temp0 = self.temp0
+        return self.c_stated * np.asarray(speed_of_sound(temp0 + dt), float) / np.asarray(speed_of_sound(temp0), float)
+
+    def image_metric(self, shift, c, step, tx=None, rx=None):
+        m = metric_and_weight(self.engine.image(shift, c, tx, rx), self.metric)[0]
+        self.rep.history.append(m)
+        if self.progress is not None:
+            self.progress(step, len(self.rep.history), m)
+        return m
+
+    def t0_at(self, c):
+        ds = self.ds
+        if self.direct is None:
+            return ds.t0_s.copy()
+        t0 = self.direct.t0_s(c, ds.t0_s)
+        if not self.per_stop_delay:
+            t0 = ds.t0_s + float(np.median(t0 - ds.t0_s))
+        return t0
+
+    def find_direct(self, max_delay_s: float) -> None:
+        """The direct sound's arrivals (kept in ``self.direct`` where found), noted in the report."""
+        ds, rep = self.ds, self.rep
         t = time.perf_counter()
         direct = direct_arrivals(ds, max_delay_s=max(max_delay_s, 1e-4))
         rep.direct_snr_db = float(np.median(direct.snr_db[np.isfinite(direct.snr_db)])) \
@@ -98,89 +149,69 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
             rep.notes.append(f"direct sound not found (detected in {int(direct.detected.sum())} of {ds.n_meas} "
                              "recordings): delays not estimated from it")
             direct = None
+        self.direct = direct
         rep.stages.append({"step": "direct", "found": direct is not None, "time_s": time.perf_counter() - t})
 
-    def t0_at(c):
-        if direct is None:
-            return ds.t0_s.copy()
-        t0 = direct.t0_s(c, ds.t0_s)
-        if not per_stop_delay:
-            t0 = ds.t0_s + float(np.median(t0 - ds.t0_s))
-        return t0
-
-    # 2. temperature (c) from sharpness; the direct-path delays follow c
-    d_temp = 0.0
-    if "temperature" in methods and temperature_range_c > 0:
+    def temperature(self, temperature_range_c: float) -> float:
+        """The temperature offset from the stated one that gives the sharpest image, °C (0 where
+        that is at the edge of the search)."""
         t = time.perf_counter()
 
         def f_temp(dt):
-            c = c_at(dt)
-            return image_metric(t0_at(c) - ds.t0_s, c, "temperature")
+            c = self.c_at(dt)
+            return self.image_metric(self.t0_at(c) - self.ds.t0_s, c, "temperature")
 
         d_temp, m_t, n_ev = _bounded_search(f_temp, -temperature_range_c, temperature_range_c,
                                             step=min(1.0, temperature_range_c / 2), tol=0.01)
         if abs(d_temp) >= temperature_range_c - 0.05 * temperature_range_c:
-            rep.notes.append(f"temperature: the sharpest image is at the edge of the search ({d_temp:+.2f} C): "
-                             "not determined by this scan and grid (a narrow aperture for its range?); stated kept")
+            self.rep.notes.append(f"temperature: the sharpest image is at the edge of the search ({d_temp:+.2f} C): "
+                                  "not determined by this scan and grid (a narrow aperture for its range?); "
+                                  "stated kept")
             d_temp = 0.0
-        rep.stages.append({"step": "temperature", "metric": m_t, "evaluations": n_ev,
-                           "offset_c": d_temp, "time_s": time.perf_counter() - t})
+        self.rep.stages.append({"step": "temperature", "metric": m_t, "evaluations": n_ev,
+                                "offset_c": d_temp, "time_s": time.perf_counter() - t})
         log.info("autofocus temperature: %+.3f C from the stated one (metric %.5g, %d images)", d_temp, m_t, n_ev)
-    c_est = c_at(d_temp)
-    t0_est = t0_at(c_est)
+        return d_temp
 
-    # 3. a global delay from sharpness, where the direct sound gave none
-    if "delay" in methods and direct is None and max_delay_s > 0:
+    def global_delay(self, t0_est, c_est, max_delay_s: float):
+        """``t0_est`` plus the one delay that gives the sharpest image, s."""
         t = time.perf_counter()
-        base = t0_est - ds.t0_s
+        base = t0_est - self.ds.t0_s
 
         def f_delay(dd):
-            return image_metric(base + dd, c_est, "delay")
+            return self.image_metric(base + dd, c_est, "delay")
 
         dd, m_d, n_ev = _bounded_search(f_delay, -max_delay_s, max_delay_s, step=max_delay_s / 10, tol=2e-7)
-        t0_est = t0_est + dd
-        rep.notes.append(f"group delay from sharpness alone (weakly determined: it mostly shifts the image): "
-                         f"{-dd * 1e6:+.1f} us")  # the summary's sign: t0_s lowered by it
-        rep.stages.append({"step": "delay", "metric": m_d, "evaluations": n_ev, "delay_s": dd,
-                           "time_s": time.perf_counter() - t})
+        self.rep.notes.append(f"group delay from sharpness alone (weakly determined: it mostly shifts the image): "
+                              f"{-dd * 1e6:+.1f} us")  # the summary's sign: t0_s lowered by it
+        self.rep.stages.append({"step": "delay", "metric": m_d, "evaluations": n_ev, "delay_s": dd,
+                                "time_s": time.perf_counter() - t})
+        return t0_est + dd
 
-    # 4. per-stop phases by coordinate ascent: the global start for large motion
-    shift = t0_est - ds.t0_s
-    p_stop = np.zeros(len(t_stop))
-    if "phase" in methods:
-        p_stop = _phase_step(engine, ds, grid, shift, c_est, stop, phase_sweeps, max_stop_bytes, image_metric,
-                             history, progress, rep)
-
-    # 5. line-of-sight motion
-    if "los" in methods:
+    def line_of_sight(self, shift, c_est, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter):
+        """``p_stop`` plus the line-of-sight path changes per stop (a smooth motion basis), m."""
+        rep = self.rep
         t = time.perf_counter()
-        k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, ds.timestamps is not None)
+        k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, self.ds.timestamps is not None)
         k = min(k, max(len(t_stop) - 3, 1))
         basis = motion_basis(t_stop, xy, k)
         rep.n_basis = basis.shape[1]
         if rep.n_basis == 0:
             rep.notes.append("line of sight: too few stops for a motion basis; not estimated")
-        else:
-            stages = sorted({min(s, rep.n_basis) for s in (4, 12, rep.n_basis // 2, rep.n_basis) if s > 0})
-            dp, info = optimise_los(engine, shift - p_stop[stop] / c_est, c_est, stop, basis, stages, max_iter,
-                                    history, callback=progress)
-            p_stop = p_stop + dp
-            rep.stages.append({"step": "los", "metric": info["stages"][-1]["metric"],
-                               "evaluations": info["evaluations"], "stages": info["stages"],
-                               "time_s": time.perf_counter() - t})
+            return p_stop
+        stages = sorted({min(s, rep.n_basis) for s in (4, 12, rep.n_basis // 2, rep.n_basis) if s > 0})
+        dp, info = optimise_los(self.engine, shift - p_stop[stop] / c_est, c_est, stop, basis, stages, max_iter,
+                                rep.history, callback=self.progress)
+        rep.stages.append({"step": "los", "metric": info["stages"][-1]["metric"],
+                           "evaluations": info["evaluations"], "stages": info["stages"],
+                           "time_s": time.perf_counter() - t})
+        return p_stop + dp
 
-    # the corrected dataset: t0 and air as estimated, positions moved along the line of sight
-    values = engine.image(shift - p_stop[stop] / c_est, c_est)
-    mag2 = np.abs(values) ** 2
-    pts = grid.points()
-    centre = (pts * mag2[:, None]).sum(axis=0) / max(mag2.sum(), 1e-300)
-    rep.focus_centre_m = centre
-    u = los_directions(ds, centre)
-    move = (-0.5 * p_stop[stop])[:, None] * u  # a path shorter by p: the pair was p/2 nearer
-    if "3d" in methods:  # 6. the carriage's 3-D displacement per stop, from the line of sight on
+    def carriage_3d(self, shift, c_est, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start):
+        """The carriage's 3-D displacement per measurement (n_meas, 3), m, started from ``move``."""
         t = time.perf_counter()
         start = _per_stop_mean(move, stop)
-        k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, ds.timestamps is not None)
+        k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, self.ds.timestamps is not None)
         basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) - 3, 1))) if k < len(t_stop) else None
         if basis is not None and smooth_start:
             # the carriage moves smoothly: the start keeps the line-of-sight move's part in the basis
@@ -188,22 +219,29 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
             # and the line of sight's own turn from stop to stop, not motion
             nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
             start = basis @ (basis.T @ start) + nuis @ (nuis.T @ start)
-        d, info = optimise_xyz(engine, t0_est - ds.t0_s, c_est, stop, start, max_iter, history, callback=progress,
-                               basis=basis)
-        move = d[stop]
-        p_stop = _los_path(ds, centre, move, first)
-        rep.n_basis = info["functions"]
-        rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
-                           "time_s": time.perf_counter() - t})
-    if "pga" in methods:  # 7. phase-gradient autofocus on strong points: per-stop 3-D refinement
-        move, changed = _pga_step(engine, ds, t0_est - ds.t0_s, c_est, stop, xy, move, pga_options or {},
-                                  image_metric, rep)
-        if changed:
-            p_stop = _los_path(ds, centre, move, first)
+        d, info = optimise_xyz(self.engine, shift, c_est, stop, start, max_iter, self.rep.history,
+                               callback=self.progress, basis=basis)
+        self.rep.n_basis = info["functions"]
+        self.rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
+                                "time_s": time.perf_counter() - t})
+        return d[stop]
+
+
+def _focus_centre(engine, grid, shift, c) -> np.ndarray:
+    """The image's centre of energy (|value|^2), m."""
+    values = engine.image(shift, c)
+    mag2 = np.abs(values) ** 2
+    pts = grid.points()
+    return (pts * mag2[:, None]).sum(axis=0) / max(mag2.sum(), 1e-300)
+
+
+def _finish(ds, engine, rep, methods, m0, t0_est, c_est, d_temp, temp0, p_stop, move, stop, started) -> tuple:
+    """The final image's metric, the report's estimates, and the corrected dataset, or the input
+    where the image did not get sharper."""
+    metric = rep.metric
     tx, rx = ds.tx_positions + move, ds.rx_positions + move
     m_final = metric_and_weight(engine.image(t0_est - ds.t0_s, c_est, tx, rx), metric)[0]
-    history.append(m_final)
-
+    rep.history.append(m_final)
     rep.t0_s = t0_est
     rep.group_delay_s = float(np.median(ds.t0_s - t0_est))
     rep.timing_jitter_rms_s = float(np.sqrt(np.mean((ds.t0_s - t0_est - rep.group_delay_s) ** 2)))

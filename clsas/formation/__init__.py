@@ -1,6 +1,6 @@
 """Image formation: how range profiles become an image.
 
-``"bp"`` is exact bistatic backprojection (:mod:`clsas.imaging`), the reference every fast
+``"bp"`` is exact bistatic backprojection (:mod:`clsas.formation.bp`), the reference every fast
 formation is measured against. The fast ones trade a stated error for run time:
 
 - ``"omega-k"``: wavenumber-domain range migration for planar, uniform apertures
@@ -8,46 +8,24 @@ formation is measured against. The fast ones trade a stated error for run time:
 - ``"ffbp"``: 3-D fast factorized backprojection for any trajectory (:mod:`clsas.formation.ffbp`).
 
 Each formation is a function ``form(profiles, grid, *, backend, device, progress, force, **options)
--> Image`` registered in :data:`FORMATIONS` as ``"module:function"`` (imported on first use).
+-> Image`` that registers itself in :data:`FORMATIONS` (a :class:`clsas.registry.Registry`) where it is
+defined; this package imports each formation module once (one line each, below).
 """
 
 from __future__ import annotations
 
-import importlib
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
-from ..compression import Profiles
 from ..geometry import VoxelGrid
+from ..profiles import Profiles
+from . import bp, ffbp, omega_k  # noqa: F401 - each registers its formation
+from .registry import FORMATIONS
 
 __all__ = ["FORMATIONS", "form", "error_to_signal_db"]
-
-# name -> "module:function"; each takes (profiles, grid, *, backend, device, progress, force, **options)
-FORMATIONS: dict[str, str] = {
-    "bp": "clsas.formation:_form_bp",
-    "omega-k": "clsas.formation.omega_k:form",
-    "ffbp": "clsas.formation.ffbp:form",
-}
-
-
-def _form_bp(profiles: Profiles, grid: VoxelGrid, *, backend=None, device=None, progress=None, force=False,
-             **options):
-    from ..imaging import Backprojector
-
-    if options:
-        raise ValueError(f"formation_options: formation 'bp' takes none, got {sorted(options)}")
-    return Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
-
-
-def resolve(formation: str) -> Callable[..., Any]:
-    """The function behind ``formation`` (a :class:`ValueError` names the known ones)."""
-    v.choice("formation", formation, tuple(FORMATIONS))
-    module, func = FORMATIONS[formation].split(":")
-    return getattr(importlib.import_module(module), func)
-
 
 def form(profiles: Profiles, grid: VoxelGrid, formation: str = "bp", *, backend: str | None = None,
          device: Any = None, progress: Callable[[int, int], None] | None = None, force: bool = False,
@@ -57,12 +35,12 @@ def form(profiles: Profiles, grid: VoxelGrid, formation: str = "bp", *, backend:
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    image = resolve(formation)(profiles, grid, backend=backend, device=device, progress=progress, force=force,
+    image = FORMATIONS.choose(formation)(profiles, grid, backend=backend, device=device, progress=progress, force=force,
                                **options)
-    image.provenance = {**image.provenance, "formation": formation}
+    provenance = {**image.provenance, "formation": formation}
     if options:
-        image.provenance["formation_options"] = dict(options)
-    return image
+        provenance["formation_options"] = dict(options)
+    return replace(image, provenance=provenance)
 
 
 def error_to_signal_db(image, reference, mask: np.ndarray | None = None) -> float:

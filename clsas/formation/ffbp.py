@@ -47,18 +47,21 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
 from .. import cl as _cl
-from ..compression import Profiles
+from .. import validate as v
 from ..geometry import VoxelGrid
-from ..imaging.guard import available_memory_bytes, check_grid
-from ..imaging.image import Image
+from ..image import Image
+from ..profiles import Profiles
 from . import ffbp_numpy as twin
+from .ffbp_opencl import FfbpPipeline
 from .ffbp_tree import Tree, build_tree, default_depth, estimate_band, max_depth
+from .guard import available_memory_bytes, check_grid
+from .registry import FORMATIONS
 
 __all__ = ["form", "plan_tree", "ORDERS"]
 
@@ -103,23 +106,9 @@ def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample
             "order": int(order), "interpolator": interpolator, "band_hz": band_hz, "band_tail": band_tail}
 
 
-def _inputs(profiles: Profiles):
-    n = profiles.n_meas
-    tx = v.array("profiles.tx_positions", profiles.tx_positions, shape=(n, 3))
-    rx = v.array("profiles.rx_positions", profiles.rx_positions, shape=(n, 3))
-    c = v.speeds("profiles.c_mps", profiles.c_mps, n)
-    data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
-    if data.shape[1] < 2:
-        raise ValueError(f"profiles.data must have at least 2 samples per profile, got shape {data.shape}")
-    tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
-    dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
-    fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
-    return data, tau0, dtau, fc, tx, rx, np.broadcast_to(np.asarray(c, float), (n,)).copy()
-
-
 def plan_tree(profiles: Profiles, grid: VoxelGrid, **options) -> Tree:
     """The sub-aperture tree and sub-image grids FFBP would use (``options`` as :func:`form`'s)."""
-    data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), **options)
     return _tree(data, dtau, fc, tx, rx, c, grid, opts)
 
@@ -156,22 +145,12 @@ def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -
         log.warning("ffbp: %s; going on (force=True)", text)
 
 
+@FORMATIONS.register("ffbp")
 def form(
-    profiles: Profiles,
-    grid: VoxelGrid,
-    *,
-    backend: str | None = None,
-    device: Any = None,
-    progress: Callable[[int, int], None] | None = None,
-    force: bool = False,
-    depth: int | None = None,
-    factor: int = 4,
-    oversample: float = 2.0,
-    range_oversample: float = 2.0,
-    order: int = 3,
-    interpolator: str = "lsq",
-    band_hz: tuple[float, float] | None = None,
-    band_tail: float = 1e-4,
+    profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
+    progress: Callable[[int, int], None] | None = None, force: bool = False, depth: int | None = None,
+    factor: int = 4, oversample: float = 2.0, range_oversample: float = 2.0, order: int = 3,
+    interpolator: str = "lsq", band_hz: tuple[float, float] | None = None, band_tail: float = 1e-4,
 ) -> Image:
     """Image ``profiles`` on ``grid`` by fast factorized backprojection.
 
@@ -183,9 +162,12 @@ def form(
     grid : VoxelGrid
         Must lie in front of the aperture: within 72 degrees of each sub-aperture's line of
         sight to the grid's centre (else a ``ValueError`` names ``formation='bp'``).
-    backend : {"auto", "opencl", "numpy"}, optional
-        As :func:`clsas.backproject`; the NumPy path works alone.
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
+        As :func:`clsas.backproject`; the NumPy path works alone. ``"auto"`` (or a Selection
+        that asked for it) falls back to it with one warning when a kernel will not build,
+        ``"opencl"`` raises :class:`clsas.cl.BuildError`.
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+        None with a Selection.
     progress : callable(done, total), optional
         Called after each level (leaves, each merge, the final interpolation).
     force : bool
@@ -223,47 +205,43 @@ def form(
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    data, tau0, dtau, fc, tx, rx, c = _inputs(profiles)
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
     if opts["depth"] == 0:
-        from ..imaging import Backprojector
+        from .bp import Backprojector
 
         image = Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
-        image.provenance = {**image.provenance, "ffbp_depth": 0}
-        return image
+        return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
     sel = _cl.select(backend, device)
-    check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=force)
+    check_grid(grid, sel.kind, sel.cl_device, force=force)
     t_start = time.perf_counter()
     tree = _tree(data, dtau, fc, tx, rx, c, grid, opts)
     timings = {"ffbp_plan": time.perf_counter() - t_start}
-    _check_memory(tree, grid, sel.kind, sel.queue.device if sel.opencl else None, force)
+    _check_memory(tree, grid, sel.kind, sel.cl_device, force)
     for line in tree.describe().splitlines():
         log.info("ffbp: %s", line)
+    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings)
+    timings["ffbp"] = time.perf_counter() - t_start
+    provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
+                  | {"band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
+    return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
+                 provenance=provenance)
+
+
+def _run(tree: Tree, grid: VoxelGrid, arrays: tuple, opts: dict, sel: _cl.Selection, progress, timings: dict):
+    """The tree's levels on the device (or the twin where the kernels will not build): (values, selection)."""
+    data, tau0, dtau, fc, tx, rx, c = arrays
     o = tree.order
     args = (data[o], tau0[o], dtau, fc, tx[o], rx[o], c[o])
     taps = opts["order"] + 1
     tables = (twin.weight_table(taps, opts["range_oversample"], opts["interpolator"]),
               twin.weight_table(taps, opts["oversample"], opts["interpolator"]))
-    values = None
-    if sel.opencl:
-        from .ffbp_opencl import FfbpPipeline
-
-        try:
-            pipe = FfbpPipeline(tree, grid, data.shape[1], tables, queue=sel.queue)
-        except _cl.BuildError as exc:
-            sel = sel.fall_back(exc)
-        else:
-            values = pipe(*args, progress=progress)
-            timings.update(pipe.timings_s)
-    if values is None:
-        values = _run_numpy(tree, grid, args, tables, progress, timings)
-    timings["ffbp"] = time.perf_counter() - t_start
-    image = Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings)
-    image.plan = tree
-    image.provenance = {**image.provenance, "ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
-                        | {"band_hz": list(tree.band_hz),
-                           "samples_per_level": [lev.samples for lev in tree.levels]}}
-    return image
+    pipe, sel = sel.plan(lambda q: FfbpPipeline(tree, grid, data.shape[1], tables, queue=q))
+    if pipe is None:
+        return _run_numpy(tree, grid, args, tables, progress, timings), sel
+    values = pipe(*args, progress=progress)
+    timings.update(pipe.timings_s)
+    return values, sel
 
 
 def _run_numpy(tree: Tree, grid: VoxelGrid, args, tables, progress, timings: dict) -> np.ndarray:

@@ -13,8 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..cl import Plan, kernel
-from ..cl.variants import KERNELS
+from ..cl import Plan
 from ..geometry import VoxelGrid
 from . import ffbp_numpy as twin
 from .ffbp_tree import BLOCK, Level, Tree
@@ -60,7 +59,8 @@ def _complex(host: np.ndarray) -> np.ndarray:
 class FfbpLeafPlan(Plan):
     """The ``ffbp_leaf`` kernel: leaf sub-images by exact backprojection of their measurements."""
 
-    kernel_name = "ffbp_leaf"
+    KERNEL = "ffbp_leaf"
+    SOURCES = ("common.cl", "ffbp.cl")
 
     def launch_level(self, prof, tables: _LevelTables, kref: float, d_out):
         return self.launch((tables.size,), *prof, tables.geom, tables.ints, tables.blocks, np.float32(kref), d_out,
@@ -92,21 +92,24 @@ class FfbpMergePlan(Plan):
     """The ``ffbp_merge`` kernel with ``taps`` points per axis: parents from children, or the
     image on a Cartesian grid from the top sub-images."""
 
-    kernel_name = "ffbp_merge"
+    KERNEL = "ffbp_merge"
+    SOURCES = ("common.cl", "ffbp.cl")
 
     def __init__(self, taps: int = 4, queue=None, vec=None):
-        super().__init__(queue, vec)
         if taps not in (2, 4, 6):
             raise ValueError(f"taps must be 2, 4 or 6, got {taps!r}")
         self.taps = taps
-        if taps != 4:  # the base class built the default (TAPS 4, shared with the leaf kernel)
-            self.kernel = kernel(self.context, KERNELS[self.kernel_name][0], self.kernel_name,
-                                 {"VEC": self.vec, "TAPS": taps})
+        super().__init__(queue, vec)
+
+    def defines(self) -> dict:
+        """``TAPS`` where it is not the source's default of 4 (that program is the leaf kernel's too)."""
+        return {} if self.taps == 4 else {"TAPS": self.taps}
 
     def upload_tables(self, tables) -> tuple:
         return tuple(self.upload(t, np.float32) for t in tables)
 
-    def _check(self, tables) -> None:
+    def check_tables(self, tables) -> None:
+        """``ValueError`` unless both weight tables have this plan's number of taps."""
         if tables[0].shape[1] != self.taps or tables[1].shape[1] != self.taps:
             raise ValueError(f"tables: {tables[0].shape[1]} and {tables[1].shape[1]} taps, the plan has {self.taps}")
 
@@ -129,7 +132,7 @@ class FfbpMergePlan(Plan):
                  grid: VoxelGrid | None = None) -> np.ndarray:
         """As :func:`clsas.formation.ffbp_numpy.merge` (``parents`` given) or
         :func:`~clsas.formation.ffbp_numpy.to_grid` (``grid`` given); complex64."""
-        self._check(tables)
+        self.check_tables(tables)
         self.begin()
         d_vals = self.upload(np.asarray(values, np.complex64), np.complex64)
         d_tables = self.upload_tables(tables)
@@ -191,7 +194,7 @@ class FfbpPipeline:
         taps = tables[0].shape[1]
         self.leaf = FfbpLeafPlan(queue)
         self.merge = FfbpMergePlan(taps, self.leaf.queue)
-        self.merge._check(tables)
+        self.merge.check_tables(tables)
         self.d_tables = self.merge.upload_tables(tables)
         self.levels = [_LevelTables(self.merge, lev) for lev in tree.levels]
         biggest = max(lev.size for lev in tree.levels)
@@ -224,13 +227,12 @@ class FfbpPipeline:
                 progress(total - d, total)
         events.append(("ffbp_grid", self.merge.launch_grid(self.bufs[cur], self.levels[0], self.grid, self.d_tables,
                                                            kref, self.d_image)))
-        out = np.empty((self.n_pad, 2), np.float32)
-        self.merge.cl.enqueue_copy(self.merge.queue, out, self.d_image, wait_for=[e for _, e in events])
+        out = self.merge.read(self.d_image, (self.n_pad, 2), np.float32, after=[e for _, e in events])
         if progress is not None:
             progress(total, total)
         timings = {"ffbp_device": time.perf_counter() - t0}
         for name, evt in events:
             key = name + "_kernel"
-            timings[key] = timings.get(key, 0.0) + (evt.profile.end - evt.profile.start) * 1e-9
+            timings[key] = timings.get(key, 0.0) + Plan.seconds(evt)
         self.timings_s = timings
         return _complex(out)[: self.grid.size]

@@ -312,18 +312,27 @@ def _rates(geom, box, tx, rx, c, sizes, band, f0, c_ref, chunk=2048):
     return rates[:, 0], rates[:, 1], rates[:, 2]
 
 
+def _sample_grids(box: np.ndarray, steps: np.ndarray, taps: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each node's sub-image grid over its region ``box`` (nn, 6) at no more than ``steps`` (nn, 3):
+    (counts (nn, 3), origin (nn, 3) m, steps (nn, 3) m), at least ``taps`` samples per axis."""
+    nn = len(box)
+    counts = np.zeros((nn, 3), np.int64)
+    origin = np.zeros((nn, 3))
+    steps = steps.copy()
+    for ax in range(3):
+        lo_, hi_ = box[:, 2 * ax], box[:, 2 * ax + 1]
+        extent = hi_ - lo_
+        step = np.minimum(steps[:, ax], np.maximum(extent, 1e-6) / max(taps - 1, 1))
+        cnt = np.maximum(np.ceil(extent / step - 1e-9).astype(np.int64) + 2, taps)
+        origin[:, ax] = 0.5 * (lo_ + hi_) - 0.5 * (cnt - 1) * step
+        counts[:, ax] = cnt
+        steps[:, ax] = step
+    return counts, origin, steps
+
+
 def build_tree(
-    tx: np.ndarray,
-    rx: np.ndarray,
-    c_mps: np.ndarray,
-    grid_bounds: np.ndarray,
-    band_hz: tuple[float, float],
-    *,
-    depth: int,
-    factor: int,
-    oversample: float,
-    range_oversample: float,
-    taps: int,
+    tx: np.ndarray, rx: np.ndarray, c_mps: np.ndarray, grid_bounds: np.ndarray, band_hz: tuple[float, float], *,
+    depth: int, factor: int, oversample: float, range_oversample: float, taps: int,
 ) -> Tree:
     """The sub-aperture tree of ``depth`` levels and the sampled grids of its sub-images.
 
@@ -387,16 +396,7 @@ def build_tree(
         fr, fu, fv = _rates(geom, box, tx_o, rx_o, c_o, sizes, (f_lo, f_hi), f0, c_ref)
         steps = np.stack([1.0 / (2 * fr * range_oversample), 1.0 / (2 * np.maximum(fu, 1e-9) * oversample),
                           1.0 / (2 * np.maximum(fv, 1e-9) * oversample)], axis=1)
-        counts = np.zeros((nn, 3), np.int64)
-        origin = np.zeros((nn, 3))
-        for ax in range(3):
-            lo_, hi_ = box[:, 2 * ax], box[:, 2 * ax + 1]
-            extent = hi_ - lo_
-            step = np.minimum(steps[:, ax], np.maximum(extent, 1e-6) / max(taps - 1, 1))
-            cnt = np.maximum(np.ceil(extent / step - 1e-9).astype(np.int64) + 2, taps)
-            origin[:, ax] = 0.5 * (lo_ + hi_) - 0.5 * (cnt - 1) * step
-            counts[:, ax] = cnt
-            steps[:, ax] = step
+        counts, origin, steps = _sample_grids(box, steps, taps)
         geom[:, 18:21] = origin
         geom[:, 21:24] = steps
         geom[:, 24:27] = 1.0 / steps

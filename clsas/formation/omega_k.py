@@ -1,7 +1,7 @@
 """Wavenumber-domain (ω-k, Stolt) image formation for planar, uniform, bistatic apertures.
 
 ``reconstruct(dataset, grid, formation="omega-k")`` gives the image that exact backprojection
-(:func:`clsas.backproject`, reference definition in ``clsas/imaging/numpy.py``) gives, with the
+(:func:`clsas.backproject`, reference definition in ``clsas/formation/bp_numpy.py``) gives, with the
 same complex values and phase convention, at a cost of O(N^3 log N) instead of voxels x
 measurements, for apertures whose speakers and microphones lie on one plane normal to a grid
 axis, with the pairs' midpoints on a regular lattice and one fixed speaker-microphone offset
@@ -68,12 +68,15 @@ from typing import Any
 
 import numpy as np
 
-from .. import _validate as v
-from ..compression import Profiles
+from .. import cl as _cl
+from .. import validate as v
 from ..geometry import VoxelGrid
-from ..imaging.image import Image
+from ..image import Image
+from ..profiles import Profiles
 from . import stolt
+from .opencl import StoltPlan
 from .planar import NotPlanarUniform, planar_aperture
+from .registry import FORMATIONS
 
 __all__ = ["form", "OPTIONS", "NotPlanarUniform"]
 
@@ -219,22 +222,14 @@ def _max_sine(g, pu, pv, depth_min) -> float:
 
 
 def _stolt_runner(backend, device):
-    """The spreading step: the OpenCL plan when the backend is OpenCL, else the twin."""
-    from .. import cl as _cl
-
-    sel = _cl.select(backend, device)
-    if sel.opencl:
-        from .opencl import StoltPlan
-
-        try:
-            return StoltPlan(queue=sel.queue), sel
-        except _cl.BuildError as exc:
-            sel = sel.fall_back(exc)
-    return None, sel
+    """The spreading step: the OpenCL plan when the backend is OpenCL (``None``: the twin), and
+    the selection it runs on (NumPy after a fallback)."""
+    return _cl.select(backend, device).plan(lambda q: StoltPlan(queue=q))
 
 
 # -- the formation ---------------------------------------------------------------------------
-def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, device: Any = None,
+@FORMATIONS.register("omega-k")
+def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
          progress=None, force: bool = False, **options) -> Image:
     """ω-k image of ``profiles`` on ``grid`` (see the module notes for the method and options).
 
@@ -245,10 +240,12 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
         :meth:`clsas.Profiles.from_range_profiles`) with speaker and microphone positions.
     grid : VoxelGrid
         On one side of the aperture's plane.
-    backend : {"auto", "opencl", "numpy"}, optional
-        Where the Stolt step runs (the FFTs run on the host, scipy.fft).
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
+        Where the Stolt step runs (the FFTs run on the host, scipy.fft); ``"auto"`` (or a
+        Selection that asked for it) falls back to the twin with one warning when the kernel
+        will not build, ``"opencl"`` raises :class:`clsas.cl.BuildError`.
     device : optional
-        OpenCL device or queue.
+        OpenCL device or queue (None with a Selection).
     progress : callable(done, total), optional
         Called after each chunk of spatial-frequency columns.
     force : bool
@@ -274,17 +271,7 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     o = _options(options)
     workers = o["workers"] or os.cpu_count() or 1
-    n = profiles.n_meas
-    if profiles.tx_positions is None or profiles.rx_positions is None or profiles.c_mps is None:
-        raise ValueError("profiles: positions and speed of sound are needed (compress a Dataset, or give them to "
-                         "Profiles.from_range_profiles)")
-    tx = v.array("tx_positions", profiles.tx_positions, shape=(n, 3))
-    rx = v.array("rx_positions", profiles.rx_positions, shape=(n, 3))
-    c = v.speeds("c_mps", profiles.c_mps, n)
-    data = v.array("profiles.data", profiles.data, ndim=2, dtype=np.complex128, allow_complex=True)
-    tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
-    dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
-    fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays(np.complex128)
     t_start = time.perf_counter()
     # the geometry first (a refusal costs nothing); the tolerance is a hundredth of the
     # wavelength at 1.5 times the carrier (the band's top, about)
@@ -315,21 +302,24 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | None = None, dev
     inv = np.argsort(ap.perm)
     values = np.transpose(values, inv)
     if o["upsample"] == 1:
-        from .planar import well_sampled_cone
-
-        frac = float(well_sampled_cone(tx, rx, grid, f_top, c_ref, tol_m=tol).mean())
-        info["cone_fraction"] = frac
-        if frac < 0.5:
-            log.warning("omega-k: the aperture's lattice samples only %.0f %% of the grid unaliased at %.0f kHz "
-                        "(its well-sampled cone); elsewhere backprojection also forms aliased angles (grating "
-                        "lobes), which omega-k leaves out: formation_options={'upsample': 'auto'} forms them, "
-                        "or use formation='bp'", 100 * frac, f_top / 1e3)
+        info["cone_fraction"] = _warn_outside_cone(tx, rx, grid, f_top, c_ref, tol)
     total = time.perf_counter() - t_start
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
-    image = Image(values, grid, "bp", sel.kind, sel.device, timings)
     info["backend"] = sel.kind
-    image.provenance = {"omega_k": info}
-    return image
+    return Image(values, grid, "bp", sel.kind, sel.device, timings, provenance={"omega_k": info})
+
+
+def _warn_outside_cone(tx, rx, grid: VoxelGrid, f_top: float, c_ref: float, tol: float) -> float:
+    """The share of the grid in the aperture's well-sampled cone, with a warning where it is under half."""
+    from .planar import well_sampled_cone
+
+    frac = float(well_sampled_cone(tx, rx, grid, f_top, c_ref, tol_m=tol).mean())
+    if frac < 0.5:
+        log.warning("omega-k: the aperture's lattice samples only %.0f %% of the grid unaliased at %.0f kHz "
+                    "(its well-sampled cone); elsewhere backprojection also forms aliased angles (grating "
+                    "lobes), which omega-k leaves out: formation_options={'upsample': 'auto'} forms them, "
+                    "or use formation='bp'", 100 * frac, f_top / 1e3)
+    return frac
 
 
 def _n_terms(alpha_max: float, u_max: float, tol: float, bistatic: bool) -> int:

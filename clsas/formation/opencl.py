@@ -15,7 +15,8 @@ class StoltPlan(Plan):
     device; returns complex64 cells (n_terms, n_cols, n_cells).
     """
 
-    kernel_name = "stolt_spread"
+    KERNEL = "stolt_spread"
+    SOURCES = ("common.cl", "stolt.cl")
 
     def __init__(self, queue=None, vec=None):
         super().__init__(queue, vec)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from ..geometry import VoxelGrid
 
 __all__ = ["Lattice", "PlanarAperture", "NotPlanarUniform", "planar_aperture", "well_sampled_cone"]

@@ -10,7 +10,9 @@ Two layouts are read:
   (``Coordinates.csv``, ``SysParams.csv``, ``WaveformParams.csv``, ``Flight-NNNNNN.csv``),
   returned in the target's frame.
 
-:func:`import_scan` picks the layout (``format="auto"``) and is what ``clsas import`` calls.
+:func:`import_scan` picks the layout (``format="auto"``) and is what ``clsas import`` calls. Each
+format registers itself in :data:`IMPORTERS` (a :class:`clsas.registry.Registry` of
+:class:`Importer`) where it is defined; a new format is one module that registers itself.
 Each importer records itself as the first ``provenance`` entry of the dataset
 (``{"step": "import", "source": ..., "format": ...}``). ``clsas.io`` is not imported by
 ``import clsas``: ``import clsas.io``.
@@ -22,30 +24,28 @@ from pathlib import Path
 
 from ..dataset import Dataset
 from .airsas import import_airsas, is_airsas
-from .folder import SETTINGS_FILES, import_folder
+from .folder import import_folder
+from .registry import IMPORTERS, Importer
 
-__all__ = ["FORMATS", "detect_format", "import_airsas", "import_folder", "import_scan", "is_airsas"]
-
-#: the layouts :func:`import_scan` reads
-FORMATS = ("folder", "airsas")
+__all__ = ["IMPORTERS", "Importer", "detect_format", "import_airsas", "import_folder", "import_scan", "is_airsas"]
 
 
 def detect_format(source: str | Path) -> str:
-    """``"airsas"`` or ``"folder"``: the layout of the folder ``source``.
+    """The name of the first registered format (:data:`IMPORTERS`) that recognises ``source``.
 
     AirSAS: a ``Coordinates.csv`` and a ``SysParams.csv``; folder: a ``positions.csv`` or a
-    settings file (``import.toml``). Raises ``FileNotFoundError`` if there is no such folder
-    and ``ValueError`` if it is neither.
+    settings file (``import.toml``). Raises ``FileNotFoundError`` if there is no such file or
+    folder and ``ValueError`` if no format recognises it.
     """
     source = Path(source)
-    if not source.is_dir():
+    if not source.exists():
         raise FileNotFoundError(f"no folder {source} (source)")
-    if is_airsas(source):
-        return "airsas"
-    if any((source / n).is_file() for n in ("positions.csv", *SETTINGS_FILES)):
-        return "folder"
+    for name, importer in IMPORTERS.items():
+        if importer.detect(source):
+            return name
     raise ValueError(f"{source}: layout not recognised: expected positions.csv (or import.toml) for "
-                     "format 'folder', or Coordinates.csv and SysParams.csv for format 'airsas'")
+                     "format 'folder', or Coordinates.csv and SysParams.csv for format 'airsas' "
+                     f"(formats: {', '.join(IMPORTERS)})")
 
 
 def import_scan(source: str | Path, *, format: str = "auto", background: str | Path | None = None,
@@ -56,15 +56,15 @@ def import_scan(source: str | Path, *, format: str = "auto", background: str | P
     ----------
     source : path
         The scan's folder.
-    format : {"auto", "folder", "airsas"}
-        The layout; ``"auto"`` decides with :func:`detect_format`.
+    format : str
+        ``"auto"`` (decided by :func:`detect_format`) or a registered format (:data:`IMPORTERS`:
+        ``"airsas"``, ``"folder"``, ...).
     background : path, optional
         The empty-scene scan, in the same layout (-> ``Dataset.background``).
     **options
-        Passed to :func:`import_folder` or :func:`import_airsas`.
+        Passed to the format's reader (:func:`import_folder`, :func:`import_airsas`, ...).
     """
-    if format not in ("auto", *FORMATS):
-        raise ValueError(f"format must be one of auto, {', '.join(FORMATS)}; got {format!r}")
+    if format != "auto":
+        IMPORTERS.check(format)
     fmt = detect_format(source) if format == "auto" else format
-    reader = import_airsas if fmt == "airsas" else import_folder
-    return reader(source, background=background, **options)
+    return IMPORTERS[fmt].read(source, background=background, **options)

@@ -72,10 +72,11 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import cell_number
 from ..dataset import Dataset
 from ..signals import lfm_chirp
+from ..validate import cell_number
 from ._common import attach_background, is_number, read_numbers, stack_padded
+from .registry import IMPORTERS, Importer
 
 __all__ = ["import_airsas", "is_airsas"]
 
@@ -380,3 +381,8 @@ def _waveform(folder: Path, kind: str, index: int, fs: float) -> tuple[np.ndarra
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{path}, line {line}: {exc}") from None
     return wave, chirp
+
+
+IMPORTERS.register("airsas", Importer(
+    read=import_airsas, detect=is_airsas,
+    summary="the AirSAS turntable layout (Coordinates.csv, SysParams.csv, Flight-*.csv)"))

@@ -81,10 +81,11 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import cell_number
 from ..dataset import Dataset
 from ..signals import lfm_chirp
+from ..validate import cell_number
 from ._common import attach_background, read_numbers, read_settings, read_wav, sniff_delimiter, stack_padded
+from .registry import IMPORTERS, Importer
 
 __all__ = ["SETTINGS_FILES", "import_folder"]
 
@@ -482,3 +483,13 @@ def _group_delay(given: float | None, cfg: dict, cfg_path: Path | None, fs: floa
     if "group_delay_s" in d:
         return d["group_delay_s"] * fs
     return d.get("group_delay_samples", 0.0)
+
+
+def is_folder_scan(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a ``positions.csv`` or a settings file (:data:`SETTINGS_FILES`)."""
+    folder = Path(folder)
+    return folder.is_dir() and any((folder / n).is_file() for n in ("positions.csv", *SETTINGS_FILES))
+
+
+IMPORTERS.register("folder", Importer(read=import_folder, detect=is_folder_scan,
+                                      summary="a folder of WAV or CSV recordings with positions.csv"))

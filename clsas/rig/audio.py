@@ -21,10 +21,10 @@ import numpy as np
 import scipy.fft
 import scipy.signal
 
-from .. import _validate as v
-from .._validate import install_hint
+from .. import validate as v
 from ..geometry import Aperture, Scene
 from ..simulation import simulate
+from ..validate import install_hint
 
 __all__ = ["AudioError", "Take", "Recorder", "SoundDeviceIO", "SimulatedIO", "find_onset", "import_sounddevice",
            "list_audio_devices"]

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import _validate as v
 from .. import config as c
+from .. import validate as v
 from ..geometry import Scene, VoxelGrid, raster_aperture
 
 __all__ = ["RigConfig", "parse_rig_config", "load_rig_config", "SAMPLE_RIG_TOML"]
@@ -282,6 +282,36 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
                                              "audio": AUDIO_KEYS, "recorder": RECORDER_KEYS, "chirp": c.CHIRP_KEYS,
                                              "air": AIR_KEYS, "grid": c.GRID_KEYS, "simulate": SIMULATE_KEYS})
     _move_old_keys(cfg, source)
+    st, sc, ap, au, rec, ch, air = _tables(cfg, source)
+
+    def fail(message: str) -> c.ConfigError:
+        return c.ConfigError(f"{source}: {message}")
+
+    fs = float(au.number("fs_hz", 96000.0, above=0))
+    if fs not in (96000.0, 192000.0):
+        raise fail(f"audio.fs_hz must be 96000 or 192000 (a 20-30 kHz chirp needs them), got {fs:g}")
+    chirp, waveform = c.chirp_table(ch, fs)
+    rx, mics, loop = _channels(ap, au, fail)
+    tx_off, area, origin, stops = _aperture_on_stage(ap, st, sc, rx, fail)
+    feed, device, level, record_s, poll_hz, reset_on_open = _checked_settings(st, au, rec, fs, chirp, waveform, fail)
+    stage = _stage_settings(st, area, feed, poll_hz, reset_on_open)
+    recorder = _recorder_settings(rec, level, record_s)
+    audio = {"device": device, "fs_hz": fs, "output_channel": au.integer("output_channel", 1, low=1),
+             "loopback_channel": loop, "mic_channels": mics}
+    return RigConfig(
+        text=text, stage=stage, home=sc.boolean("home", True), origin_mm=origin,
+        settle_s=float(sc.number("settle_s", 0.5, low=0)), audio=audio, recorder=recorder, stops_m=stops,
+        tx_offset_m=tx_off, rx_offsets_m=rx, chirp=chirp, waveform=waveform,
+        temperature_c=float(air.number("temperature_c", 20.0, low=-273.15)),
+        humidity_pct=float(air.number("humidity_pct", 50.0, low=0, high=100)),
+        sensor_command=air.string("sensor_command", None), simulate=_simulate_table(cfg, source),
+        preprocess=c.preprocess_table(cfg, source), grid=c.grid_table(cfg, source),
+    )
+
+
+def _tables(cfg: dict, source: str) -> tuple:
+    """The rig file's tables, each checked for unknown keys (with hints where a key belongs elsewhere):
+    ``[stage]``, ``[scan]``, ``[aperture]``, ``[audio]``, ``[recorder]``, ``[chirp]``, ``[air]``."""
     st = c.Table(cfg.get("stage", {}), source, "[stage]", STAGE_KEYS,
                  hints={k: f"it belongs in [scan] {k}" for k in SCAN_KEYS})
     sc = c.Table(cfg.get("scan", {}), source, "[scan]", SCAN_KEYS,
@@ -294,15 +324,11 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
     ch = c.Table(cfg.get("chirp", {}), source, "[chirp]", c.CHIRP_KEYS,
                  hints={"fs_hz": "a rig's sample rate is [audio] fs_hz"})
     air = c.Table(cfg.get("air", {}), source, "[air]", AIR_KEYS)
+    return st, sc, ap, au, rec, ch, air
 
-    def fail(message: str) -> c.ConfigError:
-        return c.ConfigError(f"{source}: {message}")
 
-    fs = float(au.number("fs_hz", 96000.0, above=0))
-    if fs not in (96000.0, 192000.0):
-        raise fail(f"audio.fs_hz must be 96000 or 192000 (a 20-30 kHz chirp needs them), got {fs:g}")
-    chirp, waveform = c.chirp_table(ch, fs)
-
+def _channels(ap, au, fail) -> tuple:
+    """The microphones' offsets (k, 3) m, their input channels (one each) and the loopback channel."""
     rx = ap.raw("rx_offset_m", [[0.02, 0.0, 0.0]])
     if isinstance(rx, list) and rx and not isinstance(rx[0], list):
         ap.data["rx_offset_m"] = rx = [rx]
@@ -317,6 +343,12 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
     loop = au.integer("loopback_channel", 1, low=1)
     if loop in mics:
         raise fail(f"audio.loopback_channel {loop} is also a microphone channel")
+    return rx, mics, loop
+
+
+def _aperture_on_stage(ap, st, sc, rx, fail) -> tuple:
+    """The speaker's offset (m), the stage's work area (mm), the scan's origin on it (mm) and the
+    stops (m), checked to lie inside the work area."""
     tx_off = ap.vector("tx_offset_m", (-0.02, 0.0, 0.0))
     aperture = ap.build(
         raster_aperture, ap.integer("nx", 18, low=1), ap.integer("ny", 12, low=1),
@@ -333,6 +365,13 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         if lo < area[axis, 0] or hi > area[axis, 1]:
             raise fail(f"the aperture spans {name} = [{lo:g}, {hi:g}] mm on the stage, outside stage.work_area_mm "
                        f"{area[axis].tolist()}: reduce the aperture or move scan.origin_mm")
+    return tx_off, area, origin, stops
+
+
+def _checked_settings(st, au, rec, fs, chirp, waveform, fail) -> tuple:
+    """The settings checked against each other: the feed, the audio device, the output level,
+    the recording's length (at least the chirp's), the status polling rate (GRBL's limit), and
+    whether to reset the controller on opening."""
     feed = st.number("feed_mm_min", 3000.0, low=0)
     device = au.raw("device", "default")
     if not isinstance(device, str | int) or isinstance(device, bool):
@@ -349,7 +388,12 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
     reset_on_open = st.raw("reset_on_open", None)
     if reset_on_open is not None:
         reset_on_open = st.boolean("reset_on_open")
-    stage = {
+    return feed, device, level, record_s, poll_hz, reset_on_open
+
+
+def _stage_settings(st, area, feed, poll_hz, reset_on_open) -> dict:
+    """``RigConfig.stage``: GrblStage's keyword arguments."""
+    return {
         "port": st.string("port", None),
         "baudrate": st.integer("baudrate", 115200, low=1),
         "work_area_mm": tuple(map(tuple, area.tolist())),
@@ -362,7 +406,11 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         "reset_on_open": reset_on_open,
         "position_tol_mm": float(st.number("position_tol_mm", 0.02, above=0)),
     }
-    recorder = {
+
+
+def _recorder_settings(rec, level, record_s) -> dict:
+    """``RigConfig.recorder``: the Recorder's keyword arguments."""
+    return {
         "level": level,
         "record_s": record_s,
         "max_latency_s": float(rec.number("max_latency_s", 0.1, above=0)),
@@ -372,28 +420,6 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         "clip_level": min(float(rec.number("clip_level", 0.99, above=0)), 1.0),
         "acoustic_delay_s": float(rec.number("acoustic_delay_s", 0.0)),
     }
-    audio = {"device": device, "fs_hz": fs, "output_channel": au.integer("output_channel", 1, low=1),
-             "loopback_channel": loop, "mic_channels": mics}
-    return RigConfig(
-        text=text,
-        stage=stage,
-        home=sc.boolean("home", True),
-        origin_mm=origin,
-        settle_s=float(sc.number("settle_s", 0.5, low=0)),
-        audio=audio,
-        recorder=recorder,
-        stops_m=stops,
-        tx_offset_m=tx_off,
-        rx_offsets_m=rx,
-        chirp=chirp,
-        waveform=waveform,
-        temperature_c=float(air.number("temperature_c", 20.0, low=-273.15)),
-        humidity_pct=float(air.number("humidity_pct", 50.0, low=0, high=100)),
-        sensor_command=air.string("sensor_command", None),
-        simulate=_simulate_table(cfg, source),
-        preprocess=c.preprocess_table(cfg, source),
-        grid=c.grid_table(cfg, source),
-    )
 
 
 def load_rig_config(path: str | Path) -> RigConfig:

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .grbl_link import (
     ALARMS,
     ERRORS,

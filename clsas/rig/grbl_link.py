@@ -18,8 +18,8 @@ import re
 import time
 from dataclasses import dataclass
 
-from .. import _validate as v
-from .._validate import install_hint
+from .. import validate as v
+from ..validate import install_hint
 
 __all__ = ["GrblLink", "StageError", "StageRefused", "GrblError", "GrblAlarm", "StageTimeout", "StageDisconnected",
            "Status", "ERRORS", "ALARMS"]

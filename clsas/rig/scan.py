@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._validate import install_hint
 from ..physics import speed_of_sound
+from ..validate import install_hint
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig
 from .emulator import Faults, GrblEmulator
@@ -175,24 +175,10 @@ def acquire(
     _check_config(config)
     out = Path(out)
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
-    if simulate not in (False, True, "all", "stage", "audio"):
-        raise ValueError(f"simulate must be True, False, 'all', 'stage' or 'audio', got {simulate!r}")
-    sim_stage = simulate in (True, "all", "stage")
-    sim_audio = simulate in (True, "all", "audio")
-    if faults is not None and not sim_stage:
-        raise ValueError("faults can only be injected into an emulated stage (simulate=True, 'all' or 'stage')")
     if out.exists() and holds_no_stop(out):  # a scan that stopped before its first stop: start it again
         log.info("%s holds no stop yet: starting it again", out)
         out.unlink()
-    if out.exists() and not resume:
-        raise FileExistsError(f"{out} exists: resume it (--resume) or choose another file name")
-    if not sim_stage and stage is None and not config.port:
-        raise ValueError("stage.port is not set in the rig configuration (or run with --simulate)")
-    if stage is None:
-        from importlib.util import find_spec
-
-        if find_spec("serial") is None:  # before any file is written
-            raise ImportError(f"the stage (and its emulator) needs pyserial: {install_hint('rig')}")
+    sim_stage, sim_audio = _checked_request(config, out, resume, simulate, faults, stage)
     resuming = resume and out.exists()
     air = _stored_air(out) if resuming else config.read_air()
     recorder = recorder_for(config, audio_io if audio_io is not None else audio_for(config, sim_audio, air))
@@ -201,12 +187,6 @@ def acquire(
     time_scale = float(config.simulate.get("time_scale", 0.01))
     emulator = None
     t_start = time.monotonic()
-    i = start_done
-
-    def at(stop: int) -> None:
-        nonlocal i
-        i = stop
-
     try:
         if start_done >= config.n_stops:
             log.info("%s already holds all %d stops", out, config.n_stops)
@@ -217,36 +197,8 @@ def acquire(
                 travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
                 emulator = GrblEmulator(faults=faults or Faults(), time_scale=time_scale, travel_mm=travel).start()
             stage = stage_for(config, emulator.port if emulator else None)
-        try:
-            _open_stage(stage, store, out)
-        except BaseException:
-            stage.close()
-            raise
-        try:
-            retried = run_stops(config, stage, recorder, store, progress=progress, on_stop=at,
-                                settle_s=config.settle_s * (time_scale if sim_stage else 1.0))
-            store.close(complete=True)
-        except StageRefused as exc:  # before any move (homing refused): nothing to hold
-            done = store.stops_done
-            _drop_if_empty(store, out)
-            raise StageRefused(f"{exc}. " + (_NOTHING_MOVED if not done else f"Nothing was moved in this run; the "
-                               f"{done} stops saved in {out} are kept: fix it, then {hint}")) from None
-        except KeyboardInterrupt:
-            stage.feed_hold()
-            done = store.stops_done
-            store.close()
-            raise ScanInterrupted(f"interrupted at stop {i + 1} of {config.n_stops}; {done} stops are saved in "
-                                  f"{out}; {hint}", done) from None
-        except (StageError, AudioError, OSError) as exc:
-            held = stage.feed_hold()
-            done = store.stops_done
-            store.close()
-            safe = ("The stage was sent a feed hold" if held else
-                    "No feed hold could be sent (the port is lost): check that the machine has stopped")
-            raise ScanAborted(f"scan stopped at stop {i + 1} of {config.n_stops}: {exc}. {safe}; {done} stops are "
-                              f"saved in {out}. Fix the cause, then {hint}", done) from exc
-        finally:
-            stage.close()
+        retried = _run_safely(config, stage, recorder, store, out, hint, progress,
+                              settle_s=config.settle_s * (time_scale if sim_stage else 1.0))
     finally:
         if emulator is not None:
             emulator.stop()
@@ -255,12 +207,75 @@ def acquire(
     return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
 
 
+def _checked_request(config: RigConfig, out: Path, resume: bool, simulate, faults, stage) -> tuple[bool, bool]:
+    """:func:`acquire`'s request checked before any file is written: (simulate the stage,
+    simulate the audio)."""
+    if simulate not in (False, True, "all", "stage", "audio"):
+        raise ValueError(f"simulate must be True, False, 'all', 'stage' or 'audio', got {simulate!r}")
+    sim_stage = simulate in (True, "all", "stage")
+    sim_audio = simulate in (True, "all", "audio")
+    if faults is not None and not sim_stage:
+        raise ValueError("faults can only be injected into an emulated stage (simulate=True, 'all' or 'stage')")
+    if out.exists() and not resume:
+        raise FileExistsError(f"{out} exists: resume it (--resume) or choose another file name")
+    if not sim_stage and stage is None and not config.port:
+        raise ValueError("stage.port is not set in the rig configuration (or run with --simulate)")
+    if stage is None:
+        from importlib.util import find_spec
+
+        if find_spec("serial") is None:  # before any file is written
+            raise ImportError(f"the stage (and its emulator) needs pyserial: {install_hint('rig')}")
+    return sim_stage, sim_audio
+
+
+def _run_safely(config: RigConfig, stage, recorder, store, out: Path, hint: str, progress, settle_s: float) -> int:
+    """:func:`run_stops` on the opened stage, the file completed at the end; a fault or Ctrl-C
+    sends a feed hold, closes the file with the stops so far and raises ScanAborted or
+    ScanInterrupted naming the stop and how to resume. Returns the stops that needed a retry."""
+    i = store.stops_done
+
+    def at(stop: int) -> None:
+        nonlocal i
+        i = stop
+
+    try:
+        _open_stage(stage, store, out)
+    except BaseException:
+        stage.close()
+        raise
+    try:
+        retried = run_stops(config, stage, recorder, store, progress=progress, on_stop=at, settle_s=settle_s)
+        store.close(complete=True)
+    except StageRefused as exc:  # before any move (homing refused): nothing to hold
+        done = store.stops_done
+        _drop_if_empty(store, out)
+        raise StageRefused(f"{exc}. " + (_NOTHING_MOVED if not done else f"Nothing was moved in this run; the "
+                           f"{done} stops saved in {out} are kept: fix it, then {hint}")) from None
+    except KeyboardInterrupt:
+        stage.feed_hold()
+        done = store.stops_done
+        store.close()
+        raise ScanInterrupted(f"interrupted at stop {i + 1} of {config.n_stops}; {done} stops are saved in "
+                              f"{out}; {hint}", done) from None
+    except (StageError, AudioError, OSError) as exc:
+        held = stage.feed_hold()
+        done = store.stops_done
+        store.close()
+        safe = ("The stage was sent a feed hold" if held else
+                "No feed hold could be sent (the port is lost): check that the machine has stopped")
+        raise ScanAborted(f"scan stopped at stop {i + 1} of {config.n_stops}: {exc}. {safe}; {done} stops are "
+                          f"saved in {out}. Fix the cause, then {hint}", done) from exc
+    finally:
+        stage.close()
+    return retried
+
+
 _NOTHING_MOVED = "Nothing was moved and no stop recorded; fix it, then run the same command again"
 
 
 def _open_stage(stage: GrblStage, store: ScanFile, out: Path) -> None:
-    """Connect to the stage; a port that cannot be opened, or no controller on it, stops the
-    scan before it starts (nothing moved, the empty file removed)."""
+    """Connect to the stage; a port that cannot be opened, no controller on it, or settings that
+    refuse the configuration stop the scan before it starts (nothing moved, the empty file removed)."""
     try:
         stage.open()
     except StageError as exc:

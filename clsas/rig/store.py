@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import _UNITS, FORMAT_VERSION
+from ..dataset import FORMAT_VERSION, UNITS
 
 __all__ = ["ScanFile"]
 
@@ -48,9 +48,9 @@ class ScanFile:
         }
         for name, (tail, dtype) in shapes.items():
             d = f.create_dataset(name, shape=(0, *tail), maxshape=(None, *tail), dtype=dtype, chunks=(chunk, *tail))
-            d.attrs["units"] = _UNITS.get(name, "1 (0-based stop number)")
+            d.attrs["units"] = UNITS.get(name, "1 (0-based stop number)")
         wf = f.create_dataset("waveform", data=np.asarray(waveform, float))
-        wf.attrs["units"] = _UNITS["waveform"]
+        wf.attrs["units"] = UNITS["waveform"]
         f.attrs.update({
             "format_version": FORMAT_VERSION, "clsas_version": __version__, "fs_hz": float(fs_hz),
             "c_mps": float(c_mps), "temperature_c": float(temperature_c), "humidity_pct": float(humidity_pct),

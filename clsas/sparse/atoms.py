@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 
 __all__ = ["Atom", "absorbed_pulse", "Dictionary", "decaying_exponential", "coherence", "PolarTriple", "pulse_length_s",
            "default_max_echoes", "margin_s", "whole_atoms"]

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .atoms import Dictionary
 from .gram import fista_gram
 
@@ -293,17 +293,31 @@ def bpdn(
     if lam >= lmax:
         return BpdnResult(x, _objective(b, x, lam), lam, "optimal", 0, 0.0, time.perf_counter() - t_start, info)
     if amplitudes != "complex":
-        x, n_it = _feature_sign(dictionary, op, b, lam, amplitudes, max_iter=20 * dictionary.k + 100,
-                                  deadline=deadline)
-        r = b - op.forward(x)
-        f = _objective(r, x, lam)
-        gap = _gap(op, b, r, x, lam, amplitudes)
-        status = ("optimal" if gap <= tol * max(f, 1e-300)
-                  else "max_time" if time.perf_counter() > deadline else "max_iter")
-        if status != "optimal":
-            log.warning("bpdn: feature-sign search ended with relative gap %.2g", gap / max(f, 1e-300))
-        info.update(algorithm="feature-sign", support=int(np.count_nonzero(x)))
-        return BpdnResult(x, f, lam, status, n_it, gap, time.perf_counter() - t_start, info)
+        return _bpdn_feature_sign(dictionary, op, b, lam, amplitudes, tol, deadline, t_start, info)
+    return _bpdn_working_set(dictionary, op, b, lam, tol, max_outer, max_inner, deadline, real_signal,
+                             t_start, info)
+
+
+def _bpdn_feature_sign(dictionary, op, b, lam, amplitudes, tol, deadline, t_start, info) -> BpdnResult:
+    """:func:`bpdn` for real and positive amplitudes: the feature-sign search, then its gap."""
+    x, n_it = _feature_sign(dictionary, op, b, lam, amplitudes, max_iter=20 * dictionary.k + 100,
+                              deadline=deadline)
+    r = b - op.forward(x)
+    f = _objective(r, x, lam)
+    gap = _gap(op, b, r, x, lam, amplitudes)
+    status = ("optimal" if gap <= tol * max(f, 1e-300)
+              else "max_time" if time.perf_counter() > deadline else "max_iter")
+    if status != "optimal":
+        log.warning("bpdn: feature-sign search ended with relative gap %.2g", gap / max(f, 1e-300))
+    info.update(algorithm="feature-sign", support=int(np.count_nonzero(x)))
+    return BpdnResult(x, f, lam, status, n_it, gap, time.perf_counter() - t_start, info)
+
+
+def _bpdn_working_set(dictionary, op, b, lam, tol, max_outer, max_inner, deadline, real_signal, t_start,
+                      info) -> BpdnResult:
+    """:func:`bpdn` for complex amplitudes: FISTA on a working set of atoms, grown by the atoms
+    that violate optimality (20 at a time), until the duality gap over all atoms certifies it."""
+    x = np.zeros(dictionary.k, complex)
     lp = lam / 2
     g = op.adjoint(b)
     score = np.abs(g)
@@ -321,7 +335,7 @@ def bpdn(
             Dw = real_part_columns(Dw)
             mode, x0 = "pairs", np.r_[x[work].real, x[work].imag]
         else:
-            mode, x0 = amplitudes, x[work]
+            mode, x0 = "complex", x[work]
         Gw = Dw.conj().T @ Dw
         cw = Dw.conj().T @ b
         xw, n_in = fista_gram(Gw, cw, bb, lam, mode, x0, tol / 10, max_inner, deadline)
@@ -330,7 +344,7 @@ def bpdn(
         x[work] = _unpair(xw, len(work)) if real_signal else xw
         r = b - op.forward(x)
         f = _objective(r, x, lam)
-        gap = _gap(op, b, r, x, lam, amplitudes)
+        gap = _gap(op, b, r, x, lam, "complex")
         if gap <= tol * max(f, 1e-300):
             status = "optimal"
             break
@@ -346,7 +360,7 @@ def bpdn(
             inner += n_in
             x[work] = _unpair(xw, len(work)) if real_signal else xw
             r = b - op.forward(x)
-            gap = _gap(op, b, r, x, lam, amplitudes)
+            gap = _gap(op, b, r, x, lam, "complex")
             if gap <= tol * max(_objective(r, x, lam), 1e-300):
                 status = "optimal"
                 break

@@ -10,7 +10,7 @@ import warnings
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .atoms import Dictionary
 from .bpdn import ShiftOperator, _check, _resolve_lam
 from .metrics import Echoes

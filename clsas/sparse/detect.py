@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .atoms import Dictionary
 from .bpdn import MODES, ShiftOperator, _check
 from .noise import colour_factor, echo_threshold
-from .refined import _bounds, _mainlobe_s, _real_dof, _rss_floor, _VarPro
+from .refined import rss_floor
+from .varpro import VarPro, delay_bounds, mainlobe_s, real_dof
 
 __all__ = ["detect_echoes"]
 
@@ -82,77 +83,100 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
     if not isinstance(real_signal, (bool, np.bool_)):
         raise TypeError(f"real_signal must be True or False, got {real_signal!r}")
     real = bool(real_signal) and amplitudes == "complex"
-    lo, hi = _bounds(dictionary, bounds_s)
-    atom = dictionary.atom
-    t = echo_threshold(atom, hi - lo, amplitudes, false_alarm=false_alarm)
-    n_real = _real_dof(b, amplitudes, real)
-    vp = _VarPro(atom, b, amplitudes, real)  # the fits, CBP-Polar's (the real part where ``real``)
-    # the polish's joint fit of atoms and derivative atoms: unconstrained least squares
-    joint = _VarPro(atom, b, "complex" if amplitudes == "complex" else "real", real)
-    floor = _rss_floor(dictionary, lam, amplitudes) if lam > 0 else 1e-300
-    half = _mainlobe_s(atom)
-    step_max = 0.25 * half
+    lo, hi = delay_bounds(dictionary, bounds_s)
+    t = echo_threshold(dictionary.atom, hi - lo, amplitudes, false_alarm=false_alarm)
+    order = _Detector(dictionary, b, amplitudes, real, lam, (lo, hi), t, polish_steps)
+    fitted = order.fit(taus)
+    cur = order.score(fitted[2], len(fitted[0]))
+    *fitted, cur, n_drop = order.drop(*fitted, cur)
+    *fitted, cur, added = order.add(*fitted, cur, max_echoes)
+    taus, a, rss = fitted
+    # noise coloured into the atoms' band, read from what the model leaves (CBP-Polar's rule)
+    kappa = colour_factor(dictionary, b, dictionary.atom.matrix(taus), rss, order.n_real, amplitudes)
+    order.n_dof = kappa * order.n_real
+    cur = order.score(rss, len(taus))
+    if added or kappa < 1:
+        taus, a, rss, cur, more = order.drop(taus, a, rss, cur)
+        n_drop += more
+    return taus, a, {"order_threshold": t, "dropped": n_drop, "added": added, "rss": rss, "colour_factor": kappa}
 
-    def polish(ts):
-        for _ in range(polish_steps):
+
+class _Detector:
+    """The fits and stages of :func:`detect_echoes` on one profile ``b``: a fit polishes the
+    delays (Gauss-Newton) and refits the amplitudes, returning ``(taus, amplitudes, rss)``; the
+    score is the order test's; :meth:`drop` and :meth:`add` lower it one echo at a time."""
+
+    def __init__(self, dictionary: Dictionary, b: np.ndarray, amplitudes: str, real: bool, lam: float,
+                 bounds: tuple[float, float], t: float, polish_steps: int):
+        atom = dictionary.atom
+        self.dictionary, self.atom, self.b, self.amplitudes = dictionary, atom, b, amplitudes
+        self.lo, self.hi = bounds
+        self.t, self.polish_steps = t, polish_steps
+        self.n_real = real_dof(b, amplitudes, real)
+        self.vp = VarPro(atom, b, amplitudes, real)  # the fits, CBP-Polar's (the real part where ``real``)
+        # the polish's joint fit of atoms and derivative atoms: unconstrained least squares
+        self.joint = VarPro(atom, b, "complex" if amplitudes == "complex" else "real", real)
+        self.floor = rss_floor(dictionary, lam, amplitudes) if lam > 0 else 1e-300
+        self.half = mainlobe_s(atom)
+        self.step_max = 0.25 * self.half
+        self.n_dof = float(self.n_real)  # less for coloured noise (colour_factor, set after the first fit)
+        self.op = ShiftOperator(dictionary)
+        self.in_bounds = (dictionary.taus >= self.lo) & (dictionary.taus <= self.hi)
+
+    def polish(self, ts: np.ndarray) -> np.ndarray:
+        atom = self.atom
+        for _ in range(self.polish_steps):
             A, D = atom.matrix(ts, fast=True), atom.dmatrix(ts, fast=True)
-            coef = joint._fit(np.hstack([A, D]))[0]
+            coef = self.joint.fit_columns(np.hstack([A, D]))[0]
             amp, dd = coef[: len(ts)], coef[len(ts):]
             step = np.zeros(len(ts))
             ok = np.abs(amp) > 0
             step[ok] = np.real(dd[ok] / amp[ok])
-            ts = np.sort(np.clip(ts + np.clip(step, -step_max, step_max), lo, hi))
+            ts = np.sort(np.clip(ts + np.clip(step, -self.step_max, self.step_max), self.lo, self.hi))
             if np.max(np.abs(step)) < 1e-4 / atom.fs:
                 break
         return ts
 
-    def fit(ts):
+    def fit(self, ts):
         if not len(ts):
-            return ts, np.zeros(0, complex if amplitudes == "complex" else float), vp.rss(ts)
-        ts = polish(np.sort(ts))
-        a, r = vp._fit(atom.matrix(ts, fast=True))
+            return ts, np.zeros(0, complex if self.amplitudes == "complex" else float), self.vp.rss(ts)
+        ts = self.polish(np.sort(ts))
+        a, r = self.vp.fit_columns(self.atom.matrix(ts, fast=True))
         return ts, a, float(np.vdot(r, r).real)
 
-    n_dof = float(n_real)  # less for coloured noise (colour_factor, set after the first fit)
+    def score(self, rss: float, k: int) -> float:
+        return self.n_dof * np.log(max(rss, self.floor) / self.n_real) + self.t * k
 
-    def score(rss, k):
-        return n_dof * np.log(max(rss, floor) / n_real) + t * k
-
-    def drop(ts, a, rss, cur):
+    def drop(self, ts, a, rss, cur):
+        """Drop the echo whose removal lowers the score most, while one does; returns the fit,
+        its score and the number dropped."""
         dropped = 0
         while len(ts):
-            best = min((fit(np.delete(ts, j)) for j in range(len(ts))), key=lambda f: score(f[2], len(f[0])))
-            s = score(best[2], len(best[0]))
+            best = min((self.fit(np.delete(ts, j)) for j in range(len(ts))),
+                       key=lambda f: self.score(f[2], len(f[0])))
+            s = self.score(best[2], len(best[0]))
             if s >= cur - 1e-9:
                 break
             (ts, a, rss), cur, dropped = best, s, dropped + 1
         return ts, a, rss, cur, dropped
 
-    op = ShiftOperator(dictionary)
-    grid = dictionary.taus
-    in_bounds = (grid >= lo) & (grid <= hi)
-    taus, a, rss = fit(taus)
-    cur = score(rss, len(taus))
-    taus, a, rss, cur, n_drop = drop(taus, a, rss, cur)
-    added = 0
-    while len(taus) < max_echoes:
-        g = op.adjoint(b - atom.matrix(taus, fast=True) @ a if len(taus) else b)
-        c = g.real if amplitudes == "positive" else np.abs(g)
-        free = in_bounds.copy()
-        for tau in taus:
-            free &= np.abs(grid - tau) > half
-        if not free.any():
-            break
-        t2, a2, rss2 = fit(np.r_[taus, grid[int(np.argmax(np.where(free, c, -np.inf)))]])
-        s2 = score(rss2, len(t2))
-        if s2 >= cur - 1e-9:
-            break
-        taus, a, rss, cur, added = t2, a2, rss2, s2, added + 1
-    # noise coloured into the atoms' band, read from what the model leaves (CBP-Polar's rule)
-    kappa = colour_factor(dictionary, b, atom.matrix(taus), rss, n_real, amplitudes)
-    n_dof = kappa * n_real
-    cur = score(rss, len(taus))
-    if added or kappa < 1:
-        taus, a, rss, cur, more = drop(taus, a, rss, cur)
-        n_drop += more
-    return taus, a, {"order_threshold": t, "dropped": n_drop, "added": added, "rss": rss, "colour_factor": kappa}
+    def add(self, taus, a, rss, cur, max_echoes: int):
+        """Add an echo where the residual correlates most with an atom, away from every echo
+        kept, while that lowers the score, up to ``max_echoes``; returns the fit, its score and
+        the number added."""
+        grid, b = self.dictionary.taus, self.b
+        added = 0
+        while len(taus) < max_echoes:
+            g = self.op.adjoint(b - self.atom.matrix(taus, fast=True) @ a if len(taus) else b)
+            c = g.real if self.amplitudes == "positive" else np.abs(g)
+            free = self.in_bounds.copy()
+            for tau in taus:
+                free &= np.abs(grid - tau) > self.half
+            if not free.any():
+                break
+            t2, a2, rss2 = self.fit(np.r_[taus, grid[int(np.argmax(np.where(free, c, -np.inf)))]])
+            s2 = self.score(rss2, len(t2))
+            if s2 >= cur - 1e-9:
+                break
+            taus, a, rss, cur, added = t2, a2, rss2, s2, added + 1
+        return taus, a, rss, cur, added

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.optimize
 
-from .. import _validate as v
+from .. import validate as v
 
 __all__ = ["Echoes", "DelayError", "delay_error", "crb_delays"]
 

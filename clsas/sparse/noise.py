@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
 from .atoms import Dictionary, whole_atoms
 from .bpdn import MODES, ShiftOperator, _check, bpdn, lam_max
 

@@ -18,13 +18,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import _validate as v
+from .. import validate as v
+from ..registry import Registry
 from .atoms import Dictionary, default_max_echoes
 from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import Echoes
 from .noise import lam_noise, noise_lam
-from .refined import _mainlobe_s, cbp_polar_refined
+from .refined import cbp_polar_refined
+from .varpro import mainlobe_s
 
 __all__ = ["SPARSE_METHODS", "cap_echoes", "sparse_echoes", "succeeded", "superres"]
 
@@ -75,7 +77,7 @@ def _bpdn(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echoes=No
     info = {"lam": res.lam, "gap": res.gap, **res.info, "atoms": int(np.count_nonzero(res.x))}
     if group:
         if max_run is None:
-            max_run = max(1, int(np.ceil(2 * _mainlobe_s(dictionary.atom) / dictionary.delta)))
+            max_run = max(1, int(np.ceil(2 * mainlobe_s(dictionary.atom) / dictionary.delta)))
         taus, amps, weights = group_atoms(dictionary, res.x, rel_threshold=rel_threshold, max_run=max_run)
     else:
         mag = np.abs(res.x)
@@ -122,12 +124,13 @@ def _cbp_polar(dictionary: Dictionary, b, lam, lam_frac, amplitudes, *, max_echo
                              real_signal=real_signal, false_alarm=false_alarm)
 
 
-SPARSE_METHODS: dict[str, SparseMethod] = {
-    "bpdn": _bpdn,
-    "cbp-taylor": _cbp_taylor,
-    "cbp-polar": _cbp_polar,
-    "cbp-polar-socp": _cbp_polar_socp,
-}
+# name -> method(dictionary, b, lam, lam_frac, amplitudes, *, max_echoes, **options) -> Echoes; a new method
+# registers itself where it is defined: SPARSE_METHODS.register("name", function)
+SPARSE_METHODS: Registry[SparseMethod] = Registry("sparse method", "method")
+SPARSE_METHODS.register("bpdn", _bpdn)
+SPARSE_METHODS.register("cbp-taylor", _cbp_taylor)
+SPARSE_METHODS.register("cbp-polar", _cbp_polar)
+SPARSE_METHODS.register("cbp-polar-socp", _cbp_polar_socp)
 
 
 def _nothing(method: str, reason: str, t_start: float, info: dict) -> Echoes:

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
+from .dataset import Dataset
+from .geometry import VoxelGrid
 
 __all__ = ["path_bounds", "ReconstructionPlan", "plan_reconstruction"]
 
@@ -55,16 +55,17 @@ def path_bounds(
     return np.minimum(lower, best), max_path
 
 
-@dataclass
+@dataclass(frozen=True)
 class ReconstructionPlan:
-    """What a reconstruction computes and what it leaves out."""
+    """What a reconstruction computes and what it leaves out (immutable: the pipeline fills the
+    profile fields in with :func:`dataclasses.replace`)."""
 
     grid_shape: tuple[int, int, int]
     path_min_m: float
     path_max_m: float
     gate_s: tuple[float, float]
     lags_full: int
-    lags: int = 0  # filled in by reconstruct() from the profiles it computes
+    lags: int = 0  # from the profiles reconstruct() computes
     lag_step: int = 1  # recording samples per profile sample (the profiles' decimation)
     kernels: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
@@ -85,7 +86,7 @@ class ReconstructionPlan:
         return "\n".join(lines + self.notes)
 
 
-def plan_reconstruction(dataset: Dataset, grid: VoxelGrid, kernels: list[str]) -> ReconstructionPlan:
+def plan_reconstruction(dataset: Dataset, grid: VoxelGrid, kernels: list[str] = ()) -> ReconstructionPlan:
     """Range gate for ``grid``: exact min and max bistatic path over all voxels and stops."""
     b = grid.bounds()
     pmin, pmax = path_bounds(b[:, 0], b[:, 1], dataset.tx_positions, dataset.rx_positions)

@@ -17,7 +17,8 @@ class BackprojectPlan(Plan):
     a chunk stay in cache); the image accumulates on the device.
     """
 
-    kernel_name = "backproject"
+    KERNEL = "backproject"
+    SOURCES = ("common.cl", "backproject.cl")
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None):
         super().__init__(queue, vec)
@@ -84,7 +85,7 @@ class BackprojectPlan(Plan):
     def selftest(cls, queue, vec: int) -> float:
         """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, voxels in and out of the window,
         a different speed of sound for each measurement."""
-        from . import numpy as twin
+        from . import bp_numpy as twin
 
         grid, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
         got = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2)(prof, tau0, 1 / fs, 25e3, tx, rx, c)

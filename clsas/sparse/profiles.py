@@ -20,17 +20,18 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .. import _validate as v
-from ..compression import Profiles, center_frequency
+from .. import validate as v
 from ..dataset import Dataset
+from ..profiles import Profiles, center_frequency
 from ..signals import analytic
+from .registry import SPARSE_METHODS
 
 __all__ = ["SPARSE_OPTIONS", "superres_profiles"]
 
 log = logging.getLogger(__name__)
 
-SPARSE_METHODS = ("bpdn", "cbp-taylor", "cbp-polar")
 # the options reconstruct(..., sparse={...}) accepts
+_EMPTY_WINDOW = "empty window: the gate lies outside the recording"  # an Echoes' status
 SPARSE_OPTIONS = ("delta_s", "lam", "lam_frac", "render_width_s", "max_echoes", "guard_s", "method_options",
                   "absorption", "pulse")
 
@@ -46,7 +47,7 @@ def _failure_kind(exc: BaseException) -> str:
 
 def _one(method, x, atom, delta, tau0, n_atoms, gate_rel, lam, lam_frac, max_echoes, options):
     """Echoes of one recording (delays relative to its window), or a failure: (Echoes, kind)."""
-    from ..sparse import Dictionary, Echoes, sparse_echoes, succeeded
+    from . import Dictionary, Echoes, sparse_echoes, succeeded
 
     t_start = time.perf_counter()
     try:
@@ -75,8 +76,6 @@ def _check_options(method: str, method_options: dict | None) -> dict:
     """``method_options`` checked against the method's keyword arguments (a wrong name is the
     caller's error, raised once here, not a failure of every recording)."""
     import inspect
-
-    from ..sparse import SPARSE_METHODS
 
     options = dict(method_options or {})
     params = inspect.signature(SPARSE_METHODS[method]).parameters
@@ -122,22 +121,11 @@ def _summarise(method, echoes, n_meas, t_total):
                     "kept", method, "/".join(str(c) for c in caps), len(capped), n_meas)
 
 
-def superres_profiles(
-    dataset: Dataset,
-    gates_s: np.ndarray,
-    method: str = "cbp-polar",
-    *,
-    delta_s: float | None = None,
-    lam: float | None = None,
-    lam_frac: float | None = None,
-    render_width_s: float | None = None,
-    max_echoes: int | None = None,
-    guard_s: float | None = None,
-    method_options: dict | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    absorption: bool = False,
-    pulse=None,
-) -> tuple[Profiles, list]:
+def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-polar", *, delta_s: float | None = None,
+                      lam: float | None = None, lam_frac: float | None = None, render_width_s: float | None = None,
+                      max_echoes: int | None = None, guard_s: float | None = None, method_options: dict | None = None,
+                      progress: Callable[[int, int], None] | None = None, absorption: bool = False,
+                      pulse=None) -> tuple[Profiles, list]:
     """Super-resolve every recording of ``dataset`` within its delay gate.
 
     Parameters
@@ -188,21 +176,35 @@ def superres_profiles(
         inside its gate). A recording the method failed on has ``fallback=True``, its
         reason in ``status``, no echoes, and its matched-filter profile in the rows.
     """
-    from ..physics import speed_of_sound
-    from ..sparse import Atom, Echoes, absorbed_pulse
-
-    v.choice("method", method, SPARSE_METHODS)
+    SPARSE_METHODS.check(method)
     fs = dataset.fs_hz
     wave = dataset.waveform  # the profiles' centre frequency and render width
-    heard = wave  # the atom's waveform
-    if pulse is not None:
-        heard = v.array("pulse", pulse, ndim=1)
-        if not np.any(heard):
-            raise ValueError("pulse (the atom's waveform) is all zeros")
-        if len(heard) > dataset.n_samples:
-            raise ValueError(f"pulse has {len(heard)} samples, more than the recordings' {dataset.n_samples}")
-    n = dataset.n_meas
-    gates = v.array("gates_s", gates_s, shape=(n, 2))
+    heard = _atom_waveform(dataset, pulse)  # the atom's waveform
+    gates, delta, guard, max_echoes, options = _checked(dataset, gates_s, heard, method, delta_s, guard_s,
+                                                        max_echoes, lam, lam_frac, method_options)
+    fc = center_frequency(wave, fs)
+    width = v.positive("render_width_s", _render_width(wave, fs) if render_width_s is None else render_width_s)
+    # the common delay grid of the rendered profiles: every gate, and room for a pulse's tails
+    dtau = width / 4
+    lo, hi = float(gates[:, 0].min()) - 4 * width, float(gates[:, 1].max()) + 4 * width
+    grid = lo + dtau * np.arange(int(np.ceil((hi - lo) / dtau)) + 1)
+    job = _Recordings(dataset, gates, heard, method, delta, guard, lam, lam_frac, max_echoes, options, absorption,
+                      fc, grid)
+    t_start = time.perf_counter()
+    data, echoes = job.all(progress)
+    _summarise(method, echoes, dataset.n_meas, time.perf_counter() - t_start)
+    _render(data, echoes, grid, lo, dtau, width, fc)
+    prof = Profiles(data, np.full(dataset.n_meas, lo), dtau, fc, method, "numpy",
+                    tx_positions=dataset.tx_positions, rx_positions=dataset.rx_positions, c_mps=dataset.c_mps,
+                    timings_s={"superres": time.perf_counter() - t_start})
+    return prof, echoes
+
+
+def _checked(dataset: Dataset, gates_s, heard: np.ndarray, method: str, delta_s, guard_s, max_echoes, lam,
+             lam_frac, method_options):
+    """:func:`superres_profiles`'s arguments checked: (gates, delta, guard, max_echoes, options)."""
+    fs = dataset.fs_hz
+    gates = v.array("gates_s", gates_s, shape=(dataset.n_meas, 2))
     if np.any(gates[:, 1] < gates[:, 0]):
         raise ValueError("gates_s rows must be (min, max) with min <= max")
     delta = 1.0 / fs if delta_s is None else v.positive("delta_s", delta_s)
@@ -214,61 +216,34 @@ def superres_profiles(
     for name, value in (("lam", lam), ("lam_frac", lam_frac)):
         if value is not None:
             v.non_negative(name, value)
-    options = _check_options(method, method_options)
-    fc = center_frequency(wave, fs)
-    if render_width_s is None:
-        spec = np.abs(np.fft.rfft(wave, 8 * len(wave)))
-        f = np.fft.rfftfreq(8 * len(wave), 1 / fs)
-        band = f[spec >= 0.1 * spec.max()]
-        render_width_s = 0.05 / max(band.max() - band.min(), fs / len(wave))
-    width = v.positive("render_width_s", render_width_s)
-    t0 = np.zeros(n) if dataset.t0_s is None else np.broadcast_to(np.asarray(dataset.t0_s, float), (n,))
-    n_wave = len(heard)
-    air_t = np.broadcast_to(np.asarray(dataset.temperature_c, float), (n,))
-    air_h = np.broadcast_to(np.asarray(dataset.humidity_pct, float), (n,))
-    air_c = None if dataset.c_mps is None else np.broadcast_to(np.asarray(dataset.c_mps, float), (n,))
-    # the common delay grid of the rendered profiles: every gate, and room for a pulse's tails
-    dtau = width / 4
-    lo, hi = float(gates[:, 0].min()) - 4 * width, float(gates[:, 1].max()) + 4 * width
-    n_lags = int(np.ceil((hi - lo) / dtau)) + 1
-    grid = lo + dtau * np.arange(n_lags)
-    data = np.zeros((n, n_lags), np.complex128)
-    echoes = []
-    t_start = time.perf_counter()
-    for m in range(n):
-        # the samples that echoes from the gate can reach, and the delays (from that first sample)
-        s_lo = max(0, int(np.floor((gates[m, 0] - t0[m]) * fs)) - 2)
-        s_hi = min(dataset.n_samples, int(np.ceil((gates[m, 1] - t0[m]) * fs)) + n_wave + 2)
-        if s_hi - s_lo < 2:
-            echoes.append(Echoes([], [], method, "empty window: the gate lies outside the recording",
-                                 info={"gate_s": (float(gates[m, 0]), float(gates[m, 1]))}))
-            continue
-        x = analytic(np.asarray(dataset.signals[m, s_lo:s_hi], float))
-        path_m = None
-        if absorption:
-            temp, hum = float(air_t[m]), float(air_h[m])
-            c = speed_of_sound(temp) if air_c is None else float(air_c[m])
-            path_m = c * 0.5 * float(gates[m, 0] + gates[m, 1])
-            atom = Atom(absorbed_pulse(heard, fs, path_m, temperature_c=temp, humidity_pct=hum), fs, s_hi - s_lo,
-                        complex=True)
-        else:
-            atom = Atom(heard, fs, s_hi - s_lo, complex=True)
-        offset = t0[m] + s_lo / fs  # delay after the transmit start of the window's first sample
-        gate_rel = (gates[m, 0] - offset, gates[m, 1] - offset)
-        tau0 = gate_rel[0] - guard
-        n_atoms = max(2, int(np.ceil((gate_rel[1] + guard - tau0) / delta)) + 1)
-        e, failed = _one(method, x, atom, delta, tau0, n_atoms, gate_rel, lam, lam_frac, max_echoes, options)
-        if failed is not None:
-            data[m] = _matched_row(x, atom, fc, offset, gate_rel, grid)
-        e.delays_s = e.delays_s + offset  # after the transmit start
-        e.info["gate_s"] = (float(gates[m, 0]), float(gates[m, 1]))
-        if path_m is not None:
-            e.info["path_m"] = path_m
-        echoes.append(e)
-        if progress is not None:
-            progress(m + 1, n)
-    _summarise(method, echoes, n, time.perf_counter() - t_start)
-    # render: a Gaussian of sigma = width per echo
+    return gates, delta, guard, max_echoes, _check_options(method, method_options)
+
+
+def _atom_waveform(dataset: Dataset, pulse) -> np.ndarray:
+    """The atom's waveform: ``pulse`` (checked), else the dataset's transmit waveform."""
+    if pulse is None:
+        return dataset.waveform
+    heard = v.array("pulse", pulse, ndim=1)
+    if not np.any(heard):
+        raise ValueError("pulse (the atom's waveform) is all zeros")
+    if len(heard) > dataset.n_samples:
+        raise ValueError(f"pulse has {len(heard)} samples, more than the recordings' {dataset.n_samples}")
+    return heard
+
+
+def _render_width(wave: np.ndarray, fs: float) -> float:
+    """The default render width: 0.05 / B, B the waveform's -20 dB bandwidth, s."""
+    spec = np.abs(np.fft.rfft(wave, 8 * len(wave)))
+    f = np.fft.rfftfreq(8 * len(wave), 1 / fs)
+    band = f[spec >= 0.1 * spec.max()]
+    return 0.05 / max(band.max() - band.min(), fs / len(wave))
+
+
+def _render(data: np.ndarray, echoes: list, grid: np.ndarray, lo: float, dtau: float, width: float,
+            fc: float) -> None:
+    """Add each echo to its row of ``data`` as a Gaussian of sigma ``width`` (s) and peak ``|a|``,
+    at baseband (``fc``, Hz) on the delay ``grid = lo + dtau * arange`` (s)."""
+    n_lags = len(grid)
     reach = int(np.ceil(5 * width / dtau))
     for m, e in enumerate(echoes):
         for tau, a in zip(e.delays_s, e.amplitudes, strict=True):
@@ -276,7 +251,77 @@ def superres_profiles(
             ks = np.arange(max(0, k0 - reach), min(n_lags, k0 + reach + 1))
             g = np.exp(-0.5 * ((grid[ks] - tau) / width) ** 2)
             data[m, ks] += a * np.exp(-2j * np.pi * fc * tau) * g
-    prof = Profiles(data, np.full(n, lo), dtau, fc, method, "numpy",
-                    tx_positions=dataset.tx_positions, rx_positions=dataset.rx_positions, c_mps=dataset.c_mps,
-                    timings_s={"superres": time.perf_counter() - t_start})
-    return prof, echoes
+
+
+class _Recordings:
+    """The per-recording step of :func:`superres_profiles`: each recording's window, atom,
+    dictionary span and echoes (:meth:`echoes`), all of them in turn (:meth:`all`)."""
+
+    def __init__(self, dataset: Dataset, gates: np.ndarray, heard: np.ndarray, method: str, delta: float,
+                 guard: float, lam, lam_frac, max_echoes, options: dict, absorption: bool, fc: float,
+                 grid: np.ndarray):
+        n = dataset.n_meas
+        self.dataset, self.gates, self.heard, self.method = dataset, gates, heard, method
+        self.delta, self.guard, self.lam, self.lam_frac = delta, guard, lam, lam_frac
+        self.max_echoes, self.options, self.absorption, self.fc, self.grid = max_echoes, options, absorption, fc, grid
+        self.t0 = np.zeros(n) if dataset.t0_s is None else np.broadcast_to(np.asarray(dataset.t0_s, float), (n,))
+        self.air_t = np.broadcast_to(np.asarray(dataset.temperature_c, float), (n,))
+        self.air_h = np.broadcast_to(np.asarray(dataset.humidity_pct, float), (n,))
+        self.air_c = None if dataset.c_mps is None else np.broadcast_to(np.asarray(dataset.c_mps, float), (n,))
+
+    def all(self, progress: Callable[[int, int], None] | None) -> tuple[np.ndarray, list]:
+        """(n_meas, n_lags) the matched-filter rows of the recordings the method failed on
+        (zero elsewhere), and every recording's Echoes. ``progress(done, n)`` after each
+        recording but those whose window is empty."""
+        n = self.dataset.n_meas
+        data = np.zeros((n, len(self.grid)), np.complex128)
+        echoes = []
+        for m in range(n):
+            e, row = self.echoes(m)
+            echoes.append(e)
+            if row is not None:
+                data[m] = row
+            if progress is not None and e.status != _EMPTY_WINDOW:
+                progress(m + 1, n)
+        return data, echoes
+
+    def _atom(self, m: int, n_window: int):
+        """The atom of recording ``m`` (absorbed over its gate's mean path where asked) and that path, m."""
+        from ..physics import speed_of_sound
+        from . import Atom, absorbed_pulse
+
+        fs = self.dataset.fs_hz
+        if not self.absorption:
+            return Atom(self.heard, fs, n_window, complex=True), None
+        temp, hum = float(self.air_t[m]), float(self.air_h[m])
+        c = speed_of_sound(temp) if self.air_c is None else float(self.air_c[m])
+        path_m = c * 0.5 * float(self.gates[m, 0] + self.gates[m, 1])
+        return Atom(absorbed_pulse(self.heard, fs, path_m, temperature_c=temp, humidity_pct=hum), fs, n_window,
+                    complex=True), path_m
+
+    def echoes(self, m: int):
+        """(Echoes of recording ``m``, delays after the transmit start; its matched-filter row
+        where the method failed, else None)."""
+        from . import Echoes
+
+        ds, gates, fs = self.dataset, self.gates, self.dataset.fs_hz
+        gate_s = (float(gates[m, 0]), float(gates[m, 1]))
+        # the samples that echoes from the gate can reach, and the delays (from that first sample)
+        s_lo = max(0, int(np.floor((gates[m, 0] - self.t0[m]) * fs)) - 2)
+        s_hi = min(ds.n_samples, int(np.ceil((gates[m, 1] - self.t0[m]) * fs)) + len(self.heard) + 2)
+        if s_hi - s_lo < 2:
+            return Echoes([], [], self.method, _EMPTY_WINDOW, info={"gate_s": gate_s}), None
+        x = analytic(np.asarray(ds.signals[m, s_lo:s_hi], float))
+        atom, path_m = self._atom(m, s_hi - s_lo)
+        offset = self.t0[m] + s_lo / fs  # delay after the transmit start of the window's first sample
+        gate_rel = (gates[m, 0] - offset, gates[m, 1] - offset)
+        tau0 = gate_rel[0] - self.guard
+        n_atoms = max(2, int(np.ceil((gate_rel[1] + self.guard - tau0) / self.delta)) + 1)
+        e, failed = _one(self.method, x, atom, self.delta, tau0, n_atoms, gate_rel, self.lam, self.lam_frac,
+                         self.max_echoes, self.options)
+        row = _matched_row(x, atom, self.fc, offset, gate_rel, self.grid) if failed is not None else None
+        e.delays_s = e.delays_s + offset  # after the transmit start
+        e.info["gate_s"] = gate_s
+        if path_m is not None:
+            e.info["path_m"] = path_m
+        return e, row

@@ -25,8 +25,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..dataset import _json_default
-from ..geometry import VoxelGrid
+from .dataset import json_default
+from .geometry import VoxelGrid
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -44,9 +44,10 @@ class Peak:
     magnitude: float
 
 
-@dataclass
+@dataclass(frozen=True)
 class Image:
-    """A reconstruction: complex ``values`` (nx, ny, nz) on ``grid``."""
+    """A reconstruction: complex ``values`` (nx, ny, nz) on ``grid``; immutable once built (derive a
+    changed copy with :func:`dataclasses.replace`)."""
 
     values: np.ndarray
     grid: VoxelGrid
@@ -106,13 +107,13 @@ class Image:
         -------
         matplotlib.figure.Figure
         """
-        from ..plots import plot_image
+        from .plots import plot_image
 
         return plot_image(self, path, **kwargs)
 
     def describe_provenance(self) -> dict:
         """What made this image: ``provenance`` plus method, formation, grid and device."""
-        from .. import __version__
+        from . import __version__
 
         prov = {
             "method": self.method,
@@ -129,7 +130,7 @@ class Image:
         return prov
 
     def save(self, path: str | Path) -> Path:
-        """Write the image to HDF5; see :mod:`clsas.imaging.image` for the layout.
+        """Write the image to HDF5; see :mod:`clsas.image` for the layout.
 
         Readable with plain h5py and with ``xarray.open_dataset(path, engine="h5netcdf")``, which
         gets the coordinates ``x_m``, ``y_m``, ``z_m`` (metres) from the HDF5 dimension scales.
@@ -155,13 +156,13 @@ class Image:
                 formation=str(prov.get("formation", "")), backend=self.backend, device=self.device,
                 clsas_version=str(prov["clsas_version"]),
                 spacing_m=np.array(self.grid.spacing()),
-                provenance_json=json.dumps(prov, default=_json_default),
+                provenance_json=json.dumps(prov, default=json_default),
             )
             for key in ("source_sha256", "source_path"):
                 if key in prov:
                     f.attrs[key] = str(prov[key])
             if "dataset_provenance" in prov:
-                f.attrs["dataset_provenance_json"] = json.dumps(prov["dataset_provenance"], default=_json_default)
+                f.attrs["dataset_provenance_json"] = json.dumps(prov["dataset_provenance"], default=json_default)
             for k, val in self.timings_s.items():
                 f.attrs[f"time_{k}_s"] = val
         return path

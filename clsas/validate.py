@@ -1,4 +1,4 @@
-"""Input checks shared by the public functions: every error names the parameter."""
+"""Input checks shared by the public functions across the packages: every error names the parameter."""
 
 from __future__ import annotations
 

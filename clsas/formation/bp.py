@@ -1,0 +1,155 @@
+"""Backprojection: the NumPy twin (``bp_numpy.py``) and the OpenCL plan (``bp_opencl.py``) behind one
+dispatcher, and the ``"bp"`` formation (exact, the reference every other formation is measured against)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from .. import cl as _cl
+from .. import validate as v
+from ..geometry import VoxelGrid
+from ..image import Image
+from ..profiles import Profiles
+from . import bp_numpy as twin
+from .bp_opencl import BackprojectPlan
+from .guard import check_grid
+from .registry import FORMATIONS
+
+__all__ = ["Backprojector", "backproject", "form"]
+
+log = logging.getLogger(__name__)
+
+
+class Backprojector:
+    """Backprojection onto one grid: built once, called many times.
+
+    The OpenCL plan (kernel variant chosen and verified, buffers allocated) is made on the
+    first call and kept while the profiles keep their number of measurements and do not grow
+    longer; :func:`backproject` is one call of a fresh Backprojector.
+
+    Parameters
+    ----------
+    grid : VoxelGrid
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
+        Default ``$CLSAS_BACKEND``, else ``"auto"``. With ``"auto"``, a device that cannot
+        build the kernel (:class:`clsas.cl.BuildError`) falls back to the NumPy twin with one
+        warning naming the device and the reason; ``"opencl"`` raises instead. A Selection
+        resolved by the caller (:func:`clsas.cl.select`) keeps its request.
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one); None with a
+        Selection.
+    chunk : int, optional
+        Measurements per kernel launch.
+    force : bool
+        Go on even if the grid does not seem to fit in memory (otherwise a ``ValueError``
+        gives the numbers and a spacing that fits; see :func:`clsas.formation.guard.check_grid`).
+    """
+
+    def __init__(self, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
+                 chunk: int | None = None, force: bool = False):
+        if not isinstance(grid, VoxelGrid):
+            raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+        if chunk is not None:
+            chunk = v.positive_int("chunk", chunk)
+        self.grid = grid
+        self.chunk = chunk
+        self.selection = _cl.select(backend, device)
+        check_grid(grid, self.selection.kind, self.selection.cl_device, force=force)
+        self._plan = None
+
+    @property
+    def backend(self) -> str:
+        """``"opencl"`` or ``"numpy"``: where the next call runs."""
+        return self.selection.kind
+
+    def _opencl_plan(self, n_meas: int, n_lags: int):
+        p = self._plan
+        if p is None or p.n_meas != n_meas or p.n_lags < n_lags:
+            self._plan, self.selection = self.selection.plan(
+                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk))
+        return self._plan
+
+    def __call__(
+        self,
+        profiles: Profiles,
+        *,
+        tx_positions: np.ndarray | None = None,
+        rx_positions: np.ndarray | None = None,
+        c_mps: float | np.ndarray | None = None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> Image:
+        """Backproject ``profiles`` (see :func:`backproject` for the arguments)."""
+        if not isinstance(profiles, Profiles):
+            raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
+        n = profiles.n_meas
+        tx = v.array("tx_positions", profiles.tx_positions if tx_positions is None else tx_positions, shape=(n, 3))
+        rx = v.array("rx_positions", profiles.rx_positions if rx_positions is None else rx_positions, shape=(n, 3))
+        c = v.speeds("c_mps", profiles.c_mps if c_mps is None else c_mps, n)
+        data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
+        tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
+        dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
+        fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
+        t_start = time.perf_counter()
+        timings = {}
+        plan = self._opencl_plan(n, data.shape[1]) if self.selection.opencl else None
+        if plan is not None:
+            values = plan(data, tau0, dtau, fc, tx, rx, c, progress)
+            timings["backproject_kernel"] = plan.last_kernel_s
+        else:
+            values = twin.backproject(data.astype(np.complex128), tau0, dtau, fc, tx, rx, c, self.grid.points(),
+                                      progress)
+        timings["backproject"] = time.perf_counter() - t_start
+        sel = self.selection
+        return Image(values.reshape(self.grid.shape), self.grid, "bp", sel.kind, sel.device, timings)
+
+
+def backproject(
+    profiles: Profiles,
+    grid: VoxelGrid,
+    *,
+    tx_positions: np.ndarray | None = None,
+    rx_positions: np.ndarray | None = None,
+    c_mps: float | np.ndarray | None = None,
+    backend: str | _cl.Selection | None = None,
+    device: Any = None,
+    chunk: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> Image:
+    """Bistatic delay-and-sum of complex baseband profiles onto ``grid``.
+
+    For each voxel and measurement the profile is linearly interpolated at the bistatic
+    delay ``(|v - tx| + |v - rx|) / c`` and the carrier phase restored; samples outside the
+    profile window contribute nothing. Positions and ``c`` default to those the profiles
+    carry (from a Dataset); ``c_mps`` may be an (n_meas,) array, one speed of sound per
+    measurement (air that changes during a scan). To image many profile sets onto one grid, build a
+    :class:`Backprojector` once and call it.
+
+    Parameters
+    ----------
+    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
+        Default ``$CLSAS_BACKEND``, else ``"auto"`` (see :class:`Backprojector`).
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+
+    Returns
+    -------
+    Image
+        complex64 values (OpenCL) or complex128 (NumPy), shape ``grid.shape``.
+    """
+    if not isinstance(profiles, Profiles):
+        raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
+    bp = Backprojector(grid, backend=backend, device=device, chunk=chunk)
+    return bp(profiles, tx_positions=tx_positions, rx_positions=rx_positions, c_mps=c_mps, progress=progress)
+
+
+@FORMATIONS.register("bp")
+def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
+         progress: Callable[[int, int], None] | None = None, force: bool = False, **options) -> Image:
+    """The ``"bp"`` formation: :class:`Backprojector` (it takes no options)."""
+    if options:
+        raise ValueError(f"formation_options: formation 'bp' takes none, got {sorted(options)}")
+    return Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
