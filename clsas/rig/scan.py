@@ -124,6 +124,13 @@ def run_stops(config: RigConfig, stage: GrblStage, recorder: Recorder, store: Sc
     return retried
 
 
+def _restart_if_empty(out: Path) -> None:
+    """A scan file that stopped before its first stop is started again (nothing in it to keep)."""
+    if out.exists() and holds_no_stop(out):
+        log.info("%s holds no stop yet: starting it again", out)
+        out.unlink()
+
+
 def acquire(
     config: RigConfig,
     out: str | Path,
@@ -175,9 +182,7 @@ def acquire(
     _check_config(config)
     out = Path(out)
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
-    if out.exists() and holds_no_stop(out):  # a scan that stopped before its first stop: start it again
-        log.info("%s holds no stop yet: starting it again", out)
-        out.unlink()
+    _restart_if_empty(out)
     sim_stage, sim_audio = _checked_request(config, out, resume, simulate, faults, stage)
     resuming = resume and out.exists()
     air = _stored_air(out) if resuming else config.read_air()
