@@ -79,8 +79,8 @@ def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(uno, tmp_
     assert main(["acquire", "--sample-config"]) == 0
     text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{uno.port}"')
     # a small, fast grid near the sample's origin (positions, not speed, are what is checked)
-    small = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 1.0", "width_m = 0.06")
-             .replace("height_m = 1.0", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
+    small = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 0.96", "width_m = 0.06")
+             .replace("height_m = 0.96", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
              .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
     assert small.count("\n") == text.count("\n") and small != text
     conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
@@ -166,11 +166,10 @@ def test_sample_config_scans_a_stock_board_after_the_readme_edits(grbl_exe, tmp_
         g.raw(*README_EDITS)
         assert main(["acquire", "--sample-config"]) == 0
         text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{g.port}"')
-        # two stops 800 mm apart, as far out as the sample's aperture reaches (its edge stops at x = 0 would
-        # sit on the home switch); feed_mm_min, the work area and the origin are the sample's
+        # two stops 960 mm apart, the sample's own x extremes (20 mm inside the travel, off the switches);
+        # feed_mm_min, the work area and the origin are the sample's
         small = (text.replace("nx = 18", "nx = 2").replace("ny = 12", "ny = 1")
-                 .replace("width_m = 1.0", "width_m = 0.8").replace("settle_s = 0.5", "settle_s = 0")
-                 .replace("repeats = 4", "repeats = 1"))
+                 .replace("settle_s = 0.5", "settle_s = 0").replace("repeats = 4", "repeats = 1"))
         assert "feed_mm_min = 3000" in small and small != text
         conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
         conf.write_text(small)

@@ -50,8 +50,10 @@ settle_s = 0.5                 # wait after each move before the chirp (vibratio
 [aperture]
 nx = 18                        # stops along x
 ny = 12                        # stops along y
-width_m = 1.0                  # first to last stop along x
-height_m = 1.0
+width_m = 0.96                 # first to last stop along x (20 mm inside the
+                               # 1 m travel at each end: a stop on machine 0 would press a
+                               # limit switch with hard limits on)
+height_m = 0.96
 pattern = "serpentine"         # or "raster"
 tx_offset_m = [-0.02, 0.0, 0.0]      # speaker, relative to the carriage
 rx_offset_m = [[0.02, 0.0, 0.0]]     # one offset per microphone
