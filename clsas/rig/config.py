@@ -30,8 +30,9 @@ port = "/dev/ttyUSB0"          # any pyserial URL: COM3, socket://host:2000, ...
 baudrate = 115200
 feed_mm_min = 3000             # G1 feed rate between stops; GRBL caps each axis at $110/$111
                                # (500 mm/min on a stock board), and clsas plans each move at that rate
-work_area_mm = [[-1000, 0], [-1000, 0]]   # machine coordinates a move may reach: after $H, GRBL's
-                               # machine space is [-travel, 0] ($130/$131) with soft limits on
+work_area_mm = [[-1000, -10], [-1000, -10]]   # machine coordinates a move may reach: after $H, GRBL's
+                               # machine space is [-travel, 0] ($130/$131) with soft limits on; the
+                               # upper ends 10 mm off machine 0, where the home switches are
 reset_on_open = true           # an Arduino Uno/Nano reboots when its port opens (false: a board without
                                # auto-reset, which gets a soft reset instead)
 # timeout_s = 5                # for the answer ('ok') to one line
