@@ -37,7 +37,17 @@ _LAZY = {"superres": "clsas.sparse", "delay_error": "clsas.sparse", "coherence":
 __all__ += sorted(_LAZY)
 
 
+# subpackages reached as attributes after a plain `import clsas` (clsas.synthetic.turntable_scan(),
+# clsas.io.import_folder), imported on first use
+_SUBMODULES = ("bench", "cl", "config", "export", "formation", "io", "plots", "rig", "scan_errors", "scenes", "sparse",
+               "synthetic")
+
+
 def __getattr__(name: str):
+    if name in _SUBMODULES:
+        import importlib
+
+        return importlib.import_module(f"clsas.{name}")
     if name in _LAZY:
         import importlib
 

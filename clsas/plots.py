@@ -116,7 +116,7 @@ def plot_image(
     else:
         _line(fig, db, axes_m, long, dr)
     if title:
-        fig.suptitle(title, fontsize=10)
+        fig.suptitle(_wrapped(title, fig, 10), fontsize=10)
     if path is not None:
         path = Path(path)
         fig.savefig(path, dpi=dpi)
@@ -212,6 +212,14 @@ def _new_figure(path) -> Figure:
     return Figure(layout="constrained")
 
 
+def _wrapped(title: str, fig: Figure, fontsize: float) -> str:
+    """``title`` broken into lines that fit the figure's width (a long one was clipped at its edges)."""
+    import textwrap
+
+    per_line = max(20, int(fig.get_figwidth() * 72 / (0.6 * fontsize)))
+    return "\n".join(textwrap.wrap(title, per_line, break_long_words=False, break_on_hyphens=False)) or title
+
+
 def _default_title(image: Image) -> str:
     formation = image.provenance.get("formation", "bp")
     sp = [f"{_NAMES[i]} {s * 1e3:.3g}" for i, (s, a) in
@@ -277,8 +285,8 @@ class _Marks:
                 keep &= np.abs(pts[:, fixed[0]] - fixed[1]) <= tol_m
             if keep.any():
                 ax.plot(pts[keep, i], pts[keep, j], ls="none", label=label, **style)
-            elif label.startswith("hidden"):
-                ax.plot([], [], ls="none", label=f"{label}: outside the grid", **style)
+            elif label.startswith("hidden"):  # said in the legend, with no marker: none is drawn
+                ax.plot([], [], ls="none", marker="", label=f"{label}: outside the grid, not drawn")
         if self.aperture is not None and len(self.aperture):
             ap = self.aperture
             if fixed is None or tol_m is None or bool(np.any(np.abs(ap[:, fixed[0]] - fixed[1]) <= tol_m)):

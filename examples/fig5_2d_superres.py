@@ -119,11 +119,13 @@ def _plot(ds, grid, res, refl, path):
     a.legend(fontsize=7)
     ext = [grid.x_m[0], grid.x_m[-1], grid.z_m[0], grid.z_m[-1]]
     for ax, (m, (img, _)) in zip(axes[1:], res.items(), strict=True):
-        ax.imshow(img.db(-30)[:, 0, :].T, origin="lower", extent=ext, aspect="auto", cmap="magma", vmin=-30)
+        shown = ax.imshow(img.db(-30)[:, 0, :].T, origin="lower", extent=ext, aspect="auto", cmap="magma",
+                          vmin=-30, vmax=0)
         ax.plot(refl[:, 0], refl[:, 2], "c+", ms=8)
         ax.set_title(m)
         ax.set_xlabel("x (m)")
     fig.tight_layout()
+    fig.colorbar(shown, ax=list(axes[1:]), shrink=0.85, label="dB re each image's peak")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

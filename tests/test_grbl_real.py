@@ -79,8 +79,8 @@ def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(uno, tmp_
     assert main(["acquire", "--sample-config"]) == 0
     text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{uno.port}"')
     # a small, fast grid near the sample's origin (positions, not speed, are what is checked)
-    small = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 1.0", "width_m = 0.06")
-             .replace("height_m = 1.0", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
+    small = (text.replace("nx = 18", "nx = 3").replace("ny = 12", "ny = 2").replace("width_m = 0.96", "width_m = 0.06")
+             .replace("height_m = 0.96", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
              .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
     assert small.count("\n") == text.count("\n") and small != text
     conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
@@ -145,3 +145,40 @@ def test_hard_limit_alarm_then_jogging_off_retrips_unless_hard_limits_are_off(gr
         with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 "):
             st.wait_idle(10.0)
         assert st.home().position_mm[:2] == pytest.approx((-1.0, -1.0), abs=STEP_MM)
+
+
+# GRBL 1.1h's factory settings ($110 = $111 = 500 mm/min, $120 = $121 = 10 mm/s^2, $25 = 500 mm/min,
+# homing and limits off, 200 mm travel) with the edits the README's "GRBL settings" table asks for
+README_EDITS = ["$22=1", "$20=1", "$21=1", "$130=1000", "$131=1000"]  # $20 after $22 (else error:10)
+
+
+@pytest.mark.slow
+def test_sample_config_scans_a_stock_board_after_the_readme_edits(grbl_exe, tmp_path, capsys):
+    """Issue 29: the sample's feed_mm_min = 3000 on a stock board, which moves at $110 = 500 mm/min.
+    The moves below take about 108 s and 96 s; a timeout from the feed alone (95 s) stopped the
+    scan at its first stop, and every resume the same way. About 4 minutes."""
+    from clsas.cli import main
+
+    g = RealGrbl(grbl_exe, tmp_path, reset_on_open=True)
+    try:
+        settings = g.raw("$$")
+        assert "$110=500.000" in settings and "$120=10.000" in settings and "$22=0" in settings  # factory
+        g.raw(*README_EDITS)
+        assert main(["acquire", "--sample-config"]) == 0
+        text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{g.port}"')
+        # two stops 960 mm apart, the sample's own x extremes (20 mm inside the travel, off the switches);
+        # feed_mm_min, the work area and the origin are the sample's
+        small = (text.replace("nx = 18", "nx = 2").replace("ny = 12", "ny = 1")
+                 .replace("settle_s = 0.5", "settle_s = 0").replace("repeats = 4", "repeats = 1"))
+        assert "feed_mm_min = 3000" in small and small != text
+        conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
+        conf.write_text(small)
+        assert main(["acquire", str(conf), str(out), "--simulate", "audio", "-q"]) == 0
+        assert "2 of 2 stops (2 this run" in capsys.readouterr().out
+        cfg = rig.load_rig_config(conf)
+        with h5py.File(out, "r") as f:
+            stage_m = f["stage_positions"][()]
+        targets = np.array([cfg.carriage_m(cfg.stage_target_mm(i)) for i in range(cfg.n_stops)])
+        np.testing.assert_allclose(stage_m[:, :2], targets[:, :2], atol=STEP_MM / 1000)
+    finally:
+        g.stop()

@@ -161,7 +161,7 @@ def test_timeouts_default_from_grbl_settings():
     with GrblEmulator(time_scale=0.01) as emu, GrblStage(emu.port, feed_mm_min=6000) as st:
         # $25=500 mm/min seek over 1.5 x 1000 mm, twice, plus 30 s
         assert st.home_timeout() == pytest.approx(2 * 1.5 * 1000 / 500 * 60 + 30)
-        assert st.move_timeout(1000.0) == pytest.approx(3 * 1000 / 6000 * 60 + 10)
+        assert st.move_timeout((0, 0), (-1000, 0)) == pytest.approx(3 * st.move_time((0, 0), (-1000, 0)) + 10)
     assert GrblStage("unused", home_timeout_s=7, move_timeout_s=3).home_timeout() == 7
 
 
@@ -326,7 +326,9 @@ def test_rig_config_errors_name_the_key(old, new, match):
 def test_sample_config_parses():
     cfg = rig.parse_rig_config(rig.SAMPLE_RIG_TOML)
     assert cfg.n_stops == 18 * 12 and cfg.n_mics == 1 and cfg.fs_hz == 96000
-    assert cfg.stage_target_mm(0) == (-1000.0, -1000.0) and cfg.stage_target_mm(17) == (0.0, -1000.0)
+    # 20 mm inside the 1 m travel at each end: no stop on machine 0, where the home switches are
+    assert cfg.stage_target_mm(0) == pytest.approx((-980.0, -980.0))
+    assert cfg.stage_target_mm(17) == pytest.approx((-20.0, -980.0))
     assert cfg.stage["reset_on_open"] is True and cfg.home and cfg.settle_s == 0.5
 
 
@@ -342,7 +344,7 @@ def test_config_sections_are_the_constructors_arguments():
     assert set(cfg.audio) == _parameters(rig.SoundDeviceIO.__init__)
     assert set(cfg.recorder) == _parameters(rig.Recorder.__init__, skip=("io", "waveform", "fs_hz", "n_samples"))
     st = rig.scan.stage_for(cfg)
-    assert st.port == "/dev/ttyUSB0" and st.reset_on_open is True and st.work_area_mm.tolist() == [[-1000, 0]] * 2
+    assert st.port == "/dev/ttyUSB0" and st.reset_on_open is True and st.work_area_mm.tolist() == [[-1000, -10]] * 2
     rec = rig.scan.recorder_for(cfg, rig.SimulatedIO(cfg.scene(), cfg.fs_hz))
     assert rec.n_samples == cfg.n_samples == 1920 and rec.repeats == 4
 

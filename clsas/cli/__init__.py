@@ -33,8 +33,10 @@ from . import (
     reconstruct,
     simulate,
 )
+from .common import check_device_request, check_input_files, check_method_dependencies
 
-__all__ = ["COMMANDS", "PLUGIN_GROUP", "build_parser", "load_plugins", "main"]
+__all__ = ["COMMANDS", "EXIT_BAD_INPUT", "EXIT_FAILURE", "EXIT_OK", "EXIT_RESUMABLE", "PLUGIN_GROUP", "build_parser",
+           "load_plugins", "main"]
 
 log = logging.getLogger("clsas.cli")
 
@@ -44,6 +46,31 @@ PLUGIN_GROUP = "clsas.plugins"
 # the subcommands in the order ``clsas --help`` lists them
 COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare, devices, acquire, importing,
             inspecting, export, bench)
+
+
+#: the exit codes of every command (README: "Exit codes")
+EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_RESUMABLE = 0, 1, 2, 3
+#: what the user can fix in the command line, the files or the settings: exit 2
+BAD_INPUT = (ValueError, TypeError, FileNotFoundError, FileExistsError, IsADirectoryError)
+#: what every command takes, before or after its name
+_COMMON = ("quiet", "verbose", "debug")
+
+
+class _Once(logging.Filter):
+    """Pass each distinct warning once per process (info and debug lines always)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: set[tuple[str, str]] = set()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING:
+            return True
+        key = (record.name, record.getMessage())
+        if key in self.seen:
+            return False
+        self.seen.add(key)
+        return True
 
 
 def load_plugins() -> list[str]:
@@ -62,30 +89,54 @@ def load_plugins() -> list[str]:
 
 def build_parser() -> argparse.ArgumentParser:
     load_plugins()
-    p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging")
+    p = argparse.ArgumentParser(prog="clsas", description="In-air synthetic-aperture audio imaging",
+                                epilog="exit status: 0 done, 1 failed, 2 bad input (the message says what to fix), "
+                                "3 scan interrupted (resume it with --resume)")
     p.add_argument("--debug", action="store_true", help="show tracebacks")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    p.add_argument("-v", "--verbose", action="store_true", help="log what is computed")
     sub = p.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_parser(sub)
-    for sp in sub.choices.values():  # what every command takes, before or after its name
+    for sp in sub.choices.values():
         opts = sp._option_string_actions
-        sp.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help="show tracebacks")
+        sp.add_argument("--debug", action="store_true", help="show tracebacks")
         if "-q" not in opts:
             sp.add_argument("-q", "--quiet", action="store_true", help="no progress output")
         if "-v" not in opts:
             sp.add_argument("-v", "--verbose", action="store_true", help="log what is computed")
+        for action in sp._actions:  # given before the command's name, a flag is not reset after it
+            if action.dest in _COMMON:
+                action.default = argparse.SUPPRESS
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns its exit status (0 done, 1 failed, 2 bad input, 3 scan interrupted)."""
     args = build_parser().parse_args(argv)
-    args.debug = getattr(args, "debug", False)
-    logging.basicConfig(level=logging.INFO if getattr(args, "verbose", False) else logging.WARNING,
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    if not getattr(args, "quiet", False):
+    # a warning repeated word for word (bench's FMCW) is said once per command (one filter per handler)
+    filters = [(handler, _Once()) for handler in logging.getLogger().handlers]
+    for handler, once in filters:
+        handler.addFilter(once)
+    try:
+        return _run(args)
+    finally:
+        for handler, once in filters:
+            handler.removeFilter(once)
+
+
+def _run(args) -> int:
+    from clsas.rig.grbl_link import StageRefused
+
+    if not args.quiet:
         # the first run on a machine checks each kernel variant in a child process: say so
         logging.getLogger("clsas.cl.variants").setLevel(logging.INFO)
     try:
+        check_input_files(args)  # every guard on the command line runs before any work
+        check_device_request(args)
+        check_method_dependencies(getattr(args, "method", None))
         return args.func(args)
     except KeyboardInterrupt:
         print("clsas: interrupted", file=sys.stderr)
@@ -94,4 +145,4 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         print(f"clsas {args.command}: error: {exc}".splitlines()[0], file=sys.stderr)
-        return 2 if isinstance(exc, ValueError | TypeError | FileNotFoundError) else 1
+        return EXIT_BAD_INPUT if isinstance(exc, (*BAD_INPUT, StageRefused)) else EXIT_FAILURE

@@ -33,14 +33,14 @@ def cmd_acquire(args) -> int:
         try:
             res = rig.acquire(cfg, args.out, resume=args.resume, simulate=args.simulate or False, faults=faults,
                               progress=progress, resume_hint=hint)
-        except rig.ScanInterrupted as exc:
-            bar.close()
-            print(f"clsas acquire: {exc}", file=sys.stderr)
-            return 130
-        except rig.ScanAborted as exc:
+        except rig.ScanAborted as exc:  # a fault or Ctrl-C: the file keeps its stops, --resume continues it
             bar.close()
             print(f"clsas acquire: {exc}", file=sys.stderr)
             return 3
+        except rig.StageRefused as exc:  # GRBL's settings refuse the rig file: nothing moved, nothing to resume
+            bar.close()
+            print(f"clsas acquire: error: {exc}", file=sys.stderr)
+            return 2
     print(f"wrote {res.path}: {res.stops_done} of {res.n_stops} stops ({res.stops_this_run} this run, "
           f"{res.retried_stops} retried) in {res.elapsed_s:.1f} s; image it with: clsas reconstruct {res.path}")
     return 0

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import add_device_options, grid_arg
+from .common import add_device_options, check_grids_fit, grid_arg
 
 
 def add_autofocus_options(sp) -> None:
@@ -49,13 +49,14 @@ def before_after_png(before, after, path, title: str) -> None:
         db = 20 * np.log10(np.maximum(np.abs(im.values) / peak, 1e-6))
         for row, (axis, (a, b), lab) in enumerate(((2, (g.x_m, g.y_m), "y (m)"), (1, (g.x_m, g.z_m), "z (m)"))):
             ax = axes[row][col]
-            ax.imshow(db.max(axis=axis).T, origin="lower", vmin=-40, vmax=0, cmap="inferno", aspect="auto",
-                      extent=(a[0], a[-1], b[0], b[-1]))
+            shown = ax.imshow(db.max(axis=axis).T, origin="lower", vmin=-40, vmax=0, cmap="inferno", aspect="auto",
+                              extent=(a[0], a[-1], b[0], b[-1]))
             ax.set_xlabel("x (m)")
             ax.set_ylabel(lab)
             ax.set_title(f"{name}: peak {20 * np.log10(np.abs(im.values).max() / peak):.1f} dB")
     fig.suptitle(title)
     fig.tight_layout()
+    fig.colorbar(shown, ax=axes.ravel().tolist(), shrink=0.8, label="dB re the common peak")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -67,6 +68,7 @@ def cmd_autofocus(args) -> int:
     ds = clsas.load(args.data)
     stored_grid, _ = stored_grid_and_truth(ds.config)
     grid = grid_arg(args.grid, args.spacing, stored_grid)
+    check_grids_fit([grid], args)  # before the minutes of focusing, not at the first image
     out, rep = run_autofocus(ds, grid, args)
     out.save(args.out)
     print(f"wrote {args.out}" + ("" if rep.improved else " (the input, unchanged: it did not get sharper)"))

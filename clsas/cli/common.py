@@ -4,19 +4,133 @@ and imaging a dataset with the command's flags."""
 from __future__ import annotations
 
 from contextlib import contextmanager
+from pathlib import Path
+
+#: the arguments that name an input HDF5 file (dataset or image), in any command
+H5_INPUTS = ("data", "a", "b", "image", "background")
+
+
+def check_input_files(args) -> None:
+    """Refuse an input HDF5 file that cannot be opened (truncated, corrupt, not HDF5), naming it,
+    before any work (a ``ValueError``: exit 2)."""
+    import h5py
+
+    for name in H5_INPUTS:
+        path = getattr(args, name, None)
+        if not isinstance(path, str) or not Path(path).is_file():
+            continue  # a missing file is the command's to report; an import's background is a folder
+        try:
+            with h5py.File(path, "r"):
+                pass
+        except OSError as exc:
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ValueError(f"{path} is not a readable HDF5 file ({why}): it may be truncated or corrupt; "
+                             "write it again (or restore a copy)") from None
+
+
+#: the methods the CLI offers instead of a slow one, fastest last (README: Super-resolution)
+FASTER = {"cbp-taylor": ("cbp-polar", "bpdn", "bp"), "cbp-polar-socp": ("cbp-polar", "bpdn", "bp"),
+          "cbp-polar": ("bpdn", "bp"), "bpdn": ("bp",)}
+#: a job estimated to take longer than this is announced with the faster alternatives
+SLOW_JOB_S = 60.0
 
 
 @contextmanager
-def progress_bar(desc: str, total: int, enabled: bool = True):
+def progress_bar(desc: str | tuple[str, ...], total: int, enabled: bool = True, announce=None):
+    """A progress bar (on stderr) named for the step it measures.
+
+    ``desc`` may name several steps that report through the same callback one after the other
+    (a sparse method super-resolves every recording, then backprojects): the bar takes the next
+    name when the count starts again. ``announce(step, elapsed_s, done, total)`` is called once
+    per step, after its first report, to warn of a long job.
+    """
+    import time
+
     from tqdm import tqdm
 
-    with tqdm(total=total, desc=desc, unit="stop", disable=not enabled, leave=False) as bar:
+    steps = (desc,) if isinstance(desc, str) else tuple(desc)
+    state = {"step": 0, "t0": time.perf_counter(), "announced": set()}
+    with tqdm(total=total, desc=steps[0], unit="stop", disable=not enabled, leave=False) as bar:
         def update(done: int, _total: int) -> None:
+            n, n_total = state.get("n", 0), state.get("total", total)
+            restarted = done < n or n >= n_total  # the step before finished: this is the next one
+            if restarted and state["step"] < len(steps) - 1:  # the next step reports through the same callback
+                state["step"] += 1
+                state["t0"] = time.perf_counter()
+                bar.set_description_str(steps[state["step"]])
+                bar.reset(total=_total)
             if bar.total != _total:  # a formation counts its own steps (ω-k: spatial-frequency columns)
                 bar.total = _total
             bar.update(done - bar.n)
+            state["n"], state["total"] = done, _total
+            step = state["step"]
+            if announce is not None and done > 0 and step not in state["announced"]:
+                state["announced"].add(step)
+                announce(steps[step], time.perf_counter() - state["t0"], done, _total)
 
         yield update
+
+
+def slow_job_notice(method: str):
+    """An ``announce`` for :func:`progress_bar`: after the first recording of a sparse method,
+    the estimated time of the whole job on stderr when it is over :data:`SLOW_JOB_S`, with the
+    faster methods."""
+    import sys
+
+    def announce(step: str, elapsed_s: float, done: int, total: int) -> None:
+        if not step.startswith("super-resolve") or done <= 0:
+            return
+        estimate = elapsed_s / done * total
+        if estimate > SLOW_JOB_S:
+            faster = ", ".join(f"--method {m}" for m in FASTER.get(method, ()))
+            print(f"\nnote: {method} took {elapsed_s:.1f} s for the first {done} of {total} recordings: about "
+                  f"{_duration(estimate)} for all of them (Ctrl-C stops it; faster: {faster})",
+                  file=sys.stderr, flush=True)
+
+    return announce
+
+
+#: CBP-Taylor's time per recording, s, at a number of atoms (about one per sample of the gate
+#: plus a pulse each side): about 350 s at the README scene's 1470 (issue 29, a 2-core CPU). The
+#: time grows more slowly than the cube of the size (the atoms are short, so the problem is
+#: sparse); an exponent of 1.5 is assumed, and the first recording's measured time corrects it
+CONVEX_S_PER_RECORDING = {"cbp-taylor": (350.0, 1470), "cbp-polar-socp": (350.0, 1470)}
+CONVEX_EXPONENT = 1.5
+
+
+def estimated_sparse_s(ds, grid, method: str) -> float | None:
+    """A rough time (s) for super-resolving every recording of ``ds`` on ``grid`` by a convex
+    (cvxpy) method, from the gates' lengths, before any solve; None for the other methods."""
+    import numpy as np
+
+    from clsas.rangegate import plan_reconstruction
+
+    if method not in CONVEX_S_PER_RECORDING:
+        return None
+    t_ref, k_ref = CONVEX_S_PER_RECORDING[method]
+    gates = plan_reconstruction(ds, grid, []).gates_s
+    k = (gates[:, 1] - gates[:, 0] + 2 * len(ds.waveform) / ds.fs_hz) * ds.fs_hz + 1  # atoms at one per sample
+    return float(np.sum(t_ref * (k / k_ref) ** CONVEX_EXPONENT))
+
+
+def announce_slow_method(ds, grid, method: str) -> None:
+    """Before any work: say when a convex method's rough estimate for the job is over a minute."""
+    import sys
+
+    est = estimated_sparse_s(ds, grid, method)
+    if est is not None and est > SLOW_JOB_S:
+        faster = ", ".join(f"--method {m}" for m in FASTER.get(method, ()))
+        print(f"note: {method} solves a convex program per recording: roughly {_duration(est)} for these "
+              f"{ds.n_meas} recordings on a 2-core CPU (the first recording's time will say more; Ctrl-C "
+              f"stops it; faster: {faster})", file=sys.stderr, flush=True)
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds // 3600:.0f} h {seconds % 3600 / 60:.0f} min"
 
 
 def grid_arg(text: str | None, spacing: float | None, fallback):
@@ -80,8 +194,12 @@ def reconstruct_image(ds, grid, args, progress=True):
 
     formation = getattr(args, "formation", "bp")
     options = formation_options(getattr(args, "formation_option", None)) or None
-    with progress_bar("backproject" if formation == "bp" else formation, ds.n_meas, progress) as cb:
-        return clsas.reconstruct(ds, grid, method=getattr(args, "method", "bp"),
+    method = getattr(args, "method", "bp")
+    form = "backproject" if formation == "bp" else f"form ({formation})"
+    steps = (form,) if method == "bp" else (f"super-resolve ({method})", form)
+    announce_slow_method(ds, grid, method)
+    with progress_bar(steps, ds.n_meas, progress, announce=slow_job_notice(method)) as cb:
+        return clsas.reconstruct(ds, grid, method=method,
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
                                  force=getattr(args, "force", False), formation=formation,
@@ -98,3 +216,79 @@ def add_device_options(sp) -> None:
                     help="OpenCL platform:device numbers from `clsas devices` (default: $PYOPENCL_CTX or the best)")
     sp.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     sp.add_argument("-v", "--verbose", action="store_true", help="log what is computed and skipped")
+
+
+#: the packages each super-resolution method imports (the ``sparse`` extra), checked before any work
+METHOD_NEEDS = {"cbp-taylor": ("cvxpy",), "cbp-polar": ("nlopt",), "cbp-polar-socp": ("cvxpy",)}
+
+
+def check_method_dependencies(method: str | None) -> None:
+    """Refuse a sparse method whose solver is not installed, naming the extra (ImportError: exit 1),
+    instead of every recording falling back to the matched filter."""
+    from importlib.util import find_spec
+
+    from clsas.validate import install_hint
+
+    missing = [m for m in METHOD_NEEDS.get(method or "", ()) if find_spec(m) is None]
+    if missing:
+        raise ImportError(f"--method {method} needs {' and '.join(missing)} (the sparse extra), which is not "
+                          f"installed: {install_hint('sparse')}; or image with --method bp (or bpdn, which needs "
+                          "neither)")
+
+
+def is_simulator(platform: str) -> bool:
+    """Whether an OpenCL platform is a simulator (Oclgrind: checks kernels, 100-1000x slower)."""
+    return "oclgrind" in platform.lower()
+
+
+def check_device_request(args) -> None:
+    """``--device P:D`` must name a device ``clsas devices`` lists (else a ValueError: exit 2), not
+    fall back to NumPy unasked; a simulator is used only with a note that says so."""
+    import os
+    import re
+    import sys
+
+    if getattr(args, "command", "") == "devices" or not hasattr(args, "backend"):
+        return
+    spec, what = getattr(args, "device", None), "--device"
+    if spec is None and os.environ.get("PYOPENCL_CTX", "").strip():
+        spec, what = os.environ["PYOPENCL_CTX"].strip(), "PYOPENCL_CTX"  # as explicit a request as --device
+    if spec is None:
+        return
+    if getattr(args, "backend", None) == "numpy":
+        if what == "PYOPENCL_CTX":
+            return  # the environment's choice does not bind a NumPy run
+        raise ValueError(f"--device {spec} picks an OpenCL device, but --backend numpy runs without one: "
+                         "give one of them")
+    m = re.fullmatch(r"\s*(\d*)(?::(\d*))?\s*", str(spec))
+    if m is None:
+        raise ValueError(f"{what} must be P:D, the platform and device numbers `clsas devices` lists "
+                         f"(e.g. 1:0), got {spec!r}")
+    index = f"{int(m.group(1) or 0)}:{int(m.group(2) or 0)}"
+    from clsas import cl
+
+    try:
+        rows = cl.list_devices()
+    except cl.OpenCLUnavailable:
+        rows = []
+    row = next((r for r in rows if r.index == index), None)
+    if row is None:
+        listed = ", ".join(f"{r.index} ({r.device.strip()})" for r in rows) or "none (no OpenCL platform)"
+        raise ValueError(f"{what}={spec}: no such OpenCL device; the devices are: {listed}. Leave it out "
+                         "to use the best one (or NumPy where there is none)")
+    if is_simulator(row.platform):
+        print(f"note: {what}={index} is {row.device.strip()}, a simulator for checking kernels, 100 to 1000 "
+              "times slower than a real device", file=sys.stderr)
+
+
+def check_grids_fit(grids, args) -> None:
+    """The memory guard for every grid a command will image, run before any of the work starts
+    (``clsas demo`` images two scenes; ``reconstruct --autofocus`` works for minutes first)."""
+    from clsas import cl
+    from clsas.formation.guard import check_grid
+
+    if getattr(args, "formation", "bp") != "bp":
+        return  # a formation checks its own memory (its tree or spectrum, not the grid alone)
+    sel = cl.select(getattr(args, "backend", None), getattr(args, "device", None))
+    for grid in grids:
+        check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=getattr(args, "force", False))

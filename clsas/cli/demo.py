@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import add_device_options, reconstruct_image, simulate_scene
+from .common import add_device_options, check_grids_fit, reconstruct_image, simulate_scene
 
 
 def cmd_demo(args) -> int:
@@ -15,12 +15,13 @@ def cmd_demo(args) -> int:
     from clsas.plots import mip_png
     from clsas.scenes import demo_configs, parse_config
 
+    configs = {name: parse_config(text) for name, text in demo_configs(args.spacing).items()}
+    check_grids_fit([cfg.grid for cfg in configs.values()], args)  # every scene, before the first one starts
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     print(clsas.resolution_limits(20e3, 30e3, 1.0, 1.0, 18, 12, range_m=1.5).report())
     print()
-    for name, text in demo_configs(args.spacing).items():
-        cfg = parse_config(text)
+    for name, cfg in configs.items():
         t = time.perf_counter()
         ds = simulate_scene(cfg, not args.quiet)
         t_sim = time.perf_counter() - t

@@ -13,11 +13,15 @@ def cmd_devices(args) -> int:
     if not rows:
         print("no OpenCL platform found: install pyopencl[pocl] for the PoCL CPU device; "
               "the NumPy backend works without one")
+    from .common import is_simulator
+
     for r in rows:
         mark = "*" if r.selected else " "
+        sim = (" | SIMULATOR (checks kernels; 100-1000x slower; never chosen by auto)" if is_simulator(r.platform)
+               else "")
         print(f"{mark} {r.index}  {r.platform} | {r.device} | {r.kind} | {r.compute_units} CUs | "
               f"{r.global_mem_mib} MiB | fp64 {'yes' if r.fp64 else 'no'} | driver {r.driver} | "
-              f"preferred float width {r.preferred_vec}")
+              f"preferred float width {r.preferred_vec}{sim}")
     if rows:
         print("(* = used by backend='auto'; choose with --device P:D or PYOPENCL_CTX=P:D)")
     if args.variants and rows:
@@ -35,7 +39,7 @@ def _print_variants(cl, rows) -> None:
     for module in ("clsas.focus.engine", "clsas.formation.ffbp", "clsas.formation.omega_k"):
         importlib.import_module(module)  # their plans register their kernels in cl.KERNELS
     if not rows:
-        print("--variants: no such device (see the P:D numbers above)")
+        raise ValueError("--variants --device: no such device (see the P:D numbers above)")
     for r in rows:
         q = cl.get_queue(r.index)
         print(f"kernel variants on {r.index} {r.device} (verdicts in {cl.cache_dir()}):")

@@ -61,6 +61,9 @@ def cmd_limits(args) -> int:
     if args.config is not None:
         values.update(_limits_from_file(args.config))
     values.update({k: getattr(args, k) for k in _LIMITS_DEFAULTS if getattr(args, k) is not None})
+    if (args.f_start is not None or args.f_stop is not None) and values["f_start"] > values["f_stop"]:
+        raise ValueError(f"--f-start {values['f_start']:g} Hz is above --f-stop {values['f_stop']:g} Hz: give the "
+                         "chirp's band low to high (a down-chirp has the same limits as the up-chirp over its band)")
     if args.config is not None:
         print(f"from {args.config} (flags override): " + ", ".join(f"{k}={values[k]:g}" for k in _LIMITS_DEFAULTS))
     lim = clsas.resolution_limits(values["f_start"], values["f_stop"], values["width"], values["height"],

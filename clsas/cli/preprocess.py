@@ -73,6 +73,8 @@ def apply_preprocessing(ds, args, stored: bool):
     from clsas import preprocess as pp
 
     opts = _preprocess_args(args)
+    if isinstance(opts.get("bandpass"), tuple):
+        _check_band(opts["bandpass"], pp.chirp_band(ds))
     if opts:
         return pp.apply(ds, **opts), "the command line"
     if stored or args.config is not None:
@@ -80,6 +82,17 @@ def apply_preprocessing(ds, args, stored: bool):
         if table:
             return pp.from_table(ds, table, where=f"[preprocess] in {where}"), where
     return ds, ""
+
+
+def _check_band(band: tuple[float, float], chirp: tuple[float, float]) -> None:
+    """Refuse a ``--bandpass`` band that misses the transmitted one (it would remove every echo)."""
+    lo, hi = band
+    if not lo < hi:
+        raise ValueError(f"--bandpass F_LO,F_HI needs F_LO < F_HI, got {lo:g},{hi:g}")
+    if hi <= chirp[0] or lo >= chirp[1]:
+        raise ValueError(f"--bandpass {lo:g},{hi:g} Hz is outside the chirp's band {chirp[0]:g}-{chirp[1]:g} Hz: "
+                         "it would remove every echo (give a band that covers the chirp's, or --bandpass alone "
+                         "for the chirp's own)")
 
 
 def add_preprocess_options(sp) -> None:

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from . import autofocus as af
-from .common import add_device_options, box_arg, grid_arg, reconstruct_image
+from .common import add_device_options, box_arg, check_grids_fit, grid_arg, reconstruct_image
 from .preprocess import add_preprocess_options, apply_preprocessing
 
 
@@ -24,6 +24,7 @@ def cmd_reconstruct(args) -> int:
         print(f"warning: {partial}", file=sys.stderr)
     stored_grid, truth = stored_grid_and_truth(ds.config)
     grid = grid_arg(args.grid, args.spacing, stored_grid)
+    check_grids_fit([grid], args)  # before preprocessing and autofocus, not after them
     if args.preprocess:
         n_before = len(ds.provenance)
         ds, source = apply_preprocessing(ds, args, stored=True)

@@ -182,8 +182,8 @@ class _Focus:
             return self.image_metric(base + dd, c_est, "delay")
 
         dd, m_d, n_ev = _bounded_search(f_delay, -max_delay_s, max_delay_s, step=max_delay_s / 10, tol=2e-7)
-        self.rep.notes.append(f"delay from sharpness alone (weakly determined: it mostly shifts the image): "
-                              f"{dd * 1e6:+.1f} us")
+        self.rep.notes.append(f"group delay from sharpness alone (weakly determined: it mostly shifts the image): "
+                              f"{-dd * 1e6:+.1f} us")  # the summary's sign: t0_s lowered by it
         self.rep.stages.append({"step": "delay", "metric": m_d, "evaluations": n_ev, "delay_s": dd,
                                 "time_s": time.perf_counter() - t})
         return t0_est + dd

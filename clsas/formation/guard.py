@@ -66,7 +66,7 @@ def check_grid(grid: VoxelGrid, kind: str, device=None, *, force: bool = False) 
     avail = available_memory_bytes()
     if avail is not None and need > 0.8 * avail:
         problems.append((f"about {_gb(need)} of host memory ({bytes_per_voxel(kind)} bytes per voxel on "
-                         f"{kind}), {_gb(avail)} available", need / (0.8 * avail)))
+                         f"{kind}), {_gb(avail)} available (at most 80% of it is used)", need / (0.8 * avail)))
     if kind == "opencl" and device is not None:
         buf = 4 * grid.size  # one of the re/im buffers
         max_alloc = int(device.max_mem_alloc_size)

@@ -13,7 +13,16 @@ pyserial and sounddevice (PortAudio) are imported only when a stage or sound car
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO, Take, find_onset, list_audio_devices
 from .config import SAMPLE_RIG_TOML, RigConfig, load_rig_config, parse_rig_config
 from .emulator import Faults, GrblEmulator
-from .grbl import GrblAlarm, GrblError, GrblStage, StageDisconnected, StageError, StageTimeout, Status
+from .grbl import (
+    GrblAlarm,
+    GrblError,
+    GrblStage,
+    StageDisconnected,
+    StageError,
+    StageRefused,
+    StageTimeout,
+    Status,
+)
 from .grbl_link import GrblLink
 from .scan import ScanAborted, ScanInterrupted, ScanResult, acquire, stop_indices
 from .store import ScanFile
@@ -21,6 +30,6 @@ from .store import ScanFile
 __all__ = [
     "AudioError", "Faults", "GrblAlarm", "GrblEmulator", "GrblError", "GrblLink", "GrblStage", "Recorder", "RigConfig",
     "SAMPLE_RIG_TOML", "ScanAborted", "ScanFile", "ScanInterrupted", "ScanResult", "SimulatedIO",
-    "SoundDeviceIO", "StageDisconnected", "StageError", "StageTimeout", "Status", "Take", "acquire",
+    "SoundDeviceIO", "StageDisconnected", "StageError", "StageRefused", "StageTimeout", "Status", "Take", "acquire",
     "find_onset", "list_audio_devices", "load_rig_config", "parse_rig_config", "stop_indices",
 ]

@@ -28,28 +28,33 @@ SAMPLE_RIG_TOML = """\
 [stage]                        # the GRBL stage: clsas.rig.GrblStage(**[stage])
 port = "/dev/ttyUSB0"          # any pyserial URL: COM3, socket://host:2000, ...
 baudrate = 115200
-feed_mm_min = 3000             # G1 feed rate between stops
-work_area_mm = [[-1000, 0], [-1000, 0]]   # machine coordinates a move may reach: after $H, GRBL's
-                               # machine space is [-travel, 0] ($130/$131) with soft limits on
+feed_mm_min = 3000             # G1 feed rate between stops; GRBL caps each axis at $110/$111
+                               # (500 mm/min on a stock board), and clsas plans each move at that rate
+work_area_mm = [[-1000, -10], [-1000, -10]]   # machine coordinates a move may reach: after $H, GRBL's
+                               # machine space is [-travel, 0] ($130/$131) with soft limits on; the
+                               # upper ends 10 mm off machine 0, where the home switches are
 reset_on_open = true           # an Arduino Uno/Nano reboots when its port opens (false: a board without
                                # auto-reset, which gets a soft reset instead)
 # timeout_s = 5                # for the answer ('ok') to one line
 # home_timeout_s = 300         # default: from GRBL's $25 seek rate and $130-$132 travel
-# move_timeout_s = 60          # default: from feed_mm_min and the work area
+# move_timeout_s = 60          # default: 3 x the move's time at the rate GRBL uses ($110/$111,
+                               # $120/$121 acceleration), plus 10 s
 # reset_wait_s = 2.5           # for the start-up banner after opening the port
 # poll_hz = 5                  # '?' status reports while a move runs (at most 5)
 # position_tol_mm = 0.02       # how close to the target a move must end
 
 [scan]                         # the stop loop
-home = true                    # $H before the scan (false: $X unlock only)
+home = true                    # $H before the scan (false: $X unlock only); needs $22=1
 origin_mm = [-500, -500]       # machine position of the scan centre
 settle_s = 0.5                 # wait after each move before the chirp (vibration)
 
 [aperture]
 nx = 18                        # stops along x
 ny = 12                        # stops along y
-width_m = 1.0                  # first to last stop along x
-height_m = 1.0
+width_m = 0.96                 # first to last stop along x (20 mm inside the
+                               # 1 m travel at each end: a stop on machine 0 would press a
+                               # limit switch with hard limits on)
+height_m = 0.96
 pattern = "serpentine"         # or "raster"
 tx_offset_m = [-0.02, 0.0, 0.0]      # speaker, relative to the carriage
 rx_offset_m = [[0.02, 0.0, 0.0]]     # one offset per microphone

@@ -73,6 +73,7 @@ class _Move:
     alarm_at: float | None = None  # fraction of the move where ALARM:1 (hard limit) trips
     reset_at: float | None = None  # fraction of the move where the reset button is pressed
     t_start: float | None = None
+    rate: float = 0.0  # mm/min, as GRBL moves it (the status report's FS)
 
 
 @dataclass
@@ -90,7 +91,9 @@ class GrblEmulator:
     report_mpos : ``$10=1`` (status reports carry ``MPos``); False reports ``WPos``.
     work_offset_mm : a G54 work offset stored in EEPROM; ``G0``/``G1`` without ``G53`` are shifted
         by it, as on the real controller.
-    max_rate_mm_min : rapid (G0) rate per the ``$110`` setting.
+    max_rate_mm_min : each axis's maximum rate (``$110``-``$112``; a ``$11x=`` write changes that
+        axis's). As on GRBL, ``G0`` moves at it and ``G1`` at the feed lowered until no axis
+        exceeds it; status reports give that rate (``FS:``).
     homing : starts locked in Alarm until ``$H`` or ``$X`` (``$22=1``).
     soft_limits : a target outside the travel raises ALARM:2 (``$20=1``).
     hard_limits : limit switches at the home end of each axis, at machine coordinate 0 (where
@@ -269,7 +272,7 @@ class GrblEmulator:
                 self._advance(time.monotonic())
                 x, y, z = self._pos if self.report_mpos else self._pos - np.asarray(self.work_offset_mm)
                 state = "Hold:0" if self._state == "Hold" else self._state
-                feed = self._feed if self._state == "Run" else 0
+                feed = self._queue[0].rate if self._state == "Run" and self._queue else 0
             kind = "MPos" if self.report_mpos else "WPos"
             self._send(f"<{state}|{kind}:{x:.3f},{y:.3f},{z:.3f}|FS:{feed:.0f},0>")
         elif ch == b"!":
@@ -443,25 +446,35 @@ class GrblEmulator:
                 self._locked_until_reset = True
                 self._late_ok = True
                 return
-            rate = self.max_rate_mm_min if motion == 0 else self._feed
-            if rate <= 0:
+            if motion != 0 and self._feed <= 0:
                 self._send("error:22")
                 return
             dist = float(np.linalg.norm(target - last))
+            rate = self._capped_rate(target - last, np.inf if motion == 0 else self._feed)
             alarm_at = 0.5 if f.alarm_at_move == n else None
             if self.hard_limits and self._on_switch:
                 alarm_at = 0.0  # GRBL trips on any change of a switch's pin: moving off it too
             if self.hard_limits and np.any(target > 0):  # the carriage reaches a home switch at 0
                 hit = [(0.0 - last[i]) / (target[i] - last[i]) for i in range(3) if target[i] > 0 >= last[i]]
                 alarm_at = min([*hit, *([] if alarm_at is None else [alarm_at])], default=0.0)
-            self._queue.append(_Move(last.copy(), target, dist / rate * 60.0 * self.time_scale, alarm_at=alarm_at,
-                                     reset_at=0.5 if f.reset_at_move == n else None))
+            self._queue.append(_Move(last.copy(), target, dist / rate * 60.0 * self.time_scale if dist else 0.0,
+                                     alarm_at=alarm_at, reset_at=0.5 if f.reset_at_move == n else None, rate=rate))
             if self._state == "Idle":
                 self._state = "Run"
         if f.drop_ok_at_move == n:
             log.info("emulator: dropping the ok of move %d", n)
             return None
         return self._send("ok")
+
+    def _capped_rate(self, delta_mm: np.ndarray, feed_mm_min: float) -> float:
+        """The rate GRBL moves at (mm/min): the feed, lowered until no axis runs faster than its
+        ``$110``-``$112`` (``G0``: ``feed_mm_min`` inf, the axes' rates alone)."""
+        dist = float(np.linalg.norm(delta_mm))
+        if dist == 0.0:
+            return float(min(feed_mm_min, self.max_rate_mm_min))
+        caps = [self.written.get(110 + i, self.max_rate_mm_min) * dist / abs(d)
+                for i, d in enumerate(delta_mm) if abs(d) > 1e-12]
+        return float(min([feed_mm_min, *caps]))
 
     def _system(self, up: str) -> None:
         if up == "$H":

@@ -22,11 +22,12 @@ from .grbl_link import (
     GrblLink,
     StageDisconnected,
     StageError,
+    StageRefused,
     StageTimeout,
     Status,
 )
 
-__all__ = ["GrblStage", "StageError", "GrblError", "GrblAlarm", "StageTimeout", "StageDisconnected",
+__all__ = ["GrblStage", "StageError", "StageRefused", "GrblError", "GrblAlarm", "StageTimeout", "StageDisconnected",
            "Status", "ERRORS", "ALARMS"]
 
 log = logging.getLogger(__name__)
@@ -53,8 +54,9 @@ class GrblStage(GrblLink):
         How long ``$H`` may take; by default twice the search (1.5 x the longest ``$13x``
         travel) at the ``$25`` seek rate plus 30 s, or 300 s where GRBL does not report them.
     move_timeout_s : float, optional
-        How long one move may take to reach ``Idle``; by default three times the work area's
-        diagonal at the feed rate (``$110``/``$111`` for ``G0``) plus 10 s.
+        How long one move may take to reach ``Idle``; by default three times the time GRBL
+        needs for it (:meth:`move_time`: the feed rate capped per axis by ``$110``/``$111``,
+        accelerating at ``$120``/``$121``) plus 10 s.
     poll_hz : float
         Rate of ``?`` status polling while a move runs (GRBL recommends at most 5 Hz).
     reset_wait_s : float
@@ -105,18 +107,30 @@ class GrblStage(GrblLink):
         """Refuse settings the scan cannot work with, naming the setting."""
         st = self.settings
         if 10 in st and not int(st[10]) & 1:
-            raise StageError(f"GRBL's $10={st[10]:g} makes status reports carry the work position (WPos), "
+            raise StageRefused(f"GRBL's $10={st[10]:g} makes status reports carry the work position (WPos), "
                              "but clsas checks and records the machine position: send '$10=1' once "
                              "(it is kept in EEPROM)")
         if st.get(20, 0) and 130 in st and 131 in st:
             for axis, (lo, hi) in zip("xy", self.work_area_mm, strict=True):
                 travel = st[130 + "xy".index(axis)]
                 if lo < -travel - 1e-6 or hi > 1e-6:
-                    raise StageError(
-                        f"work_area_mm {axis} = [{lo:g}, {hi:g}] mm is outside GRBL's soft limits ($20=1, "
+                    raise StageRefused(
+                        f"stage.work_area_mm {axis} = [{lo:g}, {hi:g}] mm is outside GRBL's soft limits ($20=1, "
                         f"${130 + 'xy'.index(axis)}={travel:g}): after homing ($H) GRBL's machine "
-                        f"coordinates run from -{travel:g} to 0 mm, so set work_area_mm within "
-                        f"[-{travel:g}, 0] and origin_mm inside it")
+                        f"coordinates run from -{travel:g} to 0 mm, so set [stage] work_area_mm within "
+                        f"[-{travel:g}, 0] and [scan] origin_mm inside it (or set ${130 + 'xy'.index(axis)} "
+                        "to the stage's real travel)")
+        pulloff = st.get(27, 1.0)
+        if int(st.get(21, 0)) == 1 and (self.work_area_mm[:, 1] > -pulloff).any():
+            log.warning("GRBL's hard limits are on ($21=1) and stage.work_area_mm reaches machine 0, where homing "
+                        "found the switches: a stop there presses a switch and raises ALARM:1; keep work_area_mm's "
+                        "upper ends at most -%g mm (the pull-off, $27)", pulloff)
+        capped = [k for k in (110, 111) if self.feed_mm_min is not None and 0 < st.get(k, np.inf) < self.feed_mm_min]
+        if capped:
+            log.warning("stage.feed_mm_min = %g mm/min is above GRBL's maximum rate %s: GRBL moves at most at that "
+                        "rate, and clsas plans each move's time from it (raise %s, or lower feed_mm_min)",
+                        self.feed_mm_min, " and ".join(f"${k}={st[k]:g}" for k in capped),
+                        " and ".join(f"${k}" for k in capped))
 
     def home_timeout(self) -> float:
         """Seconds ``$H`` may take (``home_timeout_s``, or from ``$25`` and ``$130``-``$132``)."""
@@ -128,20 +142,50 @@ class GrblStage(GrblLink):
             return 2.0 * 1.5 * travel / st[25] * 60.0 + 30.0
         return 300.0
 
-    def move_timeout(self, distance_mm: float) -> float:
-        """Seconds a move of ``distance_mm`` may take (``move_timeout_s``, or from the feed rate)."""
+    def move_time(self, start_mm, target_mm) -> float | None:
+        """Seconds GRBL takes for the straight x-y move from ``start_mm`` to ``target_mm``.
+
+        The rate is what GRBL uses: ``feed_mm_min`` (``G1``; ``G0`` has none), lowered until no
+        axis runs faster than its ``$110``/``$111`` (mm/min); the acceleration likewise from
+        ``$120``/``$121`` (mm/s^2), with a trapezoidal (or triangular) speed profile. None where
+        GRBL did not report a rate for a ``G0`` move.
+        """
+        d = np.abs(np.asarray(target_mm, float)[:2] - np.asarray(start_mm, float)[:2])
+        dist = float(np.hypot(*d))
+        if dist == 0.0:
+            return 0.0
+        st = self.settings
+        caps = [st[k] * dist / d[i] for i, k in enumerate((110, 111)) if d[i] > 0 and st.get(k, 0) > 0]
+        rate = min([self.feed_mm_min or np.inf, *caps])
+        if not np.isfinite(rate):
+            return None
+        v_mm_s = rate / 60.0
+        accs = [st[k] * dist / d[i] for i, k in enumerate((120, 121)) if d[i] > 0 and st.get(k, 0) > 0]
+        if not accs:
+            return dist / v_mm_s
+        acc = min(accs)
+        if dist >= v_mm_s**2 / acc:  # reaches the rate: accelerate, cruise, decelerate
+            return dist / v_mm_s + v_mm_s / acc
+        return 2.0 * float(np.sqrt(dist / acc))
+
+    def move_timeout(self, start_mm, target_mm) -> float:
+        """Seconds the move from ``start_mm`` to ``target_mm`` may take: ``move_timeout_s``, or
+        three times :meth:`move_time` plus 10 s (120 s where GRBL reports no rate)."""
         if self.move_timeout_s is not None:
             return self.move_timeout_s
-        rate = self.feed_mm_min or min((self.settings.get(k, 0.0) for k in (110, 111)), default=0.0)
-        if not rate:
-            return 120.0
-        return 3.0 * distance_mm / rate * 60.0 + 10.0
+        t = self.move_time(start_mm, target_mm)
+        return 120.0 if t is None else 3.0 * t + 10.0
+
+    def _farthest_corner(self, x_mm: float, y_mm: float) -> tuple[float, float]:
+        """The work-area corner farthest from (x, y): where a move may start when the position is unknown."""
+        (x0, x1), (y0, y1) = self.work_area_mm
+        return (x0 if abs(x_mm - x0) > abs(x_mm - x1) else x1, y0 if abs(y_mm - y0) > abs(y_mm - y1) else y1)
 
     def home(self) -> Status:
         """Run the homing cycle (``$H``) and set millimetres, absolute (``G21 G90``)."""
         if self.settings.get(22, 1) == 0:
-            raise StageError("stage.home = true but homing is disabled in GRBL ($22=0): enable it with "
-                             "'$22=1' (with limit switches fitted), or set stage.home = false")
+            raise StageRefused("[scan] home = true but homing is disabled in GRBL ($22=0): enable it with "
+                               "'$22=1' (with limit switches fitted), or set home = false in the [scan] table")
         t0 = time.monotonic()
         self.command("$H", timeout_s=self.home_timeout())
         log.info("homed in %.1f s", time.monotonic() - t0)
@@ -151,9 +195,9 @@ class GrblStage(GrblLink):
     def unlock(self) -> Status:
         """Clear an alarm lock without homing (``$X``) and set ``G21 G90``."""
         if self.settings.get(20, 0):
-            raise StageError("stage.home = false but GRBL's soft limits are on ($20=1): they check targets "
-                             "against the position homing sets, so set stage.home = true or turn them off "
-                             "with '$20=0'")
+            raise StageRefused("[scan] home = false but GRBL's soft limits are on ($20=1): they check targets "
+                               "against the position homing sets, so set home = true in the [scan] table or turn "
+                               "them off with '$20=0'")
         self.command("$X")
         self.command("G21 G90")
         return self.status()
@@ -173,7 +217,7 @@ class GrblStage(GrblLink):
             self.command("$X")
             feed = self.feed_mm_min or 500.0
             self.command(f"G91 G1 X{dx_mm:.3f} Y{dy_mm:.3f} F{feed:.0f}")
-            st = self.wait_idle(self.move_timeout(float(np.hypot(dx_mm, dy_mm))))
+            st = self.wait_idle(self.move_timeout((0.0, 0.0), (dx_mm, dy_mm)))
             self.command("G90")
         finally:
             if hard:
@@ -196,9 +240,14 @@ class GrblStage(GrblLink):
         self.check_target(x_mm, y_mm)
         word = "G0" if self.feed_mm_min is None else "G1"
         feed = "" if self.feed_mm_min is None else f" F{self.feed_mm_min:.0f}"
-        dist = float(np.hypot(*np.ptp(self.work_area_mm, axis=1)))  # the longest move the area allows
+        now = self.status()  # where the move starts (idle between moves), else the worst case
+        self._polled_at = time.monotonic()
+        start = now.position_mm[:2] if now.state == "Idle" else self._farthest_corner(x_mm, y_mm)
+        timeout = self.move_timeout(start, (x_mm, y_mm))
+        log.debug("move to (%.3f, %.3f) mm: %s s planned, timeout %.1f s", x_mm, y_mm,
+                  self.move_time(start, (x_mm, y_mm)), timeout)
         self.command(f"G53 {word} X{x_mm:.3f} Y{y_mm:.3f}{feed}")
-        st = self.wait_idle(self.move_timeout(dist))
+        st = self.wait_idle(timeout)
         err = max(abs(st.position_mm[0] - x_mm), abs(st.position_mm[1] - y_mm))
         if err > self.position_tol_mm:
             raise StageError(f"the stage reports Idle at ({st.position_mm[0]:.3f}, {st.position_mm[1]:.3f}) mm, "
@@ -208,6 +257,7 @@ class GrblStage(GrblLink):
     def wait_idle(self, timeout_s: float) -> Status:
         """Poll ``?`` at ``poll_hz`` until the state is ``Idle``."""
         deadline = time.monotonic() + timeout_s
+        time.sleep(max(0.0, self.poll_s - (time.monotonic() - getattr(self, "_polled_at", -np.inf))))
         while True:
             t = time.monotonic()
             st = self.status()

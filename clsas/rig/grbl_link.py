@@ -21,8 +21,8 @@ from dataclasses import dataclass
 from .. import validate as v
 from ..validate import install_hint
 
-__all__ = ["GrblLink", "StageError", "GrblError", "GrblAlarm", "StageTimeout", "StageDisconnected", "Status",
-           "ERRORS", "ALARMS"]
+__all__ = ["GrblLink", "StageError", "StageRefused", "GrblError", "GrblAlarm", "StageTimeout", "StageDisconnected",
+           "Status", "ERRORS", "ALARMS"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,11 @@ _RESET_ANSWER_S = 2.0
 
 class StageError(RuntimeError):
     """The stage could not do what was asked; the message says what happened."""
+
+
+class StageRefused(StageError):
+    """GRBL's settings do not fit the rig configuration (found on connecting, or before homing);
+    nothing was moved. The message names the setting or key and how to fix it."""
 
 
 class GrblError(StageError):

@@ -15,7 +15,7 @@ from ..validate import install_hint
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig
 from .emulator import Faults, GrblEmulator
-from .grbl import GrblStage, StageError
+from .grbl import GrblStage, StageError, StageRefused
 from .store import ScanFile
 
 __all__ = ["acquire", "stage_for", "audio_for", "recorder_for", "store_for", "run_stops", "ScanResult", "ScanAborted",
@@ -124,6 +124,13 @@ def run_stops(config: RigConfig, stage: GrblStage, recorder: Recorder, store: Sc
     return retried
 
 
+def _restart_if_empty(out: Path) -> None:
+    """A scan file that stopped before its first stop is started again (nothing in it to keep)."""
+    if out.exists() and holds_no_stop(out):
+        log.info("%s holds no stop yet: starting it again", out)
+        out.unlink()
+
+
 def acquire(
     config: RigConfig,
     out: str | Path,
@@ -175,6 +182,7 @@ def acquire(
     _check_config(config)
     out = Path(out)
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
+    _restart_if_empty(out)
     sim_stage, sim_audio = _checked_request(config, out, resume, simulate, faults, stage)
     resuming = resume and out.exists()
     air = _stored_air(out) if resuming else config.read_air()
@@ -236,9 +244,18 @@ def _run_safely(config: RigConfig, stage, recorder, store, out: Path, hint: str,
         i = stop
 
     try:
-        stage.open()
+        _open_stage(stage, store, out)
+    except BaseException:
+        stage.close()
+        raise
+    try:
         retried = run_stops(config, stage, recorder, store, progress=progress, on_stop=at, settle_s=settle_s)
         store.close(complete=True)
+    except StageRefused as exc:  # before any move (homing refused): nothing to hold
+        done = store.stops_done
+        _drop_if_empty(store, out)
+        raise StageRefused(f"{exc}. " + (_NOTHING_MOVED if not done else f"Nothing was moved in this run; the "
+                           f"{done} stops saved in {out} are kept: fix it, then {hint}")) from None
     except KeyboardInterrupt:
         stage.feed_hold()
         done = store.stops_done
@@ -256,6 +273,40 @@ def _run_safely(config: RigConfig, stage, recorder, store, out: Path, hint: str,
     finally:
         stage.close()
     return retried
+
+
+_NOTHING_MOVED = "Nothing was moved and no stop recorded; fix it, then run the same command again"
+
+
+def _open_stage(stage: GrblStage, store: ScanFile, out: Path) -> None:
+    """Connect to the stage; a port that cannot be opened, no controller on it, or settings that
+    refuse the configuration stop the scan before it starts (nothing moved, the empty file removed)."""
+    try:
+        stage.open()
+    except StageError as exc:
+        _drop_if_empty(store, out)
+        cls = StageRefused if isinstance(exc, StageRefused) else StageError
+        raise cls(f"{exc}. {_NOTHING_MOVED}") from None
+
+
+def _drop_if_empty(store: ScanFile, out: Path) -> None:
+    """Close the scan file, and remove it if it holds no stop (so the same command starts it again)."""
+    done = store.stops_done
+    store.close()
+    if done == 0:
+        out.unlink(missing_ok=True)
+
+
+def holds_no_stop(path: str | Path) -> bool:
+    """Whether ``path`` is a scan file ``clsas acquire`` started that holds no stop yet."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return ("n_stops_planned" in f.attrs and not bool(f.attrs.get("complete", False))
+                    and "signals" in f and f["signals"].shape[0] == 0)
+    except OSError:
+        return False
 
 
 def _stored_air(path: Path) -> tuple[float, float]:
