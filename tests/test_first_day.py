@@ -75,6 +75,7 @@ def _bad_input(tmp: Path) -> dict[str, list[str]]:
         "devices": ["devices", "--opencl-only", "--variants", "--device", "7:3"],
         "acquire": ["acquire", str(tmp / "missing-rig.toml"), str(tmp / "x.h5")],
         "import": ["import", str(tmp / "no-such-folder"), str(tmp / "x.h5")],
+        "inspect": ["inspect", missing],
         "export": ["export", missing, str(tmp / "x.npy")],
         "bench": ["bench", "--formation", "no-such-formation", "--out", str(tmp / "b")],
     }
