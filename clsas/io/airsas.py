@@ -110,15 +110,9 @@ def is_airsas(folder: str | Path) -> bool:
 
 
 def import_airsas(
-    folder: str | Path,
-    *,
-    background: str | Path | None = None,
-    waveform: str = "chirp",
-    waveform_index: int | None = None,
-    microphones: str = "first",
-    angle_sign: float = 1.0,
-    zero_angle_deg: float = 0.0,
-    radius_m: float | None = None,
+    folder: str | Path, *, background: str | Path | None = None, waveform: str = "chirp",
+    waveform_index: int | None = None, microphones: str = "first", angle_sign: float = 1.0,
+    zero_angle_deg: float = 0.0, radius_m: float | None = None,
 ) -> Dataset:
     """Read an AirSAS scan folder into a :class:`~clsas.Dataset` (layout: :mod:`clsas.io.airsas`).
 
@@ -133,23 +127,21 @@ def import_airsas(
         ``"chirp"``: the LFM of ``WaveformParams.csv`` (:func:`clsas.lfm_chirp`, Tukey taper);
         ``"recorded"``: the column of ``Waveforms.csv``.
     waveform_index : int, optional
-        Which waveform (0-based) when the scan interleaves several: only its pings are read.
-        Needed when the ``Coordinates.csv`` waveform column holds several values.
+        Which waveform (0-based) when ``Coordinates.csv`` interleaves several (then needed): only
+        its pings are read.
     microphones : {"first", "all"}
         ``"first"``: microphone 1 (column 1 of each flight file), one measurement per ping;
         ``"all"``: every column, microphone k at ``Mick`` of ``SysParams.csv``, k measurements
         per ping (ping-major order).
     angle_sign : {1, -1}
-        Direction of the turntable angle (see "Geometry" in the module docstring); ``-1``
-        mirrors the image.
+        Direction of the turntable angle (module docstring, "Geometry"); ``-1`` mirrors the image.
     zero_angle_deg : float
         Added to every angle before the rotation (degrees): turns the image about the axis.
     radius_m : float, optional
-        Put the speaker and the microphones at this horizontal distance from the turntable
-        axis (their directions and heights kept) instead of where ``SysParams.csv`` puts
-        them. The data owners' own imaging code assumes 0.85 m for every transducer of the
-        published scans; ``SysParams.csv`` says 0.8485 m (speaker) and 0.8615 m
-        (microphones). See :func:`clsas.focus.calibrate.calibrate` for estimating it.
+        The transducers' horizontal distance from the turntable axis (directions and heights
+        kept) instead of ``SysParams.csv``'s (0.8485 m speaker, 0.8615 m microphones in the
+        published scans; the owners' code assumes 0.85 m). :func:`clsas.focus.calibrate.calibrate`
+        estimates it.
 
     Returns
     -------
@@ -170,53 +162,25 @@ def import_airsas(
     _check_options(folder, waveform, microphones, angle_sign, zero_angle_deg, radius_m)
 
     sys_path = _need(folder, "SysParams.csv")
-    sysp = _read_sysparams(sys_path)
-    fs = _param(sysp, sys_path, "fs")
-    if fs <= 0:
-        raise ValueError(f"{sys_path}: Fs must be > 0, got {fs:g}")
-    gd = _param(sysp, sys_path, "group delay")
-    center = np.array([_param(sysp, sys_path, f"center {a}") for a in "xyz"])
-    speaker = np.array([_param(sysp, sys_path, f"speaker {a}") for a in "xyz"])
-
+    sysp, fs, gd, center, speaker = _system(sys_path)
     coord_path = _need(folder, "Coordinates.csv")
-    pings = _read_coordinates(coord_path)
-    kinds = sorted({int(w) for w in pings["wave"]}) if pings["wave"] is not None else []
-    if waveform_index is None and len(kinds) > 1:
-        raise ValueError(f"{coord_path} interleaves waveforms {kinds}: choose one with waveform_index=")
-    index = waveform_index if waveform_index is not None else (kinds[0] if kinds else 0)
-    keep = np.ones(len(pings["flight"]), bool) if pings["wave"] is None else pings["wave"] == index
-    if not keep.any():
-        raise ValueError(f"{coord_path}: no ping uses waveform {index} (the file has {kinds})")
-    pings = {k: (None if v is None else v[keep]) for k, v in pings.items()}
-
+    pings, index = _pings_of_waveform(coord_path, waveform_index)
     recs, names, n_ch = _read_flights(folder, coord_path, pings, microphones)
     mics = np.array([[_param(sysp, sys_path, f"mic{k + 1} {a}") for a in "xyz"] for k in range(n_ch)])
 
     a = np.deg2rad(pings["angle_deg"] + zero_angle_deg) * angle_sign
-    tx = np.repeat(_to_target(speaker, center, a, pings["height_m"], radius_m, sys_path), n_ch, axis=0)
-    rx = np.stack([_to_target(m, center, a, pings["height_m"], radius_m, sys_path) for m in mics],
-                  axis=1).reshape(-1, 3)  # ping-major
+    tx, rx = _bistatic_pairs(speaker, mics, center, a, pings["height_m"], radius_m, sys_path)
     temperature = np.repeat(pings["temp_c"], n_ch)
 
     wave, chirp = _waveform(folder, waveform, index, fs)
     prov: dict[str, Any] = {
         "step": "import", "source": str(folder), "format": "airsas", "pings": int(len(pings["flight"])),
         "microphones": int(n_ch), "fs_hz": fs, "group_delay_samples": gd, "waveform": waveform,
-        "waveform_index": int(index), "angle_sign": int(angle_sign),
-        "zero_angle_deg": float(zero_angle_deg), "radius_m": radius_m,
-        "angle_deg": [float(pings["angle_deg"].min()), float(pings["angle_deg"].max())],
-        "center_m": center.tolist(),
-    }
-    if background is not None:
-        prov["background"] = str(background)
-    try:
-        ds = Dataset(
-            signals=stack_padded(recs, names, str(folder)), tx_positions=tx, rx_positions=rx, fs_hz=fs,
-            waveform=wave, t0_s=np.full(len(recs), -gd / fs), temperature_c=temperature, chirp=chirp,
-            provenance=[prov],
-        )
-    except ValueError as exc:  # e.g. a temperature that gives no speed of sound
-        raise ValueError(f"{folder}: {exc}") from None
+        "waveform_index": int(index), "angle_sign": int(angle_sign), "zero_angle_deg": float(zero_angle_deg),
+        "radius_m": radius_m, "angle_deg": [float(pings["angle_deg"].min()), float(pings["angle_deg"].max())],
+        "center_m": center.tolist(), **({"background": str(background)} if background is not None else {})}
+    ds = _dataset(folder, stack_padded(recs, names, str(folder)), tx, rx, fs, wave, np.full(len(recs), -gd / fs),
+                  temperature, chirp, prov)
     if background is not None:
         bg = import_airsas(background, waveform=waveform, waveform_index=waveform_index,
                            microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg,
@@ -225,6 +189,51 @@ def import_airsas(
     log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz", folder,
              len(pings["flight"]), n_ch, ds.n_samples, fs)
     return ds
+
+
+def _system(sys_path: Path) -> tuple[dict, float, float, np.ndarray, np.ndarray]:
+    """``SysParams.csv``: (its table, sample rate Hz, group delay samples, centre (3,) m, speaker (3,) m)."""
+    sysp = _read_sysparams(sys_path)
+    fs = _param(sysp, sys_path, "fs")
+    if fs <= 0:
+        raise ValueError(f"{sys_path}: Fs must be > 0, got {fs:g}")
+    gd = _param(sysp, sys_path, "group delay")
+    center = np.array([_param(sysp, sys_path, f"center {a}") for a in "xyz"])
+    speaker = np.array([_param(sysp, sys_path, f"speaker {a}") for a in "xyz"])
+    return sysp, fs, gd, center, speaker
+
+
+def _bistatic_pairs(speaker, mics, center, angle_rad, height_m, radius_m, sys_path) -> tuple[np.ndarray, np.ndarray]:
+    """Speaker and microphone positions in the target's frame, one pair per ping and microphone
+    (ping-major): ``(tx (n, 3), rx (n, 3))`` in metres."""
+    n_ch = len(mics)
+    tx = np.repeat(_to_target(speaker, center, angle_rad, height_m, radius_m, sys_path), n_ch, axis=0)
+    rx = np.stack([_to_target(m, center, angle_rad, height_m, radius_m, sys_path) for m in mics],
+                  axis=1).reshape(-1, 3)
+    return tx, rx
+
+
+def _dataset(folder: Path, signals, tx, rx, fs, wave, t0, temperature, chirp, prov) -> Dataset:
+    """The Dataset, its own refusals (e.g. a temperature that gives no speed of sound) naming the folder."""
+    try:
+        return Dataset(signals=signals, tx_positions=tx, rx_positions=rx, fs_hz=fs, waveform=wave, t0_s=t0,
+                       temperature_c=temperature, chirp=chirp, provenance=[prov])
+    except ValueError as exc:
+        raise ValueError(f"{folder}: {exc}") from None
+
+
+def _pings_of_waveform(coord_path: Path, waveform_index: int | None) -> tuple[dict, int]:
+    """The pings of ``Coordinates.csv`` that use one waveform, and its index (the only one the file
+    has, else ``waveform_index``, which a file interleaving several needs)."""
+    pings = _read_coordinates(coord_path)
+    kinds = sorted({int(w) for w in pings["wave"]}) if pings["wave"] is not None else []
+    if waveform_index is None and len(kinds) > 1:
+        raise ValueError(f"{coord_path} interleaves waveforms {kinds}: choose one with waveform_index=")
+    index = waveform_index if waveform_index is not None else (kinds[0] if kinds else 0)
+    keep = np.ones(len(pings["flight"]), bool) if pings["wave"] is None else pings["wave"] == index
+    if not keep.any():
+        raise ValueError(f"{coord_path}: no ping uses waveform {index} (the file has {kinds})")
+    return {k: (None if v is None else v[keep]) for k, v in pings.items()}, index
 
 
 def _check_options(folder: Path, waveform: str, microphones: str, angle_sign: float, zero_angle_deg: float,

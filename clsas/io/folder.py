@@ -116,83 +116,33 @@ class _Row:
     extra: dict[str, float] = field(default_factory=dict)  # optional columns given in this row
 
 
-def import_folder(
-    folder: str | Path,
-    *,
-    positions: str | Path | None = None,
-    waveform: str | Path | np.ndarray | dict | None = None,
-    fs_hz: float | None = None,
-    settings: str | Path | None = None,
-    group_delay_samples: float | None = None,
-    background: str | Path | None = None,
-) -> Dataset:
-    """Read a folder of recordings and its positions table into a :class:`~clsas.Dataset`.
-
-    The layout is described in :mod:`clsas.io.folder`.
-
-    Parameters
-    ----------
-    folder : path
-        The folder.
-    positions : path, optional
-        The positions table, relative to the folder (default: ``[recording] positions`` of the
-        settings file, else ``positions.csv``).
-    waveform : path, (n_wave,) array or dict, optional
-        The transmitted signal: a WAV or CSV file (relative to the folder, or any path), the
-        samples at ``fs_hz``, or chirp parameters ``{"f_start_hz", "f_stop_hz",
-        "duration_s", "taper"}`` (Hz, s, Tukey fraction) for :func:`clsas.lfm_chirp`.
-    fs_hz : float, optional
-        Sample rate, Hz (default: the settings file's, else the WAV headers', else the CSV
-        ``time_s`` column's).
-    settings : path, optional
-        The TOML settings file (default: ``import.toml`` or ``clsas-import.toml`` in the folder
-        if there is one).
-    group_delay_samples : float, optional
-        Delay of the transducer chain, in samples: ``t0_s`` is lowered by
-        ``group_delay_samples / fs_hz`` (default: the settings file's ``[delay]``, else 0).
-    background : path, optional
-        A folder holding the empty-scene scan in the same layout, stop for stop: its
-        recordings become ``Dataset.background``.
-
-    Returns
-    -------
-    Dataset
-        ``signals`` (n_meas, n_samples), positions (n_meas, 3) in metres, per-measurement
-        ``t0_s`` and air; ``provenance`` holds one ``{"step": "import", "format": "folder",
-        ...}`` record and ``config`` the settings file's text.
-
-    Raises
-    ------
-    FileNotFoundError
-        No folder, positions table, recording or waveform file; the message names it.
-    ValueError
-        A malformed table or settings file (the message names the file, line and column, or
-        the table and key), inconsistent sample rates, a background that does not match.
-    """
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"no folder {folder} (import_folder: folder)")
-    cfg, cfg_text, cfg_path = _settings(folder, settings)
-    table = folder / (positions if positions is not None else cfg["recording"].get("positions", "positions.csv"))
-    rows = _read_positions(table)
+def _recordings_and_rate(folder: Path, table: Path, rows, cfg: dict, cfg_path, fs_hz):
+    """The recordings, the loopback takes and the sample rate (given, from the settings, else the files')."""
     loopback_ch = cfg["recording"].get("loopback_channel")
     if loopback_ch is not None and loopback_ch < 1:
         raise ValueError(f"{cfg_path}: [recording] loopback_channel must be >= 1, got {loopback_ch}")
-
     fs = _given_fs(fs_hz, cfg, cfg_path)
     meas, loop, file_fs = _read_recordings(folder, table, rows, loopback_ch, fs)
     fs = fs if fs is not None else file_fs
     if fs is None:
         raise ValueError(f"{folder}: the sample rate is not known (CSV recordings without a time_s column): "
                          "give fs_hz= or set [recording] fs_hz in import.toml")
-    lengths = {len(m.samples) for m in meas}
-    sig = stack_padded([m.samples for m in meas], [m.name for m in meas], str(table))
+    return meas, loop, fs
 
-    wave, chirp, wave_src = _waveform(folder, waveform, cfg, cfg_path, fs)
-    gd = _group_delay(group_delay_samples, cfg, cfg_path, fs)
-    src = [rows[m.row] for m in meas]
+
+def _rows(takes: list, width: int) -> np.ndarray:
+    """The loopback takes as rows of ``width`` samples, zero-padded at the end."""
+    out = np.zeros((len(takes), width))
+    for i, x in enumerate(takes):
+        out[i, : len(x)] = x
+    return out
+
+
+def _per_measurement(table: Path, src, cfg: dict, group_delay_s: float):
+    """(t0_s, temperature_c, humidity_pct, c_mps or None, timestamps or None), one per measurement: the
+    table's column where it has one, else the settings file's value."""
     air, delay = cfg["air"], cfg["delay"]
-    t0 = _column(table, src, "t0_s", delay.get("t0_s", 0.0)) - gd / fs
+    t0 = _column(table, src, "t0_s", delay.get("t0_s", 0.0)) - group_delay_s
     temperature = _column(table, src, "temperature_c", air.get("temperature_c", 20.0))
     humidity = _column(table, src, "humidity_pct", air.get("humidity_pct", 50.0))
     c = _column(table, src, "c_mps", air.get("c_mps"), partial=True)
@@ -200,20 +150,73 @@ def import_folder(
         from ..physics import speed_of_sound
 
         c = np.where(np.isnan(c), speed_of_sound(temperature), c)
-    stamps = _column(table, src, "timestamp_s", None)
+    return t0, temperature, humidity, c, _column(table, src, "timestamp_s", None)
+
+
+def import_folder(
+    folder: str | Path, *, positions: str | Path | None = None, waveform: str | Path | np.ndarray | dict | None = None,
+    fs_hz: float | None = None, settings: str | Path | None = None, group_delay_samples: float | None = None,
+    background: str | Path | None = None,
+) -> Dataset:
+    """Read a folder of recordings and its positions table into a :class:`~clsas.Dataset` (layout:
+    :mod:`clsas.io.folder`).
+
+    Parameters
+    ----------
+    folder : path
+        The folder.
+    positions : path, optional
+        The positions table, relative to the folder (default: the settings' ``[recording]
+        positions``, else ``positions.csv``).
+    waveform : path, (n_wave,) array or dict, optional
+        The transmitted signal: a WAV or CSV file (relative to the folder, or any path), the
+        samples at ``fs_hz``, or chirp parameters ``{"f_start_hz", "f_stop_hz",
+        "duration_s", "taper"}`` (Hz, s, Tukey fraction) for :func:`clsas.lfm_chirp`.
+    fs_hz : float, optional
+        Sample rate, Hz (default: the settings', else the WAV headers', else CSV ``time_s``'s).
+    settings : path, optional
+        The TOML settings file (default: the folder's ``import.toml`` or ``clsas-import.toml``).
+    group_delay_samples : float, optional
+        Delay of the transducer chain, in samples: ``t0_s`` is lowered by
+        ``group_delay_samples / fs_hz`` (default: the settings file's ``[delay]``, else 0).
+    background : path, optional
+        The empty-scene scan's folder (same layout, stop for stop) -> ``Dataset.background``.
+
+    Returns
+    -------
+    Dataset
+        ``signals`` (n_meas, n_samples), positions (n_meas, 3) m, per-measurement ``t0_s`` and air;
+        ``provenance``: one ``{"step": "import", "format": "folder", ...}``; ``config``: the settings.
+
+    Raises
+    ------
+    FileNotFoundError
+        No folder, positions table, recording or waveform file; the message names it.
+    ValueError
+        A malformed table or settings file (named, with line and column or table and key),
+        inconsistent sample rates, a background that does not match.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"no folder {folder} (import_folder: folder)")
+    cfg, cfg_text, cfg_path = _settings(folder, settings)
+    table = folder / (positions if positions is not None else cfg["recording"].get("positions", "positions.csv"))
+    rows = _read_positions(table)
+    meas, loop, fs = _recordings_and_rate(folder, table, rows, cfg, cfg_path, fs_hz)
+    lengths = {len(m.samples) for m in meas}
+    sig = stack_padded([m.samples for m in meas], [m.name for m in meas], str(table))
+
+    wave, chirp, wave_src = _waveform(folder, waveform, cfg, cfg_path, fs)
+    gd = _group_delay(group_delay_samples, cfg, cfg_path, fs)
+    src = [rows[m.row] for m in meas]
+    t0, temperature, humidity, c, stamps = _per_measurement(table, src, cfg, gd / fs)
 
     prov: dict[str, Any] = {
-        "step": "import", "source": str(folder), "format": "folder", "positions": table.name,
-        "files": len(rows), "fs_hz": fs, "waveform": wave_src, "group_delay_samples": gd,
-        "padded": len(lengths) > 1, "settings": None if cfg_path is None else cfg_path.name,
-    }
-    if background is not None:
-        prov["background"] = str(background)
-    loopback = None
-    if loop:
-        loopback = np.zeros((len(loop), sig.shape[1]))
-        for i, x in enumerate(loop):
-            loopback[i, : len(x)] = x
+        "step": "import", "source": str(folder), "format": "folder", "positions": table.name, "files": len(rows),
+        "fs_hz": fs, "waveform": wave_src, "group_delay_samples": gd, "padded": len(lengths) > 1,
+        "settings": None if cfg_path is None else cfg_path.name,
+        **({"background": str(background)} if background is not None else {})}
+    loopback = _rows(loop, sig.shape[1]) if loop else None
     try:
         ds = Dataset(
             signals=sig,
