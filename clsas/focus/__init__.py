@@ -1,34 +1,35 @@
-"""Autofocus: motion, sound speed and delay estimated from the scan itself.
+"""Autofocus: motion, sound speed and delay estimated from the scan itself, as far as it determines them.
 
 A hand-held aperture is not where the dataset says, the air is not the temperature it states,
-and the transducers add a delay nobody measured; each defocuses the image. :func:`autofocus`
-estimates, in this order (each step selectable in ``methods``):
+and the transducers add a delay nobody measured; each defocuses the image. Sharpness alone
+over-fits: the motion's constant, its tilt across the aperture and a range shift are invisible
+to any focus metric, and a flexible motion buys a sharper, wrong image. So :func:`autofocus`
+estimates each parameter only as far as the scan determines it, judged on two disjoint halves
+of the stops (even and odd in time, :mod:`.split`), in this order (``methods``):
 
 1. ``"direct"``: the delay of each recording from the direct speaker-to-microphone sound
-   (:mod:`.direct`): group delay and per-stop timing jitter (and ``c`` where the rig has
-   several speaker-to-microphone distances);
-2. ``"temperature"``: the air temperature (so ``c``) that makes the image sharpest, a scan then
-   a bounded 1-D search; the direct-path delays follow each candidate ``c``;
-3. ``"delay"``: where no direct sound is found, a global delay from sharpness (weakly
-   determined: a delay mostly shifts the image);
-4. ``"phase"``: one phase per stop by exact coordinate ascent of the sharpness over the
-   stops' own images (:mod:`.phases`), read as a line-of-sight path per stop: the global
-   start that large motion (a radian of two-way phase or more) needs;
-5. ``"los"``: per-stop line-of-sight path corrections in a smooth basis over the stop times
-   (:mod:`.motion`), maximising sharpness with analytic gradients through backprojection
-   (``kernels/autofocus.cl`` and its NumPy twin), coarse to fine, from the ``"phase"``
-   estimate where there is one;
-6. ``"3d"``: the carriage's 3-D displacement per stop (the line of sight differs between
-   reflectors seen at different angles), from the line-of-sight estimate on, its change in the
-   same smooth basis per axis, by the same analytic gradient;
-7. ``"pga"``: phase-gradient autofocus on strong points (:mod:`.pga`): each stop's own 3-D
-   displacement, from the phases of its contributions to the image's strong isolated points;
-   applied only where at least four points are coherent enough to be points (not on an
-   extended target) and the image gets sharper. Not in the default.
+   (:mod:`.direct`): group delay and per-stop timing (determined by the physics). Without it
+   the delay is *not determined* and stays 0;
+2. ``"delay"`` (not in the default): where no direct sound is found, the sharpest global delay
+   of each half; applied only where the halves agree to ``delay_tolerance_s``;
+3. ``"phase"``: per-stop phases by exact coordinate ascent of each half's stop images
+   (:mod:`.phases`), read as a line-of-sight move: the start that large motion needs;
+4. ``"3d"``: the carriage's 3-D displacement in a smooth basis over stop time (constant and
+   tilt projected out), by L-BFGS with analytic gradients (``kernels/autofocus.cl`` and its
+   NumPy twin), once per half; each coefficient is shrunk by how well the halves agree, and the
+   motion is applied only where each half's image corrected with the *other* half's estimate
+   agrees with it better than uncorrected (``check_margin``);
+5. ``"temperature"``: the air temperature that makes each half's image sharpest (motion
+   applied), within the thermometer's ± ``temperature_range_c``; applied only where the halves
+   agree to ``temperature_tolerance_c`` and neither sits at the edge;
+6. ``"los"``, ``"pga"`` (not in the default; without ``"3d"``): a smooth line-of-sight search
+   and phase-gradient autofocus on strong points (:mod:`.pga`) on all stops, kept where the
+   halves' images both corrected with them agree better (not held out).
 
-It returns the corrected dataset and an :class:`AutofocusReport`, and never an image less
-sharp than the input's: if the final metric is not above the input's, the input comes back
-(``report.improved`` False, and a note says so).
+Finally the whole correction must not make the halves' images agree less than as given; where
+it does, or nothing was determined, the input comes back (``report.improved`` False, a note
+says why). ``report.parameters`` gives each parameter's estimate, uncertainty, and whether it
+was determined and applied.
 """
 
 from __future__ import annotations
@@ -52,15 +53,17 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"
 log = logging.getLogger(__name__)
 
 METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
-DEFAULT_METHODS = ("direct", "temperature", "delay", "phase", "3d")
+DEFAULT_METHODS = ("direct", "phase", "3d", "temperature")
 
 
 def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
               metric: str = "sharpness", n_basis: int | None = None, motion_bandwidth_hz: float = 5.0,
-              temperature_range_c: float = 15.0, max_delay_s: float = 5e-4, per_stop_delay: bool = True,
+              temperature_range_c: float = 5.0, max_delay_s: float = 5e-4, per_stop_delay: bool = True,
               max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
-              pga_min_coherence: float | None = None, pga_max_points: int = 32, backend: str | None = None,
-              device: Any = None, progress: Callable[[str, int, float], None] | None = None,
+              pga_min_coherence: float | None = None, pga_max_points: int = 32,
+              temperature_tolerance_c: float = 0.25, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
+              backend: str | None = None, device: Any = None,
+              progress: Callable[[str, int, float], None] | None = None,
               force: bool = False) -> tuple[Dataset, AutofocusReport]:
     """Estimate motion, sound speed and delay from the scan, and correct the dataset.
 
@@ -83,9 +86,11 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     motion_bandwidth_hz : float
         Highest frequency of the motion to correct, Hz (used with ``timestamps``).
     temperature_range_c : float
-        The temperature search covers the stated value ± this, °C.
+        The prior on the air: the thermometer's reading (``temperature_c``) is right to ± this,
+        °C; the search covers that range, and an optimum at its edge is "not determined".
     max_delay_s : float
-        The largest delay error looked for (direct sound search window, delay search), s.
+        The prior on the hardware: the largest delay error looked for (the direct sound's search
+        window, the ``"delay"`` search), s.
     per_stop_delay : bool
         Keep each recording's own direct-path delay (timing jitter) rather than their median.
     max_iter : int
@@ -100,6 +105,14 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         default :data:`clsas.focus.pga.PGA_MIN_COHERENCE`).
     pga_max_points : int
         Most strong points ``"pga"`` uses (the brightest that qualify).
+    temperature_tolerance_c : float
+        The temperature is determined (and applied) only where the two halves of the stops give
+        sharpest images within twice this of each other (its uncertainty is at most this), °C.
+    delay_tolerance_s : float
+        The same for the ``"delay"`` search without direct sound, s.
+    check_margin : float
+        The motion is applied only where each half's image, corrected with the other half's
+        estimate, agrees with it (coherence, 0 to 1) by at least this more than uncorrected.
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -107,13 +120,19 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     Returns
     -------
     (Dataset, AutofocusReport)
-        The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions moved
-        along the line of sight; a provenance record ``autofocus``), or the input itself when
-        the image did not get sharper.
+        The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions; a
+        provenance record ``autofocus``) with only what the scan determined and the check
+        passed; or the input itself (``report.improved`` False, a note says why).
     """
     options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
                        max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
                        pga_max_points, progress)
+    options["temperature_tolerance_c"] = v.positive("temperature_tolerance_c", temperature_tolerance_c)
+    options["delay_tolerance_s"] = v.positive("delay_tolerance_s", delay_tolerance_s)
+    margin = v.non_negative("check_margin", check_margin)
+    if margin >= 1:
+        raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")
+    options["check_margin"] = margin
     from .run import run
 
     return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
