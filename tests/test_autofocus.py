@@ -272,7 +272,7 @@ def test_3d_step_keeps_the_line_of_sight_on_a_rigid_carriage():
     out, rep = autofocus(ds, GRID, methods=("phase", "3d"), max_iter=6)
     s = score(rep, ds)
     assert rep.improved and s["los_residual_rms_m"] < 0.3e-3
-    assert [st["step"] for st in rep.stages] == ["3d"] and rep.parameters["motion"].applied
+    assert [st["step"] for st in rep.stages] == ["phase", "3d", "motion"] and rep.parameters["motion"].applied
     move = out.tx_positions - ds.tx_positions
     assert np.allclose(move, out.rx_positions - ds.rx_positions)  # one rigid carriage
     assert np.allclose(move, rep.position_correction_m)

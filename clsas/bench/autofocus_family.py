@@ -165,3 +165,52 @@ def plot_family(results: dict, path) -> None:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
+
+
+def run_and_write(seed_set: str = "tuning", rms_mm=(3.0,), *, n_seeds: int | None = None, out_dir=None,
+                  plots: bool = True, backend=None, status=None) -> dict:
+    """The family at each RMS (mm) on ``seed_set`` (``"tuning"`` or ``"held-out"``, see
+    :mod:`clsas.scene_family`; the first ``n_seeds`` only), summarised, and written to
+    ``out_dir`` as ``<date>-autofocus-family-<set>.{json,md,png}``.
+
+    Returns ``{"results": {label: {"summary", "rows"}}, "paths": {...}}``.
+    """
+    import datetime
+    import json
+    import os
+    import platform
+    from pathlib import Path
+
+    from clsas.scene_family import HELD_OUT_SEEDS, TUNING_SEEDS
+
+    if seed_set not in ("tuning", "held-out"):
+        raise ValueError(f"seed_set must be 'tuning' or 'held-out', got {seed_set!r}")
+    seeds = list(TUNING_SEEDS if seed_set == "tuning" else HELD_OUT_SEEDS)[:n_seeds]
+    results = {}
+    for mm in rms_mm:
+        rows = run_family(seeds, float(mm) * 1e-3, backend=backend, status=status)
+        results[f"{seed_set} {mm:g} mm"] = {"summary": summarise(rows), "rows": rows}
+    paths = {}
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        stem = out / f"{datetime.date.today().isoformat()}-autofocus-family-{seed_set}"
+        host = {"machine": platform.machine(), "cpus": os.cpu_count(), "load": os.getloadavg()}
+        stem.with_suffix(".json").write_text(json.dumps({"seed_set": seed_set, "seeds": seeds, "host": host,
+                                                        "results": results}, default=_json, indent=1))
+        md = f"# Autofocus on the scene family ({seed_set} seeds {seeds[0]}-{seeds[-1]})\n\n"
+        if plots:
+            plot_family(results, stem.with_suffix(".png"))
+            paths["png"] = stem.with_suffix(".png")
+            md += f"![peak before and after]({stem.with_suffix('.png').name})\n\n"
+        stem.with_suffix(".md").write_text(md + family_markdown(results) + f"\n\nhost: {host}\n")
+        paths.update(json=stem.with_suffix(".json"), md=stem.with_suffix(".md"))
+    return {"results": results, "paths": paths}
+
+
+def _json(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)

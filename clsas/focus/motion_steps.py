@@ -1,13 +1,13 @@
-"""The motion stages of :mod:`.run`: from two halves of the stops (``"3d"``, the default), or on
-the whole scan (``"phase"``, ``"los"``, ``"pga"`` without ``"3d"``); each behind a check.
+"""The motion stage of :mod:`.run`, behind a check that is not the sharpness it maximised.
 
-With ``"3d"`` each half of the stops (:mod:`.split`) estimates the carriage motion in the same
-smooth basis over stop time (constant and tilt projected out: the gauge no focus metric sees),
-from its own per-stop phases where ``"phase"`` is asked; the coefficients are shrunk by how
-well the halves agree, and the motion is applied only where each half's image, corrected with
-the *other* half's estimate, agrees with it better than uncorrected (by ``check_margin`` in
-coherence). On the whole scan there is nothing held out: the check then compares the halves'
-images both corrected with the same estimate.
+The motion is estimated on all stops (``"phase"``: per-stop phases, the start for large motion;
+``"los"``: a smooth line-of-sight search; ``"3d"``: the carriage's 3-D displacement in a smooth
+basis over stop time, its constant and tilt projected out; ``"pga"``: strong points), then
+checked on two pairs of disjoint sub-apertures (:mod:`.split`: the first and second half of the
+stops in time, and the left and right half of the carriage's x): the images of each pair must
+agree (correlation of magnitudes) better after the correction than before, by ``check_margin``
+on average and worse on neither. Sharpness over-fits by concentrating each sub-aperture's
+energy wherever its own errors and speckle allow, which the other sub-aperture does not share.
 """
 
 from __future__ import annotations
@@ -16,75 +16,18 @@ import time
 
 import numpy as np
 
-from .motion import default_basis_size, los_directions, motion_basis
+from .motion import default_basis_size, los_directions, motion_basis, optimise_xyz
 from .report import ParameterEstimate
-from .split import combine, fit_half_motion
-from .steps import _focus_centre, _pga_step, _phase_step
+from .steps import _focus_centre, _per_stop_mean, _pga_step, _phase_step
 
-__all__ = ["split_motion", "full_motion"]
-
-
-def _centre(engine, shift, c, move) -> np.ndarray:
-    ds = engine.ds
-    values = engine.image(shift, c, ds.tx_positions + move, ds.rx_positions + move)
-    mag2 = np.abs(values) ** 2
-    return (engine.grid.points() * mag2[:, None]).sum(axis=0) / max(mag2.sum(), 1e-300)
+__all__ = ["estimate_motion", "carriage_3d"]
 
 
-def split_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, margin
-                 ) -> tuple[np.ndarray, bool]:
-    """The motion from the two halves, and whether it passed the held-out check."""
-    t = time.perf_counter()
-    ds, rep = fo.ds, fo.rep
-    zero = np.zeros((ds.n_meas, 3))
-    c = fo.c_stated
-    shift = fo.t0_at(c) - ds.t0_s
-    k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, ds.timestamps is not None)
-    basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) // 2 - 3, 1)))
-    rep.n_basis = basis.shape[1]
-    rep.focus_centre_m = _centre(fo.engine, shift, c, zero)
-    if rep.n_basis == 0:
-        rep.notes.append("motion: too few stops for a motion basis; not estimated")
-        return zero, False
-    coefs, infos = [], []
-    for h in fo.halves:
-        coef, info = fit_half_motion(h, shift, c, basis, use_phase="phase" in methods, use_3d=True, sweeps=sweeps,
-                                     max_bytes=max_bytes, max_iter=max_iter, history=rep.history,
-                                     progress=fo.progress)
-        coefs.append(coef)
-        infos.append(info)
-
-    def move_of(coef):
-        return (basis @ coef)[stop]
-
-    base = fo.halves_coherence(shift, c)
-    held = fo.halves_coherence(shift, c, (move_of(coefs[1]), move_of(coefs[0])))
-    applied, sigma, det = combine(*coefs)
-    passed = bool(held > base + margin and det.any())
-    rms = float(np.sqrt(np.mean(np.sum((basis @ applied) ** 2, axis=1))))
-    unc = float(np.sqrt(np.mean(np.sum((basis @ sigma) ** 2, axis=1))))
-    how = (f"{rep.n_basis} smooth functions x 3 axes from each half of the stops (phase start kept: "
-           f"{[i['phase_kept'] for i in infos]}); {int(det.sum())} of {det.size} coefficients agree between the halves;"
-           f" each half corrected with the other's estimate: coherence {base:.3f} -> {held:.3f}")
-    rep.check.update(coherence_motion_base=base, coherence_heldout=held, motion_passed=passed)
-    rep.parameters["motion"] = ParameterEstimate("motion", "m RMS", rms, unc, passed, False, how)
-    rep.stages.append({"step": "3d", "halves": infos, "determined": int(det.sum()), "coefficients": int(det.size),
-                       "coherence_base": base, "coherence_heldout": held, "time_s": time.perf_counter() - t})
-    if not passed:
-        rep.notes.append(f"motion: the halves' images corrected with each other's estimate agree "
-                         f"{'less' if held <= base else 'not enough'} better (coherence {base:.3f} -> {held:.3f}, "
-                         f"margin {margin:g}): not determined by this scan (the sharpness over-fits); not applied")
-        return zero, False
-    move = move_of(applied)
-    rep.focus_centre_m = _centre(fo.engine, shift, c, move)
-    return move, True
-
-
-def full_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, smooth_start,
-                pga_options, margin) -> tuple[np.ndarray, bool]:
-    """``"phase"``, ``"los"``, ``"pga"`` on the whole scan; kept where the halves' images, both
-    corrected with it, agree better by ``margin`` (not held out)."""
+def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, smooth_start,
+                    pga_options, margin) -> tuple[np.ndarray, bool]:
+    """The carriage's displacement (n_meas, 3), m, and whether it passed the check."""
     ds, rep, engine = fo.ds, fo.rep, fo.engine
+    t = time.perf_counter()
     c = fo.c_stated
     shift = fo.t0_at(c) - ds.t0_s
     p_stop = np.zeros(len(t_stop))
@@ -96,19 +39,50 @@ def full_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, 
     centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
     rep.focus_centre_m = centre
     move = (-0.5 * p_stop[stop])[:, None] * los_directions(ds, centre)
+    if "3d" in methods:
+        move = carriage_3d(fo, shift, c, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start)
     if "pga" in methods:
         move, _ = _pga_step(engine, ds, shift, c, stop, xy, move, pga_options, fo.image_metric, rep)
-    base = fo.halves_coherence(shift, c)
-    after = fo.halves_coherence(shift, c, (move, move))
-    passed = bool(after > base + margin)
+    before = fo.split_agreement(shift, c, None)
+    after = fo.split_agreement(shift, c, move)
+    gain = np.asarray(after) - np.asarray(before)
+    passed = bool(gain.mean() > margin and gain.min() > -margin)
     rms = float(np.sqrt(np.mean(np.sum(move**2, axis=1))))
-    rep.check.update(coherence_motion_base=base, coherence_motion=after, motion_passed=passed)
+    pairs = ", ".join(f"{n} {b:.3f} -> {a:.3f}" for n, b, a in zip(fo.split_names, before, after, strict=True))
+    rep.check.update({f"motion_{n}_before": b for n, b in zip(fo.split_names, before, strict=True)})
+    rep.check.update({f"motion_{n}_after": a for n, a in zip(fo.split_names, after, strict=True)})
+    rep.check["motion_passed"] = passed
+    used = "+".join(m for m in methods if m in ("phase", "los", "3d", "pga"))
     rep.parameters["motion"] = ParameterEstimate(
         "motion", "m RMS", rms, float("nan"), passed, False,
-        f"{'+'.join(m for m in methods if m in ('phase', 'los', 'pga'))} on all stops; the halves both corrected "
-        f"with it: coherence {base:.3f} -> {after:.3f} (not held out)")
+        f"{used} on all stops ({rep.n_basis or 'per-stop'} functions per axis); sub-aperture images agree "
+        f"(magnitude correlation): {pairs}")
+    rep.stages.append({"step": "motion", "methods": used, "agreement_before": list(before),
+                       "agreement_after": list(after), "passed": passed, "time_s": time.perf_counter() - t})
     if not passed:
-        rep.notes.append(f"motion: the halves' images agree not enough better after it (coherence {base:.3f} -> "
-                         f"{after:.3f}, margin {margin:g}): not applied")
+        rep.notes.append(f"motion: the disjoint sub-apertures' images do not agree better after it ({pairs}; margin "
+                         f"{margin:g}): the sharpness over-fits, or the scan does not determine the motion; "
+                         "not applied")
         return np.zeros((ds.n_meas, 3)), False
     return move, True
+
+
+def carriage_3d(fo, shift, c_est, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start):
+    """The carriage's 3-D displacement per measurement (n_meas, 3), m, started from ``move``."""
+    t = time.perf_counter()
+    start = _per_stop_mean(move, stop)
+    k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, fo.ds.timestamps is not None)
+    basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) - 3, 1))) if k < len(t_stop) else None
+    nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
+    if basis is not None and smooth_start:
+        # the carriage moves smoothly: the start keeps the line-of-sight move's part in the basis;
+        # what is left is the per-stop estimates' noise and the line of sight's turn, not motion
+        start = basis @ (basis.T @ start)
+    else:  # the gauge no focus metric sees: the constant and the tilt, out
+        start = start - nuis @ (nuis.T @ start)
+    d, info = optimise_xyz(fo.engine, shift, c_est, stop, start, max_iter, fo.rep.history, callback=fo.progress,
+                           basis=basis)
+    fo.rep.n_basis = info["functions"]
+    fo.rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
+                          "time_s": time.perf_counter() - t})
+    return d[stop]

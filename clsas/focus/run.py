@@ -1,10 +1,10 @@
 """The autofocus pipeline behind :func:`clsas.autofocus` (inputs already checked there).
 
-Every parameter is estimated only as far as the scan determines it (see :mod:`.split`): the
-delay from the direct sound (none without it), the motion in a smooth basis from two disjoint
-halves of the stops (each coefficient shrunk by their agreement, gauge terms projected out),
-the temperature from the two halves' sharpest images (kept only where they agree). A check
-that is not the sharpness decides what comes back: the halves' images must agree better.
+Every parameter is estimated only as far as the scan determines it: the delay from the direct
+sound (none without it: not determined, 0); the motion on all stops, applied only where
+disjoint sub-apertures' images agree better after it (:mod:`.motion_steps`); the temperature
+from the first and second half of the stops, kept only where the two agree (:mod:`.split`). A
+last check on the whole correction decides what comes back.
 """
 
 from __future__ import annotations
@@ -20,14 +20,14 @@ from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, motion_basis, optimise_los, stops_of
 from .report import AutofocusReport, ParameterEstimate
-from .split import agreement, coherence, split_halves
+from .split import agreement, magnitude_correlation, split_halves
 from .steps import _bounded_search, _los_path, _record
 
 __all__ = ["run"]
 
 log = logging.getLogger("clsas.autofocus")
 
-FINAL_TOLERANCE = 0.005  # the returned correction may lower the halves' coherence by at most this
+FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair's agreement by at most this
 
 
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
@@ -46,7 +46,9 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     fo = _Focus(ds, engine, rep, metric, progress, temp0, per_stop_delay)
     rep.metric_before = fo.image_metric(np.zeros(ds.n_meas), fo.c_stated, "input")
     stop, t_stop, xy = stops_of(ds)
-    fo.halves = split_halves(ds, grid, stop, backend=engine.selection, **eopt)
+    fo.splits = [hs for hs in (split_halves(ds, grid, stop, xy, how, backend=engine.selection, **eopt)
+                               for how in fo.split_names) if hs is not None]
+    fo.halves = fo.splits[0] if len(fo.splits) == len(fo.split_names) else None
     if fo.halves is None:
         rep.notes.append("fewer than 8 stops: no halves to check with; only what the direct sound gives is applied")
     if "direct" in methods:  # the direct sound: each recording's t0 at a given c
@@ -64,7 +66,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
 
 
 class _Focus:
-    """What the stages of :func:`run` share: the dataset, the engine and the two halves' engines,
+    """What the stages of :func:`run` share: the dataset, the engine and the sub-apertures' engines,
     the report, the stated air, the direct sound once found, the delay found without it."""
 
     def __init__(self, ds, engine, rep, metric, progress, temp0, per_stop_delay):
@@ -102,9 +104,11 @@ class _Focus:
             t0 = ds.t0_s + float(np.median(t0 - ds.t0_s))
         return t0
 
-    def halves_coherence(self, shift, c, moves=(None, None)) -> float:
-        a, b = self.halves
-        return coherence(a.image(shift, c, moves[0]), b.image(shift, c, moves[1]))
+    split_names = ("time", "x")
+
+    def split_agreement(self, shift, c, move) -> list[float]:
+        """Per pair of sub-apertures (``split_names``): their images' magnitude correlation."""
+        return [magnitude_correlation(a.image(shift, c, move), b.image(shift, c, move)) for a, b in self.splits]
 
     def find_direct(self, max_delay_s: float) -> None:
         """The direct sound's arrivals (kept in ``self.direct`` where found), noted in the report."""
@@ -188,13 +192,10 @@ class _Focus:
     def motion(self, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, smooth_start,
                pga_options, margin) -> tuple[np.ndarray, bool]:
         """The carriage's displacement (n_meas, 3), m, and whether it passed the held-out check."""
-        from .motion_steps import full_motion, split_motion
+        from .motion_steps import estimate_motion
 
-        if "3d" in methods:
-            return split_motion(self, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes,
-                                margin)
-        return full_motion(self, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes,
-                           smooth_start, pga_options, margin)
+        return estimate_motion(self, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes,
+                               smooth_start, pga_options, margin)
 
     def line_of_sight(self, shift, c_est, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter):
         """``p_stop`` plus the line-of-sight path changes per stop (a smooth motion basis), m."""
@@ -227,11 +228,14 @@ def _finish(fo, methods, d_temp, move, stop, started) -> tuple:
     rep.history.append(rep.metric_after)
     changed = bool(np.any(shift != 0) or d_temp != 0 or np.any(move != 0))
     if fo.halves is not None:
-        before = rep.check.get("coherence_before", fo.halves_coherence(np.zeros(ds.n_meas), fo.c_stated))
-        after = fo.halves_coherence(shift, c_est, (move, move))
-        rep.check.update(coherence_before=before, coherence_after=after, passed=bool(after >= before - FINAL_TOLERANCE))
-        why = (f"the two halves' images agree less after the correction (coherence {after:.3f} against {before:.3f} "
-               "as given)")
+        before = fo.split_agreement(np.zeros(ds.n_meas), fo.c_stated, None)
+        after = fo.split_agreement(shift, c_est, move)
+        for n, b, a in zip(fo.split_names, before, after, strict=True):
+            rep.check.update({f"{n}_before": b, f"{n}_after": a})
+        rep.check["passed"] = bool(min(a - b for a, b in zip(after, before, strict=True)) >= -FINAL_TOLERANCE)
+        why = ("the disjoint sub-apertures' images agree less after the whole correction ("
+               + ", ".join(f"{n} {b:.3f} -> {a:.3f}" for n, b, a in zip(fo.split_names, before, after, strict=True))
+               + ")")
     else:  # no halves: only the direct sound's delay, which the physics determines, may be applied
         rep.check.update(passed=bool(not np.any(move != 0) and d_temp == 0))
         why = "too few stops to check anything but the direct sound's delay"
