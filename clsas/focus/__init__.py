@@ -53,7 +53,7 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"
 log = logging.getLogger(__name__)
 
 METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
-DEFAULT_METHODS = ("direct", "phase", "3d", "temperature")
+DEFAULT_METHODS = ("direct", "phase", "temperature")
 
 
 def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,

@@ -20,7 +20,7 @@ from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, motion_basis, optimise_los, stops_of
 from .report import AutofocusReport, ParameterEstimate
-from .split import agreement, magnitude_correlation, split_halves
+from .split import agreement, coherence, split_halves
 from .steps import _bounded_search, _los_path, _record
 
 __all__ = ["run"]
@@ -107,8 +107,8 @@ class _Focus:
     split_names = ("time", "x")
 
     def split_agreement(self, shift, c, move) -> list[float]:
-        """Per pair of sub-apertures (``split_names``): their images' magnitude correlation."""
-        return [magnitude_correlation(a.image(shift, c, move), b.image(shift, c, move)) for a, b in self.splits]
+        """Per pair of sub-apertures (``split_names``): their images' complex coherence."""
+        return [coherence(a.image(shift, c, move), b.image(shift, c, move)) for a, b in self.splits]
 
     def find_direct(self, max_delay_s: float) -> None:
         """The direct sound's arrivals (kept in ``self.direct`` where found), noted in the report."""

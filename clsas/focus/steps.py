@@ -51,8 +51,14 @@ def _focus_centre(engine, grid, shift, c) -> np.ndarray:
     return (pts * mag2[:, None]).sum(axis=0) / max(mag2.sum(), 1e-300)
 
 
-def _phase_step(engine, ds, grid, shift, c, stop, sweeps, max_bytes, image_metric, history, progress, rep):
-    """Per-stop phases (:mod:`.phases`) read as line-of-sight paths; zero if the image does not agree."""
+def _phase_step(engine, ds, grid, shift, c, stop, sweeps, max_bytes, image_metric, history, progress, rep,
+                splits=()):
+    """Per-stop phases (:mod:`.phases`) read as line-of-sight paths; zero if the image does not agree.
+
+    ``splits``: ``(name, mask)`` pairs, ``mask`` (n_stops,) bool: for each, the phases are also
+    searched on the two sides of the mask on their own, and the two sides' images compared
+    (:func:`_held_out_phases`); the result goes to ``rep.check``.
+    """
     t = time.perf_counter()
     n_stops = int(stop.max()) + 1
     first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
@@ -68,6 +74,9 @@ def _phase_step(engine, ds, grid, shift, c, stop, sweeps, max_bytes, image_metri
         rep.notes.append(f"phase: stop images on the {keep} brightest of {grid.size} voxels (memory)")
     a = engine.stop_images(shift, c, stop, voxels)
     phi, info = stop_phase_search(a, sweeps=sweeps, history=history, callback=progress)
+    for name, mask in splits:
+        before, after = _held_out_phases(a, mask, sweeps)
+        rep.check.update({f"phase_{name}_before": before, f"phase_{name}_after": after})
     del a
     p = phase_to_path(phi, c[first], engine.prof.fc_hz)
     m_before = image_metric(shift, c, "phase")
@@ -82,6 +91,21 @@ def _phase_step(engine, ds, grid, shift, c, stop, sweeps, max_bytes, image_metri
     log.info("autofocus phase: %d sweeps, %.2f mm RMS of path, metric %.5g", info["sweeps"],
              float(np.sqrt(np.mean(p**2))) * 1e3, m_after)
     return p
+
+
+def _held_out_phases(a: np.ndarray, mask: np.ndarray, sweeps: int) -> tuple[float, float]:
+    """The complex coherence of the images of the stops in ``mask`` and of the rest, as given
+    and each after a phase search of its own (independent data, independent estimates: they
+    agree better only where both find the scene, not their own noise or speckle)."""
+    from .split import coherence
+
+    sides = [a[mask], a[~mask]]
+    before = coherence(*(x.sum(axis=0, dtype=np.complex128) for x in sides))
+    after = []
+    for x in sides:
+        phi, _ = stop_phase_search(x, sweeps=sweeps)
+        after.append((np.exp(1j * phi)[:, None] * x).sum(axis=0))
+    return before, coherence(*after)
 
 
 def _per_stop_mean(move, stop) -> np.ndarray:
