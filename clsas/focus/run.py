@@ -20,7 +20,7 @@ from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, motion_basis, optimise_los, stops_of
 from .report import AutofocusReport, ParameterEstimate
-from .split import agreement, coherence, split_halves
+from .split import agreement, magnitude_correlation, split_halves
 from .steps import _bounded_search, _los_path, _record
 
 __all__ = ["run"]
@@ -33,7 +33,7 @@ FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
         smooth_start=True, pga_options=None, temperature_tolerance_c=0.25, delay_tolerance_s=1e-6,
-        check_margin=0.01) -> tuple:
+        check_margin=0.01, phase_region_m=0.03) -> tuple:
     """The stages of :func:`clsas.autofocus` in turn: the direct sound, a delay, the motion, the
     temperature; then the check and the corrected dataset (or the input) and the report."""
     rep = AutofocusReport(metric=metric, methods=list(methods))
@@ -44,6 +44,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     engine = FocusEngine(ds, grid, backend=backend, device=device, **eopt)
     rep.backend, rep.device = engine.backend, engine.device
     fo = _Focus(ds, engine, rep, metric, progress, temp0, per_stop_delay)
+    fo.phase_region_m, fo.engine_options = phase_region_m, eopt
     rep.metric_before = fo.image_metric(np.zeros(ds.n_meas), fo.c_stated, "input")
     stop, t_stop, xy = stops_of(ds)
     fo.splits = [hs for hs in (split_halves(ds, grid, stop, xy, how, backend=engine.selection, **eopt)
@@ -88,6 +89,13 @@ class _Focus:
             self.progress(step, len(self.rep.history), m)
         return m
 
+    def metric_of(self, values, step):
+        m = metric_and_weight(values, self.metric)[0]
+        self.rep.history.append(m)
+        if self.progress is not None:
+            self.progress(step, len(self.rep.history), m)
+        return m
+
     def half_metric(self, h, shift, c, move, step):
         m = metric_and_weight(h.image(shift, c, move), self.metric)[0]
         self.rep.history.append(m)
@@ -107,8 +115,8 @@ class _Focus:
     split_names = ("time", "x")
 
     def split_agreement(self, shift, c, move) -> list[float]:
-        """Per pair of sub-apertures (``split_names``): their images' complex coherence."""
-        return [coherence(a.image(shift, c, move), b.image(shift, c, move)) for a, b in self.splits]
+        """Per pair of sub-apertures (``split_names``): their images' magnitude correlation."""
+        return [magnitude_correlation(a.image(shift, c, move), b.image(shift, c, move)) for a, b in self.splits]
 
     def find_direct(self, max_delay_s: float) -> None:
         """The direct sound's arrivals (kept in ``self.direct`` where found), noted in the report."""
