@@ -1,7 +1,7 @@
 """A seeded family of hand-held scans for testing autofocus on scenes nobody tuned it on.
 
 :func:`family_scene` draws one scene from a seed: a raster aperture of 13-28 stops a side over
-0.24-1.0 m, a target at 0.5-1.8 m (2-12 point reflectors, a rough tilted plane of about 120
+0.24-1.0 m, a target at 0.5-1.8 m, 6-15 cm across (2-12 point reflectors, a rough tilted plane of about 120
 scatterers, or a sphere cap of about 160), a 20-30 kHz chirp of 1-5 ms at 96 kHz, an SNR of
 15-35 dB and :class:`~clsas.scan_errors.HandMotion` of a given RMS (0.2-5 Hz). In half the seeds
 (odd ones) the scan also has a 10-50 us group delay, a 0.5-3 C air temperature error and the
@@ -31,7 +31,7 @@ TUNING_SEEDS = tuple(range(0, 12))
 HELD_OUT_SEEDS = tuple(range(1000, 1030))
 KINDS = ("points", "plane", "sphere")
 FS_HZ = 96e3
-MAX_VOXELS = 30_000
+MAX_VOXELS = 120_000
 
 
 @dataclass
@@ -47,8 +47,9 @@ class FamilyScene:
     clean : Dataset
         The same scan with no motion, delay or air error (the same noise draw), the reference.
     grid : VoxelGrid
-        The scene's box plus 3 cm, at a spacing of a third of the shortest wavelength or
-        coarser (at most :data:`MAX_VOXELS` voxels).
+        The scene's box plus 2 cm, at a spacing of a third of the shortest wavelength (coarser
+        only past :data:`MAX_VOXELS` voxels: a coarser grid aliases the carrier's fringes, and
+        the focus metrics with it).
     scene : Scene
     params : dict
         What was drawn (aperture, range, chirp, SNR, errors).
@@ -108,7 +109,7 @@ def family_scene(seed: int, *, rms_m: float = 3e-3, kind: str | None = None) -> 
     nx, ny = (int(n) for n in rng.integers(13, 29, 2))
     width, height = (float(s) for s in rng.uniform(0.24, 1.0, 2))
     range_m = float(rng.uniform(0.5, 1.8))
-    extent = float(rng.uniform(0.08, 0.25))
+    extent = float(rng.uniform(0.06, 0.15))
     duration = float(rng.uniform(1e-3, 5e-3))
     up = bool(rng.integers(0, 2))
     snr = float(rng.uniform(15, 35))
@@ -137,7 +138,7 @@ def family_scene(seed: int, *, rms_m: float = 3e-3, kind: str | None = None) -> 
     return FamilyScene(int(seed), kind, ds, clean, _grid(pts), scene, params)
 
 
-def _grid(pts: np.ndarray, pad_m: float = 0.03, max_voxels: int = MAX_VOXELS) -> VoxelGrid:
+def _grid(pts: np.ndarray, pad_m: float = 0.02, max_voxels: int = MAX_VOXELS) -> VoxelGrid:
     """The box around ``pts`` plus ``pad_m``, at a third of 30 kHz's wavelength or coarser."""
     lo, hi = pts.min(axis=0) - pad_m, pts.max(axis=0) + pad_m
     spacing = max(343.0 / 30e3 / 3, float(np.prod(hi - lo) / max_voxels) ** (1 / 3))

@@ -76,6 +76,8 @@ def test_hand_motion_is_corrected_and_checked():
     ({"delay_tolerance_s": -1e-6}, "delay_tolerance_s"),
     ({"check_margin": 1.0}, "check_margin"),
     ({"check_margin": float("nan")}, "check_margin"),
+    ({"heldout_gain": 0}, "heldout_gain"),
+    ({"phase_region_m": -0.01}, "phase_region_m"),
 ])
 def test_new_options_are_validated_by_name(kwargs, match):
     with pytest.raises(ValueError, match=match):

@@ -62,7 +62,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
               max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
               pga_min_coherence: float | None = None, pga_max_points: int = 32,
               temperature_tolerance_c: float = 0.25, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
-              phase_region_m: float | None = 0.03,
+              phase_region_m: float | None = None, heldout_gain: float = 0.2,
               backend: str | None = None, device: Any = None,
               progress: Callable[[str, int, float], None] | None = None,
               force: bool = False) -> tuple[Dataset, AutofocusReport]:
@@ -115,10 +115,15 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         The motion is applied only where two disjoint sub-apertures' images, each corrected with
         its own phase search, agree (correlation of magnitudes, 0 to 1) by at least this more
         than uncorrected, and both corrected with the estimate agree better too.
+    heldout_gain : float
+        ``"phase"`` is applied only where each interleaved half of the stops' phases, predicted
+        onto the other half, raise that half's log-sharpness by at least this (both ways).
     phase_region_m : float, optional
         ``"phase"`` searches the per-stop phases on a fine local grid (a quarter of the shortest
         wavelength) of this half-size around the image's brightest voxel, m: the line of sight to
-        one reflector, sampled finely enough for its carrier fringes; None: on ``grid``.
+        one reflector, sampled finely enough for its carrier fringes; None (default): on
+        ``grid``, which measured better (0.14 against 2.6 mm of residual line of sight on the
+        test scan with 3 mm of motion).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -139,6 +144,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     if margin >= 1:
         raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")
     options["check_margin"] = margin
+    options["heldout_gain"] = v.positive("heldout_gain", heldout_gain)
     options["phase_region_m"] = None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)
     from .run import run
 

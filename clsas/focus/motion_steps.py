@@ -39,7 +39,7 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
             return fo.metric_of(ph_engine.image(sh, cc), step)
 
         p_stop = _phase_step(ph_engine, ds, ph_engine.grid, shift, c, stop, sweeps, max_bytes, local_metric,
-                             rep.history, fo.progress, rep, margin=margin)
+                             rep.history, fo.progress, rep, margin=fo.heldout_gain)
     if "los" in methods:
         p_stop = fo.line_of_sight(shift, c, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter)
     if centre is None:

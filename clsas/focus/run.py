@@ -33,7 +33,7 @@ FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
         smooth_start=True, pga_options=None, temperature_tolerance_c=0.25, delay_tolerance_s=1e-6,
-        check_margin=0.01, phase_region_m=0.03) -> tuple:
+        check_margin=0.01, phase_region_m=None, heldout_gain=0.2) -> tuple:
     """The stages of :func:`clsas.autofocus` in turn: the direct sound, a delay, the motion, the
     temperature; then the check and the corrected dataset (or the input) and the report."""
     rep = AutofocusReport(metric=metric, methods=list(methods))
@@ -44,7 +44,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     engine = FocusEngine(ds, grid, backend=backend, device=device, **eopt)
     rep.backend, rep.device = engine.backend, engine.device
     fo = _Focus(ds, engine, rep, metric, progress, temp0, per_stop_delay)
-    fo.phase_region_m, fo.engine_options = phase_region_m, eopt
+    fo.phase_region_m, fo.engine_options, fo.heldout_gain = phase_region_m, eopt, heldout_gain
     rep.metric_before = fo.image_metric(np.zeros(ds.n_meas), fo.c_stated, "input")
     stop, t_stop, xy = stops_of(ds)
     fo.splits = [hs for hs in (split_halves(ds, grid, stop, xy, how, backend=engine.selection, **eopt)
