@@ -61,7 +61,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
               temperature_range_c: float = 5.0, max_delay_s: float = 5e-4, per_stop_delay: bool = True,
               max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
               pga_min_coherence: float | None = None, pga_max_points: int = 32,
-              temperature_tolerance_c: float = 0.25, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
+              temperature_tolerance_c: float = 0.35, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
               phase_region_m: float | None = None, heldout_gain: float = 0.2,
               backend: str | None = None, device: Any = None,
               progress: Callable[[str, int, float], None] | None = None,
@@ -107,8 +107,10 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     pga_max_points : int
         Most strong points ``"pga"`` uses (the brightest that qualify).
     temperature_tolerance_c : float
-        The temperature is determined (and applied) only where the two halves of the stops give
-        sharpest images within twice this of each other (its uncertainty is at most this), °C.
+        The temperature is determined (and applied) only where its uncertainty is at most this,
+        °C: half the difference of the two halves of the stops' sharpest temperatures, over
+        sqrt(2) (the whole aperture is at least that much better). The estimate is then the
+        whole aperture's sharpest, near the halves' mean.
     delay_tolerance_s : float
         The same for the ``"delay"`` search without direct sound, s.
     check_margin : float

@@ -32,7 +32,7 @@ FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair
 
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
-        smooth_start=True, pga_options=None, temperature_tolerance_c=0.25, delay_tolerance_s=1e-6,
+        smooth_start=True, pga_options=None, temperature_tolerance_c=0.35, delay_tolerance_s=1e-6,
         check_margin=0.01, phase_region_m=None, heldout_gain=0.2) -> tuple:
     """The stages of :func:`clsas.autofocus` in turn: the direct sound, a delay, the motion, the
     temperature; then the check and the corrected dataset (or the input) and the report."""
@@ -184,12 +184,25 @@ class _Focus:
 
         found = [_bounded_search(lambda dt, h=h: f_temp(dt, h), -range_c, range_c, step=min(1.0, range_c / 2),
                                  tol=0.02)[0] for h in self.halves]
-        ag = agreement(found[0], found[1], -range_c, range_c, tolerance_c)
+        # each half is half the aperture: the whole one determines c at least sqrt(2) better
+        ag = agreement(found[0], found[1], -range_c, range_c, tolerance_c * np.sqrt(2))
+        ag["uncertainty"] /= np.sqrt(2)
         how = (f"sharpest image of each half at {found[0]:+.2f} and {found[1]:+.2f} C from the stated "
                f"(search +-{range_c:g} C, the thermometer's stated uncertainty)")
+        if ag["determined"]:  # the estimate: the whole aperture's sharpest, near the halves' mean
+            lo, hi = ag["estimate"] - 4 * ag["uncertainty"] - 0.1, ag["estimate"] + 4 * ag["uncertainty"] + 0.1
+
+            def f_whole(dt):
+                c = self.c_at(dt)
+                return self.image_metric(self.t0_at(c) - self.ds.t0_s, c, "temperature",
+                                         self.ds.tx_positions + move, self.ds.rx_positions + move)
+
+            ag["estimate"] = _bounded_search(f_whole, max(lo, -range_c), min(hi, range_c), step=(hi - lo) / 4,
+                                             tol=0.01)[0]
+            how += f"; the whole aperture's sharpest at {ag['estimate']:+.2f} C"
         if not ag["determined"]:
             how += ("; at the edge of the search" if ag["at_edge"] else
-                    f"; they differ by more than 2 x {tolerance_c:g} C") + ": not determined, stated kept"
+                    f"; uncertainty over {tolerance_c:g} C") + ": not determined, stated kept"
         self.rep.parameters["temperature"] = ParameterEstimate("temperature", "C offset", ag["estimate"],
                                                                ag["uncertainty"], ag["determined"], False, how)
         self.rep.stages.append({"step": "temperature", "halves_c": found, "determined": ag["determined"],
@@ -235,8 +248,8 @@ def _finish(fo, methods, d_temp, move, stop, started) -> tuple:
     rep.metric_after = metric_and_weight(engine.image(shift, c_est, tx, rx), rep.metric)[0]
     rep.history.append(rep.metric_after)
     changed = bool(np.any(shift != 0) or d_temp != 0 or np.any(move != 0))
-    if fo.halves is not None:
-        before = fo.split_agreement(np.zeros(ds.n_meas), fo.c_stated, None)
+    if fo.halves is not None:  # judged against the direct sound's delay alone (a measurement, not a focus)
+        before = fo.split_agreement(fo.t0_at(fo.c_stated) - ds.t0_s, fo.c_stated, None)
         after = fo.split_agreement(shift, c_est, move)
         for n, b, a in zip(fo.split_names, before, after, strict=True):
             rep.check.update({f"{n}_before": b, f"{n}_after": a})
