@@ -40,6 +40,10 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
 
         p_stop = _phase_step(ph_engine, ds, ph_engine.grid, shift, c, stop, sweeps, max_bytes, local_metric,
                              rep.history, fo.progress, rep, margin=fo.heldout_gain)
+        # the gauge no focus metric sees: a constant path is a range shift, one linear in the
+        # carriage's x and y a shift across; the phase search leaves them free, so they go
+        nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
+        p_stop = p_stop - nuis @ (nuis.T @ p_stop)
     if "los" in methods:
         p_stop = fo.line_of_sight(shift, c, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter)
     if centre is None:
