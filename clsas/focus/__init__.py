@@ -95,37 +95,27 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     per_stop_delay : bool
         Keep each recording's own direct-path delay (timing jitter) rather than their median.
     max_iter : int
-        L-BFGS iterations per stage of the line-of-sight search, and of the 3-D search.
+        L-BFGS iterations per stage of the ``"los"`` search and of the ``"3d"`` search.
     phase_sweeps : int
         Most sweeps of the per-stop phase search (``"phase"``).
     max_stop_bytes : int
-        Memory for the per-stop images of ``"phase"`` (complex64, stops x voxels), bytes; past
-        it, only the brightest voxels of the image are kept.
+        Memory for ``"phase"``'s per-stop images (complex64), bytes; past it, the brightest voxels.
     pga_min_coherence : float, optional
         ``"pga"`` uses only points whose per-stop contributions add up this coherently (0 to 1;
         default :data:`clsas.focus.pga.PGA_MIN_COHERENCE`).
     pga_max_points : int
         Most strong points ``"pga"`` uses (the brightest that qualify).
-    temperature_tolerance_c : float
-        The temperature is determined (and applied) only where its uncertainty is at most this,
-        °C: half the difference of the two halves of the stops' sharpest temperatures, over
-        sqrt(2) (the whole aperture is at least that much better). The estimate is then the
-        whole aperture's sharpest, near the halves' mean.
-    delay_tolerance_s : float
-        The same for the ``"delay"`` search without direct sound, s.
+    temperature_tolerance_c, delay_tolerance_s : float
+        Applied only where the uncertainty (from the two halves of the stops) is at most this.
     check_margin : float
-        The motion is applied only where two disjoint sub-apertures' images, each corrected with
-        its own phase search, agree (correlation of magnitudes, 0 to 1) by at least this more
-        than uncorrected, and both corrected with the estimate agree better too.
+        Sub-aperture images' agreement (0 to 1) must not fall by more (``"phase"``), or must
+        rise by at least this (``"3d"``, ``"los"``, ``"pga"``).
     heldout_gain : float
-        ``"phase"`` is applied only where each interleaved half of the stops' phases, predicted
-        onto the other half, raise that half's log-sharpness by at least this (both ways).
+        Each interleaved half's phases, predicted onto the other, must raise its log-sharpness
+        by at least this.
     phase_region_m : float, optional
-        ``"phase"`` searches the per-stop phases on a fine local grid (a quarter of the shortest
-        wavelength) of this half-size around the image's brightest voxel, m: the line of sight to
-        one reflector, sampled finely enough for its carrier fringes; None (default): on
-        ``grid``, which measured better (0.14 against 2.6 mm of residual line of sight on the
-        test scan with 3 mm of motion).
+        Search the phases on a fine local grid of this half-size at the brightest voxel, m
+        (None: on ``grid``; see the README).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -140,14 +130,8 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
                        max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
                        pga_max_points, progress)
-    options["temperature_tolerance_c"] = v.positive("temperature_tolerance_c", temperature_tolerance_c)
-    options["delay_tolerance_s"] = v.positive("delay_tolerance_s", delay_tolerance_s)
-    margin = v.non_negative("check_margin", check_margin)
-    if margin >= 1:
-        raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")
-    options["check_margin"] = margin
-    options["heldout_gain"] = v.positive("heldout_gain", heldout_gain)
-    options["phase_region_m"] = None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)
+    options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
+                                          phase_region_m))
     from .run import run
 
     return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
@@ -191,6 +175,18 @@ def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, tempe
             "temperature_range_c": t_range, "max_delay_s": max_delay, "per_stop_delay": bool(per_stop_delay),
             "max_iter": max_iter, "phase_sweeps": phase_sweeps, "max_stop_bytes": max_stop_bytes,
             "pga_options": pga_options}
+
+
+def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
+                           phase_region_m) -> dict:
+    """The options of issue 26 (what counts as determined, and the check) checked."""
+    margin = v.non_negative("check_margin", check_margin)
+    if margin >= 1:
+        raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")
+    return {"temperature_tolerance_c": v.positive("temperature_tolerance_c", temperature_tolerance_c),
+            "delay_tolerance_s": v.positive("delay_tolerance_s", delay_tolerance_s), "check_margin": margin,
+            "heldout_gain": v.positive("heldout_gain", heldout_gain),
+            "phase_region_m": None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)}
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:
