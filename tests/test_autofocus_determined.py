@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.focus import autofocus
+from clsas.focus import DEFAULT_METHODS, FOCUS_METHODS, autofocus
 from clsas.focus.split import agreement, coherence, magnitude_correlation
 from clsas.scan_errors import HandMotion
 from clsas.scene_family import HELD_OUT_SEEDS, KINDS, TUNING_SEEDS, family_scene
@@ -29,7 +29,8 @@ def test_a_delay_without_direct_sound_stays_at_zero():
     # either the halves disagree (not determined: exactly 0) or they agree, and then near the truth (0)
     assert (not gd.determined and rep.group_delay_s == 0.0) or abs(rep.group_delay_s) <= 2e-6
     assert np.array_equal(out.t0_s, ds.t0_s) or abs(rep.group_delay_s) <= 2e-6
-    _, rep = autofocus(ds, GRID, methods=("direct", "phase", "3d"), max_iter=4)  # the default: no delay search
+    assert "delay" not in DEFAULT_METHODS and "delay" not in FOCUS_METHODS
+    _, rep = autofocus(ds, GRID, methods=("direct", "phase", "3d"), max_iter=4)  # no delay search
     assert rep.group_delay_s == 0.0 and not rep.parameters["group_delay"].determined
     assert "no direct sound" in rep.parameters["group_delay"].how
 
@@ -63,7 +64,7 @@ def test_sharpness_over_fit_returns_the_input_with_a_note():
 @pytest.mark.slow
 def test_hand_motion_is_corrected_and_checked():
     ds = scan(nx=19, ny=13, width=0.4, height=0.3, position_error=HandMotion(0.003, seed=4, weights=(0.3, 0.3, 1)))
-    out, rep = autofocus(ds, GRID, max_iter=15)
+    out, rep = autofocus(ds, GRID, methods=FOCUS_METHODS, max_iter=15)
     s = clsas.focus.score(rep, ds)
     assert rep.improved and rep.parameters["motion"].applied
     assert rep.check["motion_passed"] and rep.check["passed"]

@@ -1,6 +1,6 @@
 """Autofocus on the seeded scene family (:mod:`clsas.scene_family`): the distribution.
 
-Each scene is drawn from its seed, imaged as recorded, autofocused with the default methods,
+Each scene is drawn from its seed, imaged as recorded, autofocused with ``FOCUS_METHODS`` (direct, phase, temperature),
 and scored against the same scan without errors:
 
 - *peak loss*: the local peak (on a 1.5 mm grid within 1.5 cm) at the error-free image's
@@ -9,7 +9,8 @@ and scored against the same scan without errors:
 - the line-of-sight error before and after (:func:`clsas.focus.score`: constant and tilt, which
   no focus metric sees, removed);
 - the group delay and temperature errors where the report says they were determined;
-- the time of :func:`clsas.autofocus`.
+- the time of :func:`clsas.autofocus` (with :data:`clsas.focus.FOCUS_METHODS`: direct, phase,
+  temperature; the library's default is the direct sound alone).
 
 :func:`summarise` gives the distribution: share within 1 dB of the error-free local peak, share
 worse than no autofocus (by any amount and by more than 0.5 dB), median and worst peak loss,
@@ -42,7 +43,7 @@ def _local_peak_db(ds, point, radius_m=0.015, step_m=0.0015, backend=None) -> fl
 def run_scene(seed: int, rms_m: float, *, backend=None, methods=None, **options) -> dict:
     """One scene of the family, autofocused and scored (see the module docstring)."""
     import clsas
-    from clsas.focus import DEFAULT_METHODS, autofocus, score
+    from clsas.focus import FOCUS_METHODS, autofocus, score
     from clsas.scene_family import family_scene
 
     fs = family_scene(seed, rms_m=rms_m)
@@ -51,7 +52,7 @@ def run_scene(seed: int, rms_m: float, *, backend=None, methods=None, **options)
     ref = _local_peak_db(fs.clean, point, backend=backend)
     before = _local_peak_db(fs.dataset, point, backend=backend) - ref
     t = time.perf_counter()
-    out, rep = autofocus(fs.dataset, fs.grid, methods=methods or DEFAULT_METHODS, backend=backend, **options)
+    out, rep = autofocus(fs.dataset, fs.grid, methods=methods or FOCUS_METHODS, backend=backend, **options)
     elapsed = time.perf_counter() - t
     after = _local_peak_db(out, point, backend=backend) - ref if rep.improved else before
     s = score(rep, fs.dataset)

@@ -48,12 +48,16 @@ from ..physics import speed_of_sound
 from .metrics import METRICS
 from .report import AutofocusReport
 
-__all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"]
+__all__ = ["AutofocusReport", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "autofocus", "score"]
 
 log = logging.getLogger(__name__)
 
 METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
-DEFAULT_METHODS = ("direct", "phase", "temperature")
+# ("direct", "phase", "temperature") until the held-out run of issue 26 (commit 2f50580) showed
+# "phase" and "temperature" making a third of the held-out scenes worse: now only what the
+# physics determines by default; the focus steps run when named
+DEFAULT_METHODS = ("direct",)
+FOCUS_METHODS = ("direct", "phase", "temperature")
 
 
 def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
@@ -75,9 +79,10 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
     methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d", "pga"}
-        The steps to run (see the module docstring); order is fixed. The default leaves out
-        ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains) and ``"pga"``
-        (for scenes of a few isolated strong points).
+        The steps to run (see the module docstring); order is fixed. The default is
+        ``("direct",)``, the delay the direct sound measures: the focus steps
+        (:data:`FOCUS_METHODS` = direct, phase, temperature; and los, 3d, pga, delay) made a
+        third of the held-out scenes of issue 26 worse, checks and all (see the README).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
