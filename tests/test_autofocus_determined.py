@@ -122,3 +122,35 @@ def test_scene_family_is_seeded_and_disjoint():
         family_scene(-1)
     with pytest.raises(ValueError, match="kind"):
         family_scene(2, kind="cube")
+
+
+def test_family_summary_markdown_and_plot(tmp_path):
+    from clsas.bench.autofocus_family import family_markdown, plot_family, summarise
+
+    def row(seed, before, after, los_b, los_a, direct):
+        return {"seed": seed, "kind": "points", "nx": 13, "ny": 13, "range_m": 1.0, "peak_before_db": before,
+                "peak_after_db": after, "los_error_rms_m": los_b, "los_residual_rms_m": los_a, "improved": True,
+                "time_s": 10.0 + seed, "direct": direct, "group_delay_error_s": 1e-6 if direct else 0.0,
+                "temperature_error_c": 0.2, "parameters": {"temperature": {"determined": seed == 1}}}
+
+    rows = [row(0, -8.0, -0.5, 2e-3, 1e-4, False), row(1, -6.0, -7.0, 2e-3, 3e-3, True),
+            {"seed": 2, "rms_m": 0.003, "error": "ValueError: x"}]
+    s = summarise(rows)
+    assert s["n"] == 2 and s["failed"] == 1
+    assert s["within_1db"] == 0.5 and s["worse_than_none"] == 0.5 and s["worse_than_none_by_0_5db"] == 0.5
+    assert s["worst_peak_db"] == -7.0 and s["los_reduced"] == 0.5
+    assert s["group_delay_error_max_us"] == pytest.approx(1.0) and s["temperature_determined"] == 1
+    md = family_markdown({"tuning 3 mm": {"summary": s, "rows": rows}})
+    assert "| tuning 3 mm | 2 | 50% (0%)" in md and "error: ValueError" in md
+    plot_family({"tuning 3 mm": {"summary": s, "rows": rows}}, tmp_path / "f.png")
+    assert (tmp_path / "f.png").stat().st_size > 0
+
+
+def test_bench_autofocus_set_is_checked():
+    from clsas.bench.autofocus_family import run_and_write
+    from clsas.cli import main
+
+    with pytest.raises(ValueError, match="seed_set"):
+        run_and_write("all")
+    with pytest.raises(SystemExit):
+        main(["bench", "--autofocus", "all"])
