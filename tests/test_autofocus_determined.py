@@ -6,7 +6,7 @@ import pytest
 
 import clsas
 from clsas.focus import DEFAULT_METHODS, FOCUS_METHODS, autofocus
-from clsas.focus.split import agreement, coherence, magnitude_correlation
+from clsas.focus.split import agreement, magnitude_correlation
 from clsas.scan_errors import HandMotion
 from clsas.scene_family import HELD_OUT_SEEDS, KINDS, TUNING_SEEDS, family_scene
 
@@ -104,8 +104,6 @@ def test_split_helpers():
     assert agreement(0.1, 0.2, -5, 5, 0.25)["determined"]
     assert not agreement(4.9, 4.8, -5, 5, 0.25)["determined"]  # at the edge
     assert not agreement(-1.0, 1.0, -5, 5, 0.25)["determined"]
-    x = np.exp(1j * np.arange(10.0))
-    assert coherence(x, 3j * x) == pytest.approx(1.0)
 
 
 def test_scene_family_is_seeded_and_disjoint():

@@ -4,32 +4,31 @@ A hand-held aperture is not where the dataset says, the air is not the temperatu
 and the transducers add a delay nobody measured; each defocuses the image. Sharpness alone
 over-fits: the motion's constant, its tilt across the aperture and a range shift are invisible
 to any focus metric, and a flexible motion buys a sharper, wrong image. So :func:`autofocus`
-estimates each parameter only as far as the scan determines it, judged on two disjoint halves
-of the stops (even and odd in time, :mod:`.split`), in this order (``methods``):
+judges each parameter before applying it, and reports each (``report.parameters``: estimate,
+uncertainty, determined, applied). The steps (``methods``, applied in this order):
 
-1. ``"direct"``: the delay of each recording from the direct speaker-to-microphone sound
-   (:mod:`.direct`): group delay and per-stop timing (determined by the physics). Without it
-   the delay is *not determined* and stays 0;
-2. ``"delay"`` (not in the default): where no direct sound is found, the sharpest global delay
-   of each half; applied only where the halves agree to ``delay_tolerance_s``;
-3. ``"phase"``: per-stop phases by exact coordinate ascent of each half's stop images
-   (:mod:`.phases`), read as a line-of-sight move: the start that large motion needs;
-4. ``"3d"``: the carriage's 3-D displacement in a smooth basis over stop time (constant and
-   tilt projected out), by L-BFGS with analytic gradients (``kernels/autofocus.cl`` and its
-   NumPy twin), once per half; each coefficient is shrunk by how well the halves agree, and the
-   motion is applied only where each half's image corrected with the *other* half's estimate
-   agrees with it better than uncorrected (``check_margin``);
-5. ``"temperature"``: the air temperature that makes each half's image sharpest (motion
-   applied), within the thermometer's ± ``temperature_range_c``; applied only where the halves
-   agree to ``temperature_tolerance_c`` and neither sits at the edge;
-6. ``"los"``, ``"pga"`` (not in the default; without ``"3d"``): a smooth line-of-sight search
-   and phase-gradient autofocus on strong points (:mod:`.pga`) on all stops, kept where the
-   halves' images both corrected with them agree better (not held out).
+1. ``"direct"`` (the default, alone): the delay of each recording from the direct
+   speaker-to-microphone sound (:mod:`.direct`), group delay and per-stop timing, which the
+   physics determines. Without direct sound the delay is *not determined* and stays 0;
+2. ``"delay"``: without direct sound, the sharpest global delay of the first and of the second
+   half of the stops (:mod:`.split`), applied only where they agree (``delay_tolerance_s``);
+3. ``"phase"``: one phase per stop by exact coordinate ascent (:mod:`.phases`), read as a
+   line-of-sight move, its constant and tilt (the gauge) projected out. Held out
+   (:func:`.steps._held_out_phases`): each interleaved half's phases, predicted onto the other,
+   must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
+   time, left and right) must not agree less (:mod:`.motion_steps`, ``check_margin``);
+4. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
+   gradients (``kernels/autofocus.cl`` and its NumPy twin), phase-gradient autofocus on strong
+   points (:mod:`.pga`); nothing held out, so the sub-apertures must agree better;
+5. ``"temperature"``: the sharpest air temperature of each half of the stops (the motion
+   applied), within the thermometer's ± ``temperature_range_c``; applied only where their
+   uncertainty is within ``temperature_tolerance_c`` and neither is at the search's edge.
 
-Finally the whole correction must not make the halves' images agree less than as given; where
-it does, or nothing was determined, the input comes back (``report.improved`` False, a note
-says why). ``report.parameters`` gives each parameter's estimate, uncertainty, and whether it
-was determined and applied.
+:data:`FOCUS_METHODS` (direct, phase, temperature) was the default until the held-out run of
+issue 26 showed the focus steps making a third of the scenes worse (see the README). The whole
+correction must not make the sub-apertures agree less than the direct sound's delay alone does;
+else, or where nothing was determined, the input comes back (``report.improved`` False, a note
+says why).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ import numpy as np
 
 from .engine import FocusEngine
 
-__all__ = ["Half", "split_halves", "coherence", "magnitude_correlation", "agreement"]
+__all__ = ["Half", "split_halves", "magnitude_correlation", "agreement"]
 
 
 @dataclass
@@ -90,15 +90,6 @@ def magnitude_correlation(a: np.ndarray, b: np.ndarray) -> float:
     y -= y.mean()
     den = np.sqrt(float(x @ x) * float(y @ y))
     return float(x @ y / den) if den > 0 else 0.0
-
-
-def coherence(a: np.ndarray, b: np.ndarray) -> float:
-    """``|sum conj(a) b| / sqrt(sum |a|^2 sum |b|^2)``: 1 where two complex images are the same
-    up to scale and phase, near 0 for independent speckle."""
-    a = np.asarray(a, np.complex128).ravel()
-    b = np.asarray(b, np.complex128).ravel()
-    den = np.sqrt(float(np.vdot(a, a).real) * float(np.vdot(b, b).real))
-    return float(abs(np.vdot(a, b)) / den) if den > 0 else 0.0
 
 
 def agreement(x_a: float, x_b: float, lo: float, hi: float, tolerance: float) -> dict:
