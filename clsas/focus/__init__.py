@@ -78,10 +78,9 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
     methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d", "pga"}
-        The steps to run (see the module docstring); order is fixed. The default is
-        ``("direct",)``, the delay the direct sound measures: the focus steps
-        (:data:`FOCUS_METHODS` = direct, phase, temperature; and los, 3d, pga, delay) made a
-        third of the held-out scenes of issue 26 worse, checks and all (see the README).
+        The steps (see the module docstring); order is fixed. Default: the direct sound's delay
+        alone; the focus steps (:data:`FOCUS_METHODS`, and los, 3d, pga, delay) made a third of
+        the held-out scenes of issue 26 worse, checks and all (see the README).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
