@@ -14,6 +14,22 @@ def cmd_bench(args) -> int:
         if not args.quiet:
             print(f"[bench] {line}", flush=True)
 
+    if args.autofocus is not None:
+        from clsas.bench.autofocus_family import run_and_write
+
+        res = run_and_write(args.autofocus, args.rms_mm, n_seeds=args.n_seeds, out_dir=args.out,
+                            plots=not args.no_plots, status=status)
+        for label, r in res["results"].items():
+            s = r["summary"]
+            if s.get("n"):
+                print(f"{label}: {s['n']} scenes, {s['within_1db']:.0%} within 1 dB, {s['worse_than_none']:.0%} "
+                      f"worse than none ({s['worse_than_none_by_0_5db']:.0%} by > 0.5 dB), median "
+                      f"{s['median_peak_db']:+.2f} dB, worst {s['worst_peak_db']:+.2f} dB, "
+                      f"median {s['median_time_s']:.0f} s")
+        for path in res["paths"].values():
+            print(f"wrote {path}")
+        return 0
+
     if args.formation is not None:
         res = run_formation(full=args.full, out_dir=args.out, formations=args.formation or None, scale=args.scale,
                             cases=args.cases, plots=not args.no_plots, status=status)
@@ -68,6 +84,12 @@ def add_parser(sub) -> None:
                    "voxels; default 1 with --full, else 0.25)")
     b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular"), default=None,
                    help="with --formation: which cases (default all)")
+    b.add_argument("--autofocus", nargs="?", const="tuning", choices=("tuning", "held-out"), default=None,
+                   help="run only the autofocus benchmark on the seeded scene family: its tuning seeds (default) or "
+                   "the held-out ones (for reports, never for tuning)")
+    b.add_argument("--rms-mm", type=float, nargs="+", default=[3.0],
+                   help="with --autofocus: RMS of the hand motion, mm (default 3)")
+    b.add_argument("--n-seeds", type=int, default=None, help="with --autofocus: the first N seeds of the set only")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.add_argument("-v", "--verbose", action="store_true", help="log details")
     b.set_defaults(func=cmd_bench)

@@ -1,34 +1,34 @@
-"""Autofocus: motion, sound speed and delay estimated from the scan itself.
+"""Autofocus: motion, sound speed and delay estimated from the scan itself, as far as it determines them.
 
 A hand-held aperture is not where the dataset says, the air is not the temperature it states,
-and the transducers add a delay nobody measured; each defocuses the image. :func:`autofocus`
-estimates, in this order (each step selectable in ``methods``):
+and the transducers add a delay nobody measured; each defocuses the image. Sharpness alone
+over-fits: the motion's constant, its tilt across the aperture and a range shift are invisible
+to any focus metric, and a flexible motion buys a sharper, wrong image. So :func:`autofocus`
+judges each parameter before applying it, and reports each (``report.parameters``: estimate,
+uncertainty, determined, applied). The steps (``methods``, applied in this order):
 
-1. ``"direct"``: the delay of each recording from the direct speaker-to-microphone sound
-   (:mod:`.direct`): group delay and per-stop timing jitter (and ``c`` where the rig has
-   several speaker-to-microphone distances);
-2. ``"temperature"``: the air temperature (so ``c``) that makes the image sharpest, a scan then
-   a bounded 1-D search; the direct-path delays follow each candidate ``c``;
-3. ``"delay"``: where no direct sound is found, a global delay from sharpness (weakly
-   determined: a delay mostly shifts the image);
-4. ``"phase"``: one phase per stop by exact coordinate ascent of the sharpness over the
-   stops' own images (:mod:`.phases`), read as a line-of-sight path per stop: the global
-   start that large motion (a radian of two-way phase or more) needs;
-5. ``"los"``: per-stop line-of-sight path corrections in a smooth basis over the stop times
-   (:mod:`.motion`), maximising sharpness with analytic gradients through backprojection
-   (``kernels/autofocus.cl`` and its NumPy twin), coarse to fine, from the ``"phase"``
-   estimate where there is one;
-6. ``"3d"``: the carriage's 3-D displacement per stop (the line of sight differs between
-   reflectors seen at different angles), from the line-of-sight estimate on, its change in the
-   same smooth basis per axis, by the same analytic gradient;
-7. ``"pga"``: phase-gradient autofocus on strong points (:mod:`.pga`): each stop's own 3-D
-   displacement, from the phases of its contributions to the image's strong isolated points;
-   applied only where at least four points are coherent enough to be points (not on an
-   extended target) and the image gets sharper. Not in the default.
+1. ``"direct"`` (the default, alone): the delay of each recording from the direct
+   speaker-to-microphone sound (:mod:`.direct`), group delay and per-stop timing, which the
+   physics determines. Without direct sound the delay is *not determined* and stays 0;
+2. ``"delay"``: without direct sound, the sharpest global delay of the first and of the second
+   half of the stops (:mod:`.split`), applied only where they agree (``delay_tolerance_s``);
+3. ``"phase"``: one phase per stop by exact coordinate ascent (:mod:`.phases`), read as a
+   line-of-sight move, its constant and tilt (the gauge) projected out. Held out
+   (:func:`.steps._held_out_phases`): each interleaved half's phases, predicted onto the other,
+   must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
+   time, left and right) must not agree less (:mod:`.motion_steps`, ``check_margin``);
+4. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
+   gradients (``kernels/autofocus.cl`` and its NumPy twin), phase-gradient autofocus on strong
+   points (:mod:`.pga`); nothing held out, so the sub-apertures must agree better;
+5. ``"temperature"``: the sharpest air temperature of each half of the stops (the motion
+   applied), within the thermometer's ± ``temperature_range_c``; applied only where their
+   uncertainty is within ``temperature_tolerance_c`` and neither is at the search's edge.
 
-It returns the corrected dataset and an :class:`AutofocusReport`, and never an image less
-sharp than the input's: if the final metric is not above the input's, the input comes back
-(``report.improved`` False, and a note says so).
+:data:`FOCUS_METHODS` (direct, phase, temperature) was the default until the held-out run of
+issue 26 showed the focus steps making a third of the scenes worse (see the README). The whole
+correction must not make the sub-apertures agree less than the direct sound's delay alone does;
+else, or where nothing was determined, the input comes back (``report.improved`` False, a note
+says why).
 """
 
 from __future__ import annotations
@@ -47,20 +47,27 @@ from ..physics import speed_of_sound
 from .metrics import METRICS
 from .report import AutofocusReport
 
-__all__ = ["AutofocusReport", "DEFAULT_METHODS", "METHODS", "autofocus", "score"]
+__all__ = ["AutofocusReport", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "autofocus", "score"]
 
 log = logging.getLogger(__name__)
 
 METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
-DEFAULT_METHODS = ("direct", "temperature", "delay", "phase", "3d")
+# ("direct", "phase", "temperature") until the held-out run of issue 26 (commit 2f50580) showed
+# "phase" and "temperature" making a third of the held-out scenes worse: now only what the
+# physics determines by default; the focus steps run when named
+DEFAULT_METHODS = ("direct",)
+FOCUS_METHODS = ("direct", "phase", "temperature")
 
 
 def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
               metric: str = "sharpness", n_basis: int | None = None, motion_bandwidth_hz: float = 5.0,
-              temperature_range_c: float = 15.0, max_delay_s: float = 5e-4, per_stop_delay: bool = True,
+              temperature_range_c: float = 5.0, max_delay_s: float = 5e-4, per_stop_delay: bool = True,
               max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
-              pga_min_coherence: float | None = None, pga_max_points: int = 32, backend: str | None = None,
-              device: Any = None, progress: Callable[[str, int, float], None] | None = None,
+              pga_min_coherence: float | None = None, pga_max_points: int = 32,
+              temperature_tolerance_c: float = 0.35, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
+              phase_region_m: float | None = None, heldout_gain: float = 0.2,
+              backend: str | None = None, device: Any = None,
+              progress: Callable[[str, int, float], None] | None = None,
               force: bool = False) -> tuple[Dataset, AutofocusReport]:
     """Estimate motion, sound speed and delay from the scan, and correct the dataset.
 
@@ -71,9 +78,9 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
     methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d", "pga"}
-        The steps to run (see the module docstring); order is fixed. The default leaves out
-        ``"los"`` (the smooth line-of-sight search, which ``"3d"`` contains) and ``"pga"``
-        (for scenes of a few isolated strong points).
+        The steps (see the module docstring); order is fixed. Default: the direct sound's delay
+        alone; the focus steps (:data:`FOCUS_METHODS`, and los, 3d, pga, delay) made a third of
+        the held-out scenes of issue 26 worse, checks and all (see the README).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
@@ -83,23 +90,35 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     motion_bandwidth_hz : float
         Highest frequency of the motion to correct, Hz (used with ``timestamps``).
     temperature_range_c : float
-        The temperature search covers the stated value ± this, °C.
+        The prior on the air: the thermometer's reading (``temperature_c``) is right to ± this,
+        °C; the search covers that range, and an optimum at its edge is "not determined".
     max_delay_s : float
-        The largest delay error looked for (direct sound search window, delay search), s.
+        The prior on the hardware: the largest delay error looked for (the direct sound's search
+        window, the ``"delay"`` search), s.
     per_stop_delay : bool
         Keep each recording's own direct-path delay (timing jitter) rather than their median.
     max_iter : int
-        L-BFGS iterations per stage of the line-of-sight search, and of the 3-D search.
+        L-BFGS iterations per stage of the ``"los"`` search and of the ``"3d"`` search.
     phase_sweeps : int
         Most sweeps of the per-stop phase search (``"phase"``).
     max_stop_bytes : int
-        Memory for the per-stop images of ``"phase"`` (complex64, stops x voxels), bytes; past
-        it, only the brightest voxels of the image are kept.
+        Memory for ``"phase"``'s per-stop images (complex64), bytes; past it, the brightest voxels.
     pga_min_coherence : float, optional
         ``"pga"`` uses only points whose per-stop contributions add up this coherently (0 to 1;
         default :data:`clsas.focus.pga.PGA_MIN_COHERENCE`).
     pga_max_points : int
         Most strong points ``"pga"`` uses (the brightest that qualify).
+    temperature_tolerance_c, delay_tolerance_s : float
+        Applied only where the uncertainty (from the two halves of the stops) is at most this.
+    check_margin : float
+        Sub-aperture images' agreement (0 to 1) must not fall by more (``"phase"``), or must
+        rise by at least this (``"3d"``, ``"los"``, ``"pga"``).
+    heldout_gain : float
+        Each interleaved half's phases, predicted onto the other, must raise its log-sharpness
+        by at least this.
+    phase_region_m : float, optional
+        Search the phases on a fine local grid of this half-size at the brightest voxel, m
+        (None: on ``grid``; see the README).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -107,13 +126,15 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     Returns
     -------
     (Dataset, AutofocusReport)
-        The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions moved
-        along the line of sight; a provenance record ``autofocus``), or the input itself when
-        the image did not get sharper.
+        The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions; a
+        provenance record ``autofocus``) with only what the scan determined and the check
+        passed; or the input itself (``report.improved`` False, a note says why).
     """
     options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
                        max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
                        pga_max_points, progress)
+    options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
+                                          phase_region_m))
     from .run import run
 
     return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
@@ -157,6 +178,18 @@ def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, tempe
             "temperature_range_c": t_range, "max_delay_s": max_delay, "per_stop_delay": bool(per_stop_delay),
             "max_iter": max_iter, "phase_sweeps": phase_sweeps, "max_stop_bytes": max_stop_bytes,
             "pga_options": pga_options}
+
+
+def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
+                           phase_region_m) -> dict:
+    """The options of issue 26 (what counts as determined, and the check) checked."""
+    margin = v.non_negative("check_margin", check_margin)
+    if margin >= 1:
+        raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")
+    return {"temperature_tolerance_c": v.positive("temperature_tolerance_c", temperature_tolerance_c),
+            "delay_tolerance_s": v.positive("delay_tolerance_s", delay_tolerance_s), "check_margin": margin,
+            "heldout_gain": v.positive("heldout_gain", heldout_gain),
+            "phase_region_m": None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)}
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:

@@ -6,7 +6,46 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["AutofocusReport"]
+__all__ = ["AutofocusReport", "ParameterEstimate"]
+
+
+@dataclass
+class ParameterEstimate:
+    """One parameter as the scan determined it (or not).
+
+    Attributes
+    ----------
+    name : str
+        ``"group_delay"``, ``"timing"``, ``"temperature"``, ``"motion"``.
+    unit : str
+    estimate : float
+        The estimate (before the decision to apply it), in ``unit``; NaN where not estimated.
+    uncertainty : float
+        Its standard uncertainty, in ``unit`` (from the two halves of the stops, or the scatter
+        of the direct arrivals); NaN where unknown.
+    determined : bool
+        The scan constrains it (see ``how``).
+    applied : bool
+        It is in the returned dataset (determined, and the check passed).
+    how : str
+        How it was estimated and judged, and why not applied where not.
+    """
+
+    name: str
+    unit: str
+    estimate: float = float("nan")
+    uncertainty: float = float("nan")
+    determined: bool = False
+    applied: bool = False
+    how: str = ""
+
+    def as_dict(self) -> dict:
+        return {"estimate": self.estimate, "uncertainty": self.uncertainty, "unit": self.unit,
+                "determined": self.determined, "applied": self.applied, "how": self.how}
+
+    def line(self) -> str:
+        state = ("applied" if self.applied else "determined, not applied") if self.determined else "not determined"
+        return f"{self.name}: {self.estimate:+.4g} +- {self.uncertainty:.2g} {self.unit} ({state}; {self.how})"
 
 
 @dataclass
@@ -16,7 +55,9 @@ class AutofocusReport:
     Attributes
     ----------
     improved : bool
-        The corrected image is sharper than the input's (else the input was returned).
+        A correction was applied and passed the check (images of two disjoint halves of the
+        stops agree better after it, each corrected with the other half's motion estimate);
+        else the input was returned (``notes`` say why). Not "sharper": sharpness over-fits.
     metric, metric_before, metric_after : str, float, float
         The focus metric and its value on the input and on the returned dataset.
     history : list of float
@@ -49,6 +90,12 @@ class AutofocusReport:
     stages : list of dict
         Per step: name, metric after, evaluations, time.
     notes : list of str
+    parameters : dict of str to ParameterEstimate
+        Per parameter (``group_delay``, ``timing``, ``temperature``, ``motion``): estimate,
+        uncertainty, determined, applied.
+    check : dict
+        The held-out check: ``coherence_before``, ``coherence_heldout`` (motion of the other
+        half), ``coherence_after`` (the returned correction), ``passed``, ``motion_passed``.
     """
 
     improved: bool = False
@@ -74,18 +121,25 @@ class AutofocusReport:
     device: str = ""
     stages: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    parameters: dict = field(default_factory=dict)
+    check: dict = field(default_factory=dict)
 
     def summary(self) -> str:
         """A few lines for people."""
         lines = [f"autofocus ({', '.join(self.methods)}; metric {self.metric}) on {self.device}: "
                  f"{self.metric_before:.4g} -> {self.metric_after:.4g} in {self.time_s:.1f} s"
-                 + ("" if self.improved else " (not sharper: the input is returned)"),
+                 + ("" if self.improved else " (nothing applied that passed the check: the input is returned)"),
                  f"  group delay {self.group_delay_s * 1e6:+.2f} us, "
                  f"timing jitter {self.timing_jitter_rms_s * 1e6:.2f} us RMS; air {self.temperature_c:.2f} C "
                  f"({self.temperature_offset_c:+.2f} C), c {self.c_mps:.2f} m/s"]
         if self.los_path_m is not None:
             lines.append(f"  line-of-sight corrections: {f'{self.n_basis} functions' if self.n_basis else 'per stop'}, "
                          f"{np.sqrt(np.mean(self.los_path_m ** 2)) / 2 * 1e3:.2f} mm RMS (one way)")
+        lines += [f"  {p.line()}" for p in self.parameters.values()]
+        if self.check:
+            lines.append("  check (disjoint halves of the stops): coherence "
+                         + ", ".join(f"{k} {v:.3f}" for k, v in self.check.items() if isinstance(v, float))
+                         + f"; {'passed' if self.check.get('passed') else 'failed'}")
         lines += [f"  {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -95,6 +149,8 @@ class AutofocusReport:
                 "timing_jitter_rms_s", "temperature_c", "c_mps", "temperature_offset_c", "n_basis", "direct_snr_db",
                 "time_s", "backend", "device", "stages", "notes")
         out = {k: getattr(self, k) for k in keep}
+        out["parameters"] = {k: p.as_dict() for k, p in self.parameters.items()}
+        out["check"] = dict(self.check)
         if self.los_path_m is not None:
             out["los_rms_m"] = float(np.sqrt(np.mean(self.los_path_m ** 2)) / 2)
         return out

@@ -1,0 +1,126 @@
+"""The motion stage of :mod:`.run`, behind a check that is not the sharpness it maximised.
+
+The motion is estimated on all stops (``"phase"``: per-stop phases, the start for large motion;
+``"los"``: a smooth line-of-sight search; ``"3d"``: the carriage's 3-D displacement in a smooth
+basis over stop time, its constant and tilt projected out; ``"pga"``: strong points), then
+checked on two pairs of disjoint sub-apertures (:mod:`.split`: the first and second half of the
+stops in time, and the left and right half of the carriage's x): the images of each pair must
+agree (correlation of magnitudes) better after the correction than before, by ``check_margin``
+on average and worse on neither. Sharpness over-fits by concentrating each sub-aperture's
+energy wherever its own errors and speckle allow, which the other sub-aperture does not share.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from .motion import default_basis_size, los_directions, motion_basis, optimise_xyz
+from .report import ParameterEstimate
+from .steps import _focus_centre, _per_stop_mean, _pga_step, _phase_step
+
+__all__ = ["estimate_motion", "carriage_3d"]
+
+
+def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, smooth_start,
+                    pga_options, margin) -> tuple[np.ndarray, bool]:
+    """The carriage's displacement (n_meas, 3), m, and whether it passed the check."""
+    ds, rep, engine = fo.ds, fo.rep, fo.engine
+    t = time.perf_counter()
+    c = fo.c_stated
+    shift = fo.t0_at(c) - ds.t0_s
+    p_stop = np.zeros(len(t_stop))
+    centre = None
+    if "phase" in methods:
+        ph_engine, centre = _local_engine(fo, shift, c) if fo.phase_region_m is not None else (engine, None)
+
+        def local_metric(sh, cc, step):
+            return fo.metric_of(ph_engine.image(sh, cc), step)
+
+        p_stop = _phase_step(ph_engine, ds, ph_engine.grid, shift, c, stop, sweeps, max_bytes, local_metric,
+                             rep.history, fo.progress, rep, margin=fo.heldout_gain)
+        # the gauge no focus metric sees: a constant path is a range shift, one linear in the
+        # carriage's x and y a shift across; the phase search leaves them free, so they go
+        nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
+        p_stop = p_stop - nuis @ (nuis.T @ p_stop)
+    if "los" in methods:
+        p_stop = fo.line_of_sight(shift, c, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter)
+    if centre is None:
+        centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
+    rep.focus_centre_m = centre
+    move = (-0.5 * p_stop[stop])[:, None] * los_directions(ds, centre)
+    if "3d" in methods:
+        move = carriage_3d(fo, shift, c, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start)
+    if "pga" in methods:
+        move, _ = _pga_step(engine, ds, shift, c, stop, xy, move, pga_options, fo.image_metric, rep)
+    before = fo.split_agreement(shift, c, None)
+    after = fo.split_agreement(shift, c, move)
+    gain = np.asarray(after) - np.asarray(before)
+    held = rep.check.get("phase_heldout")
+    if held is not None and set(methods) & {"3d", "los", "pga"} == set():
+        # phases alone: held out (each half predicts the other), and no sub-aperture pair agrees less
+        passed = bool(held["passed"] and gain.min() > -margin and np.any(move != 0))
+    else:  # on all stops, nothing held out: the sub-aperture pairs must agree better
+        passed = bool(gain.mean() > margin and gain.min() > -margin and (held is None or held["passed"]))
+    rms = float(np.sqrt(np.mean(np.sum(move**2, axis=1))))
+    pairs = ", ".join(f"{n} {b:.3f} -> {a:.3f}" for n, b, a in zip(fo.split_names, before, after, strict=True))
+    if held is not None:
+        pairs += "; held out (phases of the even stops on the odd and back): " + ", ".join(
+            f"sharpness {r['sharpness_before']:.3f} -> {r['sharpness_after']:.3f}, agreement "
+            f"{r['agreement_before']:.3f} -> {r['agreement_after']:.3f}" for k, r in held.items() if k != "passed")
+    rep.check.update({f"motion_{n}_before": b for n, b in zip(fo.split_names, before, strict=True)})
+    rep.check.update({f"motion_{n}_after": a for n, a in zip(fo.split_names, after, strict=True)})
+    rep.check["motion_passed"] = passed
+    used = "+".join(m for m in methods if m in ("phase", "los", "3d", "pga"))
+    rep.parameters["motion"] = ParameterEstimate(
+        "motion", "m RMS", rms, float("nan"), passed, False,
+        f"{used} on all stops ({rep.n_basis or 'per-stop'} functions per axis); sub-aperture images agree "
+        f"(magnitude correlation): {pairs}")
+    rep.stages.append({"step": "motion", "methods": used, "agreement_before": list(before),
+                       "agreement_after": list(after), "passed": passed, "time_s": time.perf_counter() - t})
+    if not passed:
+        rep.notes.append(f"motion: the disjoint sub-apertures' images do not agree better after it ({pairs}; margin "
+                         f"{margin:g}): the sharpness over-fits, or the scan does not determine the motion; "
+                         "not applied")
+        return np.zeros((ds.n_meas, 3)), False
+    return move, True
+
+
+def _local_engine(fo, shift, c):
+    """A :class:`FocusEngine` on a fine grid (a quarter of the shortest wavelength) of half-size
+    ``fo.phase_region_m`` around the image's brightest voxel, and that voxel, m."""
+    from ..geometry import VoxelGrid
+    from .engine import FocusEngine
+
+    engine = fo.engine
+    values = engine.image(shift, c)
+    centre = engine.grid.points()[int(np.argmax(np.abs(values)))]
+    f_max = max(engine.ds.chirp.get("f_start_hz", 0.0), engine.ds.chirp.get("f_stop_hz", 0.0)) or \
+        2 * engine.prof.fc_hz
+    step = float(np.min(engine.ds.c_per_meas)) / f_max / 4
+    r = fo.phase_region_m
+    ax = np.arange(-r, r + 0.5 * step, step)
+    grid = VoxelGrid(centre[0] + ax, centre[1] + ax, centre[2] + ax)
+    return FocusEngine(engine.ds, grid, backend=engine.selection, **fo.engine_options), centre
+
+
+def carriage_3d(fo, shift, c_est, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start):
+    """The carriage's 3-D displacement per measurement (n_meas, 3), m, started from ``move``."""
+    t = time.perf_counter()
+    start = _per_stop_mean(move, stop)
+    k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, fo.ds.timestamps is not None)
+    basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) - 3, 1))) if k < len(t_stop) else None
+    nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
+    if basis is not None and smooth_start:
+        # the carriage moves smoothly: the start keeps the line-of-sight move's part in the basis;
+        # what is left is the per-stop estimates' noise and the line of sight's turn, not motion
+        start = basis @ (basis.T @ start)
+    else:  # the gauge no focus metric sees: the constant and the tilt, out
+        start = start - nuis @ (nuis.T @ start)
+    d, info = optimise_xyz(fo.engine, shift, c_est, stop, start, max_iter, fo.rep.history, callback=fo.progress,
+                           basis=basis)
+    fo.rep.n_basis = info["functions"]
+    fo.rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
+                          "time_s": time.perf_counter() - t})
+    return d[stop]
