@@ -13,10 +13,11 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 from . import _validate as v
-from . import cl
+from . import cl, tiling
 from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
 from .formation import FORMATIONS
@@ -51,6 +52,10 @@ def reconstruct(
     force: bool = False,
     formation: str = "bp",
     formation_options: dict | None = None,
+    out: str | Path | None = None,
+    max_memory: float | str | None = None,
+    client: Any = None,
+    tile_shape: tuple[int, int, int] | None = None,
 ) -> Image:
     """Image a dataset on a grid.
 
@@ -75,9 +80,12 @@ def reconstruct(
     backend : {"auto", "opencl", "numpy"}, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"``: OpenCL where a device exists and the
         kernels build, else the NumPy twins with one warning; ``"opencl"`` raises instead.
-    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
-        The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one).
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, or a list of them, optional
+        The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one). A
+        list (``"numpy"`` may be one of them) forms the grid in tiles spread over those devices,
+        each taking the next tile when free (so in proportion to its throughput).
     progress : callable(done, total), optional
+        Measurements backprojected; tiles formed when the grid is formed in tiles.
     sparse : dict, optional
         Options for the sparse methods: ``delta_s``, ``lam``, ``lam_frac``, ``render_width_s``,
         ``max_echoes`` (cap per recording, reported in ``Echoes.capped``), ``guard_s`` (the
@@ -96,29 +104,50 @@ def reconstruct(
         ``"ffbp"`` (fast factorized backprojection, any trajectory). Works with every method.
     formation_options : dict, optional
         Passed to the formation (see its module).
+    out : str or Path, optional
+        A chunked HDF5 file (``.h5``) to form the image into, tile by tile, for grids larger
+        than memory; the returned Image reads it lazily (:meth:`clsas.Image.open`). An
+        interrupted run given the same request again resumes it (tiles written are skipped).
+    max_memory : float or str, optional
+        Host memory budget of this process (bytes, or ``"2GB"``): the tiles are sized so that
+        forming one stays within it (Dask: the budget of each worker).
+    client : distributed.Client or str, optional
+        A Dask client or scheduler address: each tile is a task, the profiles are sent to
+        every worker once (see :mod:`clsas.tiling.dask`). Needs the ``distributed`` extra.
+    tile_shape : (int, int, int), optional
+        Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
+
+    Each tile is formed by the formation on its own sub-grid: with ``"bp"`` the tiled image
+    equals the whole one (to float32 rounding on OpenCL); a fast formation's tile is that
+    formation's image of the tile.
     """
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
-    selection = cl.select(backend, device)
-    if not force:  # the image must fit before any work starts (with force, the formation warns)
+    tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
+                                 device=device)
+    selection = _selection(backend, device, tiled)
+    if not force and (tiled is None or tiled.out is None and tiled.max_memory is None):
+        # the image must fit before any work starts (with force, the formation warns)
         check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
-        image = _form(dataset, grid, formation, fopts, selection, progress, force)
-        return replace(image, method=f"bp ({dataset.method} profiles)",
-                       timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
+        image = _form(dataset, grid, formation, fopts, selection, progress, force, tiled)
+        image = replace(image, method=f"bp ({dataset.method} profiles)",
+                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
+        return image if tiled is None or tiled.out is None else tiling.finish(image, tiled.out)
     plan = plan_reconstruction(dataset, grid)
     if method == "bp":
         prof, echoes, plan = _compressed(dataset, plan, compression, selection)
     else:
         prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress)
-    image = _form(prof, grid, formation, fopts, selection, progress, force)
+    image = _form(prof, grid, formation, fopts, selection, progress, force, tiled)
     plan = replace(plan, kernels=[k for k, b in ((f"compress ({compression})", prof.backend),
                                                  ("backproject" if formation == "bp" else formation, image.backend))
                                   if b == "opencl"])
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)
-    return replace(image, method=method, plan=plan, echoes=echoes,
-                   timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
+    image = replace(image, method=method, plan=plan, echoes=echoes,
+                    timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
+    return image if tiled is None or tiled.out is None else tiling.finish(image, tiled.out)
 
 
 def _check_request(dataset, grid, method, compression, sparse, formation, formation_options) -> dict:
@@ -151,6 +180,14 @@ def _check_request(dataset, grid, method, compression, sparse, formation, format
     return fopts
 
 
+def _selection(backend, device, tiled: tiling.TiledRequest | None) -> cl.Selection:
+    """The device request resolved once; with several devices, the first (it compresses)."""
+    if tiled is None or not tiled.devices:
+        return cl.select(backend, device)
+    first = tiled.devices[0]
+    return cl.select("numpy") if isinstance(first, str) and first == "numpy" else cl.select(backend, first)
+
+
 def _compressed(dataset: Dataset, plan: ReconstructionPlan, compression: str, selection: cl.Selection):
     """Stage: pulse compression over the plan's gate -> (profiles, no echoes, plan with the lags)."""
     if compression == "fmcw":
@@ -169,8 +206,16 @@ def _super_resolved(dataset: Dataset, plan: ReconstructionPlan, method: str, opt
 
 
 def _form(prof: Profiles, grid: VoxelGrid, formation: str, options: dict, selection: cl.Selection, progress,
-          force: bool) -> Image:
-    """Stage: the registered formation -> Image (its name recorded in the provenance)."""
+          force: bool, tiled: tiling.TiledRequest | None = None) -> Image:
+    """Stage: the registered formation -> Image (its name recorded in the provenance); in tiles
+    (:mod:`clsas.tiling`) where ``out``, ``max_memory``, ``client``, ``tile_shape`` or several
+    devices were given."""
     from .formation import form
 
+    if tiled is not None:
+        image = tiling.form_tiled(prof, grid, formation, options, selection, tiled, progress=progress, force=force)
+        provenance = {**image.provenance, "formation": formation}
+        if options:
+            provenance["formation_options"] = dict(options)
+        return replace(image, provenance=provenance)
     return form(prof, grid, formation, backend=selection, progress=progress, force=force, **options)
