@@ -27,6 +27,11 @@ __all__ = ["OpenCLDevicePlugin", "import_distributed", "n_workers", "run_on_clus
 
 log = logging.getLogger(__name__)
 
+try:  # the plugin must be a WorkerPlugin for Client.register_plugin; without distributed it is never registered
+    from distributed import WorkerPlugin as _PluginBase
+except ImportError:  # pragma: no cover - import_distributed() says what to install
+    _PluginBase = object
+
 _WORKER_DEVICE: dict = {"device": None}  # set on a worker by OpenCLDevicePlugin
 
 
@@ -40,7 +45,7 @@ def import_distributed():
     return distributed
 
 
-class OpenCLDevicePlugin:
+class OpenCLDevicePlugin(_PluginBase):
     """A Dask worker plugin that gives each worker its own OpenCL device.
 
     ``client.register_plugin(OpenCLDevicePlugin(["0:0", "0:1"]))``: the worker named ``i`` (an

@@ -2,8 +2,8 @@
 
 Each tile is formed by the chosen formation on its own sub-grid (:func:`clsas.formation.form`),
 so a tile equals an in-memory reconstruction of that tile; for ``"bp"`` a tiled image equals
-the whole-grid one (bit for bit on NumPy, to float32 rounding on OpenCL, where the voxel
-positions are computed from each tile's own origin). The tiles go to a chunked file
+the whole-grid one to rounding (float64 on NumPy; float32 on OpenCL, where the voxel positions
+are computed from each tile's own origin). The tiles go to a chunked file
 (:class:`~clsas.tiling.store.TileFile`) or to an array in memory.
 
 Several devices (``device=[...]``): one thread per device takes the next tile as soon as it is
