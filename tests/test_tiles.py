@@ -236,3 +236,25 @@ def test_fast_formations_tile_by_tile(scene, formation):
     tile = tile_grid(grid, shape)[1]
     alone = clsas.reconstruct(ds, tile.grid, backend="numpy", formation=formation)
     np.testing.assert_allclose(image.values[tile.slices], alone.values, rtol=0, atol=1e-9 * np.abs(alone.values).max())
+
+
+def test_cli_reconstruct_out_of_core(tmp_path, capsys):
+    from test_cli import SCENE
+
+    from clsas.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE)
+    data = tmp_path / "scan.h5"
+    assert main(["simulate", str(scene), str(data), "-q", "--backend", "numpy"]) == 0
+    assert main(["reconstruct", str(data), "-q", "--backend", "numpy", "--out", str(tmp_path / "mem.h5")]) == 0
+    assert main(["reconstruct", str(data), "-q", "--png", "--backend", "numpy", "--max-memory", "4GB",
+                 "--out", str(tmp_path / "tiled.h5")]) == 0
+    out = capsys.readouterr().out
+    assert "peak (+0.020, -0.010, 0.600) m" in out
+    tiled, mem = clsas.Image.open(tmp_path / "tiled.h5"), clsas.Image.load(tmp_path / "mem.h5")
+    np.testing.assert_allclose(tiled.values[()], mem.values, rtol=0, atol=1e-6 * np.abs(mem.values).max())
+    assert tiled.provenance["source_path"] == "scan.h5" and tiled.provenance["compression"] == "matched"
+    assert (tmp_path / "tiled.png").stat().st_size > 1000
+    assert main(["reconstruct", str(data), "-q", "--max-memory", "lots", "--out", str(tmp_path / "x.h5")]) == 2
+    assert main(["reconstruct", str(data), "-q", "--max-memory", "1GB", "--out", str(tmp_path / "x.zarr")]) == 2

@@ -25,7 +25,7 @@ from .store import SUFFIXES
 from .tiles import Tile, check_tile_shape, peak_rss_bytes, rss_bytes, tile_grid, tile_shape_for
 
 __all__ = ["TiledRequest", "Tile", "check_request", "finish", "form_tiled", "parse_bytes", "peak_rss_bytes",
-           "rss_bytes", "tile_grid", "tile_shape_for"]
+           "rss_bytes", "tile_grid", "tile_shape_for", "update_attrs"]
 
 _UNITS = {"": 1, "B": 1, "K": 1e3, "KB": 1e3, "M": 1e6, "MB": 1e6, "G": 1e9, "GB": 1e9, "T": 1e12, "TB": 1e12,
           "KIB": 2**10, "MIB": 2**20, "GIB": 2**30, "TIB": 2**40}
@@ -95,3 +95,22 @@ def finish(image: Image, out) -> Image:
         write_attrs(f, image)
         f.attrs["complete"] = True
     return replace(Image.open(out), plan=image.plan, echoes=image.echoes)
+
+
+def update_attrs(image: Image, provenance: dict | None = None, **more) -> Image:
+    """Add to the provenance of an image opened from a file (:meth:`clsas.Image.open`), in the file
+    too; returns the image opened again."""
+    from dataclasses import replace
+
+    import h5py
+
+    from ..image import write_attrs
+
+    if not image.lazy or not hasattr(image.values, "file"):
+        raise ValueError("image: not an image opened from a file (Image.open)")
+    path = image.values.file.filename
+    image.values.file.close()
+    changed = replace(image, values=None, provenance={**image.provenance, **(provenance or {}), **more})
+    with h5py.File(path, "r+") as f:
+        write_attrs(f, changed)
+    return replace(Image.open(path), plan=image.plan, echoes=image.echoes)
