@@ -21,7 +21,7 @@ import os
 
 from .. import cl
 from .._validate import install_hint
-from .run import form_tile
+from .tiles import form_tile
 
 __all__ = ["OpenCLDevicePlugin", "import_distributed", "n_workers", "run_on_cluster", "worker_device"]
 

@@ -29,9 +29,9 @@ from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from .store import TileFile, request_digest
-from .tiles import profile_bytes, rss_bytes, tile_grid, tile_shape_for
+from .tiles import form_tile, profile_bytes, rss_bytes, tile_grid, tile_shape_for
 
-__all__ = ["TiledRequest", "form_tiled", "form_tile"]
+__all__ = ["TiledRequest", "form_tiled"]
 
 log = logging.getLogger(__name__)
 
@@ -66,16 +66,6 @@ class _Tally:
         return {d: {"tiles": self.tiles[d], "busy_s": round(self.seconds[d], 3),
                     "pairs_per_s": self.pairs[d] / self.seconds[d] if self.seconds[d] > 0 else None}
                 for d in self.tiles}
-
-
-def form_tile(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, selection,
-              force: bool = False) -> tuple[np.ndarray, str, float]:
-    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds)``."""
-    from ..formation import form
-
-    t0 = time.perf_counter()
-    image = form(profiles, grid, formation, backend=selection, force=force, **options)
-    return np.asarray(image.values), image.device, time.perf_counter() - t0
 
 
 def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, selection: cl.Selection,

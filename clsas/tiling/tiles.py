@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -17,7 +18,7 @@ from ..formation.guard import bytes_per_voxel
 from ..geometry import VoxelGrid
 from ..profiles import Profiles
 
-__all__ = ["Tile", "tile_grid", "tile_shape_for", "rss_bytes", "peak_rss_bytes", "profile_bytes"]
+__all__ = ["Tile", "form_tile", "tile_grid", "tile_shape_for", "rss_bytes", "peak_rss_bytes", "profile_bytes"]
 
 # what a tile costs on the host beyond the formation's own bytes per voxel: the values handed
 # to the writer (complex64) and the writer's conversion to HDF5's compound (complex64)
@@ -117,6 +118,16 @@ def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = Non
     if cap >= nz:
         return (1, max(1, min(ny, cap // nz)), nz)
     return (1, 1, max(1, cap))
+
+
+def form_tile(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, selection,
+              force: bool = False) -> tuple[np.ndarray, str, float]:
+    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds)``."""
+    from ..formation import form
+
+    t0 = time.perf_counter()
+    image = form(profiles, grid, formation, backend=selection, force=force, **options)
+    return np.asarray(image.values), image.device, time.perf_counter() - t0
 
 
 def rss_bytes() -> int:
