@@ -42,7 +42,7 @@ QUICK_SCALE = {
 FULL_SCALE = {
     "rss": {"voxels": (1e7, 1e8, 1e9), "n_meas": 4, "max_memory": 2e9, "sample": 4},
     "tiles": {"voxels": 2e7, "n_meas": 50, "planes": (None, 64, 16, 4, 1)},
-    "scaling": {"pairs": 1e10, "n_meas": 400, "workers": (1, 2), "overhead_workers": 8, "n_tiles": 16},
+    "scaling": {"pairs": 1.05e10, "n_meas": 400, "workers": (1, 2), "overhead_workers": 8, "n_tiles": 16},
 }
 
 
@@ -202,6 +202,8 @@ def run_scale(full: bool = False, out_dir: str | Path = "bench/results", *, part
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"{dt.date.today().isoformat()}-scale{'' if full else '-quick'}"
+    if set(parts) != {"rss", "tiles", "scaling"}:
+        stem += "-" + "-".join(parts)
     import json
 
     (out / f"{stem}.json").write_text(json.dumps(_jsonable(res), indent=2))
