@@ -125,7 +125,7 @@ def reconstruct(
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
     selection = _selection(backend, device, tiled)
-    if not force and (tiled is None or tiled.out is None and tiled.max_memory is None):
+    if not force and tiled is None:
         # the image must fit before any work starts (with force, the formation warns)
         check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()

@@ -65,6 +65,18 @@ def _bench_scale(args, status) -> int:
     return 0
 
 
+def _scale_arg(text: str) -> float | str:
+    """``--scale`` alone (the scale benchmark, argparse passes its const ``"tiles"``) or a number."""
+    if text == "tiles":
+        return text
+    import argparse
+
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number (the dense case's size), got {text!r}") from None
+
+
 def add_parser(sub) -> None:
     b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time")
     b.add_argument("--full", action="store_true", help="the full set (tens of minutes on a 2-core CPU)")
@@ -76,7 +88,7 @@ def add_parser(sub) -> None:
     b.add_argument("--formation", nargs="*", metavar="NAME", default=None,
                    help="run only the image-formation benchmark, for these registered formations (default all; bp, "
                    "the reference, always runs)")
-    b.add_argument("--scale", type=float, default=None, nargs="?", const="tiles",
+    b.add_argument("--scale", type=_scale_arg, default=None, nargs="?", const="tiles",
                    help="alone: the scale benchmark (peak RSS against grid size out of core, tiles/s, tile size, "
                    "strong scaling on a LocalCluster of 1, 2 and 8 single-threaded workers); with --formation and "
                    "a number: size of the dense planar case (1 = 128 x 128 stops, 256 x 256 x 128 voxels; default 1 "

@@ -9,9 +9,10 @@ the same); each task may also be retried twice after an error.
 
 Which OpenCL device a worker uses: the one ``PYOPENCL_CTX`` names in the worker's environment
 (one worker per GPU: ``PYOPENCL_CTX=0:0 dask worker ADDRESS --nthreads 1``, then ``0:1`` for the
-next), or the one :class:`OpenCLDevicePlugin` assigns, else the preferred device. Each task
-asks for the worker resources given in ``resources`` (``dask worker --resources GPU=1``), so
-with ``resources={"GPU": 1}`` no worker runs two tiles on one GPU at once.
+next), or the one :class:`OpenCLDevicePlugin` assigns, else the preferred device. Give GPU
+workers one thread each so that a GPU forms one tile at a time (:func:`run_on_cluster` also
+takes Dask worker ``resources``, e.g. ``{"GPU": 1}`` with ``dask worker --resources GPU=1``;
+``reconstruct`` does not pass any).
 """
 
 from __future__ import annotations

@@ -90,7 +90,7 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
                          request_digest(profiles, grid, formation, options, kind, shape))
         pending = store.pending
     else:
-        values = np.zeros(grid.shape, np.complex64 if kind == "opencl" else np.complex128)
+        values = _image_array(grid, kind, force)
         pending = list(range(len(tiles)))
     done = len(tiles) - len(pending)
     tally = _Tally()
@@ -116,6 +116,17 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
                       "resumed": len(tiles) - len(pending), "devices": tally.report()}}
     return Image(values, grid, "bp", kind, "; ".join(devices),
                  {"form_tiles": time.perf_counter() - t0}, provenance=prov)
+
+
+def _image_array(grid: VoxelGrid, kind: str, force: bool) -> np.ndarray:
+    """The whole image in memory (no ``out``): refused where it would not fit, unless forced."""
+    dtype = np.complex64 if kind == "opencl" else np.complex128
+    need = grid.size * np.dtype(dtype).itemsize
+    avail = available_memory_bytes()
+    if avail is not None and need > 0.8 * avail and not force:
+        raise ValueError(f"grid: the image alone needs {need / 1e9:.3g} GB, {avail / 1e9:.3g} GB available; give "
+                         "out='image.h5' to form it into a file, or force=True")
+    return np.zeros(grid.shape, dtype)
 
 
 def _is_numpy(device) -> bool:
