@@ -32,3 +32,13 @@ def test_scale_bench_scaling_part(tmp_path, monkeypatch):
     rows = res["scaling"]["clusters"]
     assert [r["workers"] for r in rows] == [1, 2, 3]
     assert all(r["max_rel_diff_vs_single_process"] < 1e-4 and r["max_abs_diff_vs_1_worker"] == 0 for r in rows)
+
+
+def test_scale_flag_alone_or_with_a_number(monkeypatch, tmp_path):
+    from clsas.cli import main
+
+    calls = []
+    monkeypatch.setattr(scale, "run_scale", lambda **kw: calls.append(kw) or {"paths": {}})
+    assert main(["bench", "--scale", "--scale-parts", "tiles", "--out", str(tmp_path), "-q"]) == 0
+    assert calls == [{"full": False, "out_dir": str(tmp_path), "parts": ("tiles",), "status": calls[0]["status"]}]
+    assert main(["bench", "--scale", "--formation", "bp"]) == 2  # with --formation it takes a number
