@@ -235,7 +235,8 @@ class Image:
 
     @classmethod
     def open(cls, path: str | Path) -> Image:
-        """Open an image file lazily: ``values`` is the file's h5py dataset, read when used.
+        """Open an image file lazily: ``values`` is the file's h5py dataset (or, for a ``.zarr``
+        store, its Zarr array), read when used.
 
         For files larger than memory (``reconstruct(..., out=...)``): :meth:`peaks`,
         :meth:`max_magnitude`, :meth:`projection`, :meth:`section`, :meth:`plot` (through
@@ -249,6 +250,8 @@ class Image:
         path = Path(path)
         if not path.exists():
             raise FileNotFoundError(f"no image file at {path}")
+        if path.suffix.lower() == ".zarr":
+            return _open_zarr(cls, path)
         f = h5py.File(path, "r")
         missing = [n for n in ("values", *_AXES) if n not in f]
         if missing:
@@ -286,22 +289,49 @@ def attach_values(d, scales: list) -> None:
         d.dims[i].attach_scale(s)
 
 
-def write_attrs(f, image: Image) -> None:
-    """Write ``image``'s method, device, provenance and timings as attributes of ``f``."""
+def image_attrs(image: Image) -> dict:
+    """``image``'s method, device, provenance and timings as the file's attributes (JSON-able values)."""
     prov = image.describe_provenance()
-    f.attrs.update(
-        format="clsas image", format_version=IMAGE_FORMAT_VERSION, method=image.method,
-        formation=str(prov.get("formation", "")), backend=image.backend, device=image.device,
-        clsas_version=str(prov["clsas_version"]), spacing_m=np.array(image.grid.spacing()),
-        provenance_json=json.dumps(prov, default=_json_default),
-    )
+    out = dict(format="clsas image", format_version=IMAGE_FORMAT_VERSION, method=image.method,
+               formation=str(prov.get("formation", "")), backend=image.backend, device=image.device,
+               clsas_version=str(prov["clsas_version"]), spacing_m=[float(s) for s in image.grid.spacing()],
+               provenance_json=json.dumps(prov, default=_json_default))
     for key in ("source_sha256", "source_path"):
         if key in prov:
-            f.attrs[key] = str(prov[key])
+            out[key] = str(prov[key])
     if "dataset_provenance" in prov:
-        f.attrs["dataset_provenance_json"] = json.dumps(prov["dataset_provenance"], default=_json_default)
+        out["dataset_provenance_json"] = json.dumps(prov["dataset_provenance"], default=_json_default)
     for k, val in image.timings_s.items():
-        f.attrs[f"time_{k}_s"] = val
+        out[f"time_{k}_s"] = float(val)
+    return out
+
+
+def write_attrs(f, image: Image) -> None:
+    """Write :func:`image_attrs` as attributes of ``f`` (an open HDF5 file or a Zarr group)."""
+    attrs = image_attrs(image)
+    if hasattr(f, "flush"):  # HDF5: the spacing as an array attribute, as Image.save always wrote it
+        attrs["spacing_m"] = np.array(attrs["spacing_m"])
+    f.attrs.update(attrs)
+
+
+def _open_zarr(cls, path: Path) -> Image:
+    """:meth:`Image.open` of a Zarr store written by ``reconstruct(..., out="image.zarr")``."""
+    from ._zarr import import_zarr
+
+    g = import_zarr().open_group(str(path), mode="r")
+    a = dict(g.attrs)
+    names = set(g.array_keys())
+    missing = [n for n in ("values", *_AXES) if n not in names]
+    if missing:
+        raise ValueError(f"{path} is not a clsas image (no {', '.join(missing)})")
+    if not a.get("complete", True):
+        done = g["tiles_done"][:] if "tiles_done" in names else np.zeros(0)
+        raise ValueError(f"{path} is an unfinished tiled image ({int(done.sum())} of {done.size} tiles "
+                         "written); run the same reconstruct(..., out=...) again to finish it")
+    grid = VoxelGrid(g["x_m"][:], g["y_m"][:], g["z_m"][:])
+    timings = {k[5:-2]: float(val) for k, val in a.items() if k.startswith("time_") and k.endswith("_s")}
+    return cls(g["values"], grid, str(a.get("method", "bp")), str(a.get("backend", "numpy")),
+               str(a.get("device", "")), timings_s=timings, provenance=json.loads(a.get("provenance_json", "{}")))
 
 
 def _axis_number(axis: str) -> int:

@@ -35,7 +35,7 @@ def cmd_reconstruct(args) -> int:
     from clsas.image import source_provenance
 
     out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
-    if args.max_memory is not None or args.scheduler is not None:
+    if args.max_memory is not None or args.scheduler is not None or out.suffix.lower() == ".zarr":
         image = _reconstruct_tiled(ds, grid, args, out)
         image = clsas.tiling.update_attrs(image, source_provenance(ds, args.data), compression=args.compression)
     else:
@@ -111,7 +111,8 @@ def add_parser(sub) -> None:
                    "super-resolved first (needs the sparse extra)")
     r.add_argument("--compression", default="matched", choices=("matched", "fmcw"),
                    help="matched filter (default), or FMCW dechirp (only for echoes that arrive while the chirp plays)")
-    r.add_argument("--out", help="image file (default: <data>-image.h5)")
+    r.add_argument("--out", help="image file (default: <data>-image.h5); a .zarr store is written tile by tile "
+                   "(needs the zarr extra)")
     r.add_argument("--max-memory", metavar="SIZE",
                    help="form the image tile by tile into --out (a chunked HDF5 file, read lazily afterwards) with "
                    "this process's memory under SIZE, e.g. 2GB; an interrupted run given again resumes")

@@ -59,10 +59,12 @@ def check_request(grid: VoxelGrid, *, out=None, max_memory=None, client=None, ti
         return None
     if out is not None:
         if not isinstance(out, (str, Path)):
-            raise TypeError(f"out must be a path (str or Path) ending in .h5, got {type(out).__name__}")
+            raise TypeError(f"out must be a path (str or Path) ending in .h5 or .zarr, got {type(out).__name__}")
         out = Path(out)
         if out.suffix.lower() == ".zarr":
-            raise ValueError(f"out={str(out)!r}: Zarr output is not supported yet; write a chunked HDF5 file (.h5)")
+            from .._zarr import import_zarr
+
+            import_zarr()  # a missing package is said before any work
         if out.suffix.lower() not in SUFFIXES:
             raise ValueError(f"out must end in {' or '.join(SUFFIXES)}, got {str(out)!r}")
         if not out.parent.is_dir():
@@ -87,14 +89,26 @@ def finish(image: Image, out) -> Image:
     (the plan and echoes, which the file does not hold, are kept)."""
     from dataclasses import replace
 
-    import h5py
+    _write_attrs(out, image, complete=True)
+    return replace(Image.open(out), plan=image.plan, echoes=image.echoes)
 
+
+def _write_attrs(path, image: Image, **more) -> None:
+    """The image's attributes (and ``more``) into the HDF5 file or Zarr store at ``path``."""
     from ..image import write_attrs
 
-    with h5py.File(out, "r+") as f:
+    if Path(path).suffix.lower() == ".zarr":
+        from .._zarr import import_zarr
+
+        g = import_zarr().open_group(str(path), mode="r+")
+        write_attrs(g, image)
+        g.attrs.update(more)
+        return
+    import h5py
+
+    with h5py.File(path, "r+") as f:
         write_attrs(f, image)
-        f.attrs["complete"] = True
-    return replace(Image.open(out), plan=image.plan, echoes=image.echoes)
+        f.attrs.update(more)
 
 
 def update_attrs(image: Image, provenance: dict | None = None, **more) -> Image:
@@ -102,15 +116,13 @@ def update_attrs(image: Image, provenance: dict | None = None, **more) -> Image:
     too; returns the image opened again."""
     from dataclasses import replace
 
-    import h5py
-
-    from ..image import write_attrs
-
-    if not image.lazy or not hasattr(image.values, "file"):
+    if hasattr(image.values, "file"):  # h5py: close the read-only handle before writing
+        path = image.values.file.filename
+        image.values.file.close()
+    elif hasattr(image.values, "store_path"):  # a Zarr array
+        path = str(image.values.store_path.store.root)
+    else:
         raise ValueError("image: not an image opened from a file (Image.open)")
-    path = image.values.file.filename
-    image.values.file.close()
     changed = replace(image, values=None, provenance={**image.provenance, **(provenance or {}), **more})
-    with h5py.File(path, "r+") as f:
-        write_attrs(f, changed)
+    _write_attrs(path, changed)
     return replace(Image.open(path), plan=image.plan, echoes=image.echoes)

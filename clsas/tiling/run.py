@@ -28,7 +28,7 @@ from ..formation.guard import available_memory_bytes
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
-from .store import TileFile, request_digest
+from .store import open_store, request_digest
 from .tiles import form_tile, profile_bytes, rss_bytes, tile_grid, tile_shape_for
 
 __all__ = ["TiledRequest", "form_tiled"]
@@ -86,7 +86,7 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
              "Dask workers" if request.client is not None else "device(s)")
     store = values = None
     if request.out is not None:
-        store = TileFile(request.out, grid, tiles, shape,
+        store = open_store(request.out, grid, tiles, shape,
                          request_digest(profiles, grid, formation, options, kind, shape))
         pending = store.pending
     else:

@@ -8,7 +8,8 @@ An image file in :mod:`clsas.image`'s layout (so :meth:`clsas.Image.load` and
   options, backend kind and tile shape) and ``complete`` (False until the last tile and the
   image's attributes are written).
 
-Opening an unfinished file with the same request resumes it: the tiles already written are
+A ``.zarr`` store (Zarr v3, :class:`ZarrTileFile`) holds the same arrays, with the attributes as
+JSON. Opening an unfinished file with the same request resumes it: the tiles already written are
 not formed again. A file made by another request is refused, not overwritten.
 """
 
@@ -26,11 +27,11 @@ from ..image import attach_values, write_axes
 from ..profiles import Profiles
 from .tiles import Tile, chunk_shape
 
-__all__ = ["TileFile", "request_digest", "SUFFIXES"]
+__all__ = ["TileFile", "ZarrTileFile", "open_store", "request_digest", "SUFFIXES"]
 
 log = logging.getLogger(__name__)
 
-SUFFIXES = (".h5", ".hdf5")
+SUFFIXES = (".h5", ".hdf5", ".zarr")
 
 
 def request_digest(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, kind: str,
@@ -116,3 +117,47 @@ class TileFile:
 
     def close(self) -> None:
         self._f.close()
+
+
+class ZarrTileFile(TileFile):
+    """The same as :class:`TileFile` in a Zarr v3 store (a folder ending in ``.zarr``)."""
+
+    def __init__(self, path: str | Path, grid: VoxelGrid, tiles: list[Tile], tile_shape: tuple[int, int, int],
+                 digest: str):
+        from .._zarr import import_zarr
+
+        zarr = import_zarr()
+        self.path = Path(path)
+        self.n_tiles = len(tiles)
+        if self.path.exists():
+            self._g = zarr.open_group(str(self.path), mode="r+")
+            a = dict(self._g.attrs)
+            if "request_sha256" not in a or "tiles_done" not in set(self._g.array_keys()):
+                raise ValueError(f"out: {self.path} exists and is not a tiled clsas image; remove it or choose "
+                                 "another store")
+            if a["request_sha256"] != digest or self._g["tiles_done"].shape != (self.n_tiles,):
+                raise ValueError(f"out: {self.path} holds tiles of another request (other data, grid, formation, "
+                                 "backend or tile shape); remove it or choose another store")
+        else:
+            g = self._g = zarr.open_group(str(self.path), mode="w")
+            for name in ("x_m", "y_m", "z_m"):
+                g.create_array(name, data=getattr(grid, name), attributes={"units": "m"})
+            g.create_array("values", shape=grid.shape, dtype=np.complex64, chunks=chunk_shape(tile_shape),
+                           fill_value=0, attributes={"dims": ["x_m", "y_m", "z_m"]})
+            g.create_array("tiles_done", data=np.zeros(self.n_tiles, np.uint8))
+            g.attrs.update(format="clsas image", tile_shape=list(tile_shape), request_sha256=digest, complete=False)
+        self.done = self._g["tiles_done"][:].astype(bool)
+
+    def write(self, tile: Tile, values: np.ndarray) -> None:
+        self._g["values"][tile.slices] = np.asarray(values, np.complex64).reshape(tile.grid.shape)
+        self._g["tiles_done"][tile.index] = 1
+        self.done[tile.index] = True
+
+    def close(self) -> None:
+        pass  # every write went to the store
+
+
+def open_store(path, grid: VoxelGrid, tiles: list[Tile], tile_shape, digest: str) -> TileFile:
+    """The tiled file for ``path``: Zarr for ``.zarr``, else HDF5."""
+    cls = ZarrTileFile if Path(path).suffix.lower() == ".zarr" else TileFile
+    return cls(path, grid, tiles, tile_shape, digest)
