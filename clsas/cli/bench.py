@@ -59,7 +59,7 @@ def _bench_scale(args, status) -> int:
               f"{r['max_rel_diff_vs_in_memory']:.2g}")
     for r in res.get("scaling", {}).get("clusters", []):
         print(f"LocalCluster {r['workers']} x 1 thread: {r['time_s']:.2f} s, {r['speedup_vs_1_worker']:.2f}x 1 worker "
-              f"(load {r['load_before'][0]} -> {r['load_after'][0]})")
+              f"(CPU share {r['cpu_share']:.2f}, load {r['load_before'][0]} -> {r['load_after'][0]})")
     for path in res["paths"].values():
         print(f"wrote {path}")
     return 0
