@@ -269,8 +269,8 @@ def markdown(res: dict) -> str:
                   f"{' x '.join(map(str, s['tile_shape']))}; one process without tiles: {sp['time_s']:.2f} s "
                   f"(load {sp['load_before'][0]} -> {sp['load_after'][0]}).", "",
                   "The CPU share is the workers' CPU seconds over (wall time x workers): 1 means each had a core to "
-                  "itself. The CPU-bound speed-up is 1 worker's CPU seconds over the longer of the busiest worker's and "
-                  "all workers' divided by the host's cores: the speed-up an idle host would show, estimated from "
+                  "itself. The CPU-bound speed-up is 1 worker's CPU seconds over the longer of the busiest worker's "
+                  "and all workers' divided by the host's cores: the speed-up an idle host would show, estimated from "
                   "the CPU time the work took (not a wall-clock measurement; CPU time itself grows under load).", "",
                   "| workers | time | pairs/s | speed-up vs 1 worker | CPU share | CPU-bound speed-up | "
                   "image vs one process (max rel diff) | vs 1 worker (max abs diff) | load |", "|" + "---|" * 9]
