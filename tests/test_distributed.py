@@ -83,3 +83,20 @@ def test_worker_device_plugin(client):
     finally:
         client.unregister_worker_plugin(OpenCLDevicePlugin.name)
     assert set(client.run(worker_device).values()) == {None}
+
+
+def test_scheduler_address_from_the_command_line(client, tmp_path, capsys):
+    from test_cli import SCENE
+
+    from clsas.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE)
+    data = tmp_path / "scan.h5"
+    assert main(["simulate", str(scene), str(data), "-q", "--backend", "numpy"]) == 0
+    address = client.scheduler.address
+    assert main(["reconstruct", str(data), "-q", "--backend", "numpy", "--scheduler", address,
+                 "--out", str(tmp_path / "image.h5")]) == 0
+    assert "peak (+0.020, -0.010, 0.600) m" in capsys.readouterr().out
+    image = clsas.Image.open(tmp_path / "image.h5")
+    assert image.provenance["tiles"]["count"] >= 4 and image.provenance["source_path"] == "scan.h5"

@@ -142,7 +142,7 @@ def _n_parallel(client, selections) -> int:
 
 
 def _auto_shape(grid, profiles, kind, request: TiledRequest, n_parallel: int) -> tuple[int, int, int]:
-    """Tiles within the budget, and at least 4 per worker or device where there are several."""
+    """Tiles within the budget, and at least 4 per worker (Dask) or device (where there are several)."""
     if request.client is not None:
         fixed = _WORKER_BASE_BYTES + profile_bytes(profiles)
     else:
@@ -152,7 +152,7 @@ def _auto_shape(grid, profiles, kind, request: TiledRequest, n_parallel: int) ->
     budget = request.max_memory
     if budget is not None and request.client is None and n_parallel > 1:
         budget = fixed + (budget - fixed) / n_parallel  # that many tiles in flight at once
-    min_tiles = 4 * n_parallel if n_parallel > 1 else 1
+    min_tiles = 4 * n_parallel if n_parallel > 1 or request.client is not None else 1
     if budget is None and request.out is not None:  # a file without a budget: tiles of a tenth of free memory
         avail = available_memory_bytes()
         budget = fixed + 0.1 * avail if avail else None
