@@ -156,7 +156,7 @@ def _cluster_run(n_workers: int, prof, grid, tile_shape, ref) -> dict:
     quiet.setLevel(logging.WARNING)
     try:
         with distributed.LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                      dashboard_address=None, silence_logs=logging.ERROR, env=env) as cluster, \
+                                      dashboard_address=":0", silence_logs=logging.ERROR, env=env) as cluster, \
                 distributed.Client(cluster) as client:
             small = (grid.x_m[:2], grid.y_m[:2], grid.z_m[:2])
             devices = sorted(set(client.run(_warm, small).values()))
