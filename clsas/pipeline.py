@@ -13,9 +13,10 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
-from . import cl
+from . import cl, tiling
 from . import validate as v
 from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
@@ -39,23 +40,13 @@ def methods() -> tuple[str, ...]:
 
 
 def reconstruct(
-    dataset: Dataset | Profiles,
-    grid: VoxelGrid,
-    method: str = "bp",
-    *,
-    compression: str = "matched",
-    backend: str | None = None,
-    device: Any = None,
-    progress: Callable[[int, int], None] | None = None,
-    sparse: dict | None = None,
-    force: bool = False,
-    formation: str = "bp",
-    formation_options: dict | None = None,
+    dataset: Dataset | Profiles, grid: VoxelGrid, method: str = "bp", *, compression: str = "matched",
+    backend: str | None = None, device: Any = None, progress: Callable[[int, int], None] | None = None,
+    sparse: dict | None = None, force: bool = False, formation: str = "bp", formation_options: dict | None = None,
+    out: str | Path | None = None, max_memory: float | str | None = None, client: Any = None,
+    tile_shape: tuple[int, int, int] | None = None,
 ) -> Image:
-    """Image a dataset on a grid.
-
-    Only what the grid needs is computed: range profiles over the exact delay gate of the grid
-    (min and max bistatic path over all voxels and stops); ``image.plan.describe()`` says what was skipped.
+    """Image a dataset on a grid: profiles over the grid's exact delay gate only (``image.plan.describe()``).
 
     Parameters
     ----------
@@ -66,57 +57,80 @@ def reconstruct(
     method : str
         ``"bp"``: pulse compression + the formation. A registered sparse method
         (:data:`clsas.sparse.SPARSE_METHODS`: ``"bpdn"``, ``"cbp-taylor"``, ``"cbp-polar"``, ...)
-        super-resolves each recording within its own range gate (complex amplitudes: echoes of
-        unknown phase), renders each echo as a pulse much narrower than the matched filter's,
-        and forms the image of those profiles (see :func:`clsas.sparse.profiles.superres_profiles`).
+        super-resolves each recording in its own range gate and renders each echo as a narrow pulse.
     compression : str
         A registered compression (:data:`clsas.compression.COMPRESSIONS`): ``"matched"`` or ``"fmcw"``.
     backend : {"auto", "opencl", "numpy"}, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"``: OpenCL where a device exists and the
         kernels build, else the NumPy twins with one warning; ``"opencl"`` raises instead.
-    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
-        The OpenCL device for this call (default: ``PYOPENCL_CTX``, else the preferred one).
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, or a list of them, optional
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one). A list (``"numpy"``
+        may be one) spreads tiles over the devices, each taking the next tile when free.
     progress : callable(done, total), optional
+        Measurements backprojected; tiles formed when the grid is formed in tiles.
     sparse : dict, optional
-        Options for the sparse methods: ``delta_s``, ``lam``, ``lam_frac``, ``render_width_s``,
-        ``max_echoes`` (cap per recording, reported in ``Echoes.capped``), ``guard_s`` (the
-        dictionary reaches this far past each end of the gate, so echoes straddling it are
-        fitted there and dropped), ``method_options`` (passed to the method), ``absorption``
-        (model ISO 9613-1 air absorption in the atom at each gate's mean path), ``pulse`` (the
-        atom's waveform as heard through the transducers; default the dataset's waveform). A
-        recording whose sparse recovery fails falls back to its matched-filter profile and says so
-        in ``image.echoes[m].fallback`` and ``.status``; one warning sums them up.
+        Options of the sparse step (:func:`clsas.sparse.profiles.superres_profiles`: ``delta_s``,
+        ``lam``, ``lam_frac``, ``render_width_s``, ``max_echoes``, ``guard_s``, ``method_options``,
+        ``absorption``, ``pulse``). A recording whose sparse recovery fails is imaged by its
+        matched filter, said in ``image.echoes[m].fallback`` and ``.status`` and one warning.
     force : bool
         Image a grid even if it does not seem to fit in memory.
     formation : str
-        How the profiles become an image (:data:`clsas.formation.FORMATIONS`): ``"bp"`` (exact
-        backprojection, the default and the reference), ``"omega-k"`` (planar uniform apertures),
-        ``"ffbp"`` (fast factorized backprojection, any trajectory). Works with every method.
+        How the profiles become an image (:data:`clsas.formation.FORMATIONS`): ``"bp"`` (exact, the
+        reference), ``"omega-k"`` (planar uniform apertures), ``"ffbp"`` (any trajectory).
     formation_options : dict, optional
         Passed to the formation (see its module).
+    out : str or Path, optional
+        A chunked file (``.h5`` or ``.zarr``) formed tile by tile, for grids larger than memory; the
+        Image reads it lazily (:meth:`clsas.Image.open`); the same request again resumes it.
+    max_memory : float or str, optional
+        Host memory budget of this process (bytes, or ``"2GB"``): the tiles are sized so that
+        forming one stays within it (Dask: the budget of each worker).
+    client : distributed.Client or str, optional
+        A Dask client or scheduler address: each tile is a task, the profiles are sent to
+        every worker once (see :mod:`clsas.tiling.dask`). Needs the ``distributed`` extra.
+    tile_shape : (int, int, int), optional
+        Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
+
+    With ``"bp"`` a tiled image equals the whole one (to float32 rounding); a fast formation's
+    tile is that formation's image of the tile.
     """
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
-    selection = cl.select(backend, device)
-    if not force:  # the image must fit before any work starts (with force, the formation warns)
+    tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
+                                 device=device)
+    selection = _selection(backend, device, tiled)
+    if not force and tiled is None:
+        # the image must fit before any work starts (with force, the formation warns)
         check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
-        image = _form(dataset, grid, formation, fopts, selection, progress, force)
-        return replace(image, method=f"bp ({dataset.method} profiles)",
+        image = _form(dataset, grid, formation, fopts, selection, progress, force, tiled)
+        return _finish(image, tiled, method=f"bp ({dataset.method} profiles)",
                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
     plan = plan_reconstruction(dataset, grid)
     if method == "bp":
         prof, echoes, plan = _compressed(dataset, plan, compression, selection)
     else:
         prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress)
-    image = _form(prof, grid, formation, fopts, selection, progress, force)
-    plan = replace(plan, kernels=[k for k, b in ((f"compress ({compression})", prof.backend),
-                                                 ("backproject" if formation == "bp" else formation, image.backend))
-                                  if b == "opencl"])
+    image = _form(prof, grid, formation, fopts, selection, progress, force, tiled)
+    plan = _with_kernels(plan, (f"compress ({compression})", prof.backend),
+                         ("backproject" if formation == "bp" else formation, image.backend))
+    return _finish(image, tiled, method=method, plan=plan, echoes=echoes,
+                   timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
+
+
+def _with_kernels(plan: ReconstructionPlan, *steps: tuple[str, str]) -> ReconstructionPlan:
+    """The plan with the steps that ran on OpenCL ((name, backend) pairs) as its kernels, logged."""
+    plan = replace(plan, kernels=[name for name, backend in steps if backend == "opencl"])
     for line in plan.describe().splitlines():
         log.info("plan: %s", line)
-    return replace(image, method=method, plan=plan, echoes=echoes,
-                   timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
+    return plan
+
+
+def _finish(image: Image, tiled, **changes) -> Image:
+    """Stage: the image with what the pipeline knows; an out-of-core one re-opened from its file."""
+    image = replace(image, **changes)
+    return image if tiled is None or tiled.out is None else tiling.finish(image, tiled.out)
 
 
 def _check_request(dataset, grid, method, compression, sparse, formation, formation_options) -> dict:
@@ -149,6 +163,14 @@ def _check_request(dataset, grid, method, compression, sparse, formation, format
     return fopts
 
 
+def _selection(backend, device, tiled: tiling.TiledRequest | None) -> cl.Selection:
+    """The device request resolved once; with several devices, the first (it compresses)."""
+    if tiled is None or not tiled.devices:
+        return cl.select(backend, device)
+    first = tiled.devices[0]
+    return cl.select("numpy") if isinstance(first, str) and first == "numpy" else cl.select(backend, first)
+
+
 def _compressed(dataset: Dataset, plan: ReconstructionPlan, compression: str, selection: cl.Selection):
     """Stage: pulse compression over the plan's gate -> (profiles, no echoes, plan with the lags)."""
     if compression == "fmcw":
@@ -167,8 +189,16 @@ def _super_resolved(dataset: Dataset, plan: ReconstructionPlan, method: str, opt
 
 
 def _form(prof: Profiles, grid: VoxelGrid, formation: str, options: dict, selection: cl.Selection, progress,
-          force: bool) -> Image:
-    """Stage: the registered formation -> Image (its name recorded in the provenance)."""
+          force: bool, tiled: tiling.TiledRequest | None = None) -> Image:
+    """Stage: the registered formation -> Image (its name recorded in the provenance); in tiles
+    (:mod:`clsas.tiling`) where ``out``, ``max_memory``, ``client``, ``tile_shape`` or several
+    devices were given."""
     from .formation import form
 
+    if tiled is not None:
+        image = tiling.form_tiled(prof, grid, formation, options, selection, tiled, progress=progress, force=force)
+        provenance = {**image.provenance, "formation": formation}
+        if options:
+            provenance["formation_options"] = dict(options)
+        return replace(image, provenance=provenance)
     return form(prof, grid, formation, backend=selection, progress=progress, force=force, **options)

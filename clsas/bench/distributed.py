@@ -87,23 +87,21 @@ def tiles(grid: VoxelGrid, n_tiles: int) -> list[tuple[slice, VoxelGrid]]:
                                                                                        strict=True)]
 
 
-def _backproject_tile(profiles, sub: VoxelGrid, backend: str | None):
-    from ..formation.bp import backproject
-
-    image = backproject(profiles, sub, backend=backend)
-    return image.values, image.device
-
-
 def backproject_tiled(client, profiles, grid: VoxelGrid, n_tiles: int, backend: str | None = "auto"):
-    """Backproject ``profiles`` onto ``grid`` in ``n_tiles`` tiles on the cluster.
+    """Backproject ``profiles`` onto ``grid`` in ``n_tiles`` tiles on the cluster, through the library's
+    tiling (:func:`clsas.tiling.dask.run_on_cluster`: the profiles scattered once, one task per tile).
 
     Returns ``(values (nx, ny, nz) complex, devices)``: the joined image and the device each tile ran on.
     """
-    parts = tiles(grid, n_tiles)
-    prof = client.scatter(profiles, broadcast=True)
-    futures = [client.submit(_backproject_tile, prof, sub, backend, pure=False) for _, sub in parts]
-    results = client.gather(futures)
-    out = np.zeros(grid.shape, dtype=results[0][0].dtype)
-    for (sl, _), (vals, _) in zip(parts, results, strict=True):
-        out[sl] = vals
-    return out, [dev for _, dev in results]
+    from ..tiling import Tile
+    from ..tiling.dask import run_on_cluster
+
+    parts = [Tile(i, (sl, slice(None), slice(None)), sub) for i, (sl, sub) in enumerate(tiles(grid, n_tiles))]
+    out = None
+    devices = [""] * len(parts)
+    for tile, vals, device, _ in run_on_cluster(client, profiles, parts, list(range(len(parts))), "bp", {},
+                                                backend or "auto", False):
+        out = np.zeros(grid.shape, vals.dtype) if out is None else out
+        out[tile.slices] = vals
+        devices[tile.index] = device
+    return out, devices

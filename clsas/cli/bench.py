@@ -30,6 +30,10 @@ def cmd_bench(args) -> int:
             print(f"wrote {path}")
         return 0
 
+    if args.scale == "tiles":
+        if args.formation is not None:
+            raise ValueError("--scale: with --formation it takes a number (the dense case's size)")
+        return _bench_scale(args, status)
     if args.formation is not None:
         res = run_formation(full=args.full, out_dir=args.out, formations=args.formation or None, scale=args.scale,
                             cases=args.cases, plots=not args.no_plots, status=status)
@@ -66,6 +70,35 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _bench_scale(args, status) -> int:
+    """``clsas bench --scale``: peak RSS, tiles/s, strong scaling (see :mod:`clsas.bench.scale`)."""
+    from clsas.bench.scale import run_scale
+
+    res = run_scale(full=args.full, out_dir=args.out, parts=tuple(args.scale_parts), status=status)
+    for r in res.get("rss", []):
+        print(f"out of core: {r['voxels']:.3g} voxels, peak RSS {r['peak_rss_bytes'] / 1e9:.3g} GB (budget "
+              f"{r['max_memory_bytes'] / 1e9:.2g} GB), {r['tiles_per_s']:.3g} tiles/s, sampled tiles vs in-memory "
+              f"{r['max_rel_diff_vs_in_memory']:.2g}")
+    for r in res.get("scaling", {}).get("clusters", []):
+        print(f"LocalCluster {r['workers']} x 1 thread: {r['time_s']:.2f} s, {r['speedup_vs_1_worker']:.2f}x 1 worker "
+              f"(CPU share {r['cpu_share']:.2f}, load {r['load_before'][0]} -> {r['load_after'][0]})")
+    for path in res["paths"].values():
+        print(f"wrote {path}")
+    return 0
+
+
+def _scale_arg(text: str) -> float | str:
+    """``--scale`` alone (the scale benchmark, argparse passes its const ``"tiles"``) or a number."""
+    if text == "tiles":
+        return text
+    import argparse
+
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number (the dense case's size), got {text!r}") from None
+
+
 def add_parser(sub) -> None:
     b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time "
                        "(the quick set: about 2 minutes on a 2-core CPU)")
@@ -79,9 +112,13 @@ def add_parser(sub) -> None:
     b.add_argument("--formation", nargs="*", metavar="NAME", default=None,
                    help="run only the image-formation benchmark, for these registered formations (default all; bp, "
                    "the reference, always runs)")
-    b.add_argument("--scale", type=float, default=None,
-                   help="with --formation: size of the dense planar case (1 = 128 x 128 stops, 256 x 256 x 128 "
-                   "voxels; default 1 with --full, else 0.25)")
+    b.add_argument("--scale", type=_scale_arg, default=None, nargs="?", const="tiles",
+                   help="alone: the scale benchmark (peak RSS against grid size out of core, tiles/s, tile size, "
+                   "strong scaling on a LocalCluster of 1, 2 and 8 single-threaded workers); with --formation and "
+                   "a number: size of the dense planar case (1 = 128 x 128 stops, 256 x 256 x 128 voxels; default 1 "
+                   "with --full, else 0.25)")
+    b.add_argument("--scale-parts", nargs="+", choices=("rss", "tiles", "scaling"), default=["rss", "tiles", "scaling"],
+                   help="with --scale: which parts (default all)")
     b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular"), default=None,
                    help="with --formation: which cases (default all)")
     b.add_argument("--autofocus", nargs="?", const="tuning", choices=("tuning", "held-out"), default=None,

@@ -33,12 +33,16 @@ def cmd_reconstruct(args) -> int:
         print(f"preprocessed with the steps from {source}: {', '.join(p['step'] for p in ds.provenance[n_before:])}")
     if args.autofocus:
         ds, _ = af.run_autofocus(ds, grid, args)
-    image = reconstruct_image(ds, grid, args, not args.quiet)
     from clsas.image import source_provenance
 
-    image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
     out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
-    image.save(out)
+    if args.max_memory is not None or args.scheduler is not None or out.suffix.lower() == ".zarr":
+        image = _reconstruct_tiled(ds, grid, args, out)
+        image = clsas.tiling.update_attrs(image, source_provenance(ds, args.data), compression=args.compression)
+    else:
+        image = reconstruct_image(ds, grid, args, not args.quiet)
+        image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
+        image.save(out)
     if args.verbose and image.plan is not None:
         print(image.plan.describe())
     peaks = image.peaks(args.peaks, min_separation_m=0.03)
@@ -68,6 +72,19 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
+def _reconstruct_tiled(ds, grid, args, out: Path):
+    """``--max-memory`` / ``--scheduler``: the grid formed tile by tile into ``out`` (resumable)."""
+    import clsas
+
+    from .common import formation_options, progress_bar
+
+    with progress_bar("tiles", 1, not args.quiet) as cb:
+        return clsas.reconstruct(ds, grid, method=args.method, compression=args.compression, backend=args.backend,
+                                 device=args.device, progress=cb, force=args.force, formation=args.formation,
+                                 formation_options=formation_options(args.formation_option) or None, out=out,
+                                 max_memory=args.max_memory, client=args.scheduler)
+
+
 def _partial_scan(path) -> str:
     """A warning for a scan file that ``clsas acquire`` did not finish, else ``""``."""
     import h5py
@@ -95,7 +112,14 @@ def add_parser(sub) -> None:
                    "super-resolved first (needs the sparse extra)")
     r.add_argument("--compression", default="matched", choices=("matched", "fmcw"),
                    help="matched filter (default), or FMCW dechirp (only for echoes that arrive while the chirp plays)")
-    r.add_argument("--out", help="image file (default: <data>-image.h5)")
+    r.add_argument("--out", help="image file (default: <data>-image.h5); a .zarr store is written tile by tile "
+                   "(needs the zarr extra)")
+    r.add_argument("--max-memory", metavar="SIZE",
+                   help="form the image tile by tile into --out (a chunked HDF5 file, read lazily afterwards) with "
+                   "this process's memory under SIZE, e.g. 2GB; an interrupted run given again resumes")
+    r.add_argument("--scheduler", metavar="ADDRESS",
+                   help="form the tiles on the Dask cluster at ADDRESS (tcp://host:8786; needs the distributed "
+                   "extra), streaming them into --out")
     r.add_argument("--png", action="store_true", help="also write the picture as <out>.png")
     r.add_argument("--plot", metavar="FILE",
                    help="write the picture (projections and slices through the peak) to FILE: .png, .svg or .pdf")
