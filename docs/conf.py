@@ -55,12 +55,13 @@ numpydoc_show_class_members = False
 numpydoc_class_members_toctree = False
 numpydoc_xref_param_type = False
 
-# gallery: the quick examples are executed (small sizes, ~1 min in all on 2 cores); the others are
-# shown with their code, not executed (they take minutes), and their pages say so
+# gallery: the examples named in filename_pattern are executed at the small sizes of
+# _ext/gallery_args.py (about a minute in all on 2 cores); an example not named there is shown with
+# its code, not executed (add it, with a size that takes seconds)
 sphinx_gallery_conf = {
     "examples_dirs": str(ROOT / "examples"),
     "gallery_dirs": "auto_examples",
-    "filename_pattern": r"(fig4_1d_recovery|fig6_heatmaps|turntable_own_data|dense_planar_omega_k)\.py$",
+    "filename_pattern": r"(fig4_1d_recovery|fig5_2d_superres|fig6_heatmaps|turntable_own_data|dense_planar_omega_k)\.py$",
     "ignore_pattern": r"__init__\.py|/out/",
     "reset_argv": "gallery_args.reset_argv",
     "image_scrapers": ("gallery_args.png_scraper",),

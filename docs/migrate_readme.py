@@ -62,12 +62,10 @@ GUIDE = ["first-image", "own-data", "rig", "command-line", "super-resolution", "
 
 # code blocks tests/test_docs.py should not run as they are: (text in the block's first line, mark)
 MARKS: list[tuple[str, str]] = [
-    ('image = clsas.reconstruct(dataset, grid, formation="ffbp")',
-     "slow: two FFBP images of the page's scan, about 20 s on 2 cores"),
     ("out, report = clsas.autofocus(ds, grid)",
-     "slow: autofocus with every default method, about a minute on 2 cores"),
+     "slow: autofocus with every default method, about 30 s on 2 loaded cores"),
     ("from clsas.sparse import superres, Echoes, delay_error, crb_delays",
-     "slow: CBP-Polar on every recording of the page's scan"),
+     "slow: CBP-Polar on every recording of the page's scan, about 15 s on 2 loaded cores"),
 ]
 
 BENCH_PATH = re.compile(r"(?<!\[)`bench/results/([^`<>*{}\s]+?)\.(?:json|md|png|\*|\{[^`]*\})`")

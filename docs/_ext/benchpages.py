@@ -18,15 +18,18 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[2]
 RESULTS = ROOT / "bench" / "results"
 PEERS = {  # text in a result -> the peer it names (what clsas was compared with in the same run)
-    r"numba": "Numba",
-    r"openmp|c_omp|\bC peer": "C/OpenMP",
-    r"cvxpy": "cvxpy (reference solver)",
+    r"numba peer|numba_peer": "Numba",
+    r"c/openmp peer|c_openmp": "C/OpenMP",
+    r"against cvxpy|bpdn_vs_cvxpy|bpdn_cvxpy": "cvxpy (reference solver)",
     r"\bmlk\b|known-count|ML \(known": "known-count maximum likelihood",
-    r"\bbound\b|crb": "Cramér–Rao bound",
+    r"\"bound\"|bound_success|bound with|cram[eé]r": "Cramér–Rao bound",
     r"numpy_twin|NumPy twin": "the NumPy twin",
-    r"\bserial\b|dask": "the serial run (Dask)",
-    r"\bbp\b.*(omega|ffbp)|reference bp|against bp": "exact backprojection",
+    r"serial (sweep|grid|run)": "the serial run (Dask)",
+    r"against exact backprojection|speed-up": "exact backprojection (bp)",
+    r"fista alone": "FISTA alone (the solver before the Newton polish)",
+    r"error-free": "the error-free scan",
 }
+
 MAX_ROWS = 80
 
 
@@ -45,8 +48,11 @@ def _find(data: Any, keys: tuple[str, ...]) -> Any:
     return None
 
 
-def _device(data: Any, stem: str) -> str:
+def _device(data: Any, report: str) -> str:
     device = _find(data, ("device",))
+    named = re.search(r"on (pthread-[^()|\n]*?Portable Computing Language|[^()|\n,]*?) \((opencl|numpy)\)", report)
+    if not device and named:
+        device = named.group(1)
     if isinstance(device, dict):
         device = device.get("name")
     if device:
@@ -57,8 +63,7 @@ def _device(data: Any, stem: str) -> str:
     parts = [str(p) for p in (cpu, f"{cores} cores" if cores else None) if p]
     if parts:
         return ", ".join(parts) + (f" (host {host})" if isinstance(host, str) else "")
-    tail = stem.split("-")[-1]
-    return f"host '{host or tail}' (device not recorded in the file)"
+    return f"host '{host}' (device not recorded in the file)" if host else "not recorded in the file"
 
 
 def _date(data: Any, stem: str) -> str:
@@ -119,7 +124,8 @@ def _page(stem: str, files: list[Path], outdir: Path) -> tuple[str, dict[str, st
     data = json.loads(by_ext[".json"].read_text(encoding="utf-8")) if ".json" in by_ext else {}
     report = by_ext[".md"].read_text(encoding="utf-8") if ".md" in by_ext else ""
     raw = report + (by_ext[".json"].read_text(encoding="utf-8") if ".json" in by_ext else "")
-    meta = {"date": _date(data, stem), "device": _device(data, stem), "peer": _peers(raw),
+    raw = "\n".join(line for line in raw.splitlines() if not line.startswith("Versions:"))
+    meta = {"date": _date(data, stem), "device": _device(data, report), "peer": _peers(raw),
             "load": _load(data)}
     heading = re.match(r"# (.+)\n", report)
     title = heading.group(1) if heading else stem
