@@ -18,6 +18,8 @@ ROOT = HERE.parent
 sys.path[:0] = [str(ROOT), str(HERE / "_ext")]
 os.environ.setdefault("MPLBACKEND", "Agg")
 
+from gallery_args import ARGS as GALLERY_ARGS  # noqa: E402
+
 import clsas  # noqa: E402
 
 project = "clsas"
@@ -55,13 +57,13 @@ numpydoc_show_class_members = False
 numpydoc_class_members_toctree = False
 numpydoc_xref_param_type = False
 
-# gallery: the examples named in filename_pattern are executed at the small sizes of
-# _ext/gallery_args.py (about a minute in all on 2 cores); an example not named there is shown with
-# its code, not executed (add it, with a size that takes seconds)
+# gallery: the examples with an entry in _ext/gallery_args.py's ARGS are executed, at the small sizes
+# given there (about a minute in all on 2 cores); an example without one is shown with its code, not
+# executed (add it, with a size that takes seconds)
 sphinx_gallery_conf = {
     "examples_dirs": str(ROOT / "examples"),
     "gallery_dirs": "auto_examples",
-    "filename_pattern": r"(fig4_1d_recovery|fig5_2d_superres|fig6_heatmaps|turntable_own_data|dense_planar_omega_k)\.py$",
+    "filename_pattern": r"[\\/](" + "|".join(GALLERY_ARGS) + r")\.py$",
     "ignore_pattern": r"__init__\.py|/out/",
     "reset_argv": "gallery_args.reset_argv",
     "image_scrapers": ("gallery_args.png_scraper",),
