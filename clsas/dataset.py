@@ -183,7 +183,7 @@ class Dataset:
         )
 
     def save(self, path: str | Path) -> Path:
-        """Write the dataset to an HDF5 file (see README, "Dataset file")."""
+        """Write the dataset to an HDF5 file (see the guide, docs/guide/files.md, "Dataset file")."""
         import h5py
 
         from . import __version__
