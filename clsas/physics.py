@@ -183,24 +183,18 @@ def resolution_limits(
     ----------
     f_start_hz, f_stop_hz : float
         The chirp's band, Hz.
-    width_m, height_m : float
-        The aperture's extent, metres.
-    nx, ny : int
-        Stops along x and y.
-    range_m : float
-        Range of the target, metres.
-    temperature_c, humidity_pct : float
-        Air, degrees Celsius and percent relative humidity.
+    width_m, height_m, nx, ny : float, float, int, int
+        The aperture's extent (metres) and its stops along x and y.
+    range_m, temperature_c, humidity_pct : float
+        Range of the target (metres); air (degrees Celsius, percent relative humidity).
 
     Returns
     -------
     Limits
-        Range and cross-range resolution, spacing required and undersampling, warnings (all
-        lengths in metres).
+        Resolutions, required spacing, undersampling and warnings (lengths in metres).
 
     Examples
     --------
-    >>> import clsas
     >>> limits = clsas.resolution_limits(20e3, 30e3, 1.0, 1.0, 18, 12, range_m=1.5)
     >>> round(limits.range_resolution_m, 4)                # c / 2B, not the paper's 10 cm
     0.0172

@@ -94,21 +94,6 @@ def reconstruct(
         ``"ffbp"`` (fast factorized backprojection, any trajectory). Works with every method.
     formation_options : dict, optional
         Passed to the formation (see its module).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> import clsas
-    >>> fs = 96e3
-    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
-    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
-    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
-    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
-    >>> image = clsas.reconstruct(data, grid)                  # matched filter, then backprojection
-    >>> peak = image.peaks(1)[0]
-    >>> bool(np.linalg.norm(peak.position_m - [0.0, 0.0, 1.0]) < 0.02)
-    True
-    >>> fast = clsas.reconstruct(data, grid, formation="omega-k")   # a planar raster: omega-k
     """
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
     selection = cl.select(backend, device)

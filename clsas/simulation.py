@@ -82,17 +82,6 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
     Returns
     -------
     Dataset
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> import clsas
-    >>> fs = 96e3
-    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
-    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
-    >>> data = clsas.simulate(scene, clsas.raster_aperture(4, 4, 0.2, 0.2), chirp, fs, snr_db=20, seed=1)
-    >>> data.signals.shape[0], data.fs_hz
-    (16, 96000.0)
     """
     fs, wave, t0, snr_db, temperature_c = _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c)
     err = _errors(aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s)

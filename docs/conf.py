@@ -40,7 +40,7 @@ extensions = [
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 root_doc = "index"
 exclude_patterns = ["_build", "guide_src", "README.template.md", "migrate_readme.py", "**/GALLERY_HEADER.rst",
-                    "auto_examples/*.ipynb", "auto_examples/*.py", "auto_examples/*.zip"]
+                    "api/examples", "auto_examples/*.ipynb", "auto_examples/*.py", "auto_examples/*.zip"]
 templates_path = ["_templates"]
 suppress_warnings = ["myst.header"]
 
@@ -53,6 +53,10 @@ autosummary_generate = True
 autosummary_imported_members = True
 autodoc_typehints = "none"
 autodoc_default_options = {"inherited-members": False}
+# examples shown on an API page in addition to the docstring's, for functions whose docstring has no
+# room for one (the 80-line limit counts docstrings): docs/api/examples/<full name>.rst, doctest format
+autosummary_context = {"api_examples": {p.stem: p.read_text(encoding="utf-8")
+                                        for p in sorted((HERE / "api" / "examples").glob("*.rst"))}}
 numpydoc_show_class_members = False
 numpydoc_class_members_toctree = False
 numpydoc_xref_param_type = False

@@ -90,19 +90,6 @@ def compress(
     Returns
     -------
     Profiles
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> import clsas
-    >>> fs = 96e3
-    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
-    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
-    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
-    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
-    >>> profiles = clsas.compress(data)                       # matched filter, backend="auto"
-    >>> profiles.data.shape[0], profiles.data.dtype.kind
-    (64, 'c')
     """
     compression = COMPRESSIONS.choose(method)
     signals, waveform, fs_hz, t0_s, chirp, positions = _inputs(data, waveform, fs_hz, t0_s, chirp)
