@@ -150,6 +150,8 @@ def rewrite(text: str) -> str:
 def assemble(readme: str) -> dict[str, str]:
     """Guide page name -> its full text (header + migrated sections)."""
     preamble, sections = split_sections(readme)
+    if preamble + "".join(text for _, _, text in sections) != readme:  # every line has a home
+        raise SystemExit("migrate_readme: the sections do not add up to the README (a bug here)")
     parts: dict[str, list[str]] = {page: [] for page in GUIDE}
     intro = re.sub(r"\A\s*# [^\n]*\n", "", preamble).strip()
     if intro:

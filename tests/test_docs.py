@@ -144,3 +144,62 @@ def test_docstring_example_runs(name, tmp_path, monkeypatch):
         runner.run(test)
     result = runner.summarize(verbose=False)
     assert result.failed == 0, f"{name}: {result.failed} docstring example(s) failed (see the output above)"
+
+
+def _migrate():
+    sys.path.insert(0, str(ROOT / "docs"))
+    try:
+        return importlib.import_module("migrate_readme")
+    finally:
+        sys.path.remove(str(ROOT / "docs"))
+
+
+LONG_README = """# clsas
+
+What it is.
+
+## The two commands
+
+```bash
+clsas demo
+```
+
+## Super-resolution (sparse recovery)
+
+Figures in `bench/results/2026-11-23-bpdn-budget-vm.md`.
+
+```python
+from clsas.sparse import superres, Echoes, delay_error, crb_delays
+```
+
+## Backends and devices
+
+### How a kernel variant is chosen
+
+```text
+## not a heading inside a fence
+```
+"""
+
+
+def test_migration_gives_every_section_a_page_once():
+    """docs/migrate_readme.py: each section lands on its page once, with its text; the preamble on
+    the first page; a benchmark path becomes a link; a listed block gets its mark; a heading inside
+    a code fence is no section; the same README gives the same pages."""
+    migrate = _migrate()
+    pages = migrate.assemble(LONG_README)
+    assert pages == migrate.assemble(LONG_README)
+    assert "What it is." in pages["first-image"] and "## The two commands" in pages["first-image"]
+    superres = pages["super-resolution"]
+    assert superres.count("## Super-resolution (sparse recovery)") == 1
+    assert "](../benchmarks/2026-11-23-bpdn-budget-vm.md)" in superres
+    assert "<!-- slow:" in superres.split("from clsas.sparse import superres")[0].rsplit("```", 1)[0][-200:]
+    devices = pages["devices-and-kernels"]
+    assert "### How a kernel variant is chosen" in devices and "## not a heading inside a fence" in devices
+    assert all(page in pages for page in migrate.GUIDE)
+
+
+def test_migration_refuses_a_section_without_a_page():
+    migrate = _migrate()
+    with pytest.raises(SystemExit, match="has no guide page"):
+        migrate.assemble(LONG_README + "\n## Something nobody mapped\n\ntext\n")
