@@ -60,6 +60,23 @@ class ReconstructionPlan:
     """What a reconstruction computes and what it leaves out (immutable: the pipeline fills the
     profile fields in with :func:`dataclasses.replace`).
 
+    Parameters
+    ----------
+    grid_shape : tuple of int
+        (nx, ny, nz) voxels.
+    path_min_m, path_max_m : float
+        Shortest and longest bistatic path (speaker -> voxel -> microphone) over the grid, m.
+    gate_s : (float, float)
+        The delay gate those paths give, s (all measurements together).
+    lags_full : int
+        Lags of a full-window profile (no gate).
+    lags, lag_step : int
+        Lags the profiles keep, and recording samples per profile sample (the decimation).
+    kernels, notes : list of str
+        The kernels run, and what was skipped and why.
+    gates_s : numpy.ndarray, optional
+        (n_meas, 2) each measurement's own delay gate, s.
+
     Examples
     --------
     Every image carries the plan that made it:

@@ -20,13 +20,14 @@ Rewrites made to the migrated text, so that the site builds with warnings as err
 - a path ``bench/results/<stem>.<ext>`` in backticks becomes a link to the generated benchmark page
   of that result (``docs/benchmarks/<stem>.md``, written at build time by docs/_ext/benchpages.py),
   where such a result exists, so figures quoted in the guide point at their device, date and peer;
-- a code block listed in ``MARKS`` gets the HTML comment that tests/test_docs.py reads before it
+- a code block containing a text listed in ``MARKS`` gets the HTML comment that tests/test_docs.py reads before it
   (``<!-- no-run: reason -->`` or ``<!-- slow: reason -->``), unless one is there already.
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import re
 import subprocess
 import sys
@@ -60,8 +61,10 @@ GUIDE = ["first-image", "own-data", "rig", "command-line", "super-resolution", "
          "autofocus", "large-volumes", "devices-and-kernels", "files", "physics", "extending",
          "benchmarks"]
 
-# code blocks tests/test_docs.py should not run as they are: (text in the block's first line, mark)
+# code blocks tests/test_docs.py should not run as they are: (text in the block, mark)
 MARKS: list[tuple[str, str]] = [
+    ('import_airsas("small_features_cutout_20k"',
+     "no-run: needs the public AirSAS scans, downloaded outside the repository"),
     ("out, report = clsas.autofocus(ds, grid)",
      "slow: autofocus with every default method, about 30 s on 2 loaded cores"),
     ("from clsas.sparse import superres, Echoes, delay_error, crb_delays",
@@ -136,13 +139,18 @@ def rewrite(text: str) -> str:
     text = BENCH_PATH.sub(link, text)
     lines = text.splitlines(keepends=True)
     out: list[str] = []
+    fence = None
     for i, line in enumerate(lines):
-        if line.startswith("```") and i + 1 < len(lines):
-            first = lines[i + 1]
+        if fence is None and line.startswith("```"):
+            fence = line[: len(line) - len(line.lstrip("`"))]
+            body = "".join(itertools.takewhile(lambda x, f=fence: not x.startswith(f), lines[i + 1:]))
             previous = next((p for p in reversed(out) if p.strip()), "")
             for needle, mark in MARKS:
-                if needle in first and not previous.lstrip().startswith("<!--"):
+                if needle in body and not previous.lstrip().startswith("<!--"):
                     out.append(f"<!-- {mark} -->\n")
+                    break
+        elif fence is not None and line.startswith(fence):
+            fence = None
         out.append(line)
     return "".join(out)
 
