@@ -110,18 +110,6 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions moved
         along the line of sight; a provenance record ``autofocus``), or the input itself when
         the image did not get sharper.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> import clsas
-    >>> fs = 96e3
-    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
-    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
-    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
-    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
-    >>> out, report = clsas.autofocus(data, grid, methods=("temperature",))
-    >>> summary = report.summary()             # what was estimated, metric before and after, time
     """
     options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
                        max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
