@@ -54,7 +54,8 @@ autosummary_imported_members = True
 autodoc_typehints = "none"
 autodoc_default_options = {"inherited-members": False}
 # examples shown on an API page in addition to the docstring's, for functions whose docstring has no
-# room for one (the 80-line limit counts docstrings): docs/api/examples/<full name>.rst, doctest format
+# room for one (the 80-line limit counts docstrings) or is being changed on another branch:
+# docs/api/examples/<full name>.rst, doctest format
 autosummary_context = {"api_examples": {p.stem: p.read_text(encoding="utf-8")
                                         for p in sorted((HERE / "api" / "examples").glob("*.rst"))}}
 numpydoc_show_class_members = False
