@@ -4,6 +4,11 @@
     python docs/migrate_readme.py --source main:README.md # README.md is already short: read a long
                                                           # one from git (any <rev>:<path>) or a file
 
+Merging the branch that made the site (issue 32) into a main whose README has grown meanwhile:
+``git merge issue-32`` (README.md conflicts, or comes out short), then, before committing,
+``python docs/migrate_readme.py --source HEAD:README.md`` (HEAD is main's side: the long README)
+and ``git add README.md docs/guide``.
+
 Every ``## `` section of the README goes to the guide page that ``PAGES`` names for its title
 (first match wins; a ``### `` section goes with its parent unless ``SUBSECTIONS`` names it), in
 README order, below that page's hand-written header (``docs/guide_src/<page>.md``). The text before
