@@ -2,7 +2,8 @@
 
 At ``config-inited`` every result (the files sharing a stem: ``.json``, ``.md``, ``.png``) becomes
 ``docs/benchmarks/<stem>.md``: a table of where it ran (device, date, host load, peer), then the
-result's own Markdown report where there is one, else its JSON rendered as tables, and its plot.
+result's own Markdown report where there is one, else its JSON rendered as tables, and its plot
+(for a result stored without one: its run times per method, drawn from the JSON here).
 ``docs/benchmarks/`` is generated (not in git); the guide links to these pages, so a figure is
 stated once, beside its device, date and peer.
 """
@@ -119,6 +120,38 @@ def _tables(data: Any, title: str = "", depth: int = 0) -> list[str]:
     return out
 
 
+def _plot(data: Any, path: Path) -> bool:
+    """For a result without a plot of its own: run time per method (a box per method where there
+    are many runs, a bar where there is one), from its first list of records with a method and a
+    time. False where there is no such list."""
+    records = next((v for v in (data.values() if isinstance(data, dict) else [])
+                    if isinstance(v, list) and v and all(isinstance(r, dict) and "method" in r for r in v)), None)
+    key = next((k for k in ("median_s", "time_s") if records and all(k in r for r in records)), None)
+    if key is None:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups: dict[str, list[float]] = {}
+    for r in records:
+        label = " / ".join(str(r[k]) for k in ("method", "solver") if k in r)
+        groups.setdefault(label, []).append(float(r[key]))
+    fig, ax = plt.subplots(figsize=(6.5, 0.5 + 0.45 * len(groups)))
+    labels = list(groups)
+    if all(len(v) == 1 for v in groups.values()):
+        ax.barh(labels, [v[0] for v in groups.values()])
+    else:
+        ax.boxplot(list(groups.values()), vert=False, tick_labels=labels)
+    ax.set_xlabel(f"{key} (s)")
+    ax.set_title("run time per method (from the JSON file)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True
+
+
 def _page(stem: str, files: list[Path], outdir: Path) -> tuple[str, dict[str, str]]:
     by_ext = {p.suffix: p for p in files}
     data = json.loads(by_ext[".json"].read_text(encoding="utf-8")) if ".json" in by_ext else {}
@@ -139,6 +172,8 @@ def _page(stem: str, files: list[Path], outdir: Path) -> tuple[str, dict[str, st
         shutil.copyfile(by_ext[".png"], outdir / by_ext[".png"].name)
         if by_ext[".png"].name not in body:
             lines.append(f"![{stem}]({by_ext['.png'].name})\n")
+    if ".png" not in by_ext and data and _plot(data, outdir / f"{stem}-times.png"):
+        lines.append(f"![run time per method]({stem}-times.png)\n")
     if body:
         lines.append(re.sub(r"^(#{1,5}) ", r"#\1 ", body, flags=re.MULTILINE))
     elif data:
