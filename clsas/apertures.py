@@ -96,6 +96,14 @@ def circular_aperture(
     -------
     Aperture
         ``n * k`` measurements, stop-major.
+
+    Examples
+    --------
+    A turntable turned in 2-degree steps, the rig 0.8 m from its axis:
+
+    >>> import clsas
+    >>> clsas.circular_aperture(180, 0.8).tx_positions.shape
+    (180, 3)
     """
     n = v.positive_int("n", n)
     r, c, h, sign, txo, rxo = _ring_args(radius_m, center_m, height_m, mode, tx_offset_m, rx_offset_m,
@@ -152,6 +160,12 @@ def helical_aperture(
     -------
     Aperture
         ``round(n_per_turn * turns) * k`` measurements, stop-major.
+
+    Examples
+    --------
+    >>> import clsas
+    >>> clsas.helical_aperture(36, 2, 0.8, 0.1).tx_positions.shape       # two turns, 10 cm per turn
+    (72, 3)
     """
     npt = v.positive_int("n_per_turn", n_per_turn)
     t = v.positive("turns", turns)
@@ -210,6 +224,14 @@ def aperture_from_csv(
     ValueError
         Naming the file, the line and the column: a missing column, a field that is not a
         number, NaN or Inf, a short row, no data rows.
+
+    Examples
+    --------
+    >>> from pathlib import Path
+    >>> import clsas
+    >>> _ = Path("stops.csv").write_text("x,y,z\\n0,0,0\\n0.01,0,0\\n0.02,0,0\\n")
+    >>> clsas.aperture_from_csv("stops.csv").tx_positions.shape
+    (3, 3)
     """
     v.choice("units", units, ("m", "mm"))
     scale = 1e-3 if units == "mm" else 1.0

@@ -65,6 +65,21 @@ class Dataset:
         see :func:`clsas.simulate`), for scoring estimates such as :func:`clsas.autofocus`.
         Values are numbers, strings or arrays; arrays whose first axis has ``n_meas`` rows
         are per measurement (``subset`` selects them). Stored in the file's ``truth`` group.
+
+    Examples
+    --------
+    Recordings made elsewhere become a Dataset from their arrays (SI units; one bistatic pair
+    per row):
+
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs)
+    >>> tx = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]])
+    >>> ds = clsas.Dataset(np.zeros((2, 2000)), tx, tx + [0.04, 0.0, 0.0], fs, chirp, temperature_c=21.0)
+    >>> _ = ds.save("scan.h5")                 # returns the path written
+    >>> clsas.load("scan.h5").signals.shape
+    (2, 2000)
     """
 
     signals: np.ndarray
@@ -168,7 +183,7 @@ class Dataset:
         )
 
     def save(self, path: str | Path) -> Path:
-        """Write the dataset to an HDF5 file (see README, "Dataset file")."""
+        """Write the dataset to an HDF5 file (see the guide, docs/guide/files.md, "Dataset file")."""
         import h5py
 
         from . import __version__
@@ -306,7 +321,26 @@ def _attach_scales(f, written: dict, ds: Dataset) -> None:
 
 
 def load(path: str | Path) -> Dataset:
-    """Read a dataset written by :meth:`Dataset.save` (or by ``clsas acquire``)."""
+    """Read a dataset written by :meth:`Dataset.save` (or by ``clsas acquire``).
+
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The HDF5 file.
+
+    Returns
+    -------
+    Dataset
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> tx = np.zeros((1, 3))
+    >>> _ = clsas.Dataset(np.zeros((1, 100)), tx, tx + 0.04, 96e3, np.ones(10)).save("one.h5")
+    >>> clsas.load("one.h5").fs_hz
+    96000.0
+    """
     import h5py
 
     path = Path(path)

@@ -56,6 +56,16 @@ class Aperture:
         metres; repeated for each microphone of a stop.
     mics_per_stop : int
         Microphones recorded per ping (k): measurements ``i * k .. i * k + k - 1`` are stop i.
+
+    Examples
+    --------
+    Apertures are made by :func:`clsas.raster_aperture`, :func:`clsas.circular_aperture`,
+    :func:`clsas.helical_aperture` or :func:`clsas.aperture_from_csv`:
+
+    >>> import clsas
+    >>> aperture = clsas.raster_aperture(3, 2, 0.1, 0.1)
+    >>> aperture.tx_positions.shape, aperture.rx_positions.shape, aperture.mics_per_stop
+    ((6, 3), (6, 3), 1)
     """
 
     tx_positions: np.ndarray
@@ -147,6 +157,13 @@ def raster_aperture(
         runs along +x.
     rx_offsets_m : (k, 3) array, optional
         Several microphones per ping, replacing ``rx_offset_m``: k measurements per stop.
+
+    Examples
+    --------
+    >>> import clsas
+    >>> aperture = clsas.raster_aperture(18, 12, 1.0, 1.0)   # the paper's 216 stops over 1 m x 1 m
+    >>> aperture.tx_positions.shape
+    (216, 3)
     """
     nx = v.positive_int("nx", nx)
     ny = v.positive_int("ny", ny)
@@ -173,7 +190,24 @@ MAX_AXIS_POINTS = 1_000_000
 
 @dataclass(frozen=True)
 class VoxelGrid:
-    """A regular grid of voxel centres; axes in metres, values indexed ``[ix, iy, iz]``."""
+    """A regular grid of voxel centres; axes in metres, values indexed ``[ix, iy, iz]``.
+
+    Parameters
+    ----------
+    x_m, y_m, z_m : numpy.ndarray
+        (n,) voxel centres along each axis, metres, increasing and evenly spaced. A single value
+        makes the grid flat along that axis (a plane).
+
+    Examples
+    --------
+    >>> import clsas
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.4, 0.4), (-0.3, 0.3), (1.0, 1.7), 0.01)
+    >>> grid.shape
+    (81, 61, 71)
+    >>> plane = clsas.VoxelGrid.plane("z", at_m=0.0, u_m=(-0.15, 0.15), v_m=(-0.15, 0.15), spacing_m=0.01)
+    >>> plane.shape
+    (31, 31, 1)
+    """
 
     x_m: np.ndarray
     y_m: np.ndarray
@@ -299,6 +333,24 @@ class Wall:
 
     ``point_m`` lies on the plane; ``normal`` points into the half-space the rig is in;
     ``reflectivity`` is the pressure reflection coefficient.
+
+    Parameters
+    ----------
+    point_m : tuple of float
+        A point on the plane, metres.
+    normal : tuple of float
+        The plane's normal (normalised here), pointing towards the rig.
+    reflectivity : float
+        Pressure reflection coefficient, 0 to 1.
+
+    Examples
+    --------
+    A mannequin around a corner, heard only through the wall's mirror image:
+
+    >>> import numpy as np
+    >>> import clsas
+    >>> wall = clsas.Wall(point_m=(0.0, 0.0, 2.0), normal=(0.7071, 0.0, -0.7071))
+    >>> scene = clsas.Scene(np.array([[0.8, 0.0, 1.6]]), visible=np.array([False]), walls=(wall,))
     """
 
     point_m: tuple[float, float, float]
@@ -335,6 +387,15 @@ class Scene:
         only through a wall's mirror image).
     walls : mirror walls; each adds a first-order image of every reflector (both legs by the
         wall, amplitude times reflectivity squared) and, if ``wall_echo``, the wall's own echo.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> scene = clsas.Scene(np.array([[0.1, 0.05, 1.2], [-0.2, 0.1, 1.5]]), amplitudes=np.array([1.0, 0.5]),
+    ...                     temperature_c=25.0)
+    >>> scene.points_m.shape
+    (2, 3)
     """
 
     points_m: np.ndarray

@@ -48,7 +48,41 @@ class Peak:
 @dataclass(frozen=True)
 class Image:
     """A reconstruction: complex ``values`` (nx, ny, nz) on ``grid``; immutable once built (derive a
-    changed copy with :func:`dataclasses.replace`)."""
+    changed copy with :func:`dataclasses.replace`).
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        (nx, ny, nz) complex, the image on ``grid`` (linear amplitude).
+    grid : VoxelGrid
+        Where the values are, metres.
+    method, backend, device : str
+        How it was made: the imaging method (``"bp"``, ``"cbp-polar"``, ...), ``"opencl"`` or
+        ``"numpy"``, and the device's name.
+    timings_s : dict
+        Seconds per stage.
+    plan : ReconstructionPlan, optional
+        What the reconstruction computed and skipped (``plan.describe()``).
+    echoes : list of Echoes, optional
+        The echoes found per recording by a sparse method.
+    provenance : dict
+        The dataset's provenance and the reconstruction's settings (stored with the image).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    >>> image = clsas.reconstruct(data, grid)
+    >>> image.values.shape == grid.shape
+    True
+    >>> top = image.peaks(2, min_separation_m=0.05)             # strongest local maxima, with positions
+    >>> _ = image.save("image.h5")
+    """
 
     values: np.ndarray
     grid: VoxelGrid

@@ -36,6 +36,22 @@ def speed_of_sound(temperature_c: float | np.ndarray = 20.0) -> float | np.ndarr
 
     ``temperature_c`` may be an array (one temperature per measurement, as logged during a
     scan); the result then has its shape.
+
+    Parameters
+    ----------
+    temperature_c : float or numpy.ndarray
+        Air temperature, degrees Celsius.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        m/s.
+
+    Examples
+    --------
+    >>> import clsas
+    >>> round(float(clsas.speed_of_sound(20.0)), 1)
+    343.2
     """
     if np.ndim(temperature_c) == 0:
         t = _check_air(temperature_c)
@@ -56,6 +72,28 @@ def air_absorption_db_per_m(
 
     At 20 C, 50 % RH and 101.325 kPa this gives 0.524 dB/m at 20 kHz, 0.937 at 30 kHz and
     1.661 at 50 kHz.
+
+    Parameters
+    ----------
+    f_hz : float or numpy.ndarray
+        Frequency, Hz.
+    temperature_c : float
+        Air temperature, degrees Celsius.
+    humidity_pct : float
+        Relative humidity, percent.
+    pressure_kpa : float
+        Atmospheric pressure, kPa.
+
+    Returns
+    -------
+    float or numpy.ndarray
+        Absorption, dB per metre of path.
+
+    Examples
+    --------
+    >>> import clsas
+    >>> round(float(clsas.air_absorption_db_per_m(30e3)), 3)
+    0.937
     """
     t_c = _check_air(temperature_c, humidity_pct)
     pa = v.positive("pressure_kpa", pressure_kpa)
@@ -140,6 +178,26 @@ def resolution_limits(
     Range resolution is ``c / (2 B)``; cross-range resolution is the two-way diffraction limit
     ``lambda_c R / (2 D)`` for an aperture of size ``D``; stops must be no more than
     ``lambda_min / 4`` apart (round trip) for an image free of grating lobes.
+
+    Parameters
+    ----------
+    f_start_hz, f_stop_hz : float
+        The chirp's band, Hz.
+    width_m, height_m, nx, ny : float, float, int, int
+        The aperture's extent (metres) and its stops along x and y.
+    range_m, temperature_c, humidity_pct : float
+        Range of the target (metres); air (degrees Celsius, percent relative humidity).
+
+    Returns
+    -------
+    Limits
+        Resolutions, required spacing, undersampling and warnings (lengths in metres).
+
+    Examples
+    --------
+    >>> limits = clsas.resolution_limits(20e3, 30e3, 1.0, 1.0, 18, 12, range_m=1.5)
+    >>> round(limits.range_resolution_m, 4)                # c / 2B, not the paper's 10 cm
+    0.0172
     """
     f1 = v.non_negative("f_start_hz", f_start_hz)
     f2 = v.non_negative("f_stop_hz", f_stop_hz)

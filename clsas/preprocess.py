@@ -485,6 +485,16 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
         :func:`remove_common` (``True``: the mean), after the background subtraction.
     blank_direct : bool or dict
         :func:`blank_direct`, with a dict for its keyword arguments.
+
+    Examples
+    --------
+    >>> from clsas import preprocess as pp
+    >>> from clsas.synthetic import turntable_scan
+    >>> scan = turntable_scan(30)
+    >>> clean = pp.apply(scan.dataset, group_delay_samples=62.33, dc=True, bandpass=True,
+    ...                  background=scan.background, blank_direct=True)
+    >>> clean.signals.shape == scan.dataset.signals.shape
+    True
     """
     ds = _check_ds(ds)
     src, bg_opts = _background_source(ds, background)

@@ -22,6 +22,40 @@ class Profiles:
 
     Sample ``k`` of row ``m`` is the echo at delay ``tau0_s[m] + k * dtau_s`` after the
     transmit start, rotated to baseband by ``exp(-j 2 pi fc_hz tau)``.
+
+    Parameters
+    ----------
+    data : numpy.ndarray
+        (n_meas, n_lags) complex baseband profiles.
+    tau0_s : numpy.ndarray
+        (n_meas,) delay of each row's first sample after the transmit start, s.
+    dtau_s : float
+        Lag step, s.
+    fc_hz : float
+        Carrier the profiles were rotated to baseband by, Hz.
+    method, backend : str
+        The compression (``"matched"``, ``"fmcw"``, a sparse method) and where it ran.
+    tx_positions, rx_positions : numpy.ndarray, optional
+        (n_meas, 3) positions, metres (from the dataset).
+    c_mps : float or numpy.ndarray, optional
+        Speed of sound, m/s, scalar or per measurement.
+    timings_s : dict
+        Seconds per stage.
+    device : str
+        The device's name.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    >>> profiles = clsas.compress(data, backend="numpy")
+    >>> profiles.data.shape[0], profiles.method
+    (64, 'matched')
     """
 
     data: np.ndarray

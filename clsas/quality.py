@@ -108,6 +108,18 @@ def tcr_db(image: Image | str | Path, target_box: Box, clutter_box: Box | None =
     -------
     float
         dB; ``inf`` when the clutter is exactly zero, ``-inf`` when the target box is.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    >>> image = clsas.reconstruct(data, grid)
+    >>> tcr = clsas.tcr_db(image, ((-0.03, 0.03), (-0.03, 0.03), (0.97, 1.03)))   # dB
     """
     img = _as_image("image", image)
     target = box_mask(img.grid, target_box, "target_box")
@@ -268,6 +280,19 @@ def compare(
     ------
     ValueError
         When the grids differ, an image holds NaN or Inf, or a box holds no voxel.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    >>> a = clsas.reconstruct(data, grid)
+    >>> b = clsas.reconstruct(data, grid, formation="omega-k")
+    >>> text = clsas.compare(a, b, target_box=((-0.03, 0.03), (-0.03, 0.03), (0.97, 1.03))).report()
     """
     ia, ib = _as_image("a", a), _as_image("b", b)
     if not same_grid(ia.grid, ib.grid):

@@ -58,7 +58,41 @@ def path_bounds(
 @dataclass(frozen=True)
 class ReconstructionPlan:
     """What a reconstruction computes and what it leaves out (immutable: the pipeline fills the
-    profile fields in with :func:`dataclasses.replace`)."""
+    profile fields in with :func:`dataclasses.replace`).
+
+    Parameters
+    ----------
+    grid_shape : tuple of int
+        (nx, ny, nz) voxels.
+    path_min_m, path_max_m : float
+        Shortest and longest bistatic path (speaker -> voxel -> microphone) over the grid, m.
+    gate_s : (float, float)
+        The delay gate those paths give, s (all measurements together).
+    lags_full : int
+        Lags of a full-window profile (no gate).
+    lags, lag_step : int
+        Lags the profiles keep, and recording samples per profile sample (the decimation).
+    kernels, notes : list of str
+        The kernels run, and what was skipped and why.
+    gates_s : numpy.ndarray, optional
+        (n_meas, 2) each measurement's own delay gate, s.
+
+    Examples
+    --------
+    Every image carries the plan that made it:
+
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    >>> image = clsas.reconstruct(data, grid)
+    >>> text = image.plan.describe()          # the range gate, the lags kept, the kernels run
+    >>> image.plan.grid_shape == grid.shape
+    True
+    """
 
     grid_shape: tuple[int, int, int]
     path_min_m: float

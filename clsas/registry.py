@@ -35,6 +35,16 @@ class Registry(MutableMapping[str, T], Generic[T]):
         What the entries are, for messages (e.g. ``"formation"``).
     parameter : str
         The public parameter that takes these names (e.g. ``"formation"``), named in errors.
+
+    Examples
+    --------
+    >>> from clsas.registry import Registry
+    >>> SHAPES = Registry("shape", "shape")
+    >>> @SHAPES.register("double")
+    ... def double(x):
+    ...     return 2 * x
+    >>> SHAPES["double"](3), SHAPES.names()
+    (6, ('double',))
     """
 
     def __init__(self, family: str, parameter: str):

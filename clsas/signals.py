@@ -84,6 +84,13 @@ def lfm_chirp(
     The paper writes ``cos(xi t^2 + omega t)`` with ``xi = 2 pi (f2 - f1) / T``; its
     instantaneous frequency then sweeps to ``2 f2 - f1``. We use ``xi / 2`` so the sweep ends
     at ``f_stop_hz`` as the paper intends (its own derivation writes ``psi = xi/2 t^2 + w t``).
+
+    Examples
+    --------
+    >>> import clsas
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, 96e3, taper=0.1)   # the paper's band, 5 ms
+    >>> chirp.shape
+    (480,)
     """
     f1, f2, fs = _check_band(f_start_hz, f_stop_hz, fs_hz)
     t = chirp_times(duration_s, fs)
@@ -94,7 +101,28 @@ def lfm_chirp(
 
 
 def analytic(x: np.ndarray, axis: int = -1) -> np.ndarray:
-    """Analytic signal ``x + j H{x}`` along ``axis`` (complex128)."""
+    """Analytic signal ``x + j H{x}`` along ``axis`` (complex128).
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        Real signal(s), any shape.
+    axis : int
+        The time axis.
+
+    Returns
+    -------
+    numpy.ndarray
+        complex128, the shape of ``x``; its real part is ``x``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> z = clsas.analytic(np.cos(2 * np.pi * 0.1 * np.arange(100)))
+    >>> z.dtype, bool(np.allclose(z.real, np.cos(2 * np.pi * 0.1 * np.arange(100))))
+    (dtype('complex128'), True)
+    """
     arr = v.array("x", x, dtype=np.float64)
     n = arr.shape[axis]
     h = np.zeros(n)

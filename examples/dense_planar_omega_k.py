@@ -1,4 +1,7 @@
-"""The demo mannequin scanned densely, imaged two ways: exact backprojection and ω-k, side by side.
+"""Dense planar scan: backprojection and omega-k side by side
+==========================================================
+
+The demo mannequin scanned densely, imaged two ways: exact backprojection and ω-k, side by side.
 
     python examples/dense_planar_omega_k.py [--out DIR] [--stops 126] [--width 0.5] [--range 1.5] [--spacing 0.01]
 
@@ -30,7 +33,7 @@ from clsas.scenes import mannequin_points
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     ap.add_argument("--out", default="examples/out")
     ap.add_argument("--stops", type=int, default=126, help="stops per side (default 126)")
     ap.add_argument("--width", type=float, default=0.5, help="aperture side, m (default 0.5)")

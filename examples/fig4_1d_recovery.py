@@ -1,4 +1,7 @@
-"""Paper, Fig. 4: 1-D recovery of two shifted decaying exponentials by BPDN, CBP-Taylor and
+"""Paper, Fig. 4: 1-D recovery of two off-grid echoes
+==================================================
+
+Paper, Fig. 4: 1-D recovery of two shifted decaying exponentials by BPDN, CBP-Taylor and
 CBP-Polar (the convex SOCP and the refined, nlopt one).
 
     python examples/fig4_1d_recovery.py [--out DIR]
@@ -34,7 +37,7 @@ LAM_FRAC = 0.02
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     ap.add_argument("--out", default="examples/out")
     args = ap.parse_args()
     out = Path(args.out)
@@ -100,4 +103,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    status = main()  # not raised when 0: sphinx-gallery runs this file and would stop at SystemExit
+    if status:
+        raise SystemExit(status)

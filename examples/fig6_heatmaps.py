@@ -1,4 +1,7 @@
-"""Paper, Fig. 6: the error (eq. 5) of each method over the grid spacing Delta and the
+"""Paper, Fig. 6: the error over grid spacing and regularisation
+=============================================================
+
+Paper, Fig. 6: the error (eq. 5) of each method over the grid spacing Delta and the
 regularisation lam, on the 1-D problem of Fig. 4 (two shifted decaying exponentials).
 
     python examples/fig6_heatmaps.py [--out DIR] [--quick]
@@ -39,7 +42,7 @@ def grid_errors(deltas=DELTAS, lam_fracs=LAM_FRACS):
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     ap.add_argument("--out", default="examples/out")
     ap.add_argument("--quick", action="store_true", help="a 3 x 3 corner of the grid")
     args = ap.parse_args()
@@ -82,4 +85,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    status = main()  # not raised when 0: sphinx-gallery runs this file and would stop at SystemExit
+    if status:
+        raise SystemExit(status)

@@ -1,4 +1,7 @@
-"""A measured-looking turntable scan, imaged step by step: what each preprocessing step and a
+"""A measured-looking turntable scan, imaged step by step
+======================================================
+
+A measured-looking turntable scan, imaged step by step: what each preprocessing step and a
 per-measurement speed of sound buy, as pictures and as target-to-clutter ratios.
 
     python examples/turntable_own_data.py [--out DIR] [--pings 180] [--spacing 0.003]
@@ -36,7 +39,7 @@ def stages(scan):
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").partition("\n")[0])
     ap.add_argument("--out", default="examples/out")
     ap.add_argument("--pings", type=int, default=180)
     ap.add_argument("--spacing", type=float, default=0.003)

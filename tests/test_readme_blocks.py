@@ -1,8 +1,11 @@
-"""Every code block of the README is run by a test, or listed here as not run with the reason.
+"""Every code block of the README and of the guide's pages is run by a test, or listed here as not
+run with the reason.
 
-A block is known by the heading it sits under, its language and its place among that
-heading's blocks; a new block fails ``test_every_block_is_run_or_excused`` until it is given a
-runner here (or a reason not to run it), so a snippet cannot drift from the code unnoticed.
+A block is known by the ``##`` heading it sits under (the README's sections moved into
+``docs/guide/*.md`` with their headings), its language and its place among that heading's blocks
+in its file; a new block fails ``test_every_block_is_run_or_excused`` until it is given a runner
+here (or a reason not to run it), so a snippet cannot drift from the code unnoticed. A guide
+page's own setup blocks, above its first ``##`` heading, are run by ``tests/test_docs.py``.
 """
 
 import re
@@ -14,7 +17,9 @@ import pytest
 
 import clsas
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+PAGES = [README, *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 
 # (heading, language, n-th block under it) -> where it is run
 RUN_ELSEWHERE = {
@@ -46,30 +51,35 @@ NOT_RUN = {
     ("Building and running a rig", "toml", 0): "not yet run: a rig file excerpt (test_rig.py checks rig files)",
     ("How it is organised", "", 0): "a map of the source tree, not code",
     ("Benchmarks", "bash", 0): "runs the benchmark suite (minutes)",
+    ("Documentation", "bash", 0): "builds the documentation site (CI does it, with warnings as errors)",
 }
 
 
 def blocks() -> list[tuple[tuple[str, str, int], str]]:
-    """((heading, language, index under the heading), code) of every fenced block."""
-    out, heading, seen = [], "", {}
-    lines = README.read_text().splitlines()
-    i = 0
-    while i < len(lines):
-        line = lines[i]
-        m = re.match(r"^#{2,3} (.*)", line)
-        if m:
-            heading = m.group(1).strip()
-        elif line.startswith("```"):
-            lang = line[3:].strip()
-            j = i + 1
-            while not lines[j].startswith("```"):
-                j += 1
-            key = (heading, lang)
-            out.append(((heading, lang, seen.get(key, 0)), "\n".join(lines[i + 1: j])))
-            seen[key] = seen.get(key, 0) + 1
-            i = j
-        i += 1
-    return out
+    """((heading, language, index under the heading in its file), code) of every fenced block under a
+    ``##`` or ``###`` heading (a block that is in the README and again in a guide page counts once)."""
+    out: dict = {}
+    for page in PAGES:
+        heading, seen = "", {}
+        lines = page.read_text().splitlines()
+        i = 0
+        while i < len(lines):
+            line = lines[i]
+            m = re.match(r"^#{2,3} (.*)", line)
+            if m:
+                heading = m.group(1).strip()
+            elif line.startswith("```"):
+                lang = line[3:].strip().split()[0] if line[3:].strip() else ""
+                j = i + 1
+                while not lines[j].startswith("```"):
+                    j += 1
+                if heading or page == README:
+                    key = (heading, lang, seen.get((heading, lang), 0))
+                    out.setdefault(key, "\n".join(lines[i + 1: j]))
+                    seen[(heading, lang)] = key[2] + 1
+                i = j
+            i += 1
+    return list(out.items())
 
 
 def block(heading: str, lang: str, index: int = 0) -> str:

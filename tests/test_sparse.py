@@ -369,12 +369,10 @@ def _run_example(name, tmp_path, *extra):
     script = Path(__file__).parents[1] / "examples" / name
     argv = sys.argv
     sys.argv = [str(script), "--out", str(tmp_path), *extra]
-    try:
-        with pytest.raises(SystemExit) as done:
-            runpy.run_path(str(script), run_name="__main__")
+    try:  # an example ends normally on success (the gallery runs it too) and exits non-zero on failure
+        runpy.run_path(str(script), run_name="__main__")
     finally:
         sys.argv = argv
-    assert done.value.code == 0
 
 
 def test_fig6_example_writes_heat_maps(tmp_path):

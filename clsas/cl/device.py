@@ -161,6 +161,28 @@ class Selection:
     (``"opencl"``) as the caller asked. Every function that takes ``backend`` also takes a
     Selection there (see :func:`select`); :meth:`plan` builds an OpenCL plan or says "run the
     NumPy twin".
+
+    Parameters
+    ----------
+    kind : {"opencl", "numpy"}
+        Where the call runs.
+    requested : {"auto", "opencl", "numpy"}
+        What the caller asked for.
+    queue : pyopencl.CommandQueue, optional
+        The device's queue (with ``kind="opencl"``).
+
+    Examples
+    --------
+    Resolve once, hand the Selection to every call:
+
+    >>> import numpy as np
+    >>> import clsas
+    >>> from clsas.cl import select
+    >>> sel = select("auto")
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, 96e3)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(2, 2, 0.1, 0.1), chirp, 96e3)
+    >>> profiles = clsas.compress(data, backend=sel)
     """
 
     kind: str
@@ -228,6 +250,26 @@ def select(backend: str | Selection | None = None, device: Any = None) -> Select
     reason; ``"opencl"`` raises :class:`OpenCLUnavailable` where there is none. A Selection
     is returned as it is (its request kept), so a function may be handed either the request
     or what the public boundary resolved; ``device`` must then be None or its own queue.
+
+    Parameters
+    ----------
+    backend : {"auto", "opencl", "numpy"}, Selection or None
+        The request; None reads ``$CLSAS_BACKEND`` (default ``"auto"``).
+    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one).
+
+    Returns
+    -------
+    Selection
+
+    Examples
+    --------
+    >>> from clsas.cl import select
+    >>> sel = select("numpy")
+    >>> sel.kind, sel.requested
+    ('numpy', 'numpy')
+    >>> select(sel) is sel                       # a Selection is passed down as it is
+    True
     """
     if isinstance(backend, Selection):
         if device is not None and device is not backend.queue:

@@ -48,6 +48,22 @@ class Backprojector:
     force : bool
         Go on even if the grid does not seem to fit in memory (otherwise a ``ValueError``
         gives the numbers and a spacing that fits; see :func:`clsas.formation.guard.check_grid`).
+
+    Examples
+    --------
+    One plan for a grid, called for several profile sets:
+
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    >>> bp = clsas.Backprojector(grid, backend="numpy")
+    >>> image = bp(clsas.compress(data, backend="numpy"))
+    >>> image.backend
+    'numpy'
     """
 
     def __init__(self, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
@@ -139,6 +155,19 @@ def backproject(
     -------
     Image
         complex64 values (OpenCL) or complex128 (NumPy), shape ``grid.shape``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 5e-3, fs, taper=0.1)
+    >>> scene = clsas.Scene(np.array([[0.0, 0.0, 1.0]]))
+    >>> data = clsas.simulate(scene, clsas.raster_aperture(8, 8, 0.3, 0.3), chirp, fs)
+    >>> grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.9, 1.1), 0.01)
+    >>> image = clsas.backproject(clsas.compress(data), grid)
+    >>> image.values.shape == grid.shape
+    True
     """
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")

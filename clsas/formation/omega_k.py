@@ -54,7 +54,7 @@ wavenumber domain. The steps, and what each costs in accuracy:
 
 Where it matches backprojection: inside the aperture's well-sampled cone
 (:func:`clsas.formation.planar.well_sampled_cone`) to about -40 dB or better on simulated scans
-(see the README's table); outside it, backprojection forms the contributions of stops that see
+(see the table in docs/guide/fast-formation.md); outside it, backprojection forms the contributions of stops that see
 a voxel at aliased angles, which ω-k leaves out unless ``upsample`` asks for them.
 """
 

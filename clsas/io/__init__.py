@@ -63,6 +63,20 @@ def import_scan(source: str | Path, *, format: str = "auto", background: str | P
         The empty-scene scan, in the same layout (-> ``Dataset.background``).
     **options
         Passed to the format's reader (:func:`import_folder`, :func:`import_airsas`, ...).
+
+    Returns
+    -------
+    Dataset
+        Positions in metres, the recordings, and a provenance record of the import.
+
+    Examples
+    --------
+    A scan folder in the AirSAS layout or a folder of WAV/CSV recordings with their positions
+    (see the guide's "Your own data"):
+
+    >>> import clsas
+    >>> ds = clsas.io.import_scan("airsas-scan/", background="airsas-empty/")   # doctest: +SKIP
+    >>> ds.save("scan.h5")                                                       # doctest: +SKIP
     """
     if format != "auto":
         IMPORTERS.check(format)

@@ -3,7 +3,7 @@ simulation.
 
 ``[stage]``, ``[audio]`` and ``[recorder]`` hold the constructor arguments of :class:`GrblStage`,
 :class:`SoundDeviceIO` and :class:`Recorder`; ``[scan]`` the stop loop's (homing, origin,
-settling). See the README section "Building and running a rig" for a commented example; every
+settling). See the guide page docs/guide/rig.md for a commented example; every
 key has a default except ``stage.port`` (not needed with ``--simulate``). Files in the older flat
 layout are read with a warning that names where each key moved.
 """

@@ -283,9 +283,30 @@ class Dictionary:
 
 
 def coherence(dictionary) -> float:
-    """Mutual coherence (eq. 4): the largest |<d_k, d_j>| / (|d_k| |d_j|) over k != j.
+    """Mutual coherence (eq. 4): the largest ``|<d_k, d_j>| / (|d_k| |d_j|)`` over ``k != j``.
 
     ``dictionary`` is a :class:`Dictionary` or an (n, K) matrix.
+
+    Parameters
+    ----------
+    dictionary : Dictionary or numpy.ndarray
+        A dictionary of atoms, or an (n, K) matrix whose columns are the atoms.
+
+    Returns
+    -------
+    float
+        Between 0 (orthogonal atoms) and 1.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> clsas.coherence(np.eye(4))
+    0.0
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 2e-3, 96e3, taper=0.2)
+    >>> D = np.stack([np.roll(np.pad(chirp, (0, 50)), k) for k in range(3)], axis=1)   # 1-sample shifts
+    >>> bool(clsas.coherence(D) > 0.5)                   # close atoms are coherent
+    True
     """
     D = dictionary.matrix() if isinstance(dictionary, Dictionary) else v.array("dictionary", dictionary, ndim=2)
     if D.shape[1] < 2:

@@ -22,6 +22,31 @@ class Echoes:
     the sparse method failed and the recording was imaged by its matched filter instead (then
     there are no echoes). ``capped`` is True where the method had more echoes than its
     ``max_echoes`` and kept the strongest.
+
+    Parameters
+    ----------
+    delays_s : numpy.ndarray
+        (k,) delays, s.
+    amplitudes : numpy.ndarray
+        (k,) amplitudes (real or complex), in the signal's units.
+    method, status : str
+        The method that found them and how it ended.
+    iterations : int
+        Solver iterations.
+    time_s : float
+        Wall time, s.
+    info : dict
+        Method-specific details.
+    fallback, capped : bool
+        See above.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from clsas.sparse import Echoes
+    >>> truth = Echoes(np.array([1.0e-3, 1.06e-3]), np.array([1.0, 0.8]))
+    >>> truth.delays_s.size
+    2
     """
 
     delays_s: np.ndarray
@@ -75,6 +100,40 @@ def delay_error(estimate: Echoes, truth: Echoes, signal=None, atom=None, *, tol_
     When the counts differ, each unmatched echo adds ``(window_s |a|)^2``, the delay term of an
     echo placed a whole window away (``window_s`` defaults to the atom's window, else the span
     of all delays). ``success`` needs every true echo matched within ``tol_s`` and no extra one.
+
+    Parameters
+    ----------
+    estimate, truth : Echoes
+        The estimated and the true echoes.
+    signal : numpy.ndarray, optional
+        The measured signal, for the fit term (with ``atom``).
+    atom : Atom or numpy.ndarray, optional
+        The pulse, for the fit term (with ``signal``).
+    tol_s : float, optional
+        A true echo is found when an estimate is within this, s.
+    window_s : float, optional
+        The window length of the count penalty, s.
+
+    Returns
+    -------
+    DelayError
+        The error, its delay and fit terms, the matching, ``success`` and the RMSE.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> from clsas.sparse import Echoes
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.2)
+    >>> x = np.zeros(600)
+    >>> x[100:100 + chirp.size] += chirp                   # two echoes 6 samples apart
+    >>> x[106:106 + chirp.size] += 0.8 * chirp
+    >>> x += 0.05 * np.random.default_rng(0).standard_normal(x.size)
+    >>> echoes = clsas.superres(x, chirp, fs)            # CBP-Polar, complex amplitudes
+    >>> truth = Echoes(np.array([100, 106]) / fs, np.array([1.0, 0.8]))
+    >>> bool(clsas.delay_error(echoes, truth, tol_s=0.25 / 10e3).success)
+    True
     """
     if (signal is None) != (atom is None):
         given, missing = ("signal", "atom") if atom is None else ("atom", "signal")

@@ -273,6 +273,21 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
         window cuts has, and is still modelled exactly).
     **options
         Passed to the method (see :func:`sparse_echoes`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import clsas
+    >>> from clsas.sparse import Echoes
+    >>> fs = 96e3
+    >>> chirp = clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.2)
+    >>> x = np.zeros(600)
+    >>> x[100:100 + chirp.size] += chirp                   # two echoes 6 samples apart
+    >>> x[106:106 + chirp.size] += 0.8 * chirp
+    >>> x += 0.05 * np.random.default_rng(0).standard_normal(x.size)
+    >>> echoes = clsas.superres(x, chirp, fs)            # CBP-Polar, complex amplitudes
+    >>> [round(d * fs) for d in echoes.delays_s]          # delays in samples
+    [100, 106]
     """
     from ..signals import analytic
     from .atoms import Atom, margin_s
