@@ -23,6 +23,8 @@ PAGES = [README, *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 
 # (heading, language, n-th block under it) -> where it is run
 RUN_ELSEWHERE = {
+    ("Volumes past memory and past one machine", "python", 0):
+        "tests/test_docs.py (the large-volumes page, after its setup block)",
     ("Python API in ten lines", "python", 0):
         "tests/test_first_hour.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
@@ -51,6 +53,8 @@ NOT_RUN = {
     ("Building and running a rig", "toml", 0): "not yet run: a rig file excerpt (test_rig.py checks rig files)",
     ("How it is organised", "", 0): "a map of the source tree, not code",
     ("Benchmarks", "bash", 0): "runs the benchmark suite (minutes)",
+    ("Volumes past memory and past one machine", "", 0): "command lines on a scan.h5 and a Dask scheduler of the "
+                                                         "reader's; tests/test_tiles.py runs --out and --max-memory",
     ("Documentation", "bash", 0): "builds the documentation site (CI does it, with warnings as errors)",
 }
 
