@@ -101,9 +101,9 @@ def _scale_arg(text: str) -> float | str:
 
 def add_parser(sub) -> None:
     b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time "
-                       "(the quick set: about 2 minutes on a 2-core CPU)")
+                       "(the quick set: 3 to 6 minutes on a 2-core CPU)")
     b.add_argument("--full", action="store_true", help="the full set (3 to 8 minutes on a 2-core CPU; the quick "
-                   "set, the default, about 2 minutes)")
+                   "set, the default, 3 to 6 minutes)")
     b.add_argument("--out", default="bench/results", help="results folder (default: bench/results)")
     b.add_argument("--scheduler", help="address of a Dask scheduler for the sweeps and tiles (default: a local "
                    "cluster of 2 workers with --full)")
