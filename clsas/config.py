@@ -272,7 +272,7 @@ def read_toml(text: str, source: str, kind: str, keys: dict[str, tuple[str, ...]
         tables = ", ".join(f"[{t}]" for t in _RIG_ONLY if t in cfg)
         raise ConfigError(f"{source} is a rig configuration ({tables}), not a scene file: scan it with "
                           "`clsas acquire RIG.toml OUT.h5` (add --simulate to hear its [simulate] scene), "
-                          "or give `clsas simulate` a scene file (README: 'A scene file')")
+                          "or give `clsas simulate` a scene file (docs/guide/command-line.md: 'A scene file')")
     if kind == "rig" and found == "scene":
         tables = ", ".join(f"[[{t}]]" if t in ("points", "walls") else f"[{t}]" for t in _SCENE_ONLY if t in cfg)
         raise ConfigError(f"{source} is a scene configuration ({tables}), not a rig file: simulate it with "

@@ -48,7 +48,7 @@ COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare,
             inspecting, export, bench)
 
 
-#: the exit codes of every command (README: "Exit codes")
+#: the exit codes of every command (docs/guide/command-line.md: "Exit codes")
 EXIT_OK, EXIT_FAILURE, EXIT_BAD_INPUT, EXIT_RESUMABLE = 0, 1, 2, 3
 #: what the user can fix in the command line, the files or the settings: exit 2
 BAD_INPUT = (ValueError, TypeError, FileNotFoundError, FileExistsError, IsADirectoryError)

@@ -51,7 +51,7 @@ def cmd_bench(args) -> int:
 
     res = run(full=args.full, out_dir=args.out, scheduler=args.scheduler, use_dask=True if args.dask else None,
               plots=not args.no_plots, status=status)
-    which = "full set" if args.full else "quick set: smaller sizes than the full set the README quotes"
+    which = "full set" if args.full else "quick set: smaller sizes than the full set the benchmark guide quotes"
     for r in res["backprojection"]:
         rt = r.get("ratios", {})
         if "opencl_kernel / numpy_twin" in rt:

@@ -28,7 +28,7 @@ def check_input_files(args) -> None:
                              "write it again (or restore a copy)") from None
 
 
-#: the methods the CLI offers instead of a slow one, fastest last (README: Super-resolution)
+#: the methods the CLI offers instead of a slow one, fastest last (docs/guide/super-resolution.md)
 FASTER = {"cbp-taylor": ("cbp-polar", "bpdn", "bp"), "cbp-polar-socp": ("cbp-polar", "bpdn", "bp"),
           "cbp-polar": ("bpdn", "bp"), "bpdn": ("bp",)}
 #: a job estimated to take longer than this is announced with the faster alternatives

@@ -132,7 +132,7 @@ def add_parser(sub) -> None:
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
     r.add_argument("--formation", default="bp", choices=tuple(FORMATIONS),
                    help="how the profiles become an image: bp (exact backprojection, default), omega-k (planar uniform "
-                   "apertures, much faster), ... (see README: Fast image formation)")
+                   "apertures, much faster), ... (see docs/guide/fast-formation.md)")
     r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
                    help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     add_preprocess_options(r)

@@ -25,7 +25,7 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    uncertainty is within ``temperature_tolerance_c`` and neither is at the search's edge.
 
 :data:`FOCUS_METHODS` (direct, phase, temperature) was the default until the held-out run of
-issue 26 showed the focus steps making a third of the scenes worse (see the README). The whole
+issue 26 showed the focus steps making a third of the scenes worse (see docs/guide/autofocus.md). The whole
 correction must not make the sub-apertures agree less than the direct sound's delay alone does;
 else, or where nothing was determined, the input comes back (``report.improved`` False, a note
 says why).
@@ -80,7 +80,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d", "pga"}
         The steps (see the module docstring); order is fixed. Default: the direct sound's delay
         alone; the focus steps (:data:`FOCUS_METHODS`, and los, 3d, pga, delay) made a third of
-        the held-out scenes of issue 26 worse, checks and all (see the README).
+        the held-out scenes of issue 26 worse, checks and all (see docs/guide/autofocus.md).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
@@ -118,7 +118,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         by at least this.
     phase_region_m : float, optional
         Search the phases on a fine local grid of this half-size at the brightest voxel, m
-        (None: on ``grid``; see the README).
+        (None: on ``grid``; see docs/guide/autofocus.md).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
