@@ -205,7 +205,7 @@ def strong_scaling(pairs: float, n_meas: int, workers: tuple = (1, 2), overhead_
 def run_scale(full: bool = False, out_dir: str | Path = "bench/results", *, parts: tuple = ("rss", "tiles", "scaling"),
               workdir: str | Path | None = None, status: Callable[[str], None] | None = None) -> dict:
     """Run the scale benchmark (quick or full) and write JSON and Markdown to ``out_dir``."""
-    from .report import _jsonable
+    from .stats import jsonable
 
     say = status or (lambda s: log.info("%s", s))
     cfg = FULL_SCALE if full else QUICK_SCALE
@@ -231,7 +231,7 @@ def run_scale(full: bool = False, out_dir: str | Path = "bench/results", *, part
         stem += "-" + "-".join(parts)
     import json
 
-    (out / f"{stem}.json").write_text(json.dumps(_jsonable(res), indent=2))
+    (out / f"{stem}.json").write_text(json.dumps(jsonable(res), indent=2))
     (out / f"{stem}.md").write_text(markdown(res))
     res["paths"] = {"json": str(out / f"{stem}.json"), "md": str(out / f"{stem}.md")}
     return res
