@@ -1,4 +1,4 @@
-"""``clsas import``: measured recordings (a WAV/CSV folder or the AirSAS layout) into a dataset file."""
+"""``clsas import``: measured recordings (a WAV/CSV folder, the AirSAS layout, a UFF file) into a dataset file."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ def add_parser(sub) -> None:
 
     im = sub.add_parser("import", help="import measured recordings (" + "; ".join(
         f"{name}: {imp.summary}" for name, imp in IMPORTERS.items()) + ")")
-    im.add_argument("source", help="the scan's folder")
+    im.add_argument("source", help="the scan's folder (or file: .uff)")
     im.add_argument("out", help="dataset file to write (HDF5)")
     im.add_argument("--format", choices=("auto", *IMPORTERS), default="auto",
                     help="layout of SOURCE (default: auto)")
