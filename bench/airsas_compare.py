@@ -21,7 +21,8 @@ What it measures (JSON + Markdown + PNG under --out):
    put into clsas's frame by that mirror, nothing else.
 3. The pipeline with the clock as ``Group Delay`` states it (no ``direct_clock``), and that
    with the owners' ring radius (0.85 m for both transducers instead of SysParams.csv's 0.8485
-   and 0.8615 m): what the remaining difference is.
+   and 0.8615 m): the "owners' frame" comparison (their geometry and clock, every other step
+   the guide's). ``bench/airsas_ablation.py`` takes the difference apart one ingredient at a time.
 5. With ``--calibrate``: ``clsas.focus.calibrate`` of the ring radius, the group delay and the
    transducers' height on each scan (each alone), and the image with the radius applied.
 """
@@ -304,7 +305,7 @@ def markdown(out: dict) -> str:
     for row in out["scans"]:
         for key, label in (("vs_scene_npy", "README pipeline vs scene.npy"), ("vs_port", "README pipeline vs port"),
                            ("stated_clock_vs_port", "Group Delay as stated vs port"),
-                           ("owners_radius_vs_port", "stated clock, radius 0.85 m vs port"),
+                           ("owners_radius_vs_port", "owners' frame (radius 0.85 m, Group Delay as stated) vs port"),
                            ("calibrated_vs_port", "radius calibrated vs port")):
             if key in row:
                 m = row[key]
