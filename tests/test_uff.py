@@ -98,6 +98,8 @@ def test_round_trip_keeps_the_measurements_exactly(tmp_path):
         data = f["channel_data/data"][()]
         assert data.shape == (ds.n_meas, ds.n_meas, ds.n_samples)
         assert np.count_nonzero(np.any(data != 0, axis=2)) == ds.n_meas
+        # only the measured recordings take room in the file (one chunk each)
+        assert f["channel_data/data"].id.get_storage_size() == ds.n_meas * ds.n_samples * 4
     _peak_at_target(back)
 
 

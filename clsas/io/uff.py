@@ -148,14 +148,16 @@ def import_uff(
         raise ValueError(f"{path} is not an HDF5 file (UFF files are HDF5)")
     with h5py.File(path, "r") as f:
         loc = _location(f, path, location)
+        extra = _read_clsas_group(f, path, loc)
         cd = _Reader(f[loc], f"{path}:/{loc}")
-        parts = _read_channel_data(cd, int(frame), waveform)
-        extra = _read_clsas_group(f, path, loc, parts["pairs"].shape[0])
-        stored_bg = _stored_background(f, path, extra, int(frame), background)
+        parts = _read_channel_data(cd, int(frame), waveform, None if extra is None else extra["pairs"])
+        bg_loc = None if extra is None or background is not None else extra.get("background_location")
+        stored_bg = None
+        if bg_loc is not None and bg_loc in f:
+            stored_bg = _pair_recordings(_Reader(f[bg_loc], f"{path}:/{bg_loc}"), int(frame), parts["pairs"])
     ds = _dataset(path, loc, int(frame), parts, extra)
     if stored_bg is not None:
-        w, e = extra["pairs"][:, 0], extra["pairs"][:, 1]
-        ds = ds.replace(background=np.ascontiguousarray(stored_bg[:, e, w].T))
+        ds = ds.replace(background=stored_bg)
     if background is not None:
         bg = import_uff(background, frame=frame, waveform=ds.waveform,
                         location=None if extra is None else extra.get("background_location"))
@@ -222,23 +224,48 @@ class _Reader:
         return float(value.reshape(()))
 
 
-def _recordings(cd: _Reader, frame: int) -> np.ndarray:
-    """``data`` as ``(time, channel, wave)`` real samples of one frame."""
-    raw = cd.array("data")
-    if raw.ndim < 1 or raw.ndim > 4:
-        raise ValueError(f"{cd.where}/data: expected 1 to 4 axes, got shape {raw.shape}")
-    data = raw.T.reshape(raw.T.shape + (1,) * (4 - raw.ndim))  # MATLAB order: time, channel, wave, frame
-    if frame >= data.shape[3]:
-        raise ValueError(f"frame must be < {data.shape[3]} (the frames of {cd.where}/data), got {frame}")
-    if data.shape[3] > 1:
-        log.info("%s/data: %d frames, frame %d read", cd.where, data.shape[3], frame)
-    data = data[..., frame]
-    if np.iscomplexobj(data):
-        log.info("%s/data: complex RF (modulation frequency 0): its real part read", cd.where)
-        data = data.real
-    if not np.all(np.isfinite(data)):
+def _data_shape(cd: _Reader) -> tuple[int, int, int, int]:
+    """``(time, channel, wave, frame)`` of ``data`` (MATLAB's order; HDF5 holds it reversed), unread."""
+    import h5py
+
+    node = cd.child("data").g
+    shape = node["real"].shape if isinstance(node, h5py.Group) and "real" in node else getattr(node, "shape", ())
+    if not 1 <= len(shape) <= 4:
+        raise ValueError(f"{cd.where}/data: expected 1 to 4 axes, got shape {shape}")
+    t, ch, w, f = tuple(reversed(shape)) + (1,) * (4 - len(shape))
+    return t, ch, w, f
+
+
+def _pair_recordings(cd: _Reader, frame: int, pairs: np.ndarray) -> np.ndarray:
+    """The recordings of the (wave, element) ``pairs`` of one frame: ``(n_pairs, n_samples)`` real.
+
+    A (wave, element, time) dataset (what :func:`clsas.io.export_uff` writes) is read wave by
+    wave, only the listed elements: a moving rig's matrix is mostly unwritten chunks."""
+    import h5py
+
+    node = cd.child("data").g
+    n_t, _, _, n_f = _data_shape(cd)
+    if frame >= n_f:
+        raise ValueError(f"frame must be < {n_f} (the frames of {cd.where}/data), got {frame}")
+    if isinstance(node, h5py.Dataset) and node.ndim == 3:
+        out = np.empty((len(pairs), n_t))
+        for w in np.unique(pairs[:, 0]):
+            rows = np.flatnonzero(pairs[:, 0] == w)
+            rows = rows[np.argsort(pairs[rows, 1])]
+            e = pairs[rows, 1]
+            out[rows] = node[int(w), int(e[0]), :] if len(rows) == 1 else node[int(w), e.tolist(), :]
+    else:
+        raw = cd.array("data")
+        data = raw.T.reshape((n_t, *raw.T.shape[1:], *(1,) * (4 - raw.ndim)))[..., frame]
+        if n_f > 1:
+            log.info("%s/data: %d frames, frame %d read", cd.where, n_f, frame)
+        if np.iscomplexobj(data):
+            log.info("%s/data: complex RF (modulation frequency 0): its real part read", cd.where)
+            data = data.real
+        out = data[:, pairs[:, 1], pairs[:, 0]].T
+    if not np.all(np.isfinite(out)):
         raise ValueError(f"{cd.where}/data holds NaN or Inf samples")
-    return data
+    return np.ascontiguousarray(out)
 
 
 def _elements(cd: _Reader, n_channels: int) -> np.ndarray:
@@ -296,7 +323,10 @@ def _read_wave(w: _Reader, c_default: float) -> tuple[np.ndarray, float, float]:
     return src, k * float(np.linalg.norm(src)) / c - w.scalar("delay", 0.0), c
 
 
-def _read_channel_data(cd: _Reader, frame: int, waveform: np.ndarray | None) -> dict[str, Any]:
+def _read_channel_data(cd: _Reader, frame: int, waveform: np.ndarray | None,
+                       pairs: np.ndarray | None) -> dict[str, Any]:
+    """The fields of the channel data and the recordings of ``pairs`` (``None``: every
+    (wave, element) pair, wave by wave)."""
     fs = cd.scalar("sampling_frequency")
     c = cd.scalar("sound_speed")
     if fs <= 0 or c <= 0:
@@ -306,8 +336,7 @@ def _read_channel_data(cd: _Reader, frame: int, waveform: np.ndarray | None) -> 
         raise ValueError(f"{cd.where}: demodulated (IQ) data at {fmod:g} Hz; clsas reads RF recordings "
                          "(modulation_frequency 0)")
     t_first = cd.scalar("initial_time")
-    data = _recordings(cd, frame)
-    n_t, n_ch, n_w = data.shape
+    _, n_ch, n_w, _ = _data_shape(cd)
     elements = _elements(cd, n_ch)
     waves = [_read_wave(w, c) for w in _waves(cd)]
     if len(waves) != n_w:
@@ -315,9 +344,14 @@ def _read_channel_data(cd: _Reader, frame: int, waveform: np.ndarray | None) -> 
     pulse = _pulse_waveform(cd) if waveform is None else np.asarray(waveform, float)
     if pulse is None:
         raise ValueError(f"{cd.where}: no pulse/waveform (the transmitted signal); give it with waveform=")
-    pairs = np.array([(w, e) for w in range(n_w) for e in range(n_ch)], dtype=np.int64).reshape(-1, 2)
-    return {"data": data, "fs": fs, "c": c, "t_first": t_first, "elements": elements, "waves": waves,
-            "waveform": pulse, "pairs": pairs, "n_waves": n_w, "n_elements": n_ch}
+    if pairs is None:
+        pairs = np.array([(w, e) for w in range(n_w) for e in range(n_ch)], dtype=np.int64).reshape(-1, 2)
+    pairs = pairs.astype(np.int64)
+    if np.any(pairs < 0) or np.any(pairs[:, 0] >= n_w) or np.any(pairs[:, 1] >= n_ch):
+        raise ValueError(f"{cd.where}: a measured pair ({CLSAS_GROUP}/pairs) outside the {n_w} waves x "
+                         f"{n_ch} elements")
+    return {"signals": _pair_recordings(cd, frame, pairs), "fs": fs, "c": c, "t_first": t_first,
+            "elements": elements, "waves": waves, "waveform": pulse, "pairs": pairs, "n_waves": n_w, "n_elements": n_ch}
 
 
 def _pulse_waveform(cd: _Reader) -> np.ndarray | None:
@@ -330,7 +364,7 @@ def _pulse_waveform(cd: _Reader) -> np.ndarray | None:
     return wave if wave.size > 1 and np.any(wave) else None
 
 
-def _read_clsas_group(f, path: Path, loc: str, n_pairs: int) -> dict | None:
+def _read_clsas_group(f, path: Path, loc: str) -> dict | None:
     """What :func:`clsas.io.export_uff` adds (measured pairs, air, chirp, provenance), if present."""
     if CLSAS_GROUP not in f or str(f[CLSAS_GROUP].attrs.get("location", loc)) != loc:
         return None
@@ -346,21 +380,9 @@ def _read_clsas_group(f, path: Path, loc: str, n_pairs: int) -> dict | None:
     return out
 
 
-def _stored_background(f, path: Path, extra: dict | None, frame: int, background) -> np.ndarray | None:
-    """The empty-scene recordings that :func:`clsas.io.export_uff` stored beside the scan
-    (``(time, channel, wave)``), unless a ``background`` file is given."""
-    loc = None if extra is None or background is not None else extra.get("background_location")
-    if loc is None or loc not in f:
-        return None
-    return _recordings(_Reader(f[loc], f"{path}:/{loc}"), frame)
-
-
 def _dataset(path: Path, loc: str, frame: int, parts: dict, extra: dict | None) -> Dataset:
-    waves, elements, data = parts["waves"], parts["elements"], parts["data"]
-    pairs = parts["pairs"] if extra is None else extra["pairs"].astype(np.int64)
+    waves, elements, pairs = parts["waves"], parts["elements"], parts["pairs"]
     n_w, n_ch = parts["n_waves"], parts["n_elements"]
-    if np.any(pairs < 0) or np.any(pairs[:, 0] >= n_w) or np.any(pairs[:, 1] >= n_ch):
-        raise ValueError(f"{path}:/{CLSAS_GROUP}/pairs: an index outside the {n_w} waves x {n_ch} elements")
     w, e = pairs[:, 0], pairs[:, 1]
     src = np.array([s for s, _, _ in waves]).reshape(-1, 3)
     emit = np.array([t for _, t, _ in waves])
@@ -376,7 +398,7 @@ def _dataset(path: Path, loc: str, frame: int, parts: dict, extra: dict | None) 
     if extra is not None and extra["provenance"]:
         prov["history"] = extra["provenance"]
     try:
-        return Dataset(signals=np.ascontiguousarray(data[:, e, w].T), tx_positions=src[w], rx_positions=elements[e],
+        return Dataset(signals=parts["signals"], tx_positions=src[w], rx_positions=elements[e],
                        fs_hz=parts["fs"], waveform=parts["waveform"], t0_s=parts["t_first"] - emit[w],
                        chirp={} if extra is None else extra["chirp"], provenance=[prov], **air)
     except (TypeError, ValueError) as exc:

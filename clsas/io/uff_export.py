@@ -6,9 +6,11 @@ each from a point source) by probe elements (fixed receivers). :func:`export_uff
 wave per distinct (speaker position, ``t0_s``) and one element per distinct microphone
 position, in the order they first appear, and writes the recordings into that matrix. A
 fixed array fired element by element (full matrix capture) fills it; a moving rig (a speaker
-and a microphone on one stage) fills only its diagonal: the pairs not measured hold zeros,
-which USTB's delay-and-sum adds as nothing, and the file's ``clsas`` group lists the measured
-pairs, so :func:`clsas.io.import_uff` returns exactly the dataset's measurements.
+and a microphone on one stage) fills only its diagonal: the pairs not measured read as zeros,
+which USTB's delay-and-sum adds as nothing. They take no room in the file (one HDF5 chunk per
+recording; unwritten chunks are the fill value), but readers that load the whole array
+(USTB, ``pyuff-ustb``) hold the full matrix in memory. The file's ``clsas`` group lists the
+measured pairs, so :func:`clsas.io.import_uff` reads exactly the dataset's measurements.
 
 What the file keeps: the recordings (float32), positions, ``t0_s``, the sample rate, the
 transmitted waveform (``pulse``), the speed of sound (``sound_speed``: the mean; each
@@ -56,7 +58,9 @@ def export_uff(dataset: Dataset, path: str | Path, *, location: str = "channel_d
         Replace an existing file (otherwise an existing file is refused).
     max_bytes : int
         Refuse a recording matrix (waves x elements x samples, float32) larger than this
-        (default 2 GiB): a moving rig's matrix grows with the square of its stops.
+        (default 2 GiB): the file stores only the measured recordings, but USTB and
+        ``pyuff-ustb`` load the whole matrix, which for a moving rig grows with the square of
+        its stops.
 
     Returns
     -------
@@ -182,10 +186,19 @@ def _write_channel_data(f, location: str, ds: Dataset, signals: np.ndarray, layo
     _number(cd, "sound_speed", layout["c"])
     _number(cd, "modulation_frequency", 0.0)
     _text(cd, "info", "written by clsas (clsas.io.export_uff): in-air bistatic recordings, positions in m")
-    data = np.zeros((n_w, n_e, ds.n_samples), dtype=np.float32)  # MATLAB's [time, channel, wave] reversed
-    w, e = layout["pairs"][:, 0], layout["pairs"][:, 1]
-    data[w, e] = signals
-    d = cd.create_dataset("data", data=data)
+    # MATLAB's [time, channel, wave] reversed; one chunk per recording, so the cells a moving rig
+    # never measured are not stored (HDF5 reads them as the fill value, 0)
+    d = cd.create_dataset("data", shape=(n_w, n_e, ds.n_samples), dtype=np.float32, chunks=(1, 1, ds.n_samples),
+                          fillvalue=np.float32(0))
+    pairs = layout["pairs"]
+    for w in np.unique(pairs[:, 0]):
+        rows = np.flatnonzero(pairs[:, 0] == w)
+        rows = rows[np.argsort(pairs[rows, 1])]
+        block = np.asarray(signals[rows], np.float32)
+        if len(rows) == 1:  # a moving rig: one recording per wave (a plain slice is much faster)
+            d[int(w), int(pairs[rows[0], 1]), :] = block[0]
+        else:
+            d[int(w), pairs[rows, 1].tolist(), :] = block
     _attrs(d, "single", "data", complex=np.array([0]), imaginary=np.array([0]))
     probe = _group(cd, "probe", "uff.probe")
     geometry = np.zeros((7, n_e))
