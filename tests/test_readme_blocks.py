@@ -23,6 +23,8 @@ PAGES = [README, *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 
 # (heading, language, n-th block under it) -> where it is run
 RUN_ELSEWHERE = {
+    ("Your own data", "python", 1): "tests/test_docs.py (the own-data page in order: scan.h5 of its setup block "
+                                    "through UFF and back)",
     ("Volumes past memory and past one machine", "python", 0):
         "tests/test_docs.py (the large-volumes page, after its setup block)",
     ("Python API in ten lines", "python", 0):
