@@ -248,3 +248,24 @@ def test_background_and_export_refusals(tmp_path):
         clsas.io.export_uff(ds.signals, tmp_path / "x.uff")
     with pytest.raises(ValueError, match="location must be"):
         clsas.io.export_uff(ds, tmp_path / "y.uff", location="a/b")
+
+
+def test_frames_a_single_wave_and_complex_rf(tmp_path):
+    pyuff = pytest.importorskip("pyuff_ustb")
+    elements = _fmc_array(4)
+    src = elements[1]
+    data = _pyuff_file(tmp_path / "one.uff", src[None, :], [0.0], elements)  # (time, element, 1 wave)
+    cd = pyuff.Uff(str(tmp_path / "one.uff")).read("channel_data")
+    point = pyuff.Point()
+    point.xyz = src
+    cd.sequence = pyuff.Wave(wavefront=pyuff.Wavefront.spherical, source=point, delay=0.0, sound_speed=C)
+    frames = np.stack([np.zeros_like(data), data], axis=-1)  # frame 0 empty, frame 1 the echoes
+    cd.data = frames + 0j  # complex RF: modulation frequency 0
+    cd.write(str(tmp_path / "frames.uff"), "channel_data", ignore_missing_compulsory_fields=True)
+    ds = clsas.io.import_uff(tmp_path / "frames.uff", frame=1)
+    assert ds.n_meas == 4
+    np.testing.assert_allclose(ds.signals, data[:, :, 0].T)
+    np.testing.assert_allclose(ds.tx_positions, np.repeat(src[None, :], 4, axis=0), atol=1e-12)
+    assert not np.any(clsas.io.import_uff(tmp_path / "frames.uff").signals)
+    with pytest.raises(ValueError, match="frame must be < 2"):
+        clsas.io.import_uff(tmp_path / "frames.uff", frame=2)
