@@ -29,7 +29,7 @@ from . import validate as v
 
 __all__ = ["Beam", "Omni", "Piston", "Cone", "Table", "Beams", "beam_from_spec", "planar_boresights",
            "axis_boresights", "lookup_table", "pair_weights", "BeamWeights", "beam_weights", "BEAM_MODES",
-           "LUT_SIZE", "gate_level"]
+           "LUT_SIZE", "gate_level", "angular_weights", "facing"]
 
 BEAM_MODES = ("none", "limited", "weighted")
 LUT_SIZE = 1024
@@ -49,6 +49,17 @@ class Beam:
     def to_spec(self) -> dict:
         """The beam as a plain dict (stored in the dataset file and written in TOML)."""
         raise NotImplementedError
+
+    def pattern_grid(self, theta_rad: np.ndarray, f_hz: np.ndarray, c_mps: float) -> np.ndarray:
+        """``pattern`` on every angle of ``theta_rad`` (any shape) times every frequency of
+        ``f_hz`` (1-D): shape ``theta_rad.shape + f_hz.shape`` (the simulator's fast path)."""
+        f = np.asarray(f_hz, float)
+        if not self.frequency_dependent:
+            p = self.pattern(theta_rad, 0.0 if f.size == 0 else float(f[0]), c_mps)
+            return np.broadcast_to(p[..., None], (*np.shape(theta_rad), f.size))
+        return self.pattern(np.asarray(theta_rad)[..., None], f, c_mps)
+
+    frequency_dependent: ClassVar[bool] = False
 
     @property
     def is_omni(self) -> bool:
@@ -78,6 +89,7 @@ class Piston(Beam):
 
     diameter_m: float
     model: ClassVar[str] = "piston"
+    frequency_dependent: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "diameter_m", v.positive("diameter_m", self.diameter_m))
@@ -90,6 +102,22 @@ class Piston(Beam):
         out = np.abs(np.where(np.abs(x) < 1e-9, 1.0, 2 * j1(safe) / safe))
         # a baffled piston radiates nothing behind its baffle
         return np.where(np.cos(theta_rad) > 0, out, 0.0)
+
+    def pattern_grid(self, theta_rad, f_hz, c_mps):
+        """As :meth:`Beam.pattern_grid`, through a table of ``|2 J1(x) / x|`` (step 0.005 in
+        x, error < 1e-6)."""
+        from scipy.special import j1
+
+        th = np.asarray(theta_rad, float)
+        f = np.asarray(f_hz, float)
+        s = np.where(np.cos(th) > 0, np.abs(np.sin(th)), 0.0)
+        scale = np.pi * self.diameter_m / c_mps
+        x_max = scale * max(float(np.abs(f).max(initial=0.0)), 1.0) + 0.01
+        xs = np.arange(0.0, x_max + 0.005, 0.005)
+        tab = np.ones_like(xs)
+        tab[1:] = np.abs(2 * j1(xs[1:]) / xs[1:])
+        out = np.interp((s[..., None] * (scale * np.abs(f))).ravel(), xs, tab).reshape(*th.shape, f.size)
+        return np.where((np.cos(th) > 0)[..., None], out, 0.0)
 
     def to_spec(self) -> dict:
         return {"model": "piston", "diameter_m": self.diameter_m}
@@ -337,3 +365,21 @@ def beam_weights(beams: Beams | None, mode: str, fc_hz: float, c_mps: float | np
     c = float(np.mean(c_mps))
     luts = np.stack([lookup_table(beams.speaker, fc_hz, c, n), lookup_table(beams.microphone, fc_hz, c, n)])
     return BeamWeights(luts, beams.tx_boresight, beams.rx_boresight, gate if mode == "limited" else None)
+
+
+def angular_weights(weights: BeamWeights, sin_theta: np.ndarray) -> np.ndarray:
+    """The two-way weight of a plane-wave component at ``sin_theta`` off the boresight (both
+    transducers facing the same way, as on a planar rig): the angular twin of
+    :func:`pair_weights` for the wavenumber-domain formations (0 where ``|sin_theta| > 1``)."""
+    s = np.abs(np.asarray(sin_theta, float))
+    cos_t = np.sqrt(np.clip(1.0 - s * s, 0.0, 1.0))
+    w = _lut_eval(weights.luts[0], cos_t) * _lut_eval(weights.luts[1], cos_t)
+    if weights.gate is not None:
+        w = (w >= weights.gate).astype(float)
+    return np.where(s <= 1.0, w, 0.0)
+
+
+def facing(weights: BeamWeights, normal: np.ndarray, tol: float = 1e-3) -> bool:
+    """Whether every boresight of ``weights`` is ``normal`` (a unit vector) to within ``tol``."""
+    n = np.asarray(normal, float)
+    return bool(np.all(weights.tx_dir @ n >= 1 - tol) and np.all(weights.rx_dir @ n >= 1 - tol))

@@ -70,6 +70,7 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
+from ..beam import BEAM_MODES, angular_weights, beam_weights, facing
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
@@ -85,7 +86,7 @@ log = logging.getLogger(__name__)
 OPTIONS = {
     "pad_time": 1.5, "pad": None, "window": None, "taper": 0.1, "upsample": 1, "bistatic": True,
     "phase_tol": 1e-3, "band_tol": 1e-2, "kernel_width": 6, "tol_m": None, "workers": None, "chunk": 8192,
-    "max_sine": None,
+    "max_sine": None, "beam": None, "beam_floor_db": -12.0,
 }
 
 
@@ -122,6 +123,9 @@ def _options(options: dict) -> dict:
     if o["workers"] is not None:
         o["workers"] = v.positive_int("workers", o["workers"])
     o["chunk"] = v.positive_int("chunk", o["chunk"])
+    if o["beam"] is not None:
+        v.choice("beam", o["beam"], BEAM_MODES)
+    o["beam_floor_db"] = v.finite("beam_floor_db", o["beam_floor_db"])
     return o
 
 
@@ -284,6 +288,7 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     if depth.min() < 4 * tol:
         raise ValueError(f"grid: a voxel plane lies {depth.min():.3g} m from the aperture's plane; omega-k "
                          "needs the grid off the plane")
+    o["angular"] = _beam_angular(profiles, o, fc, c, ap, grid)
     spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
     k = 4 * np.pi * f / c_ref
     flip = depth[0] > depth[-1]
@@ -307,6 +312,23 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
     info["backend"] = sel.kind
     return Image(values, grid, "bp", sel.kind, sel.device, timings, provenance={"omega_k": info})
+
+
+def _beam_angular(profiles: Profiles, o: dict, fc: float, c, ap, grid: VoxelGrid):
+    """The profiles' beams as weights of plane-wave angles (``beam`` option as in bp: default
+    ``"limited"`` for directional beams), or None; refused unless every boresight is the
+    aperture plane's normal toward the grid."""
+    beams = profiles.beams
+    mode = o["beam"] or ("limited" if beams is not None and not beams.is_omni else "none")
+    weights = beam_weights(beams, mode, fc, c, o["beam_floor_db"])
+    if weights is None:
+        return None
+    normal = np.zeros(3)
+    normal[ap.axis] = 1.0 if [grid.x_m, grid.y_m, grid.z_m][ap.axis].mean() > ap.w_m else -1.0
+    if not facing(weights, normal):
+        raise ValueError(f"beam={mode!r}: omega-k weights plane waves by angle from the aperture's normal, and "
+                         "needs every boresight along it; use formation='bp' (any boresight) or beam='none'")
+    return weights
 
 
 def _warn_outside_cone(tx, rx, grid: VoxelGrid, f_top: float, c_ref: float, tol: float) -> float:
@@ -393,6 +415,8 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
         cc = cols[c0: c0 + o["chunk"]]
         iu_, iv_ = cc[:, 0], cc[:, 1]
         block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_])[:, None]
+        if o["angular"] is not None:  # the beams (issue 33): two-way weight of each plane wave
+            block *= angular_weights(o["angular"], np.hypot(ku_all[iu_], kv_all[iv_])[:, None] / np.abs(k))
         t = time.perf_counter()
         if runner is not None:
             cells = runner(block, k, ku_all[iu_], kv_all[iv_], params)
