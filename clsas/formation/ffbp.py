@@ -122,6 +122,22 @@ def _tree(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
     return tree
 
 
+def _refuse_beams(profiles: Profiles, beam: str | None) -> None:
+    """FFBP forms every pair as omnidirectional: refuse directional beams unless told beam="none"."""
+    from ..beam import BEAM_MODES
+
+    if beam is not None:
+        v.choice("beam", beam, BEAM_MODES)
+    directional = profiles.beams is not None and not profiles.beams.is_omni
+    if beam in ("limited", "weighted") or (directional and beam is None):
+        raise ValueError("ffbp cannot apply transducer beams yet (the profiles carry directional beams); use "
+                         "formation='bp' with formation_options={'beam': 'limited'}, formation='omega-k', or "
+                         "formation_options={'beam': 'none'} to image them as omnidirectional")
+    if directional:
+        log.warning("ffbp: beam='none': imaging directional transducers as omnidirectional (grating lobes "
+                    "of stops whose beams never saw a voxel are kept)")
+
+
 def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -> None:
     sizes = [lev.size for lev in tree.levels]
     pairs = max((a + b for a, b in zip(sizes, sizes[1:], strict=False)), default=sizes[0] if sizes else 0)
@@ -151,6 +167,7 @@ def form(
     progress: Callable[[int, int], None] | None = None, force: bool = False, depth: int | None = None,
     factor: int = 4, oversample: float = 2.0, range_oversample: float = 2.0, order: int = 3,
     interpolator: str = "lsq", band_hz: tuple[float, float] | None = None, band_tail: float = 1e-4,
+    beam: str | None = None,
 ) -> Image:
     """Image ``profiles`` on ``grid`` by fast factorized backprojection.
 
@@ -192,6 +209,10 @@ def form(
         spectrum, all but ``band_tail`` of the energy.
     band_tail : float
         Energy fraction left outside the estimated band (default 1e-4).
+    beam : {None, "none"}
+        FFBP does not apply transducer beams (issue 33): profiles that carry directional
+        beams are refused unless ``beam="none"`` says to image them as omnidirectional (then
+        with a warning); ``"limited"`` and ``"weighted"`` are refused (use ``formation="bp"``).
 
     Returns
     -------
@@ -207,10 +228,12 @@ def form(
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
+    _refuse_beams(profiles, beam)
     if opts["depth"] == 0:
         from .bp import Backprojector
 
-        image = Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
+        image = Backprojector(grid, backend=backend, device=device, force=force, beam="none")(profiles,
+                                                                                           progress=progress)
         return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
     sel = _cl.select(backend, device)
     check_grid(grid, sel.kind, sel.cl_device, force=force)
