@@ -281,6 +281,10 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     # wavelength at 1.5 times the carrier (the band's top, about)
     f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
     tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
+    from .omega_k_line import form_line, line_axis
+
+    if (axis := line_axis(tx, rx, tol)) is not None:  # a 2-D line scan (issue 33): the 2-D Stolt step
+        return form_line(profiles, grid, axis, o, tol)
     ap = planar_aperture(tx, rx, grid, tol)
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
