@@ -76,22 +76,11 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
     direct_gain : float, optional
         Add the direct speaker-to-microphone sound, with amplitude ``direct_gain / |tx - rx|``
         (a reflector of amplitude a at ranges r1, r2 returns ``a / (r1 r2)``); None: none.
-    beams : clsas.beam.Beams, optional
-        Directional transducers: every echo (reflectors, mirror images, facets, wall echoes,
-        the direct sound) is scaled by the speaker's pattern toward where the sound leaves and
-        the microphone's toward where it arrives from, at each frequency (a piston's beam
-        narrows with frequency). The dataset records them. None: omnidirectional.
-    surfaces : sequence of clsas.specular.Surface
-        Specular surfaces (flat facets with their Kirchhoff lobe, :mod:`clsas.specular`).
-    c_mps : float, optional
-        A medium other than air (e.g. 1480 for water): this speed of sound for every
-        measurement, stored in the dataset, and no air absorption. Not with
-        ``temperature_error_c``.
+    beams, surfaces, c_mps : directional transducers, specular facets, another medium (see :data:`EXTRAS`).
 
-    Any of the errors above stores the truth in ``Dataset.truth``: ``tx_positions``,
-    ``rx_positions``, ``position_error_m`` (true minus stated, per measurement), ``t0_s``,
-    ``group_delay_s``, ``timing_jitter_s`` (per measurement), ``temperature_c``, ``c_mps``,
-    ``stop_time_s`` and ``stop_index``.
+    Any of the errors above stores the truth in ``Dataset.truth``: ``tx_positions``, ``rx_positions``,
+    ``position_error_m`` (true minus stated, per measurement), ``t0_s``, ``group_delay_s``,
+    ``timing_jitter_s`` (per measurement), ``temperature_c``, ``c_mps``, ``stop_time_s`` and ``stop_index``.
 
     Returns
     -------
@@ -99,28 +88,18 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
     """
     fs, wave, t0, snr_db, temperature_c = _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c)
     err = _errors(aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s)
-    true_temp, c, t0_true = _true_air_and_t0(temperature_c, t0, err, aperture.n_meas)
-    if c_mps is not None:
-        if err["temperature_error_c"]:
-            raise ValueError("temperature_error_c applies to air; it cannot go with c_mps")
-        c = np.full(aperture.n_meas, v.positive("c_mps", c_mps))
-        absorption = False
-    beams, surfaces = _checked_beams(beams, surfaces, aperture.n_meas)
-    tx, rx, path, gain, n_sources = _paths(scene, aperture, err["position_error_m"], direct_gain)
-    shaping = _Shaping(scene, tx, rx, path.shape[1], direct_gain, beams, float(np.mean(c)))
-    for surf in surfaces:
-        path, gain = shaping.add_surface(surf, path, gain)
+    true_temp, c, t0_true = _true_air_and_t0(temperature_c, t0, err, aperture.n_meas, c_mps)
+    tx, rx, path, gain, n_sources, shaping = _echoes(scene, aperture, err, direct_gain, beams, surfaces, c)
     delay = path / c[:, None] - t0_true[:, None]  # delay into the recording, s
     n_samples = v.positive_int("n_samples", _n_samples(delay, fs, len(wave)) if n_samples is None else n_samples)
     signals = _recordings(wave, fs, path, gain, delay, n_samples, n_sources,
-                          scene.humidity_pct, float(np.mean(true_temp)) if absorption else None, progress,
-                          shaping if shaping.active else None)
+                          scene.humidity_pct, float(np.mean(true_temp)) if absorption and c_mps is None else None,
+                          progress, shaping)
     _add_noise(signals, snr_db, seed)
-    truth = _truth(err, tx, rx, t0_true, true_temp, c) if err["any"] else {}
-    return Dataset(signals, aperture.tx_positions, aperture.rx_positions, fs, wave, t0_s=t0,
-                   temperature_c=temperature_c, humidity_pct=scene.humidity_pct, c_mps=c_mps,
-                   stage_positions=aperture.stage_positions, chirp=chirp or {}, config=config,
-                   timestamps=err["stop_time_s"] if err["moved"] else None, truth=truth, beams=beams)
+    return Dataset(signals, aperture.tx_positions, aperture.rx_positions, fs, wave, t0_s=t0, c_mps=c_mps, beams=beams,
+                   temperature_c=temperature_c, humidity_pct=scene.humidity_pct, chirp=chirp or {}, config=config,
+                   stage_positions=aperture.stage_positions, timestamps=err["stop_time_s"] if err["moved"] else None,
+                   truth=_truth(err, tx, rx, t0_true, true_temp, c) if err["any"] else {})
 
 
 def _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c):
@@ -144,11 +123,16 @@ def _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c):
     return fs, wave, t0, snr_db, temperature_c
 
 
-def _true_air_and_t0(temperature_c, t0: np.ndarray, err: dict, n_meas: int):
+def _true_air_and_t0(temperature_c, t0: np.ndarray, err: dict, n_meas: int, c_mps: float | None = None):
     """The true air temperature (the stated one plus the error), °C, its speed of sound per
-    measurement, m/s, and the true t0 per measurement (less the unknown delays), s."""
+    measurement, m/s (``c_mps`` for another medium), and the true t0 per measurement (less the
+    unknown delays), s."""
     true_temp = np.asarray(temperature_c, float) + err["temperature_error_c"]
     c = np.broadcast_to(np.asarray(speed_of_sound(true_temp), float), (n_meas,))
+    if c_mps is not None:
+        if err["temperature_error_c"]:
+            raise ValueError("temperature_error_c applies to air; it cannot go with c_mps")
+        c = np.full(n_meas, v.positive("c_mps", c_mps))
     return true_temp, c, t0 - err["group_delay_s"] - err["timing_jitter_s"]
 
 
@@ -282,6 +266,32 @@ def _errors(aperture: Aperture, seed, position_error, temperature_error_c, group
     return {"position_error_m": disp[stops], "stop_time_s": times[stops], "stop_index": stops,
             "temperature_error_c": dt, "group_delay_s": gd, "timing_jitter_s": jitter[stops], "spec": spec,
             "moved": moved, "any": moved or dt != 0 or gd != 0 or tj > 0}
+
+
+EXTRAS = """simulate's keywords of issue 33.
+
+beams : clsas.beam.Beams, optional
+    Directional transducers: every echo (reflectors, mirror images, facets, wall echoes, the
+    direct sound) is scaled by the speaker's pattern toward where the sound leaves and the
+    microphone's toward where it arrives from, at each frequency (a piston's beam narrows with
+    frequency). The dataset records them. None: omnidirectional.
+surfaces : sequence of clsas.specular.Surface
+    Specular surfaces (flat facets with their Kirchhoff lobe, :mod:`clsas.specular`).
+c_mps : float, optional
+    A medium other than air (e.g. 1480 for water): this speed of sound for every measurement,
+    stored in the dataset, and no air absorption. Not with ``temperature_error_c``.
+"""
+
+
+def _echoes(scene, aperture, err, direct_gain, beams, surfaces, c):
+    """:func:`_paths` plus the specular facets' echoes, and the shaping of every echo's spectrum
+    (None where nothing is shaped): ``(tx, rx, path, gain, n_sources, shaping)``."""
+    beams, surfaces = _checked_beams(beams, surfaces, aperture.n_meas)
+    tx, rx, path, gain, n_sources = _paths(scene, aperture, err["position_error_m"], direct_gain)
+    shaping = _Shaping(scene, tx, rx, path.shape[1], direct_gain, beams, float(np.mean(c)))
+    for surf in surfaces:
+        path, gain = shaping.add_surface(surf, path, gain)
+    return tx, rx, path, gain, n_sources, shaping if shaping.active else None
 
 
 def _checked_beams(beams, surfaces, n_meas: int) -> tuple[Beams | None, tuple[Surface, ...]]:

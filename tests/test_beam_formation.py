@@ -167,3 +167,19 @@ def test_twin_without_beam_is_unchanged(rng):
     assert beam_weights(Beams(Omni(), Omni(), (0, 0, 1), (0, 0, 1), 3), "weighted", 25e3, 343.0) is None
     b = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points(), beam=None)
     np.testing.assert_array_equal(a, b)
+
+
+def test_ffbp_refuses_beams_it_cannot_apply(caplog):
+    fs, wave, ap = _water(4)
+    beams = Beams(Piston(6e-3), Piston(6e-3), (0, 0, 1), (0, 0, 1), ap.n_meas)
+    ds = clsas.simulate(clsas.Scene(np.array([[0, 0, 0.02]])), ap, wave, fs, c_mps=1480.0, beams=beams)
+    grid = clsas.VoxelGrid.from_bounds((-1e-3, 1e-3), (-1e-3, 1e-3), (0.019, 0.021), 0.5e-3)
+    for opts in ({}, {"beam": "limited"}, {"beam": "weighted"}):
+        with pytest.raises(ValueError, match="ffbp cannot apply transducer beams"):
+            clsas.reconstruct(ds, grid, formation="ffbp", formation_options=opts, backend="numpy")
+    with caplog.at_level("WARNING", logger="clsas.formation.ffbp"):
+        img = clsas.reconstruct(ds, grid, formation="ffbp", formation_options={"beam": "none", "depth": 1},
+                                backend="numpy")
+    ref = clsas.reconstruct(ds, grid, formation_options={"beam": "none"}, backend="numpy")
+    assert any("omnidirectional" in r.message for r in caplog.records)
+    assert clsas.formation.error_to_signal_db(img, ref) < -20

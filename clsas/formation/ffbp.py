@@ -123,7 +123,9 @@ def _tree(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
 
 
 def _refuse_beams(profiles: Profiles, beam: str | None) -> None:
-    """FFBP forms every pair as omnidirectional: refuse directional beams unless told beam="none"."""
+    """FFBP forms every pair as omnidirectional (issue 33): profiles that carry directional beams
+    are refused unless ``beam="none"`` says to image them so (then with a warning); ``"limited"``
+    and ``"weighted"`` are refused, naming ``formation="bp"`` and ``"omega-k"``."""
     from ..beam import BEAM_MODES
 
     if beam is not None:
@@ -161,13 +163,27 @@ def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -
         log.warning("ffbp: %s; going on (force=True)", text)
 
 
+def _no_beams(func):
+    """``beam=`` for :func:`form`: FFBP applies no transducer beams (see :func:`_refuse_beams`)."""
+    import functools
+
+    @functools.wraps(func)
+    def wrapper(profiles: Profiles, grid: VoxelGrid, *, beam: str | None = None, **kwargs) -> Image:
+        if isinstance(profiles, Profiles):
+            _refuse_beams(profiles, beam)
+            profiles = replace(profiles, beams=None)  # every pair omnidirectional, depth 0 (bp) included
+        return func(profiles, grid, **kwargs)
+
+    return wrapper
+
+
 @FORMATIONS.register("ffbp")
+@_no_beams
 def form(
     profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
     progress: Callable[[int, int], None] | None = None, force: bool = False, depth: int | None = None,
     factor: int = 4, oversample: float = 2.0, range_oversample: float = 2.0, order: int = 3,
     interpolator: str = "lsq", band_hz: tuple[float, float] | None = None, band_tail: float = 1e-4,
-    beam: str | None = None,
 ) -> Image:
     """Image ``profiles`` on ``grid`` by fast factorized backprojection.
 
@@ -209,10 +225,6 @@ def form(
         spectrum, all but ``band_tail`` of the energy.
     band_tail : float
         Energy fraction left outside the estimated band (default 1e-4).
-    beam : {None, "none"}
-        FFBP does not apply transducer beams (issue 33): profiles that carry directional
-        beams are refused unless ``beam="none"`` says to image them as omnidirectional (then
-        with a warning); ``"limited"`` and ``"weighted"`` are refused (use ``formation="bp"``).
 
     Returns
     -------
@@ -228,12 +240,10 @@ def form(
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
-    _refuse_beams(profiles, beam)
     if opts["depth"] == 0:
         from .bp import Backprojector
 
-        image = Backprojector(grid, backend=backend, device=device, force=force, beam="none")(profiles,
-                                                                                           progress=progress)
+        image = Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
         return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
     sel = _cl.select(backend, device)
     check_grid(grid, sel.kind, sel.cl_device, force=force)

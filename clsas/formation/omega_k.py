@@ -281,18 +281,15 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     # wavelength at 1.5 times the carrier (the band's top, about)
     f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
     tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
-    from .omega_k_line import form_line, line_axis
-
-    if (axis := line_axis(tx, rx, tol)) is not None:  # a 2-D line scan (issue 33): the 2-D Stolt step
-        return form_line(profiles, grid, axis, o, tol)
-    ap = planar_aperture(tx, rx, grid, tol)
+    ap = _aperture(profiles, grid, o, tol)
+    if isinstance(ap, Image):  # a 2-D line scan (issue 33), imaged by the 2-D Stolt step
+        return ap
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
     depth = np.abs(pw - ap.w_m)
     if depth.min() < 4 * tol:
         raise ValueError(f"grid: a voxel plane lies {depth.min():.3g} m from the aperture's plane; omega-k "
                          "needs the grid off the plane")
-    o["angular"] = _beam_angular(profiles, o, fc, c, ap, grid)
     spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
     k = 4 * np.pi * f / c_ref
     flip = depth[0] > depth[-1]
@@ -316,6 +313,27 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
     info["backend"] = sel.kind
     return Image(values, grid, "bp", sel.kind, sel.device, timings, provenance={"omega_k": info})
+
+
+def _aperture(profiles: Profiles, grid: VoxelGrid, o: dict, tol: float):
+    """The planar aperture (its beams' angular weights set in ``o["angular"]``), or, for a line
+    scan, its image by :mod:`clsas.formation.omega_k_line`."""
+    from . import omega_k_line as line
+
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
+    axis = line.line_axis(tx, rx, tol)
+    if axis is not None:
+        return line.form_line(profiles, grid, axis, o, tol, (_spectra, _dft_axis, _edge_window))
+    ap = planar_aperture(tx, rx, grid, tol)
+    o["angular"] = _beam_angular(profiles, o, fc, c, ap, grid)
+    return ap
+
+
+def _plane_wave_beam(weights, ku: np.ndarray, kv: np.ndarray, k: np.ndarray):
+    """(columns, n_f) two-way beam weight of each plane wave (1 without beams)."""
+    if weights is None:
+        return 1.0
+    return angular_weights(weights, np.hypot(ku, kv)[:, None] / np.abs(k))
 
 
 def _beam_angular(profiles: Profiles, o: dict, fc: float, c, ap, grid: VoxelGrid):
@@ -419,8 +437,7 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
         cc = cols[c0: c0 + o["chunk"]]
         iu_, iv_ = cc[:, 0], cc[:, 1]
         block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_])[:, None]
-        if o["angular"] is not None:  # the beams (issue 33): two-way weight of each plane wave
-            block *= angular_weights(o["angular"], np.hypot(ku_all[iu_], kv_all[iv_])[:, None] / np.abs(k))
+        block *= _plane_wave_beam(o["angular"], ku_all[iu_], kv_all[iv_], k)  # issue 33: 1 without beams
         t = time.perf_counter()
         if runner is not None:
             cells = runner(block, k, ku_all[iu_], kv_all[iv_], params)

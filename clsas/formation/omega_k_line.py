@@ -1,7 +1,8 @@
 """Wavenumber-domain (ω-k) image formation for 2-D line scans: a 2-D Stolt step.
 
 A line scan has every stop on one straight line along a grid axis (``u``), evenly spaced, the
-speaker and microphone together (or close: their midpoint is used). Backprojection's image
+speaker and microphone together or close: the midpoint is used, and an offset ``b`` whose phase
+error ``k b^2 / (4 rho)`` exceeds 0.1 rad at the nearest voxel is refused. Backprojection's image
 then depends only on the position along the line and the distance ``rho`` from it (a voxel
 sees the line the same from every side), and per frequency it is a 1-D convolution over the
 stops with ``h(u) = exp(i k sqrt(u^2 + rho^2))``, ``k = 4 pi f / c``. Its transform along the
@@ -36,7 +37,6 @@ import numpy as np
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
-from .omega_k import _dft_axis, _edge_window, _spectra
 from .planar import NotPlanarUniform, _axis_values
 
 __all__ = ["line_axis", "form_line"]
@@ -78,10 +78,12 @@ def _transfer(q: np.ndarray, k: np.ndarray, rho: float, s1: float, s2: float) ->
     return np.where(k[None, :] < 0, np.conj(h), h)
 
 
-def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: float) -> Image:
-    """ω-k image of a line scan along grid ``axis`` (options ``o`` as omega-k's, checked)."""
+def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: float, steps: tuple) -> Image:
+    """ω-k image of a line scan along grid ``axis`` (options ``o`` as omega-k's, checked;
+    ``steps``: omega-k's spectra, chirp-z and edge-window functions, shared)."""
     import scipy.fft
 
+    _spectra, _dft_axis, _edge_window = steps
     if o["upsample"] != 1:
         raise ValueError("upsample: a line scan forms the unaliased angles only (upsample=1)")
     if profiles.beams is not None and not profiles.beams.is_omni and o["beam"] != "none":
@@ -101,9 +103,10 @@ def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: floa
     spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
     k = 4 * np.pi * f / c_ref
     base = np.linalg.norm(tx - rx, axis=1).max()
-    if np.abs(k).max() * base**2 / (4 * rho.min()) > 0.1:
-        log.warning("omega-k (line): speaker-microphone offset %.3g m imaged at the midpoints: phase error up to "
-                    "%.2f rad", base, np.abs(k).max() * base**2 / (4 * rho.min()))
+    phase = np.abs(k).max() * base**2 / (4 * rho.min())
+    if phase > 0.1:
+        raise NotPlanarUniform(f"a line scan is imaged at its speaker-microphone midpoints, and an offset of "
+                               f"{base:.3g} m errs there by up to {phase:.2g} rad (0.1 at most)")
     x = [grid.x_m, grid.y_m, grid.z_m][axis]
     lat = max(abs(x[-1] - u0), abs(u0 + du * (nu - 1) - x[0]))
     s_geo = lat / math.hypot(lat, rho.min()) if o["max_sine"] is None else o["max_sine"]
