@@ -110,6 +110,18 @@ def run_planar(n: int = 16) -> dict:
     return out
 
 
+def run_floors(n: int = 16, floors=(-6.0, -12.0, -20.0, -30.0)) -> list[dict]:
+    """bp and omega-k, both ``beam="limited"``, at several floors: their agreement and bp's surface."""
+    prof, grid, _ = make_case(n)
+    rows = []
+    for fl in floors:
+        bp = form(prof, grid, "bp", beam="limited", beam_floor_db=fl).values
+        ok = form(prof, grid, "omega-k", beam="limited", beam_floor_db=fl).values
+        rows.append({"floor_db": fl, "error_db": error_to_signal_db(bp, ok), "abs_corr": _abs_corr(bp, ok),
+                     "surface_share": _surface_share(bp, grid)})
+    return rows
+
+
 def run_line(n: int = 64, pitch: float = 0.15e-3) -> dict:
     """Omega-k on a 2-D line scan (lambda/4 at 2.5 MHz) of four pins against bp."""
     ap = clsas.raster_aperture(n, 1, (n - 1) * pitch, 0.0, tx_offset_m=(0, 0, 0), rx_offset_m=(0, 0, 0))
@@ -150,7 +162,8 @@ def run_ffbp_large(n: int = 16, voxel: float = 0.15e-3) -> dict:
 def run(quick: bool = False) -> dict:
     load = os.getloadavg()
     res = {"device": clsas.cl.select("auto").device, "load_before": load,
-           "planar": run_planar(12 if quick else 16), "line": run_line(32 if quick else 64)}
+           "planar": run_planar(12 if quick else 16), "line": run_line(32 if quick else 64),
+           "floors": run_floors(12 if quick else 16)}
     if not quick:
         res["ffbp"] = run_ffbp_large()
     res["load_after"] = os.getloadavg()
@@ -172,9 +185,16 @@ def markdown(res: dict) -> list[str]:
             lines.append(f"| {r['formation']} | {r['options'].get('beam', 'default')} | refused: "
                          f"{r['refused'][:80]}... | | | | |")
             continue
+        ref = {"bp limited": "reference", "omega-k limited": "reference"}
         lines.append(f"| {r['formation']} | {r['options'].get('beam', 'default')} | {r['time_s']:.2f} s | "
-                     f"{100 * r['surface_share']:.0f} % | {_db(r['error_vs_bp_limited_db'])} | "
-                     f"{_db(r['error_vs_omega_k_limited_db'])} | {r['abs_corr_vs_omega_k']:.3f} |")
+                     f"{100 * r['surface_share']:.0f} % | "
+                     f"{ref.get(r['label']) if r['label'] == 'bp limited' else _db(r['error_vs_bp_limited_db'])} | "
+                     f"{ref.get(r['label']) if r['label'] == 'omega-k limited' else _db(r['error_vs_omega_k_limited_db'])}"
+                     f" | {r['abs_corr_vs_omega_k']:.3f} |")
+    lines += ["", "bp and omega-k, both beam-limited, by floor (the whole grid lies in the beams' footprint):", "",
+              "| beam_floor_db | bp vs omega-k | abs-corr | bp surface within one voxel |", "|---|---|---|---|"]
+    lines += [f"| {r['floor_db']:g} | {_db(r['error_db'])} | {r['abs_corr']:.3f} | {100 * r['surface_share']:.0f} % |"
+              for r in res["floors"]]
     ln = res["line"]
     lines += ["", f"## Line scan: {ln['what']}", "", f"omega-k {ln['omega_k_s']:.2f} s, bp {ln['bp_s']:.2f} s; "
               f"omega-k vs bp {_db(ln['error_db'])}, abs-corr {ln['abs_corr']:.4f}."]
@@ -203,7 +223,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     res = run(args.quick)
-    for path in write(res, args.out, "beams_quick" if args.quick else "beams").values():
+    stem = time.strftime("%Y-%m-%d-beams") + ("-quick" if args.quick else "")
+    for path in write(res, args.out, stem).values():
         log.warning("wrote %s", path)
     return 0
 

@@ -52,6 +52,12 @@ wavenumber domain. The steps, and what each costs in accuracy:
    grid's ``x`` and ``y`` by a chirp-z (Bluestein) transform. Nothing is interpolated in the
    finished image.
 
+Transducer beams (issue 33): options ``beam`` (``"none"``, ``"limited"``, ``"weighted"``; default
+``"limited"`` where the profiles carry directional beams, else ``"none"``) and ``beam_floor_db``
+(-12) weight each plane wave by the two-way pattern at its angle ``asin(|k_xy| / k)`` from the
+normal (:func:`clsas.beam.angular_weights`, the same tables as bp's), which needs every boresight
+along the aperture's normal. A 2-D line scan goes to :mod:`clsas.formation.omega_k_line`.
+
 Where it matches backprojection: inside the aperture's well-sampled cone
 (:func:`clsas.formation.planar.well_sampled_cone`) to about -40 dB or better on simulated scans
 (see the table in docs/guide/fast-formation.md); outside it, backprojection forms the contributions of stops that see
