@@ -43,3 +43,22 @@ def test_line_scan_refuses_beams_and_bad_grids():
                              "omega-k", backend="numpy", beam="none")
     with pytest.raises(ValueError, match="upsample"):
         clsas.formation.form(prof, grid, "omega-k", backend="numpy", beam="none", upsample=2)
+
+
+def test_beam_bench_report_is_written(tmp_path):
+    """The directional bench's Markdown and JSON from a result of its shape (the run itself is the
+    benchmark's, not a test's)."""
+    from clsas.bench import beams
+
+    row = {"formation": "bp", "options": {"beam": "limited"}, "label": "bp limited", "time_s": 1.0,
+           "surface_share": 1.0, "error_vs_bp_limited_db": -600.0, "error_vs_omega_k_limited_db": -3.0,
+           "abs_corr_vs_omega_k": 0.93}
+    res = {"device": "cpu", "load_before": (1, 1, 1), "load_after": (1, 1, 1),
+           "planar": {"what": "case", "rows": [row, {"formation": "ffbp", "options": {}, "label": "ffbp default",
+                                                     "refused": "ffbp cannot apply transducer beams"}]},
+           "floors": [{"floor_db": -12.0, "error_db": -3.0, "abs_corr": 0.9, "surface_share": 1.0}],
+           "line": {"what": "line", "omega_k_s": 1.0, "bp_s": 1.0, "error_db": -39.0, "abs_corr": 1.0}}
+    paths = beams.write(res, tmp_path, "x")
+    text = paths["md"].read_text()
+    assert "| bp | limited | 1.00 s | 100 % | reference | -3.0 dB | 0.930 |" in text
+    assert "refused: ffbp cannot apply" in text and paths["json"].exists()
