@@ -62,3 +62,12 @@ def test_beam_bench_report_is_written(tmp_path):
     text = paths["md"].read_text()
     assert "| bp | limited | 1.00 s | 100 % | reference | -3.0 dB | 0.930 |" in text
     assert "refused: ffbp cannot apply" in text and paths["json"].exists()
+
+
+def test_hankel_series_matches_scipy():
+    from scipy.special import hankel1
+
+    from clsas.formation.omega_k_line import hankel1_1
+
+    x = np.geomspace(0.1, 5000, 2001)
+    np.testing.assert_allclose(hankel1_1(x), hankel1(1, x), rtol=1e-7)

@@ -39,7 +39,7 @@ from ..image import Image
 from ..profiles import Profiles
 from .planar import NotPlanarUniform, _axis_values
 
-__all__ = ["line_axis", "form_line"]
+__all__ = ["line_axis", "form_line", "hankel1_1"]
 
 log = logging.getLogger(__name__)
 
@@ -63,16 +63,30 @@ def _rho(grid: VoxelGrid, axis: int, centre: np.ndarray) -> tuple[np.ndarray, np
     return uniq, inverse.reshape(rho.shape)
 
 
+def hankel1_1(x: np.ndarray) -> np.ndarray:
+    """H1 of order 1 at ``x`` > 0: scipy's below 40, else its asymptotic series to four terms
+    (relative error < 1e-7 there, at a tenth of the cost)."""
+    from scipy.special import hankel1
+
+    x = np.asarray(x, float)
+    big = x >= 40.0
+    out = np.empty(x.shape, np.complex128)
+    out[~big] = hankel1(1, x[~big])
+    xb = x[big]
+    ix = 1j / xb
+    series = 1 + ix * (3 / 8 + ix * (-15 / 128 + ix * (315 / 3072)))
+    out[big] = np.sqrt(2 / (np.pi * xb)) * np.exp(1j * (xb - 0.75 * np.pi)) * series
+    return out
+
+
 def _transfer(q: np.ndarray, k: np.ndarray, rho: float, s1: float, s2: float) -> np.ndarray:
     """(n_q, n_f) H(q, rho) for the propagating components, with the look-angle window (the
     sine of the angle from the line's normal ``|q| / k`` kept to ``s1``, falling to 0 at ``s2``)."""
-    from scipy.special import hankel1
-
     kk = np.abs(k)[None, :]
     sine = np.abs(q)[:, None] / kk
     keep = sine < s2
     kr = np.sqrt(np.where(keep, kk * kk - q[:, None] ** 2, 1.0))
-    h = np.where(keep, -np.pi * rho * kk / kr * hankel1(1, rho * kr), 0.0)
+    h = np.where(keep, -np.pi * rho * kk / kr * hankel1_1(rho * kr), 0.0)
     ramp = np.clip((sine - s1) / max(s2 - s1, 1e-9), 0.0, 1.0)
     h = h * (0.5 * (1 + np.cos(np.pi * ramp)))
     return np.where(k[None, :] < 0, np.conj(h), h)
