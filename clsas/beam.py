@@ -29,7 +29,8 @@ from . import validate as v
 
 __all__ = ["Beam", "Omni", "Piston", "Cone", "Table", "Beams", "beam_from_spec", "planar_boresights",
            "axis_boresights", "lookup_table", "pair_weights", "BeamWeights", "beam_weights", "BEAM_MODES",
-           "LUT_SIZE", "gate_level", "angular_weights", "facing"]
+           "LUT_SIZE", "gate_level", "angular_weights", "facing",
+           "weights_at_cos"]
 
 BEAM_MODES = ("none", "limited", "weighted")
 LUT_SIZE = 1024
@@ -372,11 +373,14 @@ def angular_weights(weights: BeamWeights, sin_theta: np.ndarray) -> np.ndarray:
     transducers facing the same way, as on a planar rig): the angular twin of
     :func:`pair_weights` for the wavenumber-domain formations (0 where ``|sin_theta| > 1``)."""
     s = np.abs(np.asarray(sin_theta, float))
-    cos_t = np.sqrt(np.clip(1.0 - s * s, 0.0, 1.0))
-    w = _lut_eval(weights.luts[0], cos_t) * _lut_eval(weights.luts[1], cos_t)
-    if weights.gate is not None:
-        w = (w >= weights.gate).astype(float)
-    return np.where(s <= 1.0, w, 0.0)
+    return np.where(s <= 1.0, weights_at_cos(weights, np.sqrt(np.clip(1.0 - s * s, 0.0, 1.0))), 0.0)
+
+
+def weights_at_cos(weights: BeamWeights, cos_theta: np.ndarray) -> np.ndarray:
+    """The two-way weight (or gate) of ``weights`` where both transducers see a direction at
+    ``cos_theta`` from their common boresight."""
+    w = _lut_eval(weights.luts[0], cos_theta) * _lut_eval(weights.luts[1], cos_theta)
+    return w if weights.gate is None else (w >= weights.gate).astype(float)
 
 
 def facing(weights: BeamWeights, normal: np.ndarray, tol: float = 1e-3) -> bool:

@@ -21,8 +21,10 @@ becomes exact here), the sum over ``q`` by a chirp-z transform at the grid's ``x
 only the unaliased angles (``|q| < pi / du``, with a raised-cosine ``taper``) and the look
 angles up to the steepest voxel-stop angle are formed: backprojection's grating lobes are not.
 
-Costs ``n_q x n_f x n_rho`` Hankel evaluations. Directional beams are not applied here
-(``beam="none"`` images them as omnidirectional; otherwise refused).
+Costs ``n_q x n_f x n_rho`` Hankel evaluations. Directional beams (``beam`` as in 3-D, every
+boresight the same and across the line) weight each plane wave by the two-way pattern at
+``cos theta = sqrt(1 - (q / k)^2) cos phi``, ``phi`` the angle around the line between the
+boresight and the voxel (so each distinct ``(rho, phi)`` is summed once).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import time
 
 import numpy as np
 
+from ..beam import beam_weights, facing, weights_at_cos
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
@@ -53,14 +56,32 @@ def line_axis(tx: np.ndarray, rx: np.ndarray, tol_m: float) -> int | None:
     return along[0] if len(along) == 1 else None
 
 
-def _rho(grid: VoxelGrid, axis: int, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct distances from the line of every voxel column across it, and the index of
-    each (cross-axis 1, cross-axis 2) pair into them."""
+def _rho(grid: VoxelGrid, axis: int, centre: np.ndarray, boresight: np.ndarray | None):
+    """The distinct (distance from the line, cos of the angle around it from ``boresight``; 0
+    without one) of the voxel columns across the line, (n, 2), and each column's index into them."""
     axes = [grid.x_m, grid.y_m, grid.z_m]
     b, c = (a for a in range(3) if a != axis)
-    rho = np.hypot(axes[b][:, None] - centre[b], axes[c][None, :] - centre[c])
-    uniq, inverse = np.unique(np.round(rho, 12), return_inverse=True)
+    db, dc = np.meshgrid(axes[b] - centre[b], axes[c] - centre[c], indexing="ij")
+    rho = np.hypot(db, dc)
+    cos_phi = np.zeros_like(rho) if boresight is None else (
+        (db * boresight[b] + dc * boresight[c]) / np.maximum(rho, 1e-30))
+    uniq, inverse = np.unique(np.round(np.stack([rho.ravel(), cos_phi.ravel()], axis=1), 12), axis=0,
+                              return_inverse=True)
     return uniq, inverse.reshape(rho.shape)
+
+
+def _line_beams(profiles: Profiles, o: dict, fc: float, c, axis: int):
+    """The beams' weights and their common boresight (None, None without directional beams)."""
+    beams = profiles.beams
+    mode = o["beam"] or ("limited" if beams is not None and not beams.is_omni else "none")
+    weights = beam_weights(beams, mode, fc, c, o["beam_floor_db"])
+    if weights is None:
+        return None, None
+    n = weights.tx_dir[0]
+    if not (facing(weights, n) and abs(n[axis]) < 1e-3):
+        raise ValueError(f"beam={mode!r}: omega-k on a line scan needs every boresight the same and across the "
+                         "line; use formation='bp' (any boresight) or beam='none'")
+    return weights, n
 
 
 def hankel1_1(x: np.ndarray) -> np.ndarray:
@@ -100,9 +121,6 @@ def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: floa
     _spectra, _dft_axis, _edge_window = steps
     if o["upsample"] != 1:
         raise ValueError("upsample: a line scan forms the unaliased angles only (upsample=1)")
-    if profiles.beams is not None and not profiles.beams.is_omni and o["beam"] != "none":
-        raise ValueError("omega-k on a line scan does not apply transducer beams: use formation='bp' with "
-                         "formation_options={'beam': 'limited'}, or {'beam': 'none'} to image them as omnidirectional")
     workers = o["workers"] or os.cpu_count() or 1
     data, tau0, dtau, fc, tx, rx, c = profiles.arrays(np.complex128)
     t_start = time.perf_counter()
@@ -111,7 +129,9 @@ def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: floa
     if len(np.unique(iu)) != len(iu):
         raise NotPlanarUniform("two measurements share a stop of the line (one per stop: a line scan)")
     centre = mid.mean(axis=0)
-    rho, inverse = _rho(grid, axis, centre)
+    weights, boresight = _line_beams(profiles, o, fc, c, axis)
+    keys, inverse = _rho(grid, axis, centre, boresight)
+    rho = keys[:, 0]
     if rho.min() < 4 * tol:
         raise ValueError(f"grid: a voxel lies {rho.min():.3g} m from the scan line; omega-k needs the grid off it")
     spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
@@ -135,8 +155,11 @@ def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: floa
     q = 2 * np.pi * scipy.fft.fftfreq(m, du)
     a *= _edge_window(q, np.pi / du, o["taper"], o["window"])[:, None]
     t = np.empty((m, len(rho)), np.complex128)
-    for j, r in enumerate(rho):
-        t[:, j] = np.einsum("qf,qf->q", a, _transfer(q, k, float(r), s1, s2))
+    for j, (r, cos_phi) in enumerate(keys):
+        h = _transfer(q, k, float(r), s1, s2)
+        if weights is not None:  # the plane wave's direction: cos theta = cos(along-line angle) cos phi
+            h *= weights_at_cos(weights, np.sqrt(np.clip(1 - (q[:, None] / k[None, :]) ** 2, 0, 1)) * cos_phi)
+        t[:, j] = np.einsum("qf,qf->q", a, h)
     img = _dft_axis(t, q, x - u0, workers) / (m * du)  # (n_x, n_rho)
     values = np.moveaxis(img[:, inverse], 0, axis).astype(np.complex64)
     total = time.perf_counter() - t_start
