@@ -24,14 +24,16 @@ from .signals import lfm_chirp
 __all__ = [
     "ConfigError", "Table", "SCENE_TABLES", "RIG_TABLES", "read_text", "read_toml", "kind_of", "suggestion",
     "chirp_table", "points_table", "walls_table", "grid_table", "preprocess_table", "build_scene",
-    "CHIRP_KEYS", "POINT_KEYS", "WALL_KEYS", "GRID_KEYS",
+    "CHIRP_KEYS", "POINT_KEYS", "WALL_KEYS", "GRID_KEYS", "BEAM_KEYS", "beams_table",
 ]
 
 T = TypeVar("T")
 
 #: top-level tables of a scene file and of a rig file
-SCENE_TABLES = ("chirp", "aperture", "air", "noise", "points", "walls", "grid", "preprocess")
+SCENE_TABLES = ("chirp", "aperture", "air", "noise", "points", "walls", "grid", "preprocess", "beams")
+# a rig file's [beams] awaits the rig's file writer (clsas/rig/store.py) storing them (issue 33)
 RIG_TABLES = ("stage", "scan", "aperture", "audio", "recorder", "chirp", "air", "grid", "simulate", "preprocess")
+BEAM_KEYS = ("speaker", "microphone", "boresight", "normal", "axis_point_m", "axis_dir")
 CHIRP_KEYS = ("f_start_hz", "f_stop_hz", "duration_s", "taper")
 POINT_KEYS = ("position_m", "amplitude", "visible")
 WALL_KEYS = ("point_m", "normal", "reflectivity")
@@ -381,3 +383,34 @@ def preprocess_table(cfg: dict, source: str) -> dict:
     if "preprocess" not in cfg:
         return {}
     return dict(Table(cfg["preprocess"], source, "[preprocess]", PREPROCESS_KEYS).data)
+
+
+def beams_table(cfg: dict, source: str, tx_positions: np.ndarray, rx_positions: np.ndarray):
+    """The ``[beams]`` table as :class:`clsas.beam.Beams` for these positions, or None (absent:
+    omnidirectional). Keys: ``speaker`` and ``microphone`` (inline tables such as
+    ``{ model = "piston", diameter_m = 0.006 }``; models omni, piston, cone, table; default
+    omni), ``boresight`` (``"normal"``: every transducer faces ``normal``, default
+    ``[0, 0, 1]``; ``"axis"``: toward the rotation axis through ``axis_point_m`` along
+    ``axis_dir``; or a fixed ``[x, y, z]``)."""
+    from .beam import Beams, axis_boresights, beam_from_spec, planar_boresights
+
+    if "beams" not in cfg:
+        return None
+    tab = Table(cfg["beams"], source, "[beams]", BEAM_KEYS)
+    specs = {}
+    for key in ("speaker", "microphone"):
+        raw = tab.raw(key, {"model": "omni"})
+        specs[key] = tab.build(beam_from_spec, raw, f"beams.{key}")
+    n = len(tx_positions)
+    how = tab.raw("boresight", "normal")
+    if isinstance(how, str):
+        how = tab.string("boresight", "normal", choices=("normal", "axis"))
+        if how == "normal":
+            tx_dir = rx_dir = tab.build(planar_boresights, n, tab.vector("normal", (0.0, 0.0, 1.0)))
+        else:
+            point, axis = tab.vector("axis_point_m", (0.0, 0.0, 0.0)), tab.vector("axis_dir", (0.0, 0.0, 1.0))
+            tx_dir = tab.build(axis_boresights, tx_positions, point, axis)
+            rx_dir = tab.build(axis_boresights, rx_positions, point, axis)
+    else:
+        tx_dir = rx_dir = tab.vector("boresight")
+    return tab.build(Beams, specs["speaker"], specs["microphone"], tx_dir, rx_dir, n)

@@ -3,15 +3,22 @@
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from . import validate as v
+from .beam import Beams
 from .physics import speed_of_sound
 
-__all__ = ["Dataset", "load", "FORMAT_VERSION", "UNITS", "json_default"]
+__all__ = ["Dataset", "load", "FORMAT_VERSION", "UNITS", "json_default", "AIR_FALLBACK"]
+
+log = logging.getLogger(__name__)
+
+# the provenance entry of a dataset that was given neither c_mps nor temperature_c
+AIR_FALLBACK = {"step": "assumed_air", "c_mps_source": "speed of sound in air at 20 degC (no c_mps, no temperature_c)"}
 
 FORMAT_VERSION = 1
 
@@ -48,7 +55,9 @@ class Dataset:
     t0_s : (n_meas,) time of sample 0 after the transmit start (latency included), s; may be
         negative (a transducer group delay removed, see :func:`clsas.preprocess.remove_delay`)
     c_mps : float or (n_meas,) array
-        Speed of sound, m/s; default from ``temperature_c``. An array gives each measurement
+        Speed of sound, m/s; default from ``temperature_c``. Given neither, the dataset takes
+        air at 20 °C (343.2 m/s), logs a warning naming ``c_mps`` and records
+        :data:`AIR_FALLBACK` in its provenance (a water scan must give ``c_mps``). An array gives each measurement
         its own (air that changes during a scan); compression, backprojection and every
         reconstruction method use it per measurement.
     temperature_c, humidity_pct : float or (n_meas,) array
@@ -60,6 +69,9 @@ class Dataset:
     provenance : list of dict
         What made these recordings what they are, oldest first: an importer, each
         preprocessing step with its parameters (stored as JSON in the file).
+    beams : clsas.beam.Beams, optional
+        The speaker's and microphone's beams and boresights per measurement (stored in the
+        file's ``beams`` group); None: omnidirectional (files without the group load as such).
     truth : dict
         What a simulation knows and the dataset does not state (true positions, air, delays;
         see :func:`clsas.simulate`), for scoring estimates such as :func:`clsas.autofocus`.
@@ -89,7 +101,7 @@ class Dataset:
     waveform: np.ndarray
     t0_s: np.ndarray | None = None
     c_mps: float | np.ndarray | None = None
-    temperature_c: float | np.ndarray = 20.0
+    temperature_c: float | np.ndarray | None = None
     humidity_pct: float | np.ndarray = 50.0
     stage_positions: np.ndarray | None = None
     timestamps: np.ndarray | None = None
@@ -99,6 +111,7 @@ class Dataset:
     background: np.ndarray | None = None
     provenance: list = field(default_factory=list)
     truth: dict = field(default_factory=dict)
+    beams: Beams | None = None
 
     def __post_init__(self) -> None:
         self.fs_hz = v.positive("fs_hz", self.fs_hz)
@@ -115,6 +128,13 @@ class Dataset:
             if self.t0_s is None
             else v.array("t0_s", np.broadcast_to(np.asarray(self.t0_s, float), (n,)).copy())
         )
+        if self.temperature_c is None:
+            if self.c_mps is None and AIR_FALLBACK not in self.provenance:
+                log.warning("Dataset: neither c_mps nor temperature_c given; assuming air at 20 degC, "
+                            "c_mps = %.1f m/s (give c_mps for any other medium, e.g. 1480 for water)",
+                            speed_of_sound(20.0))
+                self.provenance = [*self.provenance, dict(AIR_FALLBACK)]
+            self.temperature_c = 20.0
         self.temperature_c = _per_meas("temperature_c", self.temperature_c, n)
         self.humidity_pct = _per_meas("humidity_pct", self.humidity_pct, n)
         h = np.asarray(self.humidity_pct)
@@ -137,6 +157,11 @@ class Dataset:
                 setattr(self, name, v.array(name, val, shape=shape))
         if self.loopback is not None:
             self.loopback = v.array("loopback", self.loopback, ndim=2, dtype=None)
+        if self.beams is not None:
+            if not isinstance(self.beams, Beams):
+                raise TypeError(f"beams must be clsas.beam.Beams or None, got {type(self.beams).__name__}")
+            if self.beams.n_meas != n:
+                raise ValueError(f"beams must have n_meas={n} boresights, got {self.beams.n_meas}")
 
     @property
     def n_meas(self) -> int:
@@ -180,6 +205,7 @@ class Dataset:
             self.signals[index], self.tx_positions[index], self.rx_positions[index], self.fs_hz,
             self.waveform, self.t0_s[index], chirp=dict(self.chirp), config=self.config,
             provenance=list(self.provenance), truth=truth, **air, **opt,
+            beams=None if self.beams is None else self.beams.subset(index),
         )
 
     def save(self, path: str | Path) -> Path:
@@ -193,6 +219,7 @@ class Dataset:
             _write_arrays(f, self)
             f.attrs.update(_attrs(self, __version__))
             _write_truth(f, self.truth)
+            _write_beams(f, self.beams)
         return path
 
 
@@ -218,6 +245,27 @@ def _write_truth(f, truth: dict) -> None:
             g.attrs[k] = val
         else:
             g.attrs[f"{k}__json"] = json.dumps(val, default=json_default)
+
+
+def _write_beams(f, beams: Beams | None) -> None:
+    """The ``beams`` group: boresights per measurement and each transducer's model as JSON."""
+    if beams is None:
+        return
+    g = f.create_group("beams")
+    g.attrs["about"] = "transducer directivity (clsas.beam): one-way patterns and boresights"
+    for k, val in beams.specs().items():
+        g.attrs[f"{k}_json"] = json.dumps(val)
+    for k in ("tx_boresight", "rx_boresight"):
+        d = g.create_dataset(k, data=getattr(beams, k))
+        d.attrs["units"] = "1 (unit vector)"
+
+
+def _read_beams(f, n: int) -> Beams | None:
+    if "beams" not in f:
+        return None
+    g = f["beams"]
+    return Beams(json.loads(g.attrs["speaker_json"]), json.loads(g.attrs["microphone_json"]),
+                 g["tx_boresight"][:n], g["rx_boresight"][:n], n)
 
 
 def _read_truth(f) -> dict:
@@ -385,6 +433,7 @@ def load(path: str | Path) -> Dataset:
             provenance=json.loads(a.get("provenance_json", "[]")),
             truth={k: (trim(val) if isinstance(val, np.ndarray) and val.ndim and len(val) > n else val)
                    for k, val in _read_truth(f).items()},
+            beams=_read_beams(f, n),
         )
 
 

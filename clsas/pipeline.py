@@ -141,8 +141,8 @@ def _check_request(dataset, grid, method, compression, sparse, formation, format
     if formation_options is not None and not isinstance(formation_options, dict):
         raise TypeError(f"formation_options must be a dict, got {type(formation_options).__name__}")
     fopts = dict(formation_options or {})
-    if formation == "bp" and fopts:
-        raise ValueError(f"formation_options: formation 'bp' takes none, got {sorted(fopts)}")
+    if formation == "bp" and set(fopts) - {"beam", "beam_floor_db"}:
+        raise ValueError(f"formation_options: formation 'bp' takes beam, beam_floor_db, got {sorted(fopts)}")
     if isinstance(dataset, Profiles):
         if method != "bp":
             raise ValueError(f"method={method!r} needs the recordings (a Dataset); range profiles are imaged "

@@ -7,6 +7,7 @@ every image formation consumes; immutable once built.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -43,6 +44,8 @@ class Profiles:
         Seconds per stage.
     device : str
         The device's name.
+    beams : clsas.beam.Beams, optional
+        The transducers' beams (from the dataset); None: omnidirectional.
 
     Examples
     --------
@@ -69,6 +72,7 @@ class Profiles:
     c_mps: float | np.ndarray | None = None  # one per measurement where the air changed
     timings_s: dict = field(default_factory=dict)
     device: str = ""
+    beams: Any = None  # clsas.beam.Beams of the dataset (None: omnidirectional)
 
     @property
     def n_meas(self) -> int:

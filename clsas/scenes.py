@@ -12,6 +12,7 @@ import logging
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import tomli_w
@@ -44,6 +45,7 @@ class SceneConfig:
     seed: int
     text: str
     preprocess: dict = field(default_factory=dict)
+    beams: Any = None  # clsas.beam.Beams from [beams], None: omnidirectional
 
 
 def parse_config(text: str, source: str = "scene configuration") -> SceneConfig:
@@ -90,8 +92,9 @@ def parse_config(text: str, source: str = "scene configuration") -> SceneConfig:
     noise = c.Table(cfg.get("noise", {}), source, "[noise]", NOISE_KEYS)
     snr = noise.number("snr_db", None)
     seed = noise.integer("seed", 0, low=0)
+    beams = c.beams_table(cfg, source, aperture.tx_positions, aperture.rx_positions)
     return SceneConfig(scene, aperture, waveform, fs, chirp, grid, None if snr is None else float(snr), seed, text,
-                       c.preprocess_table(cfg, source))
+                       c.preprocess_table(cfg, source), beams)
 
 
 def _stored(text: str) -> tuple[dict, str]:

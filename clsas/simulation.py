@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from . import validate as v
+from .beam import Beams
 from .dataset import Dataset
 from .geometry import Aperture, Scene
 from .physics import air_absorption_db_per_m, speed_of_sound
 from .scan_errors import HandMotion
+from .specular import Surface
 
 __all__ = ["simulate"]
 
@@ -23,7 +25,8 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
              chirp: dict | None = None, config: str = "", temperature_c: float | np.ndarray | None = None,
              progress: Callable[[int, int], None] | None = None,
              position_error: float | HandMotion | np.ndarray | None = None, temperature_error_c: float = 0.0,
-             group_delay_s: float = 0.0, timing_jitter_s: float = 0.0, direct_gain: float | None = None) -> Dataset:
+             group_delay_s: float = 0.0, timing_jitter_s: float = 0.0, direct_gain: float | None = None,
+             beams: Beams | None = None, surfaces: Sequence[Surface] = (), c_mps: float | None = None) -> Dataset:
     """Simulate the recordings of a scan.
 
     Every reflector (and its first-order mirror image in each wall) returns the waveform
@@ -73,11 +76,11 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
     direct_gain : float, optional
         Add the direct speaker-to-microphone sound, with amplitude ``direct_gain / |tx - rx|``
         (a reflector of amplitude a at ranges r1, r2 returns ``a / (r1 r2)``); None: none.
+    beams, surfaces, c_mps : directional transducers, specular facets, another medium (see :data:`EXTRAS`).
 
-    Any of the errors above stores the truth in ``Dataset.truth``: ``tx_positions``,
-    ``rx_positions``, ``position_error_m`` (true minus stated, per measurement), ``t0_s``,
-    ``group_delay_s``, ``timing_jitter_s`` (per measurement), ``temperature_c``, ``c_mps``,
-    ``stop_time_s`` and ``stop_index``.
+    Any of the errors above stores the truth in ``Dataset.truth``: ``tx_positions``, ``rx_positions``,
+    ``position_error_m`` (true minus stated, per measurement), ``t0_s``, ``group_delay_s``,
+    ``timing_jitter_s`` (per measurement), ``temperature_c``, ``c_mps``, ``stop_time_s`` and ``stop_index``.
 
     Returns
     -------
@@ -85,18 +88,18 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
     """
     fs, wave, t0, snr_db, temperature_c = _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c)
     err = _errors(aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s)
-    true_temp, c, t0_true = _true_air_and_t0(temperature_c, t0, err, aperture.n_meas)
-    tx, rx, path, gain, n_sources = _paths(scene, aperture, err["position_error_m"], direct_gain)
+    true_temp, c, t0_true = _true_air_and_t0(temperature_c, t0, err, aperture.n_meas, c_mps)
+    tx, rx, path, gain, n_sources, shaping = _echoes(scene, aperture, err, direct_gain, beams, surfaces, c)
     delay = path / c[:, None] - t0_true[:, None]  # delay into the recording, s
     n_samples = v.positive_int("n_samples", _n_samples(delay, fs, len(wave)) if n_samples is None else n_samples)
     signals = _recordings(wave, fs, path, gain, delay, n_samples, n_sources,
-                          scene.humidity_pct, float(np.mean(true_temp)) if absorption else None, progress)
+                          scene.humidity_pct, float(np.mean(true_temp)) if absorption and c_mps is None else None,
+                          progress, shaping)
     _add_noise(signals, snr_db, seed)
-    truth = _truth(err, tx, rx, t0_true, true_temp, c) if err["any"] else {}
-    return Dataset(signals, aperture.tx_positions, aperture.rx_positions, fs, wave, t0_s=t0,
-                   temperature_c=temperature_c, humidity_pct=scene.humidity_pct,
-                   stage_positions=aperture.stage_positions, chirp=chirp or {}, config=config,
-                   timestamps=err["stop_time_s"] if err["moved"] else None, truth=truth)
+    return Dataset(signals, aperture.tx_positions, aperture.rx_positions, fs, wave, t0_s=t0, c_mps=c_mps, beams=beams,
+                   temperature_c=temperature_c, humidity_pct=scene.humidity_pct, chirp=chirp or {}, config=config,
+                   stage_positions=aperture.stage_positions, timestamps=err["stop_time_s"] if err["moved"] else None,
+                   truth=_truth(err, tx, rx, t0_true, true_temp, c) if err["any"] else {})
 
 
 def _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c):
@@ -120,11 +123,16 @@ def _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c):
     return fs, wave, t0, snr_db, temperature_c
 
 
-def _true_air_and_t0(temperature_c, t0: np.ndarray, err: dict, n_meas: int):
+def _true_air_and_t0(temperature_c, t0: np.ndarray, err: dict, n_meas: int, c_mps: float | None = None):
     """The true air temperature (the stated one plus the error), °C, its speed of sound per
-    measurement, m/s, and the true t0 per measurement (less the unknown delays), s."""
+    measurement, m/s (``c_mps`` for another medium), and the true t0 per measurement (less the
+    unknown delays), s."""
     true_temp = np.asarray(temperature_c, float) + err["temperature_error_c"]
     c = np.broadcast_to(np.asarray(speed_of_sound(true_temp), float), (n_meas,))
+    if c_mps is not None:
+        if err["temperature_error_c"]:
+            raise ValueError("temperature_error_c applies to air; it cannot go with c_mps")
+        c = np.full(n_meas, v.positive("c_mps", c_mps))
     return true_temp, c, t0 - err["group_delay_s"] - err["timing_jitter_s"]
 
 
@@ -169,11 +177,12 @@ def _paths(scene: Scene, aperture: Aperture, displacement_m: np.ndarray, direct_
 
 def _recordings(wave: np.ndarray, fs: float, path: np.ndarray, gain: np.ndarray, delay: np.ndarray, n_samples: int,
                 n_sources: int, humidity_pct: float, absorption_temperature_c: float | None,
-                progress: Callable[[int, int], None] | None) -> np.ndarray:
+                progress: Callable[[int, int], None] | None, shaping: _Shaping | None = None) -> np.ndarray:
     """(n_meas, n_samples) the noise-free recordings: each echo the waveform delayed by
     ``delay`` (s, exact: a phase ramp per frequency), scaled by ``gain`` and absorbed over
     ``path`` (m) at ``absorption_temperature_c`` (None: no absorption), summed in blocks of
-    measurements (``progress`` after each)."""
+    measurements (``progress`` after each); ``shaping`` multiplies each echo's spectrum (beams,
+    facets)."""
     import scipy.fft
 
     n_meas = len(path)
@@ -182,7 +191,8 @@ def _recordings(wave: np.ndarray, fs: float, path: np.ndarray, gain: np.ndarray,
     n_fft = scipy.fft.next_fast_len(int(np.ceil(span)) + len(wave) + 16)
     spec = scipy.fft.rfft(wave, n_fft)
     freqs = scipy.fft.rfftfreq(n_fft, 1 / fs)
-    keep = np.abs(spec) > 1e-7 * np.abs(spec).max(initial=0.0)  # only bins with energy
+    floor = 1e-7 if shaping is None else 1e-5  # -100 dB where every echo's spectrum is shaped
+    keep = np.abs(spec) > floor * np.abs(spec).max(initial=0.0)  # only bins with energy
     spec_k, f_k = spec[keep], freqs[keep]
     log.debug("simulate: %d sources, %d of %d frequency bins", n_sources, keep.sum(), len(freqs))
     beta = (
@@ -191,12 +201,16 @@ def _recordings(wave: np.ndarray, fs: float, path: np.ndarray, gain: np.ndarray,
         else np.zeros_like(f_k)
     )
     signals = np.zeros((n_meas, n_samples), dtype=np.float64)
-    block = max(1, int(2e7 // max(1, path.shape[1] * len(f_k))))
+    budget = 2e7 if shaping is None else 6e6  # (b, k, f) complex elements per block
+    block = max(1, int(budget // max(1, path.shape[1] * len(f_k))))
     for start in range(0, n_meas, block):
         sl = slice(start, min(n_meas, start + block))
         # (b, k, f): gain * exp(-beta L) * exp(-j 2 pi f delay)
         expo = -path[sl, :, None] * beta[None, None, :] - 2j * np.pi * delay[sl, :, None] * f_k
-        h = np.einsum("bk,bkf->bf", gain[sl], np.exp(expo))
+        resp = np.exp(expo)
+        if shaping is not None:
+            resp *= shaping(sl, f_k)
+        h = np.einsum("bk,bkf->bf", gain[sl], resp)
         full = np.zeros((h.shape[0], len(freqs)), dtype=np.complex128)
         full[:, keep] = h * spec_k
         signals[sl] = scipy.fft.irfft(full, n_fft, axis=1)[:, :n_samples]
@@ -252,3 +266,114 @@ def _errors(aperture: Aperture, seed, position_error, temperature_error_c, group
     return {"position_error_m": disp[stops], "stop_time_s": times[stops], "stop_index": stops,
             "temperature_error_c": dt, "group_delay_s": gd, "timing_jitter_s": jitter[stops], "spec": spec,
             "moved": moved, "any": moved or dt != 0 or gd != 0 or tj > 0}
+
+
+EXTRAS = """simulate's keywords of issue 33.
+
+beams : clsas.beam.Beams, optional
+    Directional transducers: every echo (reflectors, mirror images, facets, wall echoes, the
+    direct sound) is scaled by the speaker's pattern toward where the sound leaves and the
+    microphone's toward where it arrives from, at each frequency (a piston's beam narrows with
+    frequency). The dataset records them. None: omnidirectional.
+surfaces : sequence of clsas.specular.Surface
+    Specular surfaces (flat facets with their Kirchhoff lobe, :mod:`clsas.specular`).
+c_mps : float, optional
+    A medium other than air (e.g. 1480 for water): this speed of sound for every measurement,
+    stored in the dataset, and no air absorption. Not with ``temperature_error_c``.
+"""
+
+
+def _echoes(scene, aperture, err, direct_gain, beams, surfaces, c):
+    """:func:`_paths` plus the specular facets' echoes, and the shaping of every echo's spectrum
+    (None where nothing is shaped): ``(tx, rx, path, gain, n_sources, shaping)``."""
+    beams, surfaces = _checked_beams(beams, surfaces, aperture.n_meas)
+    tx, rx, path, gain, n_sources = _paths(scene, aperture, err["position_error_m"], direct_gain)
+    shaping = _Shaping(scene, tx, rx, path.shape[1], direct_gain, beams, float(np.mean(c)))
+    for surf in surfaces:
+        path, gain = shaping.add_surface(surf, path, gain)
+    return tx, rx, path, gain, n_sources, shaping if shaping.active else None
+
+
+def _checked_beams(beams, surfaces, n_meas: int) -> tuple[Beams | None, tuple[Surface, ...]]:
+    if beams is not None:
+        if not isinstance(beams, Beams):
+            raise TypeError(f"beams must be clsas.beam.Beams or None, got {type(beams).__name__}")
+        if beams.n_meas != n_meas:
+            raise ValueError(f"beams must have n_meas={n_meas} boresights, got {beams.n_meas}")
+        if beams.is_omni:
+            beams = None
+    if isinstance(surfaces, Surface):
+        surfaces = (surfaces,)
+    surfaces = tuple(surfaces)
+    for i, surf in enumerate(surfaces):
+        if not isinstance(surf, Surface):
+            raise TypeError(f"surfaces[{i}] must be a clsas.specular.Surface, got {type(surf).__name__}")
+    return beams, surfaces
+
+
+class _Shaping:
+    """The frequency response of each echo beyond a delay and a flat gain: the transducers'
+    beams toward where each echo leaves and arrives from, and a facet's ``j f`` and lobe."""
+
+    def __init__(self, scene: Scene, tx: np.ndarray, rx: np.ndarray, n_cols: int, direct_gain, beams, c: float):
+        self.tx, self.rx, self.beams, self.c = tx, rx, beams, c
+        src, _ = scene.image_sources()
+        n = len(tx)
+        dep = [np.broadcast_to(src[None], (n, len(src), 3))]
+        arr = [dep[0]]
+        if scene.wall_echo:
+            for wall in scene.walls:
+                dep.append(wall.mirror(rx)[:, None, :])
+                arr.append(wall.mirror(tx)[:, None, :])
+        if direct_gain:
+            dep.append(rx[:, None, :])
+            arr.append(tx[:, None, :])
+        self.dep, self.arr = np.concatenate(dep, axis=1), np.concatenate(arr, axis=1)
+        if self.dep.shape[1] != n_cols:
+            raise RuntimeError(f"simulate: {self.dep.shape[1]} echo directions for {n_cols} echoes")
+        self.facets: list[tuple[int, np.ndarray, np.ndarray]] = []  # (first column, qu, qv)
+
+    @property
+    def active(self) -> bool:
+        return self.beams is not None or bool(self.facets)
+
+    def add_surface(self, surf: Surface, path: np.ndarray, gain: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        g = surf.geometry(self.tx, self.rx, self.c)
+        self.facets.append((path.shape[1], g["qu"], g["qv"]))
+        pts = np.broadcast_to(surf.centers_m[None], (len(self.tx), surf.n_facets, 3))
+        self.dep = np.concatenate([self.dep, pts], axis=1)
+        self.arr = np.concatenate([self.arr, pts], axis=1)
+        return np.concatenate([path, g["path"]], axis=1), np.concatenate([gain, g["gain"]], axis=1)
+
+    def __call__(self, sl: slice, f: np.ndarray) -> np.ndarray:
+        """(b, k, f) complex multiplier of the measurements ``sl`` at frequencies ``f``, Hz."""
+        n_cols = self.dep.shape[1]
+        out = np.ones((sl.stop - sl.start, n_cols, len(f)), np.complex128)
+        for k0, qu, qv in self.facets:
+            k1 = k0 + qu.shape[1]
+            out[:, k0:k1] = 1j * f * _sinc(qu[sl, :, None] * f) * _sinc(qv[sl, :, None] * f)
+        if self.beams is not None:
+            b = self.beams
+            out *= _pattern(b.speaker, self.tx[sl], b.tx_boresight[sl], self.dep[sl], f, self.c)
+            out *= _pattern(b.microphone, self.rx[sl], b.rx_boresight[sl], self.arr[sl], f, self.c)
+        return out
+
+
+def _pattern(beam, pos: np.ndarray, boresight: np.ndarray, toward: np.ndarray, f: np.ndarray, c: float):
+    """(b, k, f) one-way pattern of ``beam`` at ``pos`` (b, 3) pointing ``boresight`` (b, 3)
+    toward points ``toward`` (b, k, 3), at frequencies ``f``."""
+    d = toward - pos[:, None, :]
+    cos_t = (d * boresight[:, None, :]).sum(2) / np.maximum(np.linalg.norm(d, axis=2), 1e-30)
+    theta = np.arccos(np.clip(cos_t, -1.0, 1.0))
+    return beam.pattern_grid(theta, f, c)
+
+
+def _sinc(x: np.ndarray) -> np.ndarray:
+    """sin(pi x) / (pi x), 1 at 0 (numpy.sinc without its copies)."""
+    px = np.pi * x
+    small = np.abs(px) < 1e-12
+    px[small] = 1.0
+    out = np.sin(px)
+    out /= px
+    out[small] = 1.0
+    return out

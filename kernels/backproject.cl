@@ -13,6 +13,11 @@
  * (C order, z fastest), so a single plane costs a plane; voxels past n_vox are padding.
  * Measurements are processed in chunks [m_begin, m_end); the host accumulates chunks. */
 
+#ifndef BEAM_WEIGHT /* built without beam.cl: omnidirectional */
+#define BEAM_ARGS
+#define BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m)
+#endif
+
 __kernel void backproject(
     __global const float4 *pairs,    /* (n_meas, n_lags) (p[k], p[k+1]) of the baseband complex
                                         profiles, as (re, im, re, im); p[n_lags] = 0           */
@@ -30,7 +35,8 @@ __kernel void backproject(
     const int m_end,                 /* one past the last measurement of this chunk           */
     const int accumulate,            /* 0: overwrite the image, 1: add to it                  */
     __global float *image_re,        /* (n_vox_padded,) real part of the image                */
-    __global float *image_im)        /* (n_vox_padded,) imaginary part of the image           */
+    __global float *image_im         /* (n_vox_padded,) imaginary part of the image           */
+    BEAM_ARGS)                       /* beam.cl: the beam's buffers with -DBEAM, else nothing */
 {
     const int v0 = get_global_id(0) * VEC;
     lanes_i vox;
@@ -71,7 +77,8 @@ __kernel void backproject(
         floatV cyc = path * r.w;
         cyc -= RINT(cyc);
         floatV c;
-        const floatV s = sincos_2pi(cyc, &c);
+        floatV s = sincos_2pi(cyc, &c);
+        BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m);
         acc_re += re * c - im * s;
         acc_im += re * s + im * c;
     }

@@ -169,7 +169,7 @@ def simulate_scene(cfg, progress=True):
 
     with progress_bar("simulate", cfg.aperture.n_meas, progress) as cb:
         return clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=cfg.snr_db,
-                              seed=cfg.seed, chirp=cfg.chirp, config=cfg.text, progress=cb)
+                              seed=cfg.seed, chirp=cfg.chirp, config=cfg.text, progress=cb, beams=cfg.beams)
 
 
 def formation_options(items: list[str] | None) -> dict:

@@ -121,7 +121,8 @@ def _inputs(data, waveform, fs_hz, t0_s, chirp):
         if waveform is None or fs_hz is None:
             raise ValueError("waveform and fs_hz are required when data is an array")
         return data, waveform, fs_hz, t0_s, chirp, {}
-    positions = dict(tx_positions=data.tx_positions, rx_positions=data.rx_positions, c_mps=data.c_mps)
+    positions = dict(tx_positions=data.tx_positions, rx_positions=data.rx_positions, c_mps=data.c_mps,
+                     beams=data.beams)
     return (data.signals, data.waveform if waveform is None else waveform, data.fs_hz if fs_hz is None else fs_hz,
             data.t0_s if t0_s is None else t0_s, data.chirp if chirp is None else chirp, positions)
 

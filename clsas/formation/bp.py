@@ -12,6 +12,7 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
+from ..beam import BEAM_MODES, Beams, BeamWeights, beam_weights
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
@@ -20,7 +21,9 @@ from .bp_opencl import BackprojectPlan
 from .guard import check_grid
 from .registry import FORMATIONS
 
-__all__ = ["Backprojector", "backproject", "form"]
+__all__ = ["Backprojector", "backproject", "form", "BP_OPTIONS"]
+
+BP_OPTIONS = ("beam", "beam_floor_db")
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +51,16 @@ class Backprojector:
     force : bool
         Go on even if the grid does not seem to fit in memory (otherwise a ``ValueError``
         gives the numbers and a spacing that fits; see :func:`clsas.formation.guard.check_grid`).
+    beam : {"none", "limited", "weighted"}, optional
+        Apodization by the transducers' beams (the profiles' ``beams``, from the dataset):
+        ``"none"`` lets every measurement see every voxel (omnidirectional, the behaviour
+        before beams); ``"limited"`` keeps a voxel-measurement pair only where the two-way
+        beam amplitude is at least ``beam_floor_db``; ``"weighted"`` scales each pair by the
+        two-way amplitude. Default: ``"limited"`` where the profiles carry a directional beam,
+        else ``"none"``. Patterns are evaluated at the carrier ``fc_hz`` (see :mod:`clsas.beam`).
+    beam_floor_db : float
+        The two-way level of ``beam="limited"``, dB (default -12: each transducer's -6 dB
+        beam when speaker and microphone are together).
 
     Examples
     --------
@@ -67,13 +80,16 @@ class Backprojector:
     """
 
     def __init__(self, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
-                 chunk: int | None = None, force: bool = False):
+                 chunk: int | None = None, force: bool = False, beam: str | None = None,
+                 beam_floor_db: float = -12.0):
         if not isinstance(grid, VoxelGrid):
             raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
         if chunk is not None:
             chunk = v.positive_int("chunk", chunk)
         self.grid = grid
         self.chunk = chunk
+        self.beam = None if beam is None else v.choice("beam", beam, BEAM_MODES)
+        self.beam_floor_db = v.finite("beam_floor_db", beam_floor_db)
         self.selection = _cl.select(backend, device)
         check_grid(grid, self.selection.kind, self.selection.cl_device, force=force)
         self._plan = None
@@ -83,12 +99,22 @@ class Backprojector:
         """``"opencl"`` or ``"numpy"``: where the next call runs."""
         return self.selection.kind
 
-    def _opencl_plan(self, n_meas: int, n_lags: int):
+    def _opencl_plan(self, n_meas: int, n_lags: int, beam_lut: int = 0):
         p = self._plan
-        if p is None or p.n_meas != n_meas or p.n_lags < n_lags:
+        if p is None or p.n_meas != n_meas or p.n_lags < n_lags or p.beam_lut != beam_lut:
             self._plan, self.selection = self.selection.plan(
-                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk))
+                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut))
         return self._plan
+
+    def _weights(self, beams, fc_hz: float, c) -> BeamWeights | None:
+        """The pair weights of this Backprojector's ``beam`` mode for ``beams`` (None: none)."""
+        if beams is not None and not isinstance(beams, Beams):
+            raise TypeError(f"beams must be clsas.beam.Beams or None, got {type(beams).__name__}")
+        mode = self.beam or ("limited" if beams is not None and not beams.is_omni else "none")
+        if self.beam is None and mode == "limited":
+            log.info("bp: the profiles carry directional beams: beam='limited' (pairs above %g dB)",
+                     self.beam_floor_db)
+        return beam_weights(beams, mode, fc_hz, c, self.beam_floor_db)
 
     def __call__(
         self,
@@ -98,8 +124,10 @@ class Backprojector:
         rx_positions: np.ndarray | None = None,
         c_mps: float | np.ndarray | None = None,
         progress: Callable[[int, int], None] | None = None,
+        beams: Beams | None = None,
     ) -> Image:
-        """Backproject ``profiles`` (see :func:`backproject` for the arguments)."""
+        """Backproject ``profiles`` (see :func:`backproject` for the arguments; ``beams``
+        default the profiles')."""
         if not isinstance(profiles, Profiles):
             raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
         n = profiles.n_meas
@@ -110,15 +138,19 @@ class Backprojector:
         tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
         dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
         fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
+        weights = self._weights(profiles.beams if beams is None else beams, fc, c)
+        if weights is not None and len(weights.tx_dir) != n:
+            raise ValueError(f"beams must have {n} boresights (one per measurement), got {len(weights.tx_dir)}")
         t_start = time.perf_counter()
         timings = {}
-        plan = self._opencl_plan(n, data.shape[1]) if self.selection.opencl else None
+        lut = 0 if weights is None else weights.luts.shape[1]
+        plan = self._opencl_plan(n, data.shape[1], lut) if self.selection.opencl else None
         if plan is not None:
-            values = plan(data, tau0, dtau, fc, tx, rx, c, progress)
+            values = plan(data, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
             timings["backproject_kernel"] = plan.last_kernel_s
         else:
             values = twin.backproject(data.astype(np.complex128), tau0, dtau, fc, tx, rx, c, self.grid.points(),
-                                      progress)
+                                      progress, beam=weights)
         timings["backproject"] = time.perf_counter() - t_start
         sel = self.selection
         return Image(values.reshape(self.grid.shape), self.grid, "bp", sel.kind, sel.device, timings)
@@ -135,6 +167,8 @@ def backproject(
     device: Any = None,
     chunk: int | None = None,
     progress: Callable[[int, int], None] | None = None,
+    beam: str | None = None,
+    beam_floor_db: float = -12.0,
 ) -> Image:
     """Bistatic delay-and-sum of complex baseband profiles onto ``grid``.
 
@@ -150,6 +184,7 @@ def backproject(
     backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"`` (see :class:`Backprojector`).
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
+    beam, beam_floor_db : apodization by the profiles' transducer beams (see :class:`Backprojector`).
 
     Returns
     -------
@@ -171,14 +206,15 @@ def backproject(
     """
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
-    bp = Backprojector(grid, backend=backend, device=device, chunk=chunk)
+    bp = Backprojector(grid, backend=backend, device=device, chunk=chunk, beam=beam, beam_floor_db=beam_floor_db)
     return bp(profiles, tx_positions=tx_positions, rx_positions=rx_positions, c_mps=c_mps, progress=progress)
 
 
 @FORMATIONS.register("bp")
 def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
          progress: Callable[[int, int], None] | None = None, force: bool = False, **options) -> Image:
-    """The ``"bp"`` formation: :class:`Backprojector` (it takes no options)."""
-    if options:
-        raise ValueError(f"formation_options: formation 'bp' takes none, got {sorted(options)}")
-    return Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
+    """The ``"bp"`` formation: :class:`Backprojector`; options ``beam`` and ``beam_floor_db``."""
+    unknown = set(options) - set(BP_OPTIONS)
+    if unknown:
+        raise ValueError(f"formation_options: formation 'bp' takes {', '.join(BP_OPTIONS)}, got {sorted(unknown)}")
+    return Backprojector(grid, backend=backend, device=device, force=force, **options)(profiles, progress=progress)

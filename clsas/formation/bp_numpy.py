@@ -6,6 +6,8 @@ from collections.abc import Callable
 
 import numpy as np
 
+from ..beam import BeamWeights, pair_weights
+
 
 def backproject(
     data: np.ndarray,
@@ -17,6 +19,7 @@ def backproject(
     c_mps: float | np.ndarray,
     points_m: np.ndarray,
     progress: Callable[[int, int], None] | None = None,
+    beam: BeamWeights | None = None,
 ) -> np.ndarray:
     """Sum over measurements of the linearly interpolated profile times the carrier.
 
@@ -27,6 +30,9 @@ def backproject(
     c_mps : float or (n_meas,) array
         Speed of sound, m/s; an array gives each measurement its own.
     points_m : (n_vox, 3) voxel centres, m.
+    beam : clsas.beam.BeamWeights, optional
+        Weight (or gate) each pair by the two-way beam (:func:`clsas.beam.pair_weights`);
+        None: every pair counts fully (omnidirectional).
 
     Returns
     -------
@@ -45,6 +51,9 @@ def backproject(
         i0 = np.clip(np.floor(idx), 0, n_lags - 2).astype(np.int64)
         w = idx - i0
         value = (1 - w) * data[m, i0] + w * data[m, i0 + 1]
+        if beam is not None:
+            value = value * pair_weights(beam.luts, tx_positions[m], rx_positions[m], beam.tx_dir[m],
+                                         beam.rx_dir[m], points_m, beam.gate)
         out += np.where(inside, value * np.exp(2j * np.pi * fc_hz * tau), 0)
         if progress is not None:
             progress(m + 1, n_meas)

@@ -122,6 +122,24 @@ def _tree(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
     return tree
 
 
+def _refuse_beams(profiles: Profiles, beam: str | None) -> None:
+    """FFBP forms every pair as omnidirectional (issue 33): profiles that carry directional beams
+    are refused unless ``beam="none"`` says to image them so (then with a warning); ``"limited"``
+    and ``"weighted"`` are refused, naming ``formation="bp"`` and ``"omega-k"``."""
+    from ..beam import BEAM_MODES
+
+    if beam is not None:
+        v.choice("beam", beam, BEAM_MODES)
+    directional = profiles.beams is not None and not profiles.beams.is_omni
+    if beam in ("limited", "weighted") or (directional and beam is None):
+        raise ValueError("ffbp cannot apply transducer beams yet (the profiles carry directional beams); use "
+                         "formation='bp' with formation_options={'beam': 'limited'}, formation='omega-k', or "
+                         "formation_options={'beam': 'none'} to image them as omnidirectional")
+    if directional:
+        log.warning("ffbp: beam='none': imaging directional transducers as omnidirectional (grating lobes "
+                    "of stops whose beams never saw a voxel are kept)")
+
+
 def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -> None:
     sizes = [lev.size for lev in tree.levels]
     pairs = max((a + b for a, b in zip(sizes, sizes[1:], strict=False)), default=sizes[0] if sizes else 0)
@@ -145,7 +163,22 @@ def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -
         log.warning("ffbp: %s; going on (force=True)", text)
 
 
+def _no_beams(func):
+    """``beam=`` for :func:`form`: FFBP applies no transducer beams (see :func:`_refuse_beams`)."""
+    import functools
+
+    @functools.wraps(func)
+    def wrapper(profiles: Profiles, grid: VoxelGrid, *, beam: str | None = None, **kwargs) -> Image:
+        if isinstance(profiles, Profiles):
+            _refuse_beams(profiles, beam)
+            profiles = replace(profiles, beams=None)  # every pair omnidirectional, depth 0 (bp) included
+        return func(profiles, grid, **kwargs)
+
+    return wrapper
+
+
 @FORMATIONS.register("ffbp")
+@_no_beams
 def form(
     profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
     progress: Callable[[int, int], None] | None = None, force: bool = False, depth: int | None = None,

@@ -52,6 +52,12 @@ wavenumber domain. The steps, and what each costs in accuracy:
    grid's ``x`` and ``y`` by a chirp-z (Bluestein) transform. Nothing is interpolated in the
    finished image.
 
+Transducer beams (issue 33): options ``beam`` (``"none"``, ``"limited"``, ``"weighted"``; default
+``"limited"`` where the profiles carry directional beams, else ``"none"``) and ``beam_floor_db``
+(-12) weight each plane wave by the two-way pattern at its angle ``asin(|k_xy| / k)`` from the
+normal (:func:`clsas.beam.angular_weights`, the same tables as bp's), which needs every boresight
+along the aperture's normal. A 2-D line scan goes to :mod:`clsas.formation.omega_k_line`.
+
 Where it matches backprojection: inside the aperture's well-sampled cone
 (:func:`clsas.formation.planar.well_sampled_cone`) to about -40 dB or better on simulated scans
 (see the table in docs/guide/fast-formation.md); outside it, backprojection forms the contributions of stops that see
@@ -70,6 +76,7 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
+from ..beam import BEAM_MODES, angular_weights, beam_weights, facing
 from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
@@ -85,7 +92,7 @@ log = logging.getLogger(__name__)
 OPTIONS = {
     "pad_time": 1.5, "pad": None, "window": None, "taper": 0.1, "upsample": 1, "bistatic": True,
     "phase_tol": 1e-3, "band_tol": 1e-2, "kernel_width": 6, "tol_m": None, "workers": None, "chunk": 8192,
-    "max_sine": None,
+    "max_sine": None, "beam": None, "beam_floor_db": -12.0,
 }
 
 
@@ -122,6 +129,9 @@ def _options(options: dict) -> dict:
     if o["workers"] is not None:
         o["workers"] = v.positive_int("workers", o["workers"])
     o["chunk"] = v.positive_int("chunk", o["chunk"])
+    if o["beam"] is not None:
+        v.choice("beam", o["beam"], BEAM_MODES)
+    o["beam_floor_db"] = v.finite("beam_floor_db", o["beam_floor_db"])
     return o
 
 
@@ -277,7 +287,9 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     # wavelength at 1.5 times the carrier (the band's top, about)
     f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
     tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
-    ap = planar_aperture(tx, rx, grid, tol)
+    ap = _aperture(profiles, grid, o, tol)
+    if isinstance(ap, Image):  # a 2-D line scan (issue 33), imaged by the 2-D Stolt step
+        return ap
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
     depth = np.abs(pw - ap.w_m)
@@ -307,6 +319,44 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
     info["backend"] = sel.kind
     return Image(values, grid, "bp", sel.kind, sel.device, timings, provenance={"omega_k": info})
+
+
+def _aperture(profiles: Profiles, grid: VoxelGrid, o: dict, tol: float):
+    """The planar aperture (its beams' angular weights set in ``o["angular"]``), or, for a line
+    scan, its image by :mod:`clsas.formation.omega_k_line`."""
+    from . import omega_k_line as line
+
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
+    axis = line.line_axis(tx, rx, tol)
+    if axis is not None:
+        return line.form_line(profiles, grid, axis, o, tol, (_spectra, _dft_axis, _edge_window))
+    ap = planar_aperture(tx, rx, grid, tol)
+    o["angular"] = _beam_angular(profiles, o, fc, c, ap, grid)
+    return ap
+
+
+def _plane_wave_beam(weights, ku: np.ndarray, kv: np.ndarray, k: np.ndarray):
+    """(columns, n_f) two-way beam weight of each plane wave (1 without beams)."""
+    if weights is None:
+        return 1.0
+    return angular_weights(weights, np.hypot(ku, kv)[:, None] / np.abs(k))
+
+
+def _beam_angular(profiles: Profiles, o: dict, fc: float, c, ap, grid: VoxelGrid):
+    """The profiles' beams as weights of plane-wave angles (``beam`` option as in bp: default
+    ``"limited"`` for directional beams), or None; refused unless every boresight is the
+    aperture plane's normal toward the grid."""
+    beams = profiles.beams
+    mode = o["beam"] or ("limited" if beams is not None and not beams.is_omni else "none")
+    weights = beam_weights(beams, mode, fc, c, o["beam_floor_db"])
+    if weights is None:
+        return None
+    normal = np.zeros(3)
+    normal[ap.axis] = 1.0 if [grid.x_m, grid.y_m, grid.z_m][ap.axis].mean() > ap.w_m else -1.0
+    if not facing(weights, normal):
+        raise ValueError(f"beam={mode!r}: omega-k weights plane waves by angle from the aperture's normal, and "
+                         "needs every boresight along it; use formation='bp' (any boresight) or beam='none'")
+    return weights
 
 
 def _warn_outside_cone(tx, rx, grid: VoxelGrid, f_top: float, c_ref: float, tol: float) -> float:
@@ -393,6 +443,7 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
         cc = cols[c0: c0 + o["chunk"]]
         iu_, iv_ = cc[:, 0], cc[:, 1]
         block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_])[:, None]
+        block *= _plane_wave_beam(o["angular"], ku_all[iu_], kv_all[iv_], k)  # issue 33: 1 without beams
         t = time.perf_counter()
         if runner is not None:
             cells = runner(block, k, ku_all[iu_], kv_all[iv_], params)
