@@ -195,7 +195,9 @@ def reconstruct_image(ds, grid, args, progress=True):
     formation = getattr(args, "formation", "bp")
     options = formation_options(getattr(args, "formation_option", None)) or None
     method = getattr(args, "method", "bp")
-    form = {"bp": "backproject", "auto": "form"}.get(formation, f"form ({formation})")
+    if formation == "auto" and method != "bp":
+        formation = "bp"  # what auto takes for the sparse methods' profiles
+    form = "backproject" if formation == "bp" else f"form ({formation})"
     steps = (form,) if method == "bp" else (f"super-resolve ({method})", form)
     announce_slow_method(ds, grid, method)
     with progress_bar(steps, ds.n_meas, progress, announce=slow_job_notice(method)) as cb:
