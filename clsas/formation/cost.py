@@ -396,3 +396,25 @@ def _describe(e: Estimate, target: float) -> str:
     err = "exact" if e.error_db == -math.inf else f"{e.error_db:.0f} dB"
     over = "" if e.error_db <= target - MARGIN_DB else " (over the target)"
     return f"{e.time_s:.3g} s, {err}{over}"
+
+
+def predict_time(formation: str, profiles: Profiles, grid: VoxelGrid, selection=None, options: dict | None = None,
+                 factors: dict | None = None) -> float:
+    """Predicted run time of ``formation`` with ``options`` (s); ``factors`` default to none (the built-in
+    model, as ``clsas bench`` calibrates it), not the stored calibration. FFBP plans its tree to count."""
+    factors = {} if factors is None else factors
+    options = dict(options or {})
+    if formation == "bp":
+        return _seconds("bp", work_bp(profiles, grid), selection, factors)
+    if formation == "omega-k":
+        from .omega_k import plan_sizes
+
+        return _seconds("omega-k", work_omega_k(plan_sizes(profiles, grid, **options)), selection, factors)
+    if formation == "ffbp":
+        from .ffbp import plan_tree
+
+        t = time.perf_counter()
+        tree = plan_tree(profiles, grid, **options)
+        taps = int(options.get("order", 3)) + 1
+        return _seconds("ffbp", work_ffbp(tree, grid, taps, time.perf_counter() - t), selection, factors)
+    raise ValueError(f"formation must be one of {tuple(BUILTIN)}, got {formation!r}")
