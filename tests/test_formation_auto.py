@@ -99,9 +99,12 @@ def test_auto_takes_omega_k_where_it_is_fastest_and_stays_under_the_target(dense
     cone = well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, 30e3, float(np.mean(ds.c_mps)))
     assert cone.mean() > 0.9
     assert error_to_signal_db(img, ref) <= -30
-    # a target the model cannot promise for omega-k: bp
+    # a target the model cannot promise for omega-k (-42 dB, 3 dB margin): bp, or FFBP oversampled enough
     img = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-40)
-    assert img.provenance["formation_auto"]["formation"] == "bp"
+    auto = img.provenance["formation_auto"]
+    assert auto["formation"] != "omega-k"
+    if auto["formation"] == "ffbp":
+        assert error_to_signal_db(img, ref) <= -40
 
 
 def test_auto_choice_is_kept_in_the_image_file(dense, cache, tmp_path):
