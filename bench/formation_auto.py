@@ -30,7 +30,7 @@ def main() -> int:
            "host": f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs",
            "uptime_before": os.getloadavg()}
     res["crossover"] = cx.crossover(tuple(args.sides), status=lambda s: print(s, flush=True))
-    res["cases"] = [bf.run_case(c, None, 1.0 if c == "demo" else args.dense_scale, status=print)
+    res["cases"] = [bf.run_case(c, None, args.dense_scale if c == "dense" else 1.0, status=print)
                     for c in ("demo", "circular", "dense")]
     res["uptime_after"] = os.getloadavg()
     out = Path(args.out)

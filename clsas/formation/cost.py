@@ -228,7 +228,8 @@ def work_ffbp(tree, grid: VoxelGrid, taps: int, plan_s: float) -> dict:
 # -- errors -----------------------------------------------------------------------------------
 def alias_fraction(sizes: dict, n_vox: int = 7, n_stops: int = 144, n_freq: int = 8) -> np.ndarray:
     """Per voxel (a coarse sub-grid, up to ``n_vox`` per axis), the share of (stop, frequency)
-    pairs the lattice samples aliased: ``2 k |sin theta_a| > pi / d_a`` on a lattice axis ``a``.
+    pairs the lattice samples aliased: ``2 k |sin theta_a| > pi / d_a`` on a lattice axis ``a``,
+    each stop weighted by its echo's spreading loss ``1 / r^2``.
 
     ``sizes`` is :func:`clsas.formation.omega_k.plan_sizes`'s; the frequencies are spread evenly
     over the band up to the top of its -20 dB band, the stops over each lattice.
@@ -253,8 +254,9 @@ def alias_fraction(sizes: dict, n_vox: int = 7, n_stops: int = 144, n_freq: int 
         r = np.sqrt(du_**2 + dv_**2 + W[..., None] ** 2)
         lim_u, lim_v = np.pi / g.spacing_uv[0], np.pi / g.spacing_uv[1]
         bad = ((k2 * np.abs(du_ / r)[..., None] > lim_u) | (k2 * np.abs(dv_ / r)[..., None] > lim_v))
-        aliased += bad.sum(axis=(-2, -1))
-        total += bad.shape[-2] * bad.shape[-1]
+        wt = 1.0 / r**2  # a stop's echo falls as 1 / (r_tx r_rx): the steep (aliased) stops weigh less
+        aliased += (bad.mean(axis=-1) * wt).sum(axis=-1)
+        total = total + wt.sum(axis=-1)
     return aliased / total
 
 
@@ -328,9 +330,11 @@ def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_d
         out.append(Estimate("bp", _seconds("bp", work_bp(profiles, grid), selection, factors), -math.inf,
                             note="exact (the reference)"))
     if "omega-k" in formations:
-        floor = _seconds("omega-k", {"fixed": 1}, selection, factors)
+        n_fft = 1.5 * profiles.n_lags
+        floor = _seconds("omega-k", {"fixed": 1, "delay": profiles.n_meas * n_fft * math.log2(max(n_fft, 2))},
+                         selection, factors)
         best = min((e.time_s for e in out if e.feasible), default=math.inf)
-        if floor < best:
+        if floor < PLAN_IF_UNDER * best:  # sizing it costs time too, lost where it is not chosen
             out.append(_omega_k_estimate(profiles, grid, selection, factors))
         else:  # sizing it would cost more than the whole of the fastest
             out.append(Estimate("omega-k", floor, math.nan, note=f"not sized: its fixed cost alone is about "
