@@ -27,3 +27,14 @@ def test_crossover_table_times_every_formation_and_auto(tmp_path, monkeypatch):
 def test_calibrate_takes_the_median_ratio():
     rows = [{"rows": [{"formation": "bp", "time_s": t, "predicted_builtin_s": 1.0}]} for t in (1.0, 2.0, 9.0)]
     assert cx.calibrate(rows) == {"bp": 2.0}
+
+
+def test_roofline_ceilings_of_the_bp_kernel():
+    from clsas.bench import throughput as tp
+
+    info = {"compute_units": 2, "clock_mhz": 2000, "vector_width_float": 8}
+    cb = tp.compute_bound(info, bandwidth_bps=16e9)
+    assert cb["pairs_per_s"] == pytest.approx(2 * 2e9 * 8 * 2 / tp.FLOPS_PER_PAIR)
+    assert cb["memory_pairs_per_s"] == pytest.approx(1e9)
+    assert cb["ridge_flops_per_byte"] == pytest.approx(cb["peak_flops"] / 16e9)
+    assert "memory_pairs_per_s" not in tp.compute_bound(info)
