@@ -130,3 +130,31 @@ def test_calibration_round_trip_and_bad_files(cache):
 def test_ffbp_error_model_grows_with_depth_and_falls_with_oversampling():
     assert cost.FFBP_BASE_DB[2.0] + 20 * math.log10(5) > cost.FFBP_BASE_DB[2.0] + 20 * math.log10(3)
     assert sorted(cost.FFBP_BASE_DB.values(), reverse=True) == [cost.FFBP_BASE_DB[o] for o in cost.FFBP_CANDIDATES]
+
+
+def test_plan_sizes_count_what_omega_k_transforms(dense):
+    _, grid, prof = dense
+    sizes = plan_sizes(prof, grid)
+    info = form(prof, grid, "omega-k", backend="numpy").provenance["omega_k"]
+    (g,) = sizes["groups"]
+    (lat,) = info["lattices"]
+    assert (g["mu"], g["mv"]) == tuple(lat["padded"]) and g["up"] == lat["upsample"]
+    assert g["columns"] == lat["columns"] and g["n_cells"] == lat["cells"]
+    assert abs(sizes["n_f"] - info["n_f"]) <= 0.1 * info["n_f"]  # the band from a subset of the profiles
+
+
+def test_cli_reconstruct_says_what_auto_chose(dense, tmp_path, capsys):
+    from clsas.cli import main
+
+    ds, grid, _ = dense
+    ds.save(tmp_path / "scan.h5")
+    (x0, x1), (y0, y1), (z0, z1) = grid.bounds()
+    args = ["reconstruct", str(tmp_path / "scan.h5"), f"--grid={x0},{x1},{y0},{y1},{z0},{z1}", "--spacing", "0.006",
+            "--backend", "numpy", "-q", "--max-error-db", "-35", "--out", str(tmp_path / "img.h5")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "formation: " in out and "auto, error target -35 dB" in out
+    back = clsas.Image.load(tmp_path / "img.h5")
+    assert back.provenance["formation_auto"]["max_error_db"] == -35
+    with pytest.raises(SystemExit):
+        main([*args[:-2], "--formation", "fourier"])

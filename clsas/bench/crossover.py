@@ -98,7 +98,8 @@ def auto_row(prof, grid, ref, cone, rows: list[dict]) -> dict:
     bp = next(r for r in rows if r["formation"] == "bp")
     return {"formation": "auto", "chose": choice.formation, "options": choice.options, "reason": choice.reason,
             "model": choice.model, "time_s": took, "backend": img.backend, "best": best["formation"],
-            "over_best": took / best["time_s"], "speedup": bp["time_s"] / took, **_errors(img, ref, cone)}
+            "over_best": took / best["time_s"], "speedup": bp["time_s"] / took,
+            **({"error_all_db": None, "error_cone_db": None} if choice.formation == "bp" else _errors(img, ref, cone))}
 
 
 def _one(n: int, say) -> dict:

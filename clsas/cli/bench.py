@@ -39,6 +39,10 @@ def cmd_bench(args) -> int:
                             cases=args.cases, plots=not args.no_plots, status=status)
         for c in res["cases"]:
             for r in c["rows"]:
+                if r["formation"] == "auto":
+                    print(f"{c['case']}: auto: took {r['chose']}, {r['time_s']:.2f} s, {r['over_best']:.2f}x the best "
+                          f"({r['best']})")
+                    continue
                 what = (f"refused ({r['refused'].split(':')[0]})" if "refused" in r else
                         f"{r['time_s']:.2f} s" + (f", {r['speedup']:.0f}x bp, error {r['error_all_db']:.1f} dB over "
                                                   "the grid" if "speedup" in r else "")
