@@ -9,14 +9,9 @@
  *   c0    = spec_j w 2 pi k_j / kz^2 (1 + i / (kz zref)) exp(i (kz zc + alpha / zref))
  *   pos   = kz dz M / (2 pi)                                      (position on the kz axis, cells)
  * and c0 alpha^p is added, for each term p, to the W cells around pos (modulo M) with the
- * weight exp(beta (sqrt(1 - (2 x / W)^2) - 1)), x the cell's distance from pos, evaluated as a
- * polynomial of degree ES_NC - 1 per tap in the sample's offset from the cells (coefficients
- * from clsas/formation/stolt.py:es_poly; 4e-7 of the kernel's peak from the exact weight the
- * twin uses at W = 6, against the interpolation's own 1e-5).
+ * weight exp(beta (sqrt(1 - (2 x / W)^2) - 1)), x the cell's distance from pos.
  * The phase is reduced to cycles in [-0.5, 0.5] before sin/cos. NumPy twin:
  * clsas/formation/stolt.py:spread. Needs common.cl (RINT). */
-
-#define ES_NC 8  /* coefficients per tap of the kernel's polynomial */
 
 __kernel void stolt_spread(
     __global const float2 *spec,     /* (n_cols, n_f) data spectrum, weights applied            */
@@ -30,8 +25,7 @@ __kernel void stolt_spread(
     const float s2,                  /* look-angle sine where the window reaches zero           */
     const int n_cells,               /* M: cells of the folded kz axis                          */
     const int width,                 /* W: kernel width, cells                                  */
-    __constant const float *es_poly, /* (W, ES_NC) the kernel per tap: Horner coefficients in
-                                        u = 2 d - 1, highest power first, d in [0, 1) the offset */
+    const float beta,                /* kernel shape                                            */
     const int n_terms,               /* powers of alpha spread                                  */
     __global float2 *cells)          /* (n_terms, n_cols, n_cells) output                       */
 {
@@ -47,12 +41,11 @@ __kernel void stolt_spread(
         const float2 kp = kuv[col];
         const float kp2 = kp.x * kp.x + kp.y * kp.y;
         const float proj = win.x * kp.x + win.y * kp.y;
-        const float kp_abs = sqrt(kp2);
         for (int j = 0; j < n_f; ++j) {
             const float kk = k[j];
             const float kz2 = kk * kk - kp2;
             if (kz2 <= 0.0f) continue;
-            const float s = kp_abs / fabs(kk);
+            const float s = sqrt(kp2) / fabs(kk);
             if (s >= s2) continue;
             const float ramp = (s - win.z) * win.w;
             const float w = ramp <= 0.0f ? 1.0f : 0.5f * (1.0f + cospi(ramp));
@@ -69,14 +62,14 @@ __kernel void stolt_spread(
             const float2 c0 = (float2)(d.x * ar - d.y * ai, d.x * ai + d.y * ar);
             const float pos = kz * geo.x;
             const float first = ceil(pos - hw);
-            const float u = 2.0f * (first - (pos - hw)) - 1.0f;  /* the offset d = first - (pos - hw) in [0, 1) */
-            const int ci0 = (int)first;
-            int idx = ci0 - n_cells * (int)floor((float)ci0 / (float)n_cells);
-            for (int t = 0; t < width; ++t, idx = (idx + 1 == n_cells) ? 0 : idx + 1) {
-                __constant const float *c = es_poly + t * ES_NC;
-                float phi = c[0];
-                for (int e = 1; e < ES_NC; ++e)
-                    phi = mad(phi, u, c[e]);
+            for (int t = 0; t < width; ++t) {
+                const float cell = first + (float)t;
+                const float x = (cell - pos) / hw;
+                const float arg = 1.0f - x * x;
+                if (arg <= 0.0f) continue;
+                const float phi = exp(beta * (sqrt(arg) - 1.0f));
+                const int ci = (int)cell;
+                const int idx = ci - n_cells * (int)floor((float)ci / (float)n_cells);
                 float2 v = phi * c0;
                 for (int p = 0; p < n_terms; ++p) {
                     cells[((size_t)p * n_cols + col) * n_cells + idx] += v;

@@ -21,7 +21,6 @@ class StoltPlan(Plan):
     def __init__(self, queue=None, vec=None):
         super().__init__(queue, vec)
         self._bufs: dict[str, tuple[int, object]] = {}
-        self._poly: dict[int, object] = {}  # kernel width -> the ES polynomial's coefficients on the device
 
     def _buf(self, name: str, nbytes: int, access: str):
         size, buf = self._bufs.get(name, (0, None))
@@ -45,10 +44,8 @@ class StoltPlan(Plan):
         geo = np.array([p.dz_m * M / (2 * np.pi), p.zc_m / (2 * np.pi), 1 / p.zref_m, 1 / (2 * np.pi * p.zref_m)],
                        np.float32)
         win = np.array([*p.baseline_uv, p.s1, 1 / max(p.s2 - p.s1, 1e-12)], np.float32)
-        if p.width not in self._poly:
-            self._poly[p.width] = self.upload(stolt.es_poly(p.width), np.float32)
         self.launch((-(-n_cols // self.vec),), d_spec, d_k, d_kuv, np.int32(n_cols), np.int32(n_f), geo, win,
-                    np.float32(p.s2), np.int32(M), np.int32(p.width), self._poly[p.width], np.int32(p.n_terms), d_out)
+                    np.float32(p.s2), np.int32(M), np.int32(p.width), np.float32(p.beta), np.int32(p.n_terms), d_out)
         return self.read(d_out, (p.n_terms, n_cols, M), np.complex64)
 
     @staticmethod

@@ -44,38 +44,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["StoltParams", "spread", "deapodization", "columns_to_depths", "es_beta", "es_poly"]
+__all__ = ["StoltParams", "spread", "deapodization", "columns_to_depths", "es_beta"]
 
 
 def es_beta(width: int) -> float:
     """Shape of the exponential-of-semicircle kernel for an upsampling of 2 (FINUFFT's 2.30 W)."""
     return 2.30 * width
-
-
-ES_NC = 8  # coefficients per tap of the kernel's polynomial (kernels/stolt.cl: ES_NC)
-
-
-def es_poly(width: int) -> np.ndarray:
-    """The spreading kernel per tap as polynomials for ``kernels/stolt.cl``: (width, ES_NC) float32.
-
-    A sample at ``pos`` cells spreads onto cells ``first + t`` (``first = ceil(pos - W/2)``,
-    ``t = 0 .. W-1``) with the weight ``phi((first + t - pos) / (W/2))``; with ``d = first - (pos -
-    W/2)`` in [0, 1) that is ``phi((d + t) / (W/2) - 1)``, a smooth function of ``d`` per tap. Row
-    ``t`` holds its Chebyshev fit of degree ES_NC - 1 in ``u = 2 d - 1`` as power coefficients,
-    highest first (Horner). Off the exact kernel by at most 4e-7 of its peak for W = 6 (3e-5 at
-    W = 4, 2.5e-3 at W = 2: each far below the interpolation's own error, about 10^-(W-1)); the
-    twin (:func:`spread`) evaluates the kernel exactly.
-    """
-    hw = width / 2
-    u = np.cos(np.pi * (np.arange(64) + 0.5) / 64)  # Chebyshev nodes on [-1, 1]
-    d = (u + 1) / 2
-    rows = []
-    for t in range(width):
-        y = _es(d + t - hw, width, es_beta(width))  # _es takes cells from the centre
-        y = np.where(np.abs((d + t) / hw - 1) < 1, y, np.exp(-es_beta(width)))  # continuous at the edge
-        c = np.polynomial.chebyshev.chebfit(u, y, ES_NC - 1)
-        rows.append(np.polynomial.chebyshev.cheb2poly(c)[::-1])
-    return np.asarray(rows, np.float32)
 
 
 @dataclass(frozen=True)
