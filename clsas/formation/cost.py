@@ -21,18 +21,23 @@ device, 2026-11-25) and are scaled to other devices by their compute units (kern
 cores (host FFTs). ``clsas bench`` measures the formations on the device and stores one factor
 per formation (measured over predicted, the median over its cases) beside the kernel-variant
 verdicts (:func:`calibration_path`); :func:`choose` applies it. The model need only rank the
-formations: within a factor of two is enough where they differ by more.
+formations: within a factor of two is enough where they differ by more. Sizing ω-k and planning
+an FFBP tree cost time themselves (0.03 s and 0.35 s at 64 x 64 stops), lost where that
+formation is not chosen: each is done only where a lower bound of its time is under
+``PLAN_IF_UNDER`` (0.7) times the best time so far.
 
 Error. ``bp`` is the reference (exact). ``omega-k`` is refused for apertures that are not
 planar-uniform (:class:`~clsas.formation.planar.NotPlanarUniform`); otherwise its error is its
 method's (:data:`OMEGA_K_BASE_DB`, measured -44 to -48 dB inside the well-sampled cone) plus the
 backprojection contributions it leaves out: those of stop-voxel pairs whose angle the lattice
 samples aliased (the grating lobes, see :mod:`clsas.formation.planar`), counted per voxel over
-the stops and the band (:func:`alias_fraction`) and taken as an amplitude fraction of a
-reflector's focus, RMS over the grid. ``ffbp``'s error is a systematic loss per level that adds
-almost coherently: ``FFBP_BASE_DB[oversample] + 20 log10(depth + 1)`` (module notes of
-:mod:`clsas.formation.ffbp`, refitted to the crossover scans); auto tries a few depths and
-oversampling rates and keeps the fastest that meets the target.
+the stops (weighted by their spreading loss) and the band (:func:`alias_fraction`) and taken as
+an amplitude fraction of a reflector's focus, RMS over the grid: 0.5 to 4 dB above the error
+measured on the crossover scans and the dense case (conservative). ``ffbp``'s error is a
+systematic loss per level that adds almost coherently:
+``FFBP_BASE_DB[oversample] + 20 log10(depth + 1)`` (module notes of :mod:`clsas.formation.ffbp`,
+refitted to the crossover scans); auto tries a few depths and oversampling rates and keeps
+the fastest that meets the target.
 """
 
 from __future__ import annotations
@@ -53,7 +58,7 @@ from ..profiles import Profiles
 
 __all__ = [
     "BUILTIN", "DEFAULT_MAX_ERROR_DB", "MARGIN_DB", "Choice", "Estimate", "alias_fraction", "calibration_path",
-    "check_max_error_db", "choose", "estimate", "load_calibration", "store_calibration",
+    "check_max_error_db", "choose", "estimate", "load_calibration", "predict_time", "store_calibration",
 ]
 
 log = logging.getLogger(__name__)
@@ -76,7 +81,7 @@ BUILTIN: dict[str, dict[str, float]] = {
 FFBP_PLAN_S_PER_MEAS = 8e-5
 PLAN_IF_UNDER = 0.7
 REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
-NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL, about
+NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses
 
 
 @dataclass(frozen=True)
