@@ -28,7 +28,10 @@ import clsas
 
 from ..formation import cost, error_to_signal_db, form
 
-__all__ = ["CROSSOVER_QUICK", "CROSSOVER_FULL", "crossover_case", "auto_row", "crossover", "calibrate", "markdown"]
+__all__ = [
+    "CROSSOVER_QUICK", "CROSSOVER_FULL", "crossover_case", "profiles", "cone", "auto_row", "crossover", "calibrate",
+    "markdown",
+]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +61,30 @@ def crossover_case(n: int, seed: int = 0):
     return ds, grid
 
 
+def profiles(ds, grid):
+    """The case's profiles over its grid's delay gate (matched filter, the default device)."""
+    plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
+    return clsas.compress(ds, gate_s=plan.gate_s)
+
+
+def cone(ds, grid):
+    """The well-sampled cone at 30 kHz, or None for an aperture without a lattice."""
+    from ..formation.planar import NotPlanarUniform, well_sampled_cone
+
+    try:
+        return well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, 30e3, float(np.mean(ds.c_mps)))
+    except NotPlanarUniform:
+        return None
+
+
+def _warm_up() -> None:
+    """Build each formation's kernels on a small scan, outside any timing."""
+    ds, grid = crossover_case(12)
+    prof = profiles(ds, grid)
+    for f in FORMS:
+        form(prof, grid, f)
+
+
 def _forget_tree() -> None:
     from ..formation import ffbp
 
@@ -80,12 +107,12 @@ def _timed(fn):
     return best, out
 
 
-def _errors(img, ref, cone) -> dict:
+def _errors(img, ref, mask) -> dict:
     return {"error_all_db": error_to_signal_db(img, ref),
-            "error_cone_db": error_to_signal_db(img, ref, cone) if cone is not None and cone.any() else None}
+            "error_cone_db": error_to_signal_db(img, ref, mask) if mask is not None and mask.any() else None}
 
 
-def auto_row(prof, grid, ref, cone, rows: list[dict]) -> dict:
+def auto_row(prof, grid, ref, mask, rows: list[dict]) -> dict:
     """``formation="auto"`` timed (choosing included) against ``rows`` (the formations' own rows:
     ``formation``, ``time_s``, ``error_all_db``; bp's error None)."""
     def run():
@@ -99,18 +126,17 @@ def auto_row(prof, grid, ref, cone, rows: list[dict]) -> dict:
     return {"formation": "auto", "chose": choice.formation, "options": choice.options, "reason": choice.reason,
             "model": choice.model, "time_s": took, "backend": img.backend, "best": best["formation"],
             "over_best": took / best["time_s"], "speedup": bp["time_s"] / took,
-            **({"error_all_db": None, "error_cone_db": None} if choice.formation == "bp" else _errors(img, ref, cone))}
+            **({"error_all_db": None, "error_cone_db": None} if choice.formation == "bp" else _errors(img, ref, mask))}
 
 
 def _one(n: int, say) -> dict:
-    from .formation import _cone, _profiles
-
     ds, grid = crossover_case(n)
-    prof = _profiles(ds, grid)
-    cone = _cone(ds, grid)
+    prof = profiles(ds, grid)
+    cone_mask = cone(ds, grid)
     sel = clsas.cl.select(None)
     row = {"n": n, "measurements": ds.n_meas, "grid_shape": list(grid.shape), "voxels": grid.size,
-           "pairs": float(ds.n_meas) * grid.size, "cone_fraction": None if cone is None else float(cone.mean()),
+           "pairs": float(ds.n_meas) * grid.size,
+           "cone_fraction": None if cone_mask is None else float(cone_mask.mean()),
            "load_before": os.getloadavg(), "rows": []}
     ref = None
     for f in FORMS:
@@ -121,11 +147,11 @@ def _one(n: int, say) -> dict:
             ref = img
             r.update(error_all_db=None, error_cone_db=None)
         else:
-            r.update(_errors(img, ref, cone), speedup=row["rows"][0]["time_s"] / r["time_s"])
+            r.update(_errors(img, ref, cone_mask), speedup=row["rows"][0]["time_s"] / r["time_s"])
         r["predicted_builtin_s"] = cost.predict_time(f, prof, grid, sel, factors={})
         row["rows"].append(r)
     say(f"crossover: auto at N = {n}")
-    row["rows"].append(auto_row(prof, grid, ref, cone, row["rows"]))
+    row["rows"].append(auto_row(prof, grid, ref, cone_mask, row["rows"]))
     row["load_after"] = os.getloadavg()
     return row
 
@@ -142,10 +168,8 @@ def calibrate(rows: list[dict]) -> dict[str, float]:
 
 def crossover(sides=CROSSOVER_QUICK, status=None, store: bool = True) -> dict:
     """The crossover table over ``sides`` (N x N stops), then the calibration (stored unless ``store`` is False)."""
-    from .formation import _warm_up
-
     say = status or (lambda s: log.info("%s", s))
-    _warm_up(FORMS)
+    _warm_up()
     rows = [_one(int(n), say) for n in sides]
     factors = calibrate(rows)
     out = {"sides": list(sides), "rows": rows, "calibration": factors, "target_db": TARGET_DB}

@@ -34,6 +34,9 @@ import numpy as np
 import clsas
 
 from ..formation import FORMATIONS, error_to_signal_db, form
+from .crossover import _timed, auto_row
+from .crossover import cone as _cone
+from .crossover import profiles as _profiles
 from .stats import fit_exponent, jsonable
 
 __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", "markdown", "write"]
@@ -99,20 +102,6 @@ def make_case(name: str, scale: float = 1.0):
     raise ValueError(f"case must be one of {CASES}, got {name!r}")
 
 
-def _profiles(ds, grid):
-    plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
-    return clsas.compress(ds, gate_s=plan.gate_s)
-
-
-def _cone(ds, grid):
-    from ..formation.planar import NotPlanarUniform, well_sampled_cone
-
-    try:
-        return well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, F_TOP, float(np.mean(ds.c_mps)))
-    except NotPlanarUniform:
-        return None
-
-
 def _warm_up(formations) -> None:
     """Build each formation's kernels on a tiny planar case, outside any timing."""
     ds, grid = _planar(12, 8, 4)
@@ -127,8 +116,6 @@ def _warm_up(formations) -> None:
 def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dict:
     """Every formation on one case: time (the faster of two runs where one takes under 2 s; FFBP's
     remembered tree forgotten before each), error inside the cone and over the grid."""
-    from .crossover import _timed
-
     say = status or (lambda s: log.info("%s", s))
     formations = list(formations or FORMATIONS)
     if "bp" not in formations:
@@ -164,8 +151,6 @@ def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dic
             if "omega_k" in img.provenance:
                 row["details"] = img.provenance["omega_k"]
         out["rows"].append(row)
-    from .crossover import auto_row
-
     say(f"formation auto on the {name} case")
     out["rows"].append(auto_row(prof, grid, ref, cone, out["rows"]))
     return out
