@@ -21,6 +21,7 @@ from . import validate as v
 from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
 from .formation import FORMATIONS
+from .formation.cost import DEFAULT_MAX_ERROR_DB, Choice, check_max_error_db, choose
 from .formation.guard import check_grid
 from .geometry import VoxelGrid
 from .image import Image
@@ -42,9 +43,9 @@ def methods() -> tuple[str, ...]:
 def reconstruct(
     dataset: Dataset | Profiles, grid: VoxelGrid, method: str = "bp", *, compression: str = "matched",
     backend: str | None = None, device: Any = None, progress: Callable[[int, int], None] | None = None,
-    sparse: dict | None = None, force: bool = False, formation: str = "bp", formation_options: dict | None = None,
+    sparse: dict | None = None, force: bool = False, formation: str = "auto", formation_options: dict | None = None,
     out: str | Path | None = None, max_memory: float | str | None = None, client: Any = None,
-    tile_shape: tuple[int, int, int] | None = None,
+    tile_shape: tuple[int, int, int] | None = None, max_error_db: float = DEFAULT_MAX_ERROR_DB,
 ) -> Image:
     """Image a dataset on a grid: profiles over the grid's exact delay gate only (``image.plan.describe()``).
 
@@ -76,10 +77,15 @@ def reconstruct(
     force : bool
         Image a grid even if it does not seem to fit in memory.
     formation : str
-        How the profiles become an image (:data:`clsas.formation.FORMATIONS`): ``"bp"`` (exact, the
-        reference), ``"omega-k"`` (planar uniform apertures), ``"ffbp"`` (any trajectory).
+        How the profiles become an image: ``"auto"`` (default) or one of
+        :data:`clsas.formation.FORMATIONS`: ``"bp"`` (exact, the reference), ``"omega-k"`` (planar
+        uniform apertures), ``"ffbp"`` (any trajectory). ``"auto"`` takes the fastest formation
+        whose predicted error against ``"bp"`` meets ``max_error_db`` for this aperture, grid and
+        device (:func:`clsas.formation.cost.choose`; the choice and its reason are logged and kept in
+        ``image.provenance["formation_auto"]``, and so in the image file); the sparse methods and
+        tiled requests (``out``, ``max_memory``, ``client``, ``tile_shape``) are formed by ``"bp"``.
     formation_options : dict, optional
-        Passed to the formation (see its module).
+        Passed to the formation (see its module); not with ``"auto"``.
     out : str or Path, optional
         A chunked file (``.h5`` or ``.zarr``) formed tile by tile, for grids larger than memory; the
         Image reads it lazily (:meth:`clsas.Image.open`); the same request again resumes it.
@@ -91,11 +97,15 @@ def reconstruct(
         every worker once (see :mod:`clsas.tiling.dask`). Needs the ``distributed`` extra.
     tile_shape : (int, int, int), optional
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
+    max_error_db : float
+        With ``formation="auto"``: the largest error against exact backprojection allowed (complex
+        error-to-signal over the grid, dB; default -30).
 
     With ``"bp"`` a tiled image equals the whole one (to float32 rounding); a fast formation's
     tile is that formation's image of the tile.
     """
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
+    max_error_db = check_max_error_db(max_error_db)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
     selection = _selection(backend, device, tiled)
@@ -104,7 +114,8 @@ def reconstruct(
         check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
-        image = _form(dataset, grid, formation, fopts, selection, progress, force, tiled)
+        formation, fopts, choice = _formation(formation, fopts, dataset, grid, "bp", tiled, selection, max_error_db)
+        image = _recorded(_form(dataset, grid, formation, fopts, selection, progress, force, tiled), choice)
         return _finish(image, tiled, method=f"bp ({dataset.method} profiles)",
                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
     plan = plan_reconstruction(dataset, grid)
@@ -112,11 +123,41 @@ def reconstruct(
         prof, echoes, plan = _compressed(dataset, plan, compression, selection)
     else:
         prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress)
-    image = _form(prof, grid, formation, fopts, selection, progress, force, tiled)
+    formation, fopts, choice = _formation(formation, fopts, prof, grid, method, tiled, selection, max_error_db)
+    image = _recorded(_form(prof, grid, formation, fopts, selection, progress, force, tiled), choice)
     plan = _with_kernels(plan, (f"compress ({compression})", prof.backend),
                          ("backproject" if formation == "bp" else formation, image.backend))
     return _finish(image, tiled, method=method, plan=plan, echoes=echoes,
                    timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
+
+
+def _formation(formation: str, fopts: dict, prof: Profiles, grid: VoxelGrid, method: str, tiled,
+               selection: cl.Selection, max_error_db: float) -> tuple[str, dict, Choice | None]:
+    """Stage: ``"auto"`` resolved to a registered formation and its options (with the Choice)."""
+    if formation != "auto":
+        return formation, fopts, None
+    if method != "bp":
+        choice = Choice("bp", {}, f"bp: the {method} profiles are imaged by bp only (the fast formations do not match "
+                        "it on rendered pulses)", max_error_db, "rule", ())
+    elif tiled is not None:
+        choice = Choice("bp", {}, "bp: a grid formed in tiles is formed by bp (each tile equals the whole image's)",
+                        max_error_db, "rule", ())
+    elif getattr(prof, "beams", None) is not None and not prof.beams.is_omni():
+        choice = Choice("bp", {}, "bp: directional beams are applied exactly by bp only (FFBP cannot weight them; "
+                        "omega-k's angular weighting differs from bp's beam gate by more than the target)",
+                        max_error_db, "rule", ())
+    else:
+        choice = choose(prof, grid, selection, max_error_db=max_error_db)
+        return choice.formation, dict(choice.options), choice
+    log.info("formation auto: %s", choice.reason)
+    return choice.formation, dict(choice.options), choice
+
+
+def _recorded(image: Image, choice: Choice | None) -> Image:
+    """The image with auto's choice and reason in its provenance (kept in the image file)."""
+    if choice is None:
+        return image
+    return replace(image, provenance={**image.provenance, "formation_auto": choice.as_dict()})
 
 
 def _with_kernels(plan: ReconstructionPlan, *steps: tuple[str, str]) -> ReconstructionPlan:
@@ -137,12 +178,16 @@ def _check_request(dataset, grid, method, compression, sparse, formation, format
     """Every argument checked before any work; the formation's options as a new dict."""
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    FORMATIONS.check(formation)
+    if formation != "auto" and (not isinstance(formation, str) or formation not in FORMATIONS):
+        raise ValueError(f"formation must be 'auto' or one of {FORMATIONS.names()}, got {formation!r}")
     if formation_options is not None and not isinstance(formation_options, dict):
         raise TypeError(f"formation_options must be a dict, got {type(formation_options).__name__}")
     fopts = dict(formation_options or {})
     if formation == "bp" and set(fopts) - {"beam", "beam_floor_db"}:
         raise ValueError(f"formation_options: formation 'bp' takes beam, beam_floor_db, got {sorted(fopts)}")
+    if formation == "auto" and fopts:
+        raise ValueError(f"formation_options: formation 'auto' takes none, got {sorted(fopts)} (name the "
+                         "formation whose options these are)")
     if isinstance(dataset, Profiles):
         if method != "bp":
             raise ValueError(f"method={method!r} needs the recordings (a Dataset); range profiles are imaged "

@@ -124,7 +124,8 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
     device = info["name"] if opencl else "NumPy only (no OpenCL device)"
     res = {
         "date": dt.datetime.now().isoformat(timespec="seconds"), "mode": "full" if full else "quick",
-        "device": info or {"name": device}, "compute_bound": throughput.compute_bound(info) if opencl else None,
+        "device": info or {"name": device},
+        "compute_bound": throughput.compute_bound(info, throughput.memory_bandwidth()) if opencl else None,
         "host": {"machine": platform.machine(), "processor": platform.processor(), "cpus": os.cpu_count(),
                  "system": platform.platform()},
         "versions": _versions(), "repeats": cfg["repeats"], "sizes": {k: v for k, v in cfg.items() if k != "repeats"},

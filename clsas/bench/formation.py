@@ -15,6 +15,10 @@ Cases: ``demo`` (the demo's front scene: 18 x 12 stops over 1 m, the mannequin, 
 ``dense`` (a dense planar scan: 128 x 128 stops over 0.75 m, 256 x 256 x 128 voxels of 2.9 mm,
 a few reflectors; ``scale`` shrinks both sides), ``circular`` (360 stops on a 1 m circle, a
 5 mm grid; ``scale`` < 1 thins both).
+Every case also times ``auto`` (:func:`clsas.formation.cost.choose`, its choosing included) and
+names the formation it took. The crossover table (:func:`crossover`, in :mod:`clsas.bench.crossover`)
+times bp, ω-k, FFBP and auto on dense planar scans of N x N stops (N = 16-64 quick, 16-128 full)
+onto grids that grow with N, and calibrates the cost model of ``formation="auto"`` on the device.
 Cost exponents: each formation timed (the faster of two calls) on planar scans of N x N stops
 and 2N x 2N x N voxels, and the slope of log(time) against log(N) fitted. Benchmarks measure; nothing here asserts.
 """
@@ -30,6 +34,9 @@ import numpy as np
 import clsas
 
 from ..formation import FORMATIONS, error_to_signal_db, form
+from .crossover import _timed, auto_row
+from .crossover import cone as _cone
+from .crossover import profiles as _profiles
 from .stats import fit_exponent, jsonable
 
 __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", "markdown", "write"]
@@ -37,9 +44,11 @@ __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", 
 log = logging.getLogger(__name__)
 
 CASES = ("demo", "dense", "circular")
+# the crossover table (clsas.bench.crossover) runs as a case of its own
+ALL_CASES = (*CASES, "crossover")
 # what ``clsas bench`` runs: the quick set shrinks the dense scan to 32 x 32 stops
-QUICK = {"cases": CASES, "scale": 0.25, "sides": (8, 12, 16)}
-FULL = {"cases": CASES, "scale": 1.0, "sides": (12, 16, 24, 32, 48)}
+QUICK = {"cases": ALL_CASES, "scale": 0.25, "sides": (8, 12, 16)}
+FULL = {"cases": ALL_CASES, "scale": 1.0, "sides": (12, 16, 24, 32, 48)}
 FS = 96e3
 F_TOP = 30e3
 PITCH = 0.75 / 127  # the dense scan's stop spacing, m (lambda/2 at 29 kHz)
@@ -93,20 +102,6 @@ def make_case(name: str, scale: float = 1.0):
     raise ValueError(f"case must be one of {CASES}, got {name!r}")
 
 
-def _profiles(ds, grid):
-    plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
-    return clsas.compress(ds, gate_s=plan.gate_s)
-
-
-def _cone(ds, grid):
-    from ..formation.planar import NotPlanarUniform, well_sampled_cone
-
-    try:
-        return well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, F_TOP, float(np.mean(ds.c_mps)))
-    except NotPlanarUniform:
-        return None
-
-
 def _warm_up(formations) -> None:
     """Build each formation's kernels on a tiny planar case, outside any timing."""
     ds, grid = _planar(12, 8, 4)
@@ -119,7 +114,8 @@ def _warm_up(formations) -> None:
 
 
 def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dict:
-    """Every formation on one case: time, error inside the cone and over the grid."""
+    """Every formation on one case: time (the faster of two runs where one takes under 2 s; FFBP's
+    remembered tree forgotten before each), error inside the cone and over the grid."""
     say = status or (lambda s: log.info("%s", s))
     formations = list(formations or FORMATIONS)
     if "bp" not in formations:
@@ -136,14 +132,12 @@ def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dic
     for f in formations:
         say(f"formation {f} on the {name} case ({what})")
         row = {"formation": f}
-        t = time.perf_counter()
         try:
-            img = form(prof, grid, f)
+            row["time_s"], img = _timed(lambda f=f: form(prof, grid, f))
         except ValueError as exc:
             row.update(refused=str(exc))
             out["rows"].append(row)
             continue
-        row["time_s"] = time.perf_counter() - t
         row["backend"] = img.backend
         row["load_after"] = os.getloadavg()
         if f == "bp":
@@ -157,6 +151,8 @@ def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dic
             if "omega_k" in img.provenance:
                 row["details"] = img.provenance["omega_k"]
         out["rows"].append(row)
+    say(f"formation auto on the {name} case")
+    out["rows"].append(auto_row(prof, grid, ref, cone, out["rows"]))
     return out
 
 
@@ -196,9 +192,17 @@ def run(cases=CASES, formations=None, scale: float = 1.0, sides=(12, 16, 24, 32)
     for f in formations:
         if f not in FORMATIONS:
             raise ValueError(f"formation {f!r} is not registered; known: {', '.join(FORMATIONS)}")
+    for c in cases:
+        if c not in ALL_CASES:
+            raise ValueError(f"case must be one of {ALL_CASES}, got {c!r}")
     _warm_up(formations)
     res = {"formations": formations, "scale": scale,
-           "cases": [run_case(c, formations, 1.0 if c == "demo" else scale, status=status) for c in cases]}
+           "cases": [run_case(c, formations, 1.0 if c == "demo" else scale, status=status) for c in cases
+                     if c != "crossover"]}
+    if "crossover" in cases:
+        from .crossover import CROSSOVER_FULL, CROSSOVER_QUICK, crossover
+
+        res["crossover"] = crossover(CROSSOVER_FULL if scale >= 1 else CROSSOVER_QUICK, status=status)
     if sides:
         res["scaling"] = scaling(formations, sides, status=status)
     return res
@@ -220,6 +224,11 @@ def markdown(res: dict) -> list[str]:
     for c in res["cases"]:
         cone = "no lattice" if c["cone_fraction"] is None else f"{100 * c['cone_fraction']:.0f} %"
         for r in c["rows"]:
+            if r["formation"] == "auto":
+                md.append(f"| {c['case']} | auto -> {r['chose']} | {r['time_s']:.2f} s | "
+                          f"{r['over_best']:.2f}x the best ({r['best']}) | {_db(r['error_cone_db'])} | "
+                          f"{_db(r['error_all_db'])} | {cone} | |")
+                continue
             if "refused" in r:
                 md.append(f"| {c['case']} | {r['formation']} | refused: {r['refused'][:90]}... | | | | {cone} | |")
                 continue
@@ -232,6 +241,10 @@ def markdown(res: dict) -> list[str]:
         md.append(f"- {c['case']}: {c['what']}; {c['measurements']} measurements x {c['voxels']} voxels = "
                   f"{c['pairs']:.3g} pairs; compression {c['compress_s']:.2f} s; load average "
                   f"{c['load_before'][0]:.2f} before.")
+    if res.get("crossover"):
+        from .crossover import markdown as crossover_md
+
+        md += crossover_md(res["crossover"])
     if res.get("scaling"):
         md += ["", "| formation | N (N x N stops, 2N x 2N x N voxels) | times | cost ~ N^ |", "|---|---|---|---|"]
         for f, s in res["scaling"].items():
@@ -269,7 +282,7 @@ def _plot(res: dict, path) -> None:
     ax = fig.subplots()
     for c in res["cases"]:
         for r in c["rows"]:
-            if r.get("error_all_db") is None:
+            if r.get("error_all_db") is None or r["formation"] == "auto":
                 continue
             err = r["error_cone_db"] if r.get("error_cone_db") is not None else r["error_all_db"]
             ax.scatter(r["time_s"] / c["rows"][0]["time_s"], err, label=f"{r['formation']}, {c['case']}")

@@ -105,6 +105,13 @@ def _md_backprojection(res: dict) -> list[str]:
                    f"float vector width x 2 for FMA) / about {cb['flops_per_pair']} flops per pair (sin and cos "
                    f"counted as 10 each) = {cb['pairs_per_s']:.3g} pairs/s; the kernel reaches "
                    f"{100 * best / cb['pairs_per_s']:.0f} % of it."]
+        if cb.get("memory_pairs_per_s"):
+            md += ["", f"Roofline of the bp kernel: arithmetic ceiling {cb['pairs_per_s']:.3g} pairs/s; memory "
+                       f"ceiling {cb['memory_pairs_per_s']:.3g} pairs/s ({cb['bandwidth_bps'] / 1e9:.1f} GB/s measured "
+                       f"by a buffer copy / {cb['bytes_per_pair']} B per pair if every profile gather came from "
+                       f"memory; ridge at {cb['ridge_flops_per_byte']:.1f} flop/B, the kernel's "
+                       f"{cb['flops_per_pair'] / cb['bytes_per_pair']:.1f} flop/B); measured {best:.3g} pairs/s = "
+                       f"{100 * best / min(cb['pairs_per_s'], cb['memory_pairs_per_s']):.0f} % of the lower ceiling."]
     md += ["", "The NumPy twin and the Numba peer (a float64 `prange` loop over voxels, as one would write it) "
                "run the number of measurements shown in brackets; their cost is linear in measurements and the "
                "rates are per pair.", ""]

@@ -83,14 +83,60 @@ def numba_backproject(wl, pts):
     return out
 
 
-def compute_bound(device_info: dict) -> dict | None:
-    """Peak pairs/s of the device from its compute units, clock and float vector width (FMA = 2)."""
+# bytes a pair reads when its profile gather misses every cache: two complex float32 samples
+BYTES_PER_PAIR_GATHER = 16
+
+
+def memory_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 3) -> float | None:
+    """Memory bandwidth the bp kernel's device sees, bytes/s (read + write counted), the fastest of
+    ``repeats`` copies: on a CPU device, a NumPy copy in host memory (one thread: a lower bound);
+    on other devices a buffer-to-buffer copy timed by profiling events. None without a device."""
+    import time
+
+    from .. import cl as ccl
+
+    try:
+        q = ccl.get_queue()
+    except ccl.OpenCLUnavailable:
+        return None
+    best = float("inf")
+    if ccl.is_cpu(q.device):
+        a = np.ones(nbytes // 8)
+        b = np.empty_like(a)
+        for _ in range(repeats + 1):  # the first copy touches the pages
+            t = time.perf_counter()
+            np.copyto(b, a)
+            best = min(best, time.perf_counter() - t)
+        return 2 * a.nbytes / best
+    import pyopencl as cl
+
+    a = cl.Buffer(q.context, cl.mem_flags.READ_WRITE, nbytes)
+    b = cl.Buffer(q.context, cl.mem_flags.READ_WRITE, nbytes)
+    for _ in range(repeats + 1):
+        evt = cl.enqueue_copy(q, b, a)
+        evt.wait()
+        try:
+            best = min(best, (evt.profile.end - evt.profile.start) * 1e-9)
+        except cl.RuntimeError:  # a queue without profiling
+            return None
+    return 2 * nbytes / best if best > 0 else None
+
+
+def compute_bound(device_info: dict, bandwidth_bps: float | None = None) -> dict | None:
+    """The bp kernel's roofline: peak pairs/s from the device's arithmetic (compute units x clock x
+    float vector width x 2 for FMA, over :data:`FLOPS_PER_PAIR`) and from its memory bandwidth
+    (over :data:`BYTES_PER_PAIR_GATHER`, every gather from memory), where the bandwidth is given."""
     try:
         peak = (device_info["compute_units"] * device_info["clock_mhz"] * 1e6
                 * max(1, device_info["vector_width_float"]) * 2)
     except (KeyError, TypeError):
         return None
-    return {"peak_flops": peak, "flops_per_pair": FLOPS_PER_PAIR, "pairs_per_s": peak / FLOPS_PER_PAIR}
+    out = {"peak_flops": peak, "flops_per_pair": FLOPS_PER_PAIR, "pairs_per_s": peak / FLOPS_PER_PAIR}
+    if bandwidth_bps:
+        out.update(bandwidth_bps=bandwidth_bps, bytes_per_pair=BYTES_PER_PAIR_GATHER,
+                   memory_pairs_per_s=bandwidth_bps / BYTES_PER_PAIR_GATHER,
+                   ridge_flops_per_byte=peak / bandwidth_bps)
+    return out
 
 
 def opencl_device_info() -> dict | None:

@@ -39,12 +39,20 @@ def cmd_bench(args) -> int:
                             cases=args.cases, plots=not args.no_plots, status=status)
         for c in res["cases"]:
             for r in c["rows"]:
+                if r["formation"] == "auto":
+                    print(f"{c['case']}: auto: took {r['chose']}, {r['time_s']:.2f} s, {r['over_best']:.2f}x the best "
+                          f"({r['best']})")
+                    continue
                 what = (f"refused ({r['refused'].split(':')[0]})" if "refused" in r else
                         f"{r['time_s']:.2f} s" + (f", {r['speedup']:.0f}x bp, error {r['error_all_db']:.1f} dB over "
                                                   "the grid" if "speedup" in r else "")
                         + (f", {r['error_cone_db']:.1f} dB in the cone" if r.get("error_cone_db") is not None
                            else ""))
                 print(f"{c['case']}: {r['formation']}: {what}")
+        for row in res.get("crossover", {}).get("rows", []):
+            print(f"crossover N={row['n']}: " + ", ".join(
+                f"{r['formation']} {r['time_s']:.2f} s" + (f" ({r['chose']}, {r['over_best']:.2f}x the best)"
+                                                         if r["formation"] == "auto" else "") for r in row["rows"]))
         for path in res["paths"].values():
             print(f"wrote {path}")
         return 0
@@ -119,7 +127,7 @@ def add_parser(sub) -> None:
                    "with --full, else 0.25)")
     b.add_argument("--scale-parts", nargs="+", choices=("rss", "tiles", "scaling"), default=["rss", "tiles", "scaling"],
                    help="with --scale: which parts (default all)")
-    b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular"), default=None,
+    b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular", "crossover"), default=None,
                    help="with --formation: which cases (default all)")
     b.add_argument("--autofocus", nargs="?", const="tuning", choices=("tuning", "held-out"), default=None,
                    help="run only the autofocus benchmark on the seeded scene family: its tuning seeds (default) or "

@@ -195,6 +195,8 @@ def reconstruct_image(ds, grid, args, progress=True):
     formation = getattr(args, "formation", "bp")
     options = formation_options(getattr(args, "formation_option", None)) or None
     method = getattr(args, "method", "bp")
+    if formation == "auto" and method != "bp":
+        formation = "bp"  # what auto takes for the sparse methods' profiles
     form = "backproject" if formation == "bp" else f"form ({formation})"
     steps = (form,) if method == "bp" else (f"super-resolve ({method})", form)
     announce_slow_method(ds, grid, method)
@@ -203,7 +205,7 @@ def reconstruct_image(ds, grid, args, progress=True):
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
                                  force=getattr(args, "force", False), formation=formation,
-                                 formation_options=options)
+                                 formation_options=options, max_error_db=getattr(args, "max_error_db", -30.0))
 
 
 def add_device_options(sp) -> None:
@@ -287,7 +289,7 @@ def check_grids_fit(grids, args) -> None:
     from clsas import cl
     from clsas.formation.guard import check_grid
 
-    if getattr(args, "formation", "bp") != "bp":
+    if getattr(args, "formation", "bp") not in ("bp", "auto"):
         return  # a formation checks its own memory (its tree or spectrum, not the grid alone)
     sel = cl.select(getattr(args, "backend", None), getattr(args, "device", None))
     for grid in grids:

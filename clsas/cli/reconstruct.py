@@ -47,6 +47,9 @@ def cmd_reconstruct(args) -> int:
         print(image.plan.describe())
     peaks = image.peaks(args.peaks, min_separation_m=0.03)
     print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
+    auto = image.provenance.get("formation_auto")
+    if auto:
+        print(f"formation: {auto['formation']} (auto, error target {auto['max_error_db']:g} dB: {auto['reason']})")
     from clsas.compression import center_frequency
     from clsas.formation.lobes import grating_lobe_notes
 
@@ -82,7 +85,7 @@ def _reconstruct_tiled(ds, grid, args, out: Path):
         return clsas.reconstruct(ds, grid, method=args.method, compression=args.compression, backend=args.backend,
                                  device=args.device, progress=cb, force=args.force, formation=args.formation,
                                  formation_options=formation_options(args.formation_option) or None, out=out,
-                                 max_memory=args.max_memory, client=args.scheduler)
+                                 max_memory=args.max_memory, client=args.scheduler, max_error_db=args.max_error_db)
 
 
 def _partial_scan(path) -> str:
@@ -130,9 +133,12 @@ def add_parser(sub) -> None:
     r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
     r.add_argument("--preprocess", action="store_true",
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
-    r.add_argument("--formation", default="bp", choices=tuple(FORMATIONS),
-                   help="how the profiles become an image: bp (exact backprojection, default), omega-k (planar uniform "
-                   "apertures, much faster), ... (see docs/guide/fast-formation.md)")
+    r.add_argument("--formation", default="auto", choices=("auto", *FORMATIONS),
+                   help="how the profiles become an image: auto (default: the fastest whose predicted error meets "
+                   "--max-error-db, said in the log and kept in the image file), bp (exact backprojection), omega-k "
+                   "(planar uniform apertures, much faster), ... (see docs/guide/fast-formation.md)")
+    r.add_argument("--max-error-db", type=float, default=-30.0, metavar="DB",
+                   help="with --formation auto: the largest error against exact backprojection allowed (default -30)")
     r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
                    help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     add_preprocess_options(r)

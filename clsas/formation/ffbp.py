@@ -113,7 +113,33 @@ def plan_tree(profiles: Profiles, grid: VoxelGrid, **options) -> Tree:
     return _tree(data, dtau, fc, tx, rx, c, grid, opts)
 
 
+# the last tree planned, and what it was planned for: formation="auto" plans a tree to cost
+# FFBP (clsas.formation.cost) and the formation then runs with the same request
+_LAST_TREE: list = []
+
+
+def _tree_key(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> str:
+    import hashlib
+
+    h = hashlib.sha1()
+    step = max(1, data.shape[0] // 64)
+    for a in (np.ascontiguousarray(data[::step]), tx, rx, c, grid.bounds()):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(repr((data.shape, data.dtype.str, float(dtau), float(fc), sorted(opts.items()))).encode())
+    return h.hexdigest()
+
+
 def _tree(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
+    """The tree for this request (the last one planned, if it was planned for the same request)."""
+    key = _tree_key(data, dtau, fc, tx, rx, c, grid, opts)
+    if _LAST_TREE and _LAST_TREE[0] == key:
+        return _LAST_TREE[1]
+    tree = _plan(data, dtau, fc, tx, rx, c, grid, opts)
+    _LAST_TREE[:] = [key, tree]
+    return tree
+
+
+def _plan(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
     band = opts["band_hz"] or estimate_band(data, dtau, fc, opts["band_tail"])
     band = (max(band[0], 1e-3 * band[1]), band[1])
     tree = build_tree(tx, rx, c, grid.bounds(), band, depth=opts["depth"], factor=opts["factor"],

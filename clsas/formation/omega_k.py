@@ -382,18 +382,14 @@ def _n_terms(alpha_max: float, u_max: float, tol: float, bistatic: bool) -> int:
     return p
 
 
-def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
-    """Image one lattice group on the (u, v, depth) grid (depth increasing)."""
+def _layout(g, k, pu, pv, depth, o, k_top) -> dict:
+    """Sizes of one lattice group's transforms (no data touched): the padded lattice ``mu x mv``,
+    the upsampling, the spatial-frequency columns kept and their windows, the look-angle window."""
     import scipy.fft
 
     nu, nv = g.shape
     du, dv = g.spacing_uv
     z0, z1 = float(depth[0]), float(depth[-1])
-    nz = len(depth)
-    dz = (z1 - z0) / (nz - 1) if nz > 1 else 2 * np.pi / (2 * np.abs(k).max())
-    zc = z0 + (nz // 2) * dz
-    zref = 2.0 / (1.0 / z0 + 1.0 / z1)
-    u_max = 0.5 * (1.0 / z0 - 1.0 / z1)
     # look angles: every voxel-stop pair, plus a margin; the window falls from s1 to s2
     s_geo = _max_sine(g, pu, pv, z0) if o["max_sine"] is None else o["max_sine"]
     s1 = min(s_geo + 0.05, 0.97)
@@ -418,10 +414,6 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     else:
         mu = scipy.fft.next_fast_len(int(math.ceil(o["pad"] * nu)))
         mv = scipy.fft.next_fast_len(int(math.ceil(o["pad"] * nv)))
-    lattice = np.zeros((nu, nv, len(k)), np.complex128)
-    lattice[g.iu, g.iv] = spec
-    dspec = scipy.fft.fft2(lattice, s=(mu, mv), axes=(0, 1), workers=workers)
-    del lattice
     ku_all = 2 * np.pi * scipy.fft.fftfreq(up * mu, du / up)
     kv_all = 2 * np.pi * scipy.fft.fftfreq(up * mv, dv / up)
     wu = _edge_window(ku_all, up * np.pi / du, o["taper"], o["window"])
@@ -429,10 +421,33 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     # keep only columns with weight, and with any frequency inside the look-angle window
     kp_ok = np.hypot(ku_all[:, None], kv_all[None, :]) < s2 * np.abs(k).max()
     cols = np.argwhere((wu[:, None] * wv[None, :] > 0) & kp_ok)
+    n_cells = scipy.fft.next_fast_len(max(2 * len(depth), 2 * o["kernel_width"]))
+    return {"mu": mu, "mv": mv, "up": up, "s1": s1, "s2": s2, "ku": ku_all, "kv": kv_all, "wu": wu, "wv": wv,
+            "cols": cols, "n_cells": n_cells}
+
+
+def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
+    """Image one lattice group on the (u, v, depth) grid (depth increasing)."""
+    import scipy.fft
+
+    nu, nv = g.shape
+    du, dv = g.spacing_uv
+    z0, z1 = float(depth[0]), float(depth[-1])
+    nz = len(depth)
+    dz = (z1 - z0) / (nz - 1) if nz > 1 else 2 * np.pi / (2 * np.abs(k).max())
+    zc = z0 + (nz // 2) * dz
+    zref = 2.0 / (1.0 / z0 + 1.0 / z1)
+    u_max = 0.5 * (1.0 / z0 - 1.0 / z1)
+    lay = _layout(g, k, pu, pv, depth, o, k_top)
+    mu, mv, up, s1, s2, cols = lay["mu"], lay["mv"], lay["up"], lay["s1"], lay["s2"], lay["cols"]
+    ku_all, kv_all, wu, wv, n_cells = lay["ku"], lay["kv"], lay["wu"], lay["wv"], lay["n_cells"]
+    lattice = np.zeros((nu, nv, len(k)), np.complex128)
+    lattice[g.iu, g.iv] = spec
+    dspec = scipy.fft.fft2(lattice, s=(mu, mv), axes=(0, 1), workers=workers)
+    del lattice
     alpha_max = (g.baseline_uvw[0] ** 2 + g.baseline_uvw[1] ** 2) * np.abs(k).max() / 8
     n_terms = _n_terms(alpha_max, u_max, o["phase_tol"], o["bistatic"])
     b = tuple(g.baseline_uvw[:2]) if o["bistatic"] else (0.0, 0.0)
-    n_cells = scipy.fft.next_fast_len(max(2 * nz, 2 * o["kernel_width"]))
     params = stolt.StoltParams(dz, zc, zref, b, n_cells, o["kernel_width"], n_terms, s1, s2)
     u_z = 1.0 / depth - 1.0 / zref
     factors = np.array([(1j * u_z) ** p / math.factorial(p) for p in range(n_terms)])  # (terms, nz)
@@ -462,3 +477,50 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     info = {"shape": (nu, nv), "spacing_m": (du, dv), "padded": (mu, mv), "upsample": up, "columns": len(cols),
             "terms": n_terms, "z_ref_m": zref, "look_sine": (s1, s2), "cells": n_cells}
     return img, info, t_stolt
+
+
+def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **options) -> dict:
+    """What :func:`form` would transform for ``profiles`` on ``grid``, without forming the image.
+
+    For the cost model of ``formation="auto"`` (:mod:`clsas.formation.cost`): the geometry is
+    checked as :func:`form` checks it (:class:`NotPlanarUniform` or ``ValueError`` likewise), the
+    band is estimated from at most ``rows`` evenly spread profiles.
+
+    Returns
+    -------
+    dict
+        ``n_meas``, ``n_lags``, ``n_fft`` (delay FFT length), ``n_f`` (frequencies in the band),
+        ``nz``, ``f_band_hz`` (lowest, highest frequency of the band), ``f_top_hz`` (top of its
+        -20 dB band), ``c_mps``, ``aperture`` (:class:`~clsas.formation.planar.PlanarAperture`),
+        ``axes`` (grid axes in aperture order, depths from the plane) and ``groups``: per lattice
+        ``mu``, ``mv``, ``up``, ``columns``, ``n_cells``.
+    """
+    import scipy.fft
+
+    o = _options(options)
+    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
+    f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
+    tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
+    ap = planar_aperture(tx, rx, grid, tol)
+    axes = [grid.x_m, grid.y_m, grid.z_m]
+    pu, pv, pw = (axes[i] for i in ap.perm)
+    depth = np.abs(pw - ap.w_m)
+    if depth.min() < 4 * tol:
+        raise ValueError(f"grid: a voxel plane lies {depth.min():.3g} m from the aperture's plane; omega-k "
+                         "needs the grid off the plane")
+    n_meas, n_lags = data.shape
+    pick = np.unique(np.linspace(0, n_meas - 1, min(n_meas, int(rows))).astype(int))
+    c_arr = np.broadcast_to(np.asarray(c, float), (n_meas,))
+    _, f, c_ref, f_top = _spectra(data[pick].astype(np.complex128), tau0[pick], dtau, fc, c_arr[pick],
+                                  o["pad_time"], o["band_tol"], 1)
+    k = 4 * np.pi * f / c_ref
+    depth_inc = np.sort(depth)
+    groups = []
+    for g in ap.groups:
+        lay = _layout(g, k, pu, pv, depth_inc, o, 4 * np.pi * f_top / c_ref)
+        groups.append({"mu": lay["mu"], "mv": lay["mv"], "up": lay["up"], "columns": len(lay["cols"]),
+                       "n_cells": lay["n_cells"]})
+    n_fft = scipy.fft.next_fast_len(int(math.ceil(o["pad_time"] * n_lags)))
+    return {"n_meas": n_meas, "n_lags": n_lags, "n_fft": n_fft,
+            "n_f": len(f), "nz": len(depth), "f_band_hz": (float(f.min()), float(f.max())), "f_top_hz": f_top,
+            "c_mps": c_ref, "aperture": ap, "axes": (pu, pv, depth), "groups": groups}

@@ -39,6 +39,7 @@ image and are dropped.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,12 +141,18 @@ def spread(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: S
 
 def deapodization(n_z: int, p: StoltParams) -> np.ndarray:
     """``1 / phi_hat(l h)`` for the output planes ``l = -n_z//2 ...``: the kernel's transform undone."""
+    return _deapodization(int(n_z), int(p.width), float(p.beta), int(p.n_cells)).copy()
+
+
+@functools.lru_cache(maxsize=16)
+def _deapodization(n_z: int, width: int, beta: float, n_cells: int) -> np.ndarray:
+    """Memoised: the Gauss-Legendre quadrature is the same for every chunk of columns."""
     x, wq = np.polynomial.legendre.leggauss(64)
-    x = x * p.width / 2
-    wq = wq * p.width / 2
-    phi = _es(x, p.width, p.beta)
+    x = x * width / 2
+    wq = wq * width / 2
+    phi = _es(x, width, beta)
     ell = np.arange(n_z) - n_z // 2
-    h = 2 * np.pi / p.n_cells
+    h = 2 * np.pi / n_cells
     phi_hat = (wq * phi * np.cos(np.outer(ell * h, x))).sum(axis=1)
     return 1.0 / phi_hat
 

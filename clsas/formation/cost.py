@@ -1,0 +1,429 @@
+"""``formation="auto"``: a cost and error model per formation, and the choice it makes.
+
+For a request (profiles, grid, device), each formation gets a predicted run time and a
+predicted error against exact backprojection (complex error-to-signal over the grid, dB, as
+:func:`clsas.formation.error_to_signal_db` measures it); :func:`choose` takes the fastest
+whose predicted error is at most ``max_error_db - MARGIN_DB``, and says why.
+
+Time. Each formation's time is a sum of counted work times seconds per unit:
+
+- ``bp``: voxel-measurement pairs;
+- ``omega-k``: the delay FFT (``n_meas n_fft log2 n_fft``), the lattice FFTs (``mu mv n_f log2(mu mv)``
+  per lattice), the Stolt spreading (columns x frequencies), the depth FFTs (columns x cells x
+  log2 cells) and the chirp-z transforms onto the grid, sizes from
+  :func:`clsas.formation.omega_k.plan_sizes` (no data transformed);
+- ``ffbp``: the tree's own planning (timed, it is run), the leaves (leaf samples x measurements
+  per leaf), the merges (samples x factor x taps³ per level) and the last step (voxels x factor
+  x taps³), sizes from :func:`clsas.formation.ffbp.plan_tree`.
+
+The built-in seconds per unit (:data:`BUILTIN`) were fitted on a 2-core AMD EPYC VM (PoCL CPU
+device, 2026-11-25) and are scaled to other devices by their compute units (kernels) and host
+cores (host FFTs). ``clsas bench`` measures the formations on the device and stores one factor
+per formation (measured over predicted, the median over its cases) beside the kernel-variant
+verdicts (:func:`calibration_path`); :func:`choose` applies it. The model need only rank the
+formations: within a factor of two is enough where they differ by more. Sizing ω-k and planning
+an FFBP tree cost time themselves (0.03 s and 0.35 s at 64 x 64 stops), lost where that
+formation is not chosen: each is done only where a lower bound of its time is under
+``PLAN_IF_UNDER`` (0.7) times the best time so far.
+
+Error. ``bp`` is the reference (exact). ``omega-k`` is refused for apertures that are not
+planar-uniform (:class:`~clsas.formation.planar.NotPlanarUniform`); otherwise its error is its
+method's (:data:`OMEGA_K_BASE_DB`, measured -44 to -48 dB inside the well-sampled cone) plus the
+backprojection contributions it leaves out: those of stop-voxel pairs whose angle the lattice
+samples aliased (the grating lobes, see :mod:`clsas.formation.planar`), counted per voxel over
+the stops (weighted by their spreading loss) and the band (:func:`alias_fraction`) and taken as
+an amplitude fraction of a reflector's focus, RMS over the grid: 0.5 to 4 dB above the error
+measured on the crossover scans and the dense case (conservative). ``ffbp``'s error is a
+systematic loss per level that adds almost coherently:
+``FFBP_BASE_DB[oversample] + 20 log10(depth + 1)`` (module notes of :mod:`clsas.formation.ffbp`,
+refitted to the crossover scans); auto tries a few depths and oversampling rates and keeps
+the fastest that meets the target.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..geometry import VoxelGrid
+from ..profiles import Profiles
+
+__all__ = [
+    "BUILTIN", "DEFAULT_MAX_ERROR_DB", "MARGIN_DB", "Choice", "Estimate", "alias_fraction", "calibration_path",
+    "check_max_error_db", "choose", "estimate", "load_calibration", "predict_time", "store_calibration",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_MAX_ERROR_DB = -30.0
+MARGIN_DB = 3.0  # a formation is chosen only where its predicted error is this far under the target
+OMEGA_K_BASE_DB = -42.0
+FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
+FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
+FORMAT = 1
+
+# seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
+BUILTIN: dict[str, dict[str, float]] = {
+    "bp": {"fixed": 5e-3, "pairs": 5e-9},
+    "omega-k": {"fixed": 0.05, "delay": 9e-9, "lattice": 3.5e-9, "stolt": 3e-7, "depths": 9e-9, "out": 5e-9},
+    "ffbp": {"fixed": 0.01, "leaf": 2e-8, "merge": 5e-9, "grid": 5e-9},
+}
+# the tree's planning (host, Python) takes about this per measurement (0.35 s for 4096 stops); with
+# 1.5 times the last step's time it bounds FFBP's time from below before a tree is planned
+FFBP_PLAN_S_PER_MEAS = 8e-5
+PLAN_IF_UNDER = 0.7
+REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
+NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """One formation's prediction for a request."""
+
+    formation: str
+    time_s: float  # predicted run time, s (inf where it cannot run)
+    error_db: float  # predicted error against bp, dB (-inf: exact)
+    options: dict = field(default_factory=dict)  # formation options it would run with
+    note: str = ""  # why it cannot run, or what the error estimate rests on
+
+    @property
+    def feasible(self) -> bool:
+        return math.isfinite(self.time_s)
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What ``formation="auto"`` chose, and why (recorded in the image's provenance)."""
+
+    formation: str
+    options: dict
+    reason: str
+    max_error_db: float
+    model: str  # "built-in" or where the calibration came from
+    estimates: tuple[Estimate, ...]
+
+    def as_dict(self) -> dict:
+        """JSON-friendly form (infinities as strings)."""
+
+        def num(x: float):
+            if math.isnan(x):
+                return None
+            return x if math.isfinite(x) else ("inf" if x > 0 else "-inf")
+
+        return {"formation": self.formation, "options": dict(self.options), "reason": self.reason,
+                "max_error_db": self.max_error_db, "model": self.model,
+                "estimates": [{**asdict(e), "time_s": num(e.time_s), "error_db": num(e.error_db)}
+                              for e in self.estimates]}
+
+
+def check_max_error_db(max_error_db) -> float:
+    """``max_error_db`` validated: a finite number of dB below 0."""
+    if isinstance(max_error_db, bool) or not isinstance(max_error_db, int | float | np.floating | np.integer):
+        raise TypeError(f"max_error_db must be a number of dB (e.g. -30), got {type(max_error_db).__name__}")
+    val = float(max_error_db)
+    if not math.isfinite(val) or val >= 0:
+        raise ValueError(f"max_error_db must be a finite number of dB below 0 (e.g. -30), got {max_error_db!r}")
+    return val
+
+
+# -- calibration ------------------------------------------------------------------------------
+def _device_key(selection) -> tuple[str, dict]:
+    import hashlib
+    import platform
+
+    if selection is not None and getattr(selection, "kind", "numpy") == "opencl":
+        from ..cl.variants import _device_identity
+
+        ident = _device_identity(selection.queue.device)
+    else:
+        ident = {"numpy": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+    ident = {**ident, "format": FORMAT}
+    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:32], ident
+
+
+def calibration_path(selection=None) -> Path:
+    """Where the calibration of ``selection``'s device is kept: ``formation_cost/<key>.json`` beside
+    the kernel-variant verdicts (:func:`clsas.cl.variants.cache_dir`)."""
+    from ..cl.variants import cache_dir
+
+    return cache_dir().parent / "formation_cost" / f"{_device_key(selection)[0]}.json"
+
+
+def load_calibration(selection=None) -> dict:
+    """The stored factors of ``selection``'s device (formation -> measured / predicted), or {}."""
+    try:
+        data = json.loads(calibration_path(selection).read_text())
+        return {k: float(x) for k, x in data["factors"].items() if float(x) > 0}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {}
+
+
+def store_calibration(factors: dict[str, float], selection=None, detail: Any = None) -> Path:
+    """Keep ``factors`` (formation -> measured / built-in predicted time) for ``selection``'s device."""
+    path = calibration_path(selection)
+    ident = _device_key(selection)[1]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps({**ident, "factors": {k: float(x) for k, x in factors.items()}, "detail": detail,
+                               "when": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=1, default=str))
+    os.replace(tmp, path)
+    return path
+
+
+# -- counted work -----------------------------------------------------------------------------
+def _speed(selection, formation: str) -> float:
+    """How much faster than the reference device this selection runs ``formation``'s work."""
+    host = (os.cpu_count() or REF_UNITS) / REF_UNITS
+    if selection is None or getattr(selection, "kind", "numpy") != "opencl":
+        return host / NUMPY_SLOWDOWN[formation]
+    if formation == "omega-k":
+        return host  # FFTs on the host; the Stolt step is a small share
+    dev = selection.queue.device
+    units = int(getattr(dev, "max_compute_units", REF_UNITS) or REF_UNITS)
+    from ..cl import is_cpu
+
+    return units / REF_UNITS if is_cpu(dev) else 4.0 * units / REF_UNITS
+
+
+def _seconds(formation: str, work: dict, selection, factors: dict) -> float:
+    coef = BUILTIN[formation]
+    t = sum(coef[k] * float(n) for k, n in work.items() if k != "plan")
+    t = t / _speed(selection, formation) + work.get("plan", 0.0)
+    return t * factors.get(formation, 1.0)
+
+
+def work_bp(profiles: Profiles, grid: VoxelGrid) -> dict:
+    """Counted work of exact backprojection."""
+    return {"fixed": 1, "pairs": float(profiles.n_meas) * grid.size}
+
+
+def work_omega_k(sizes: dict) -> dict:
+    """Counted work of ω-k from :func:`clsas.formation.omega_k.plan_sizes`."""
+    n_fft, n_f, nz = sizes["n_fft"], sizes["n_f"], sizes["nz"]
+    pu, pv, _ = sizes["axes"]
+    w = {"fixed": 1, "delay": sizes["n_meas"] * n_fft * math.log2(max(n_fft, 2)), "lattice": 0.0, "stolt": 0.0,
+         "depths": 0.0, "out": 0.0}
+    for g in sizes["groups"]:
+        mu, mv, up, cols, cells = g["mu"], g["mv"], g["up"], g["columns"], g["n_cells"]
+        w["lattice"] += mu * mv * n_f * math.log2(max(mu * mv, 2))
+        w["stolt"] += cols * n_f
+        w["depths"] += cols * cells * math.log2(max(cells, 2))
+        lu, lv = up * mu + len(pu), up * mv + len(pv)
+        w["out"] += up * mv * nz * lu * math.log2(lu) + len(pu) * nz * lv * math.log2(lv)
+    return w
+
+
+def work_ffbp(tree, grid: VoxelGrid, taps: int, plan_s: float) -> dict:
+    """Counted work of FFBP for a planned tree (:func:`clsas.formation.ffbp.plan_tree`)."""
+    leaves = tree.levels[-1]
+    per_leaf = len(tree.order) / max(leaves.n_nodes, 1)
+    merge = sum(lev.samples for lev in tree.levels[:-1]) * tree.factor * taps**3
+    return {"fixed": 1, "plan": plan_s, "leaf": leaves.samples * per_leaf, "merge": merge,
+            "grid": float(grid.size) * tree.factor * taps**3}
+
+
+# -- errors -----------------------------------------------------------------------------------
+def alias_fraction(sizes: dict, n_vox: int = 7, n_stops: int = 144, n_freq: int = 8) -> np.ndarray:
+    """Per voxel (a coarse sub-grid, up to ``n_vox`` per axis), the share of (stop, frequency)
+    pairs the lattice samples aliased: ``2 k |sin theta_a| > pi / d_a`` on a lattice axis ``a``,
+    each stop weighted by its echo's spreading loss ``1 / r^2``.
+
+    ``sizes`` is :func:`clsas.formation.omega_k.plan_sizes`'s; the frequencies are spread evenly
+    over the band up to the top of its -20 dB band, the stops over each lattice.
+    """
+    pu, pv, depth = sizes["axes"]
+
+    def sub(a):
+        return a[np.unique(np.linspace(0, len(a) - 1, min(len(a), n_vox)).astype(int))]
+
+    U, V, W = np.meshgrid(sub(pu), sub(pv), sub(depth), indexing="ij")
+    f = np.linspace(max(sizes["f_band_hz"][0], 1.0), sizes["f_top_hz"], n_freq)
+    k2 = 2 * 2 * np.pi * f / sizes["c_mps"]  # two-way wavenumber, (n_freq,)
+    aliased = np.zeros(U.shape)
+    total = 0
+    for g in sizes["aperture"].groups:
+        (u0, u1), (v0, v1) = g.extent_uv
+        nu, nv = g.shape
+        su = np.linspace(u0, u1, min(nu, int(math.sqrt(n_stops)) + 1))
+        sv = np.linspace(v0, v1, min(nv, int(math.sqrt(n_stops)) + 1))
+        SU, SV = (a.ravel() for a in np.meshgrid(su, sv, indexing="ij"))
+        du_, dv_ = U[..., None] - SU, V[..., None] - SV
+        r = np.sqrt(du_**2 + dv_**2 + W[..., None] ** 2)
+        lim_u, lim_v = np.pi / g.spacing_uv[0], np.pi / g.spacing_uv[1]
+        bad = ((k2 * np.abs(du_ / r)[..., None] > lim_u) | (k2 * np.abs(dv_ / r)[..., None] > lim_v))
+        wt = 1.0 / r**2  # a stop's echo falls as 1 / (r_tx r_rx): the steep (aliased) stops weigh less
+        aliased += (bad.mean(axis=-1) * wt).sum(axis=-1)
+        total = total + wt.sum(axis=-1)
+    return aliased / total
+
+
+def _omega_k_estimate(profiles, grid, selection, factors) -> Estimate:
+    from .omega_k import plan_sizes
+
+    try:
+        sizes = plan_sizes(profiles, grid)
+    except ValueError as exc:  # NotPlanarUniform is one
+        return Estimate("omega-k", math.inf, math.inf, note=str(exc).split(";")[0])
+    frac = alias_fraction(sizes)
+    lost = float(np.sqrt(np.mean(frac**2)))
+    err = 10 * math.log10(10 ** (OMEGA_K_BASE_DB / 10) + lost**2)
+    note = (f"method {OMEGA_K_BASE_DB:.0f} dB; {100 * float(frac.mean()):.1f} % of stop-voxel-frequency samples "
+            f"aliased on the lattice (RMS over the grid {100 * lost:.1f} %), which omega-k leaves out")
+    return Estimate("omega-k", _seconds("omega-k", work_omega_k(sizes), selection, factors), err, note=note)
+
+
+def _ffbp_candidates(n_meas: int) -> list[int]:
+    """Tree depths to try: the default (leaves of 16 or more measurements) first, then one either side."""
+    from .ffbp_tree import default_depth, max_depth
+
+    d0 = default_depth(n_meas, 4)
+    return [d for d in (d0, d0 - 1, d0 + 1) if 1 <= d <= max_depth(n_meas, 4)]
+
+
+def _ffbp_estimates(profiles, grid, selection, factors, target_db: float, best_s: float) -> list[Estimate]:
+    """FFBP at the depths near its default, each at the lowest oversampling that meets the target.
+
+    Planning a tree costs time (tenths of a second at thousands of stops) and is lost where FFBP
+    is not chosen, so a tree is planned only where a lower bound of FFBP's time (its planning and
+    its last step) is under ``PLAN_IF_UNDER`` times ``best_s``, and further
+    depths only while the planning spent stays under a tenth of the best time so far.
+    """
+    from .ffbp import plan_tree
+
+    floor = (1.5 * _seconds("ffbp", {"fixed": 1, "grid": float(grid.size) * 4 * 4**3}, selection, factors)
+             + FFBP_PLAN_S_PER_MEAS * profiles.n_meas)
+    if floor >= PLAN_IF_UNDER * best_s:
+        return [Estimate("ffbp", floor, math.nan, note=f"not planned: its planning and last step alone take about "
+                         f"{floor:.3g} s")]
+    out: list[Estimate] = []
+    spent = 0.0
+    for depth in _ffbp_candidates(profiles.n_meas):
+        if out and spent > 0.1 * min(best_s, *(e.time_s for e in out)):
+            break
+        grow = 20 * math.log10(depth + 1)
+        ovs = next((o for o in FFBP_CANDIDATES if FFBP_BASE_DB[o] + grow <= target_db), FFBP_CANDIDATES[-1])
+        opts = {"depth": depth, "oversample": ovs, "range_oversample": ovs}
+        t = time.perf_counter()
+        try:
+            tree = plan_tree(profiles, grid, **opts)
+        except ValueError as exc:
+            return [Estimate("ffbp", math.inf, math.inf, opts, str(exc).split(";")[0])]
+        plan_s = time.perf_counter() - t
+        spent += plan_s
+        work = work_ffbp(tree, grid, 4, plan_s)
+        out.append(Estimate("ffbp", _seconds("ffbp", work, selection, factors), FFBP_BASE_DB[ovs] + grow, opts,
+                            f"{depth} levels at {ovs:g}x the Nyquist rate, {sum(lv.samples for lv in tree.levels):,} "
+                            "sub-image samples"))
+    return out or [Estimate("ffbp", math.inf, math.inf, note="too few measurements for a tree")]
+
+
+def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float = DEFAULT_MAX_ERROR_DB,
+             factors: dict | None = None, formations=("bp", "omega-k", "ffbp")) -> list[Estimate]:
+    """Predicted time and error of each formation (FFBP: several trees) for this request."""
+    factors = load_calibration(selection) if factors is None else factors
+    target = check_max_error_db(max_error_db) - MARGIN_DB
+    out = []
+    if "bp" in formations:
+        out.append(Estimate("bp", _seconds("bp", work_bp(profiles, grid), selection, factors), -math.inf,
+                            note="exact (the reference)"))
+    if "omega-k" in formations:
+        n_fft = 1.5 * profiles.n_lags
+        floor = _seconds("omega-k", {"fixed": 1, "delay": profiles.n_meas * n_fft * math.log2(max(n_fft, 2))},
+                         selection, factors)
+        best = min((e.time_s for e in out if e.feasible), default=math.inf)
+        if floor < PLAN_IF_UNDER * best:  # sizing it costs time too, lost where it is not chosen
+            out.append(_omega_k_estimate(profiles, grid, selection, factors))
+        else:  # sizing it would cost more than the whole of the fastest
+            out.append(Estimate("omega-k", floor, math.nan, note=f"not sized: its fixed cost alone is about "
+                                f"{floor:.3g} s"))
+    if "ffbp" in formations:
+        best = min((e.time_s for e in out if e.feasible and e.error_db <= target), default=math.inf)
+        out.extend(_ffbp_estimates(profiles, grid, selection, factors, target, best))
+    return out
+
+
+def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float = DEFAULT_MAX_ERROR_DB,
+           formations=("bp", "omega-k", "ffbp")) -> Choice:
+    """The fastest formation whose predicted error is at most ``max_error_db - MARGIN_DB``.
+
+    Parameters
+    ----------
+    profiles : Profiles
+    grid : VoxelGrid
+    selection : clsas.cl.Selection, optional
+        Where the formations would run (None: the NumPy twins).
+    max_error_db : float
+        Error target against exact backprojection, dB (default -30).
+    formations : tuple of str
+        The formations to consider; ``"bp"`` is always among them (it meets any target).
+
+    Returns
+    -------
+    Choice
+        Logged at INFO with its reason.
+    """
+    if not isinstance(profiles, Profiles):
+        raise TypeError(f"profiles must be clsas.Profiles, got {type(profiles).__name__}")
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    target = check_max_error_db(max_error_db)
+    formations = tuple(dict.fromkeys(("bp", *formations)))
+    factors = load_calibration(selection)
+    model = "calibrated on this device by clsas bench" if factors else "built-in (not calibrated on this device)"
+    ests = estimate(profiles, grid, selection, max_error_db=target, factors=factors, formations=formations)
+    ok = [e for e in ests if e.feasible and e.error_db <= target - MARGIN_DB]  # NaN (not planned) is not
+    best = min(ok, key=lambda e: e.time_s)
+    bp = next(e for e in ests if e.formation == "bp")
+    others = "; ".join(f"{e.formation}{_opts(e.options)}: {_describe(e, target)}" for e in ests if e is not best)
+    if best.formation == "bp":
+        reason = f"bp (exact, predicted {bp.time_s:.3g} s) is the fastest that meets {target:g} dB; {others}"
+    else:
+        speedup = bp.time_s / best.time_s
+        reason = (f"{best.formation}{_opts(best.options)}: predicted {best.time_s:.3g} s ({speedup:.1f}x "
+                  f"faster than bp) at {best.error_db:.0f} dB <= {target:g} dB - {MARGIN_DB:g} dB margin; {others}")
+    log.info("formation auto: %s [cost model %s]", reason, model)
+    return Choice(best.formation, dict(best.options), reason, target, model, tuple(ests))
+
+
+def _opts(options: dict) -> str:
+    return "" if not options else " (" + ", ".join(f"{k}={val}" for k, val in options.items()) + ")"
+
+
+def _describe(e: Estimate, target: float) -> str:
+    if not e.feasible:
+        return f"cannot run ({e.note})"
+    if math.isnan(e.error_db):
+        return e.note
+    err = "exact" if e.error_db == -math.inf else f"{e.error_db:.0f} dB"
+    over = "" if e.error_db <= target - MARGIN_DB else " (over the target)"
+    return f"{e.time_s:.3g} s, {err}{over}"
+
+
+def predict_time(formation: str, profiles: Profiles, grid: VoxelGrid, selection=None, options: dict | None = None,
+                 factors: dict | None = None) -> float:
+    """Predicted run time of ``formation`` with ``options`` (s); ``factors`` default to none (the built-in
+    model, as ``clsas bench`` calibrates it), not the stored calibration. FFBP plans its tree to count."""
+    factors = {} if factors is None else factors
+    options = dict(options or {})
+    if formation == "bp":
+        return _seconds("bp", work_bp(profiles, grid), selection, factors)
+    if formation == "omega-k":
+        from .omega_k import plan_sizes
+
+        return _seconds("omega-k", work_omega_k(plan_sizes(profiles, grid, **options)), selection, factors)
+    if formation == "ffbp":
+        from .ffbp import plan_tree
+
+        t = time.perf_counter()
+        tree = plan_tree(profiles, grid, **options)
+        taps = int(options.get("order", 3)) + 1
+        return _seconds("ffbp", work_ffbp(tree, grid, taps, time.perf_counter() - t), selection, factors)
+    raise ValueError(f"formation must be one of {tuple(BUILTIN)}, got {formation!r}")

@@ -1,0 +1,40 @@
+"""The crossover table of ``clsas bench --formation`` and the calibration it stores (no timing is asserted)."""
+
+import pytest
+
+import clsas
+from clsas.bench import crossover as cx
+from clsas.formation import cost
+
+
+def test_crossover_table_times_every_formation_and_auto(tmp_path, monkeypatch):
+    monkeypatch.setenv("CLSAS_CACHE_DIR", str(tmp_path))
+    res = cx.crossover((8,), store=True)
+    (row,) = res["rows"]
+    names = [r["formation"] for r in row["rows"]]
+    assert names == ["bp", "omega-k", "ffbp", "auto"]
+    auto = row["rows"][-1]
+    assert auto["chose"] in cx.FORMS and auto["reason"]
+    assert all(r["time_s"] > 0 for r in row["rows"])
+    for r in row["rows"][1:3]:
+        assert r["predicted_builtin_s"] > 0 and r["error_all_db"] < 0
+    assert set(res["calibration"]) == {"bp", "omega-k", "ffbp"}
+    assert cost.load_calibration(clsas.cl.select(None)) == pytest.approx(res["calibration"])
+    md = "\n".join(cx.markdown(res))
+    assert "| 8 | 64 |" in md and "Calibration" in md
+
+
+def test_calibrate_takes_the_median_ratio():
+    rows = [{"rows": [{"formation": "bp", "time_s": t, "predicted_builtin_s": 1.0}]} for t in (1.0, 2.0, 9.0)]
+    assert cx.calibrate(rows) == {"bp": 2.0}
+
+
+def test_roofline_ceilings_of_the_bp_kernel():
+    from clsas.bench import throughput as tp
+
+    info = {"compute_units": 2, "clock_mhz": 2000, "vector_width_float": 8}
+    cb = tp.compute_bound(info, bandwidth_bps=16e9)
+    assert cb["pairs_per_s"] == pytest.approx(2 * 2e9 * 8 * 2 / tp.FLOPS_PER_PAIR)
+    assert cb["memory_pairs_per_s"] == pytest.approx(1e9)
+    assert cb["ridge_flops_per_byte"] == pytest.approx(cb["peak_flops"] / 16e9)
+    assert "memory_pairs_per_s" not in tp.compute_bound(info)

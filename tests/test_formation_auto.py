@@ -1,0 +1,160 @@
+"""``formation="auto"`` (clsas/formation/cost.py): what it may choose, what it records, its calibration.
+
+No test here asserts a time: the cost model is steered with calibration factors where a test
+needs a given formation to be the fastest.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+import clsas
+from clsas.formation import cost, error_to_signal_db, form
+from clsas.formation.omega_k import plan_sizes
+from clsas.formation.planar import well_sampled_cone
+
+FS = 96e3
+CHIRP = {"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": 2e-3}
+
+
+def _planar(n: int, pitch: float, grid_half: float, spacing: float = 0.006):
+    """n x n stops ``pitch`` apart, two reflectors at 0.5 m, a grid of +-grid_half laterally."""
+    side = pitch * (n - 1)
+    ap = clsas.raster_aperture(n, n, side, side)
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    pts = np.array([[0.01, -0.01, 0.5], [-0.015, 0.01, 0.54]])
+    ds = clsas.simulate(clsas.Scene(pts), ap, w, FS, snr_db=40, chirp=CHIRP, seed=1)
+    grid = clsas.VoxelGrid.from_bounds((-grid_half, grid_half), (-grid_half, grid_half), (0.46, 0.58), spacing)
+    return ds, grid
+
+
+@pytest.fixture(scope="module")
+def dense():
+    """A well-sampled planar scan (stops lambda/4 apart at 30 kHz) and its profiles."""
+    ds, grid = _planar(24, 0.0028, 0.03)
+    return ds, grid, clsas.compress(ds, backend="numpy")
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("CLSAS_CACHE_DIR", str(tmp_path))
+    return tmp_path
+
+
+def test_max_error_db_is_checked_by_name(dense):
+    ds, grid, _ = dense
+    with pytest.raises(ValueError, match="max_error_db"):
+        clsas.reconstruct(ds, grid, backend="numpy", max_error_db=3.0)
+    with pytest.raises(ValueError, match="max_error_db"):
+        clsas.reconstruct(ds, grid, backend="numpy", max_error_db=float("nan"))
+    with pytest.raises(TypeError, match="max_error_db"):
+        clsas.reconstruct(ds, grid, backend="numpy", max_error_db="-30")
+    with pytest.raises(ValueError, match="formation_options"):
+        clsas.reconstruct(ds, grid, backend="numpy", formation_options={"upsample": 2})
+    with pytest.raises(ValueError, match="'auto'"):
+        clsas.reconstruct(ds, grid, backend="numpy", formation="fourier")
+
+
+def test_alias_fraction_zero_at_quarter_wavelength_and_large_when_undersampled(dense):
+    _, grid, prof = dense
+    assert cost.alias_fraction(plan_sizes(prof, grid)).max() == 0.0
+    ds, grid2 = _planar(6, 0.03, 0.1)  # stops 2.6 lambda apart at 30 kHz
+    frac = cost.alias_fraction(plan_sizes(clsas.compress(ds, backend="numpy"), grid2))
+    # every stop that sees a voxel off its own axis by more than asin(lambda / 4d) is aliased
+    assert frac.mean() > 0.5
+
+
+def test_auto_never_takes_omega_k_where_its_error_is_over_the_target(cache):
+    ds, grid = _planar(6, 0.03, 0.1)
+    prof = clsas.compress(ds, backend="numpy")
+    cost.store_calibration({"omega-k": 1e-6, "ffbp": 1e6})  # omega-k would be by far the fastest
+    choice = cost.choose(prof, grid, None)
+    ok = next(e for e in choice.estimates if e.formation == "omega-k")
+    assert ok.error_db > -30 - cost.MARGIN_DB
+    assert choice.formation == "bp"
+    assert "omega-k" in choice.reason and "over the target" in choice.reason
+
+
+def test_auto_refuses_omega_k_on_a_circle_and_says_why(cache):
+    ap = clsas.circular_aperture(48, 0.5, mode="arc")
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    ds = clsas.simulate(clsas.Scene(np.array([[0.02, 0.0, 0.0]])), ap, w, FS, chirp=CHIRP)
+    grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.05, 0.05), (-0.01, 0.01), 0.01)
+    cost.store_calibration({"bp": 1e3, "omega-k": 1e-6})
+    choice = cost.choose(clsas.compress(ds, backend="numpy"), grid, None)
+    ok = next(e for e in choice.estimates if e.formation == "omega-k")
+    assert not ok.feasible and "planar" in ok.note
+    assert choice.formation in ("bp", "ffbp")
+
+
+def test_auto_takes_omega_k_where_it_is_fastest_and_stays_under_the_target(dense, cache):
+    ds, grid, prof = dense
+    cost.store_calibration({"bp": 1e3, "ffbp": 1e3})  # bp and FFBP made slow: omega-k must win
+    img = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-30)
+    auto = img.provenance["formation_auto"]
+    assert img.provenance["formation"] == auto["formation"] == "omega-k"
+    assert "omega-k" in auto["reason"] and "calibrated" in auto["model"]
+    ref = form(prof, grid, "bp", backend="numpy")
+    cone = well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, 30e3, float(np.mean(ds.c_mps)))
+    assert cone.mean() > 0.9
+    assert error_to_signal_db(img, ref) <= -30
+    # a target the model cannot promise for omega-k (-42 dB, 3 dB margin): bp, or FFBP oversampled enough
+    img = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-40)
+    auto = img.provenance["formation_auto"]
+    assert auto["formation"] != "omega-k"
+    if auto["formation"] == "ffbp":
+        assert error_to_signal_db(img, ref) <= -40
+
+
+def test_auto_choice_is_kept_in_the_image_file(dense, cache, tmp_path):
+    ds, grid, _ = dense
+    img = clsas.reconstruct(ds, grid, backend="numpy")
+    back = clsas.Image.load(img.save(tmp_path / "img.h5"))
+    kept = back.provenance["formation_auto"]
+    assert kept["formation"] == img.provenance["formation"]
+    assert kept["reason"] and kept["max_error_db"] == -30
+    names = {e["formation"] for e in kept["estimates"]}
+    assert "bp" in names
+
+
+def test_calibration_round_trip_and_bad_files(cache):
+    assert cost.load_calibration() == {}
+    path = cost.store_calibration({"bp": 2.0, "omega-k": 0.5}, detail={"cases": 3})
+    assert path.is_file() and path.parent.name == "formation_cost"
+    assert cost.load_calibration() == {"bp": 2.0, "omega-k": 0.5}
+    path.write_text("{not json")
+    assert cost.load_calibration() == {}
+
+
+def test_ffbp_error_model_grows_with_depth_and_falls_with_oversampling():
+    assert cost.FFBP_BASE_DB[2.0] + 20 * math.log10(5) > cost.FFBP_BASE_DB[2.0] + 20 * math.log10(3)
+    assert sorted(cost.FFBP_BASE_DB.values(), reverse=True) == [cost.FFBP_BASE_DB[o] for o in cost.FFBP_CANDIDATES]
+
+
+def test_plan_sizes_count_what_omega_k_transforms(dense):
+    _, grid, prof = dense
+    sizes = plan_sizes(prof, grid)
+    info = form(prof, grid, "omega-k", backend="numpy").provenance["omega_k"]
+    (g,) = sizes["groups"]
+    (lat,) = info["lattices"]
+    assert (g["mu"], g["mv"]) == tuple(lat["padded"]) and g["up"] == lat["upsample"]
+    assert g["columns"] == lat["columns"] and g["n_cells"] == lat["cells"]
+    assert abs(sizes["n_f"] - info["n_f"]) <= 0.1 * info["n_f"]  # the band from a subset of the profiles
+
+
+def test_cli_reconstruct_says_what_auto_chose(dense, tmp_path, capsys):
+    from clsas.cli import main
+
+    ds, grid, _ = dense
+    ds.save(tmp_path / "scan.h5")
+    (x0, x1), (y0, y1), (z0, z1) = grid.bounds()
+    args = ["reconstruct", str(tmp_path / "scan.h5"), f"--grid={x0},{x1},{y0},{y1},{z0},{z1}", "--spacing", "0.006",
+            "--backend", "numpy", "-q", "--max-error-db", "-35", "--out", str(tmp_path / "img.h5")]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "formation: " in out and "auto, error target -35 dB" in out
+    back = clsas.Image.load(tmp_path / "img.h5")
+    assert back.provenance["formation_auto"]["max_error_db"] == -35
+    with pytest.raises(SystemExit):
+        main([*args[:-2], "--formation", "fourier"])
