@@ -67,7 +67,7 @@ def test_bp_beam_option_is_validated_by_name():
     with pytest.raises(ValueError, match="beam_floor_db"):
         clsas.Backprojector(grid, beam="limited", beam_floor_db=float("nan"), backend="numpy")
     with pytest.raises(ValueError, match="formation 'bp' takes beam, beam_floor_db"):
-        clsas.reconstruct(_dataset_in_water(), grid, formation_options={"beam_width": 3}, backend="numpy")
+        clsas.reconstruct(_dataset_in_water(), grid, formation="bp", formation_options={"beam_width": 3}, backend="numpy")
     prof = clsas.compress(_dataset_in_water(), backend="numpy")
     with pytest.raises(ValueError, match="formation 'bp' takes beam, beam_floor_db"):
         clsas.formation.form(prof, grid, "bp", beam_width=3)
@@ -180,7 +180,7 @@ def test_ffbp_refuses_beams_it_cannot_apply(caplog):
     with caplog.at_level("WARNING", logger="clsas.formation.ffbp"):
         img = clsas.reconstruct(ds, grid, formation="ffbp", formation_options={"beam": "none", "depth": 1},
                                 backend="numpy")
-    ref = clsas.reconstruct(ds, grid, formation_options={"beam": "none"}, backend="numpy")
+    ref = clsas.reconstruct(ds, grid, formation="bp", formation_options={"beam": "none"}, backend="numpy")
     assert any("omnidirectional" in r.message for r in caplog.records)
     assert clsas.formation.error_to_signal_db(img, ref) < -20
 

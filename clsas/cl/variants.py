@@ -137,7 +137,7 @@ def candidate_widths(device: Any) -> list[int]:
     return [4]
 
 
-def _device_identity(device: Any) -> dict:
+def device_identity(device: Any) -> dict:
     p = device.platform
     return {
         "platform": p.name.strip(), "platform_version": p.version.strip(), "device": device.name.strip(),
@@ -159,7 +159,7 @@ def _plan_code_hash(module: str) -> str:
 def _key(device: Any, name: str, vec: int) -> tuple[str, dict]:
     spec = kernel_spec(name)
     ident = {
-        **_device_identity(device), "kernel": name, "vec": vec, "sources": sources_hash(spec.sources),
+        **device_identity(device), "kernel": name, "vec": vec, "sources": sources_hash(spec.sources),
         "plan_code": _plan_code_hash(spec.module), "format": FORMAT,
     }
     digest = hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:32]

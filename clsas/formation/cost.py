@@ -140,9 +140,9 @@ def _device_key(selection) -> tuple[str, dict]:
     import platform
 
     if selection is not None and getattr(selection, "kind", "numpy") == "opencl":
-        from ..cl.variants import _device_identity
+        from ..cl.variants import device_identity
 
-        ident = _device_identity(selection.queue.device)
+        ident = device_identity(selection.queue.device)
     else:
         ident = {"numpy": platform.processor() or platform.machine(), "cores": os.cpu_count()}
     ident = {**ident, "format": FORMAT}
