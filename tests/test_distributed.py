@@ -81,7 +81,7 @@ def test_worker_device_plugin(client):
 
 def test_sparse_step_on_the_cluster_equals_the_serial_one(client):
     """The per-recording sparse step in blocks on the workers: the same echoes, profiles and image."""
-    ds = small_dataset([[0.02, -0.01, 0.5], [-0.03, 0.02, 0.53]], nx=5, ny=4, snr_db=30)
+    ds = small_dataset([[0.02, -0.01, 0.5], [-0.03, 0.02, 0.53]], nx=4, ny=3, snr_db=30)
     grid = clsas.VoxelGrid.from_bounds((-0.06, 0.06), (-0.05, 0.05), (0.46, 0.56), 0.01)
     serial = clsas.reconstruct(ds, grid, "bpdn", backend="numpy")
     seen = []
