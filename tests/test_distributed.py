@@ -107,6 +107,14 @@ def test_sparse_blocks():
         blocks(5, 0)
 
 
+def test_sparse_step_refuses_a_client_that_is_not_one():
+    from clsas.sparse.profiles import superres_profiles
+
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=2, ny=1)
+    with pytest.raises(TypeError, match="client"):
+        superres_profiles(ds, np.tile([2.5e-3, 3.5e-3], (ds.n_meas, 1)), "bpdn", client=42)
+
+
 def _cpu_devices(min_units=2):
     try:
         import pyopencl as pcl

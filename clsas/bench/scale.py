@@ -281,13 +281,17 @@ def markdown(res: dict) -> str:
                   "The CPU share is the workers' CPU seconds over (wall time x workers): 1 means each had a core to "
                   "itself. The CPU-bound speed-up is 1 worker's CPU seconds over the longer of the busiest worker's "
                   "and all workers' divided by the host's cores: the speed-up an idle host would show, estimated from "
-                  "the CPU time the work took (not a wall-clock measurement; CPU time itself grows under load).", "",
-                  "| workers | time | pairs/s | speed-up vs 1 worker | CPU share | CPU-bound speed-up | "
-                  "image vs one process (max rel diff) | vs 1 worker (max abs diff) | load |", "|" + "---|" * 9]
+                  "the CPU time the work took (not a wall-clock measurement; CPU time itself grows under load). "
+                  "Client CPU: the client's process (with a LocalCluster, the scheduler too).", "",
+                  "| workers | compute units per worker | time | pairs/s | speed-up vs 1 worker | CPU share | "
+                  "CPU-bound speed-up | client CPU | image vs one process (max rel diff) | "
+                  "vs 1 worker (max abs diff) | load |", "|" + "---|" * 11]
         for r in s["clusters"]:
-            lines.append(f"| {r['workers']} | {r['time_s']:.2f} s | {r['pairs_per_s']:.3g} | "
+            units = "/".join(str(u) for u in sorted(set(r.get("worker_compute_units", {}).values()))) or "?"
+            lines.append(f"| {r['workers']} | {units} | {r['time_s']:.2f} s | {r['pairs_per_s']:.3g} | "
                          f"{r['speedup_vs_1_worker']:.2f}x | {r['cpu_share']:.2f} | "
-                         f"{r['cpu_bound_speedup_vs_1_worker']:.2f}x | {r['max_rel_diff_vs_single_process']:.2g} | "
+                         f"{r['cpu_bound_speedup_vs_1_worker']:.2f}x | {r.get('client_cpu_s', float('nan')):.1f} s | "
+                         f"{r['max_rel_diff_vs_single_process']:.2g} | "
                          f"{r['max_abs_diff_vs_1_worker']:.2g} | "
                          f"{r['load_before'][0]} -> {r['load_after'][0]} |")
         lines.append("")

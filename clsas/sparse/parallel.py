@@ -75,6 +75,8 @@ def echoes_on_cluster(job, client, n_lags: int, progress: Callable[[int, int], N
     """
     from ..tiling.dask import _client, import_distributed
 
+    if not isinstance(client, str) and not (hasattr(client, "submit") and hasattr(client, "scatter")):
+        raise TypeError(f"client must be a distributed.Client or a scheduler address, got {type(client).__name__}")
     distributed = import_distributed()
     n = job.dataset.n_meas
     data = np.zeros((n, n_lags), np.complex128)
