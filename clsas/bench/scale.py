@@ -66,6 +66,20 @@ def _load() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
 
 
+def _autogroup() -> str | None:
+    """Linux's scheduler autogroup (``/proc/sys/kernel/sched_autogroup_enabled`` and this process's
+    group): where it is on, the CPU is shared fairly between sessions first, so on a busy host a
+    session's workers share one session's part however many there are; None where unknown."""
+    try:
+        with open("/proc/sys/kernel/sched_autogroup_enabled") as f:
+            on = f.read().strip() == "1"
+        with open(f"/proc/{os.getpid()}/autogroup") as f:
+            group = f.read().split()[0]
+    except OSError:
+        return None
+    return f"on ({group})" if on else "off"
+
+
 def _ooc_child(n_voxels: float, n_meas: int, max_memory: float, path: str, sample: int) -> dict:
     """In a fresh process: form the grid out of core, read the peak RSS, check a sample of tiles."""
     from ..tiling import peak_rss_bytes, rss_bytes, tile_grid
@@ -220,7 +234,8 @@ def run_scale(full: bool = False, out_dir: str | Path = "bench/results", *, part
     say = status or (lambda s: log.info("%s", s))
     cfg = FULL_SCALE if full else QUICK_SCALE
     res: dict = {"kind": "scale", "full": full, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                 "host": platform.node(), "cpus": os.cpu_count(), "load_start": _load()}
+                 "host": platform.node(), "cpus": os.cpu_count(), "load_start": _load(),
+                 "sched_autogroup": _autogroup()}
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         if "rss" in parts:
             c = cfg["rss"]
@@ -251,7 +266,8 @@ def markdown(res: dict) -> str:
     """The report: one table per part, with the load average beside each timing."""
     lines = [f"# clsas bench --scale ({'full' if res['full'] else 'quick'}), {res['date']}", "",
              f"Host {res['host']}, {res['cpus']} CPUs; load average (1, 5, 15 min) at the start {res['load_start']}, "
-             f"at the end {res['load_end']}.", ""]
+             f"at the end {res['load_end']}; scheduler autogroup {res.get('sched_autogroup')} (on: the CPU is "
+             "shared between sessions first, so on a busy host the workers of this run share one session's part).", ""]
     if res.get("rss"):
         lines += ["## Peak RSS against grid size (out of core, one process)", "",
                   "| voxels | pairs | budget | peak RSS | image (complex64) | tiles | tiles/s | pairs/s | "

@@ -93,7 +93,8 @@ def echoes_on_cluster(job, client, n_lags: int, progress: Callable[[int, int], N
             futures[f.key] = (f, start, stop)
         log.info("sparse step: %d recordings in %d blocks on the cluster", n, len(parts))
         done = 0
-        for f, results in distributed.as_completed([f for f, _, _ in futures.values()], with_results=True):
+        for f, results in distributed.as_completed([f for f, _, _ in futures.values()], loop=c.loop,
+                                                   with_results=True):  # this client's loop, not the default's
             _, start, stop = futures.pop(f.key)
             f.release()
             for m, (e, row) in zip(range(start, stop), results, strict=True):

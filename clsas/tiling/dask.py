@@ -195,8 +195,10 @@ def run_on_cluster(client, profiles, tiles, pending, formation, options, request
             f = c.submit(_tile_task, prof, tiles[i].grid, formation, options, requested, force, pure=False,
                          retries=2, resources=resources, key=f"clsas-tile-{i}-{os.urandom(4).hex()}")
             futures[f.key] = (f, i)
+        # as_completed waits on the loop it is given, else the *default* client's: with two clients in
+        # one process (a LocalCluster's and another) the default one's loop may never see these futures
         for f, (vals, device, seconds, units) in distributed.as_completed([f for f, _ in futures.values()],
-                                                                            with_results=True):
+                                                                            loop=c.loop, with_results=True):
             _, i = futures.pop(f.key)
             f.release()
             yield tiles[i], vals, device, seconds, units
