@@ -73,7 +73,7 @@ def echoes_on_cluster(job, client, n_lags: int, progress: Callable[[int, int], N
         The matched-filter rows of the recordings the method failed on (zero elsewhere), and
         every recording's echoes, in recording order.
     """
-    from ..tiling.dask import _client, import_distributed
+    from ..tiling.dask import connect, import_distributed
 
     if not isinstance(client, str) and not (hasattr(client, "submit") and hasattr(client, "scatter")):
         raise TypeError(f"client must be a distributed.Client or a scheduler address, got {type(client).__name__}")
@@ -81,7 +81,7 @@ def echoes_on_cluster(job, client, n_lags: int, progress: Callable[[int, int], N
     n = job.dataset.n_meas
     data = np.zeros((n, n_lags), np.complex128)
     echoes: list = [None] * n
-    c, own = _client(client)
+    c, own = connect(client)
     try:
         parts = blocks(n, max(1, len(c.scheduler_info()["workers"])), per_worker)
         remote = c.scatter(job, broadcast=True, hash=False)

@@ -168,9 +168,7 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
         leaves a residual at every echo, and the methods explain it with spurious echoes
         beside the true ones. Absorption, where asked for, is applied to it.
     client : distributed.Client or str, optional
-        A Dask client or scheduler address: the recordings are split into blocks, one Dask task
-        each, the dataset sent to every worker once (:mod:`clsas.sparse.parallel`); the result
-        equals the serial step's.
+        A Dask cluster: blocks of recordings, one task each (:mod:`clsas.sparse.parallel`).
 
     Returns
     -------
@@ -195,12 +193,7 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
     job = _Recordings(dataset, gates, heard, method, delta, guard, lam, lam_frac, max_echoes, options, absorption,
                       fc, grid)
     t_start = time.perf_counter()
-    if client is None:
-        data, echoes = job.all(progress)
-    else:
-        from .parallel import echoes_on_cluster
-
-        data, echoes = echoes_on_cluster(job, client, len(grid), progress)
+    data, echoes = job.all(progress, client)
     _summarise(method, echoes, dataset.n_meas, time.perf_counter() - t_start)
     _render(data, echoes, grid, lo, dtau, width, fc)
     prof = Profiles(data, np.full(dataset.n_meas, lo), dtau, fc, method, "numpy",
@@ -278,10 +271,15 @@ class _Recordings:
         self.air_h = np.broadcast_to(np.asarray(dataset.humidity_pct, float), (n,))
         self.air_c = None if dataset.c_mps is None else np.broadcast_to(np.asarray(dataset.c_mps, float), (n,))
 
-    def all(self, progress: Callable[[int, int], None] | None) -> tuple[np.ndarray, list]:
+    def all(self, progress: Callable[[int, int], None] | None, client=None) -> tuple[np.ndarray, list]:
         """(n_meas, n_lags) the matched-filter rows of the recordings the method failed on
         (zero elsewhere), and every recording's Echoes. ``progress(done, n)`` after each
-        recording but those whose window is empty."""
+        recording but those whose window is empty; with a Dask ``client``, in blocks on the
+        cluster (:func:`clsas.sparse.parallel.echoes_on_cluster`, the same result)."""
+        if client is not None:
+            from .parallel import echoes_on_cluster
+
+            return echoes_on_cluster(self, client, len(self.grid), progress)
         n = self.dataset.n_meas
         data = np.zeros((n, len(self.grid)), np.complex128)
         echoes = []

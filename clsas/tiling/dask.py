@@ -30,7 +30,7 @@ from .. import cl
 from ..validate import install_hint
 from .tiles import form_tile
 
-__all__ = ["OpenCLDevicePlugin", "import_distributed", "n_workers", "run_on_cluster", "worker_device",
+__all__ = ["OpenCLDevicePlugin", "connect", "import_distributed", "n_workers", "run_on_cluster", "worker_device",
            "worker_selection"]
 
 log = logging.getLogger(__name__)
@@ -165,7 +165,7 @@ def _tile_task(profiles, grid, formation, options, requested, force):
     return vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units
 
 
-def _client(client):
+def connect(client):
     """A Client for ``client`` (itself, or a new one connected to the address), and whether we own it."""
     distributed = import_distributed()
     if isinstance(client, str):
@@ -175,7 +175,7 @@ def _client(client):
 
 def n_workers(client) -> int:
     """Workers on the cluster (at least 1)."""
-    c, own = _client(client)
+    c, own = connect(client)
     try:
         return max(1, len(c.scheduler_info()["workers"]))
     finally:
@@ -187,7 +187,7 @@ def run_on_cluster(client, profiles, tiles, pending, formation, options, request
     """Yield ``(tile, values, device, seconds, compute_units)`` for the ``pending`` tiles, formed on
     the cluster (``device`` names the worker's process and compute units)."""
     distributed = import_distributed()
-    c, own = _client(client)
+    c, own = connect(client)
     try:
         prof = c.scatter(profiles, broadcast=True, hash=False)
         futures = {}
