@@ -94,7 +94,8 @@ def reconstruct(
         forming one stays within it (Dask: the budget of each worker).
     client : distributed.Client or str, optional
         A Dask client or scheduler address: each tile is a task, the profiles are sent to
-        every worker once (see :mod:`clsas.tiling.dask`). Needs the ``distributed`` extra.
+        every worker once (see :mod:`clsas.tiling.dask`); a sparse method's per-recording step runs
+        there too (:mod:`clsas.sparse.parallel`). Needs the ``distributed`` extra.
     tile_shape : (int, int, int), optional
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
     max_error_db : float
@@ -122,7 +123,7 @@ def reconstruct(
     if method == "bp":
         prof, echoes, plan = _compressed(dataset, plan, compression, selection)
     else:
-        prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress)
+        prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress, tiled)
     formation, fopts, choice = _formation(formation, fopts, prof, grid, method, tiled, selection, max_error_db)
     image = _recorded(_form(prof, grid, formation, fopts, selection, progress, force, tiled), choice)
     plan = _with_kernels(plan, (f"compress ({compression})", prof.backend),
@@ -224,11 +225,14 @@ def _compressed(dataset: Dataset, plan: ReconstructionPlan, compression: str, se
     return prof, None, replace(plan, lags=prof.n_lags, lag_step=int(round(prof.dtau_s * dataset.fs_hz)))
 
 
-def _super_resolved(dataset: Dataset, plan: ReconstructionPlan, method: str, options: dict, progress):
-    """Stage: each recording super-resolved in its own gate -> (profiles, echoes, plan with the lags)."""
+def _super_resolved(dataset: Dataset, plan: ReconstructionPlan, method: str, options: dict, progress,
+                    tiled: tiling.TiledRequest | None = None):
+    """Stage: each recording super-resolved in its own gate (on the Dask cluster where the tiled
+    request has a client) -> (profiles, echoes, plan with the lags)."""
     from .sparse.profiles import superres_profiles
 
-    prof, echoes = superres_profiles(dataset, plan.gates_s, method, progress=progress, **options)
+    client = None if tiled is None else tiled.client
+    prof, echoes = superres_profiles(dataset, plan.gates_s, method, progress=progress, client=client, **options)
     note = f"{method}: each recording super-resolved within its own gate, echoes rendered as pulses"
     return prof, echoes, replace(plan, lags=prof.n_lags, notes=[*plan.notes, note])
 

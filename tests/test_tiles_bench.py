@@ -32,6 +32,8 @@ def test_scale_bench_scaling_part(tmp_path, monkeypatch):
     rows = res["scaling"]["clusters"]
     assert [r["workers"] for r in rows] == [1, 2, 3]
     assert all(r["max_rel_diff_vs_single_process"] < 1e-4 and r["max_abs_diff_vs_1_worker"] == 0 for r in rows)
+    # each single-threaded worker formed its tiles on one compute unit (None: no OpenCL, the NumPy twin)
+    assert all(set(r["worker_compute_units"].values()) <= {1, None} and r["worker_compute_units"] for r in rows)
 
 
 def test_scale_flag_alone_or_with_a_number(monkeypatch, tmp_path):

@@ -4,9 +4,9 @@
   in a fresh child process, its peak resident memory (``VmHWM``) read there, and a sample of its
   tiles checked against an in-memory reconstruction of the same tiles;
 - tiles/s and the tile size's effect (one process, the file in memory);
-- strong scaling on a Dask ``LocalCluster`` of 1 and 2 single-threaded workers (each worker's PoCL
-  device held to one thread), the image checked against one in-memory call, and the overhead of 8
-  workers sharing the same cores.
+- strong scaling on a Dask ``LocalCluster`` of 1 and 2 single-threaded workers (each worker's CPU
+  device a sub-device of one compute unit, by the library's device fission), the image checked
+  against one in-memory call, and the overhead of 8 workers sharing the same cores.
 
 The host's load average is recorded before and after each timed part: on a shared machine a
 ratio measured under load says little. Benchmarks measure; nothing here asserts a timing.
@@ -64,6 +64,20 @@ def _profiles(grid: VoxelGrid, n_meas: int, seed: int = 0) -> Profiles:
 
 def _load() -> list[float]:
     return [round(x, 2) for x in os.getloadavg()]
+
+
+def _autogroup() -> str | None:
+    """Linux's scheduler autogroup (``/proc/sys/kernel/sched_autogroup_enabled`` and this process's
+    group): where it is on, the CPU is shared fairly between sessions first, so on a busy host a
+    session's workers share one session's part however many there are; None where unknown."""
+    try:
+        with open("/proc/sys/kernel/sched_autogroup_enabled") as f:
+            on = f.read().strip() == "1"
+        with open(f"/proc/{os.getpid()}/autogroup") as f:
+            group = f.read().split()[0]
+    except OSError:
+        return None
+    return f"on ({group})" if on else "off"
 
 
 def _ooc_child(n_voxels: float, n_meas: int, max_memory: float, path: str, sample: int) -> dict:
@@ -126,10 +140,16 @@ def tile_size_effect(n_voxels: float, n_meas: int, planes: tuple) -> list[dict]:
     return rows
 
 
-def _warm(grid_axes) -> str:
-    """On a worker: build the kernel once (not counted in the timed run)."""
-    image = clsas.reconstruct(_profiles(VoxelGrid(*grid_axes), 2), VoxelGrid(*grid_axes))
-    return image.device
+def _warm(grid_axes, dask_worker=None) -> str:
+    """On a worker: build the kernel once on the device its tiles will use (not counted in the timed run)."""
+    from ..formation import form
+    from ..tiling.dask import worker_selection
+
+    threads = None if dask_worker is None else dask_worker.state.nthreads
+    selection, units = worker_selection("auto", None, threads=threads)
+    grid = VoxelGrid(*grid_axes)
+    image = form(_profiles(grid, 2), grid, "bp", backend=selection)
+    return f"{image.device} ({units} CU)"
 
 
 def cpu_bound_speedup(cpu_one: list[float], cpu_many: list[float], cores: int | None = None) -> float:
@@ -150,7 +170,8 @@ def _cpu_s() -> float:
 def _cluster_run(n_workers: int, prof, grid, tile_shape, ref) -> dict:
     import distributed
 
-    env = {"POCL_MAX_PTHREAD_COUNT": "1", "OMP_NUM_THREADS": "1"}  # one core per worker
+    # one core per worker: its OpenCL CPU device is a sub-device of 1 compute unit (clsas.tiling.dask)
+    env = {"OMP_NUM_THREADS": "1"}
     quiet = logging.getLogger("distributed")
     level = quiet.level
     quiet.setLevel(logging.WARNING)
@@ -160,12 +181,13 @@ def _cluster_run(n_workers: int, prof, grid, tile_shape, ref) -> dict:
                 distributed.Client(cluster) as client:
             small = (grid.x_m[:2], grid.y_m[:2], grid.z_m[:2])
             devices = sorted(set(client.run(_warm, small).values()))
-            cpu0 = client.run(_cpu_s)
+            cpu0, here0 = client.run(_cpu_s), _cpu_s()
             load0 = _load()
             t0 = time.perf_counter()
             image = clsas.reconstruct(prof, grid, client=client, tile_shape=tile_shape)
             seconds = time.perf_counter() - t0
             cpu = [v - cpu0[k] for k, v in client.run(_cpu_s).items() if k in cpu0]
+            here = _cpu_s() - here0
     finally:
         quiet.setLevel(level)
     err = float(np.abs(image.values - ref).max() / np.abs(ref).max())
@@ -173,6 +195,8 @@ def _cluster_run(n_workers: int, prof, grid, tile_shape, ref) -> dict:
             "tiles": image.provenance["tiles"]["count"], "pairs_per_s": float(grid.size) * prof.n_meas / seconds,
             "max_rel_diff_vs_single_process": err, "worker_devices": devices, "load_before": load0,
             "load_after": _load(), "worker_cpu_s": cpu, "cpu_share": sum(cpu) / seconds / n_workers,
+            "client_cpu_s": here,
+            "worker_compute_units": {d: v["compute_units"] for d, v in image.provenance["tiles"]["devices"].items()},
             "values": image.values}
 
 
@@ -210,7 +234,8 @@ def run_scale(full: bool = False, out_dir: str | Path = "bench/results", *, part
     say = status or (lambda s: log.info("%s", s))
     cfg = FULL_SCALE if full else QUICK_SCALE
     res: dict = {"kind": "scale", "full": full, "date": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
-                 "host": platform.node(), "cpus": os.cpu_count(), "load_start": _load()}
+                 "host": platform.node(), "cpus": os.cpu_count(), "load_start": _load(),
+                 "sched_autogroup": _autogroup()}
     with tempfile.TemporaryDirectory(dir=workdir) as tmp:
         if "rss" in parts:
             c = cfg["rss"]
@@ -241,7 +266,8 @@ def markdown(res: dict) -> str:
     """The report: one table per part, with the load average beside each timing."""
     lines = [f"# clsas bench --scale ({'full' if res['full'] else 'quick'}), {res['date']}", "",
              f"Host {res['host']}, {res['cpus']} CPUs; load average (1, 5, 15 min) at the start {res['load_start']}, "
-             f"at the end {res['load_end']}.", ""]
+             f"at the end {res['load_end']}; scheduler autogroup {res.get('sched_autogroup')} (on: the CPU is "
+             "shared between sessions first, so on a busy host the workers of this run share one session's part).", ""]
     if res.get("rss"):
         lines += ["## Peak RSS against grid size (out of core, one process)", "",
                   "| voxels | pairs | budget | peak RSS | image (complex64) | tiles | tiles/s | pairs/s | "
@@ -271,13 +297,17 @@ def markdown(res: dict) -> str:
                   "The CPU share is the workers' CPU seconds over (wall time x workers): 1 means each had a core to "
                   "itself. The CPU-bound speed-up is 1 worker's CPU seconds over the longer of the busiest worker's "
                   "and all workers' divided by the host's cores: the speed-up an idle host would show, estimated from "
-                  "the CPU time the work took (not a wall-clock measurement; CPU time itself grows under load).", "",
-                  "| workers | time | pairs/s | speed-up vs 1 worker | CPU share | CPU-bound speed-up | "
-                  "image vs one process (max rel diff) | vs 1 worker (max abs diff) | load |", "|" + "---|" * 9]
+                  "the CPU time the work took (not a wall-clock measurement; CPU time itself grows under load). "
+                  "Client CPU: the client's process (with a LocalCluster, the scheduler too).", "",
+                  "| workers | compute units per worker | time | pairs/s | speed-up vs 1 worker | CPU share | "
+                  "CPU-bound speed-up | client CPU | image vs one process (max rel diff) | "
+                  "vs 1 worker (max abs diff) | load |", "|" + "---|" * 11]
         for r in s["clusters"]:
-            lines.append(f"| {r['workers']} | {r['time_s']:.2f} s | {r['pairs_per_s']:.3g} | "
+            units = "/".join(str(u) for u in sorted(set(r.get("worker_compute_units", {}).values()))) or "?"
+            lines.append(f"| {r['workers']} | {units} | {r['time_s']:.2f} s | {r['pairs_per_s']:.3g} | "
                          f"{r['speedup_vs_1_worker']:.2f}x | {r['cpu_share']:.2f} | "
-                         f"{r['cpu_bound_speedup_vs_1_worker']:.2f}x | {r['max_rel_diff_vs_single_process']:.2g} | "
+                         f"{r['cpu_bound_speedup_vs_1_worker']:.2f}x | {r.get('client_cpu_s', float('nan')):.1f} s | "
+                         f"{r['max_rel_diff_vs_single_process']:.2g} | "
                          f"{r['max_abs_diff_vs_1_worker']:.2g} | "
                          f"{r['load_before'][0]} -> {r['load_after'][0]} |")
         lines.append("")

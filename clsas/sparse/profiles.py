@@ -125,7 +125,7 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
                       lam: float | None = None, lam_frac: float | None = None, render_width_s: float | None = None,
                       max_echoes: int | None = None, guard_s: float | None = None, method_options: dict | None = None,
                       progress: Callable[[int, int], None] | None = None, absorption: bool = False,
-                      pulse=None) -> tuple[Profiles, list]:
+                      pulse=None, client=None) -> tuple[Profiles, list]:
     """Super-resolve every recording of ``dataset`` within its delay gate.
 
     Parameters
@@ -167,6 +167,8 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
         Default the dataset's transmit waveform. An atom that is not the pulse the echoes carry
         leaves a residual at every echo, and the methods explain it with spurious echoes
         beside the true ones. Absorption, where asked for, is applied to it.
+    client : distributed.Client or str, optional
+        A Dask cluster: blocks of recordings, one task each (:mod:`clsas.sparse.parallel`).
 
     Returns
     -------
@@ -191,7 +193,7 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
     job = _Recordings(dataset, gates, heard, method, delta, guard, lam, lam_frac, max_echoes, options, absorption,
                       fc, grid)
     t_start = time.perf_counter()
-    data, echoes = job.all(progress)
+    data, echoes = job.all(progress, client)
     _summarise(method, echoes, dataset.n_meas, time.perf_counter() - t_start)
     _render(data, echoes, grid, lo, dtau, width, fc)
     prof = Profiles(data, np.full(dataset.n_meas, lo), dtau, fc, method, "numpy",
@@ -269,10 +271,15 @@ class _Recordings:
         self.air_h = np.broadcast_to(np.asarray(dataset.humidity_pct, float), (n,))
         self.air_c = None if dataset.c_mps is None else np.broadcast_to(np.asarray(dataset.c_mps, float), (n,))
 
-    def all(self, progress: Callable[[int, int], None] | None) -> tuple[np.ndarray, list]:
+    def all(self, progress: Callable[[int, int], None] | None, client=None) -> tuple[np.ndarray, list]:
         """(n_meas, n_lags) the matched-filter rows of the recordings the method failed on
         (zero elsewhere), and every recording's Echoes. ``progress(done, n)`` after each
-        recording but those whose window is empty."""
+        recording but those whose window is empty; with a Dask ``client``, in blocks on the
+        cluster (:func:`clsas.sparse.parallel.echoes_on_cluster`, the same result)."""
+        if client is not None:
+            from .parallel import echoes_on_cluster
+
+            return echoes_on_cluster(self, client, len(self.grid), progress)
         n = self.dataset.n_meas
         data = np.zeros((n, len(self.grid)), np.complex128)
         echoes = []

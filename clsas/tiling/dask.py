@@ -13,10 +13,16 @@ next), or the one :class:`OpenCLDevicePlugin` assigns, else the preferred device
 workers one thread each so that a GPU forms one tile at a time (:func:`run_on_cluster` also
 takes Dask worker ``resources``, e.g. ``{"GPU": 1}`` with ``dask worker --resources GPU=1``;
 ``reconstruct`` does not pass any).
+
+How many cores a worker uses on a CPU device: as many as it has threads. PoCL runs a kernel on
+every core of the host, so two 1-thread workers would each spread over both cores and contend;
+:func:`worker_selection` gives a worker of N threads a sub-device of N compute units (device
+fission), and the compute units each worker used are in ``image.provenance["tiles"]["devices"]``.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 
@@ -24,7 +30,8 @@ from .. import cl
 from ..validate import install_hint
 from .tiles import form_tile
 
-__all__ = ["OpenCLDevicePlugin", "import_distributed", "n_workers", "run_on_cluster", "worker_device"]
+__all__ = ["OpenCLDevicePlugin", "connect", "import_distributed", "n_workers", "run_on_cluster", "worker_device",
+           "worker_selection"]
 
 log = logging.getLogger(__name__)
 
@@ -81,15 +88,84 @@ def worker_device() -> str | None:
     return _WORKER_DEVICE["device"]
 
 
+def _worker_threads() -> int | None:
+    """Threads of the Dask worker this runs on (None outside a worker)."""
+    try:
+        from distributed import get_worker
+
+        return int(get_worker().state.nthreads)
+    except (ImportError, ValueError, AttributeError):
+        return None
+
+
+def worker_selection(requested, device=None, threads: int | None = None) -> tuple[cl.Selection, int | None]:
+    """The device selection of a worker with ``threads`` threads, and the compute units it uses.
+
+    A CPU device with more compute units than the worker has threads (PoCL makes one thread per
+    core) is split by device fission (``clCreateSubDevices``, ``CL_DEVICE_PARTITION_BY_COUNTS``)
+    and the worker gets a sub-device of ``threads`` compute units: a worker of 1 thread then
+    uses 1 core, so that 2 such workers on 2 cores do not both spread over both. A GPU, a device
+    that cannot be split, or ``threads=None`` keeps the whole device.
+
+    Parameters
+    ----------
+    requested : str
+        The backend request (``"auto"``, ``"opencl"``, ``"numpy"``).
+    device : None, "P:D" or "numpy"
+        The worker's device (see :class:`OpenCLDevicePlugin`).
+    threads : int, optional
+        The worker's threads (default: the Dask worker's, where this runs on one).
+
+    Returns
+    -------
+    (Selection, int or None)
+        The selection and its device's compute units (None on NumPy).
+    """
+    if device == "numpy":
+        return cl.select("numpy"), None
+    selection = cl.select(requested, device)
+    if not selection.opencl:
+        return selection, None
+    whole = selection.queue.device
+    threads = _worker_threads() if threads is None else int(threads)
+    if threads is None or not cl.is_cpu(whole) or whole.max_compute_units <= threads:
+        return selection, int(whole.max_compute_units)
+    queue = _sub_device_queue(whole.int_ptr, threads)
+    if queue is None:
+        return selection, int(whole.max_compute_units)
+    return cl.select(requested, queue), int(queue.device.max_compute_units)
+
+
+@functools.cache
+def _sub_device_queue(device_ptr: int, units: int):
+    """A profiling queue on a sub-device of ``units`` compute units of the device (memoised per
+    process); None where the device cannot be split so."""
+    import pyopencl as pcl
+
+    device = next(d for p in pcl.get_platforms() for d in p.get_devices() if d.int_ptr == device_ptr)
+    prop = pcl.device_partition_property
+    try:
+        sub = device.create_sub_devices([prop.BY_COUNTS, units, prop.BY_COUNTS_LIST_END])[0]
+    except (pcl.Error, AttributeError) as exc:  # a driver without fission: the whole device
+        log.info("%s: no sub-device of %d compute units (%s); using the whole device", cl.describe(device),
+                 units, exc)
+        return None
+    ctx = pcl.Context([sub])
+    log.info("%s: a sub-device of %d of %d compute units", cl.describe(device), units, device.max_compute_units)
+    # the queue names the sub-device: PoCL 3.0 lists the parent as the context's device, and a queue
+    # made without naming the device then runs kernels on every core (measured: per-thread CPU ticks)
+    return pcl.CommandQueue(ctx, device=sub, properties=pcl.command_queue_properties.PROFILING_ENABLE)
+
+
 def _tile_task(profiles, grid, formation, options, requested, force):
-    """A task: form one tile on this worker's device."""
-    device = worker_device()
-    selection = cl.select("numpy") if device == "numpy" else cl.select(requested, device)
+    """A task: form one tile on this worker's device (a sub-device of its threads' compute units)."""
+    selection, units = worker_selection(requested, worker_device())
     vals, dev, seconds = form_tile(profiles, grid, formation, options, selection, force)
-    return vals, f"{dev} (pid {os.getpid()})", seconds
+    cu = "" if units is None else f", {units} CU"
+    return vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units
 
 
-def _client(client):
+def connect(client):
     """A Client for ``client`` (itself, or a new one connected to the address), and whether we own it."""
     distributed = import_distributed()
     if isinstance(client, str):
@@ -99,7 +175,7 @@ def _client(client):
 
 def n_workers(client) -> int:
     """Workers on the cluster (at least 1)."""
-    c, own = _client(client)
+    c, own = connect(client)
     try:
         return max(1, len(c.scheduler_info()["workers"]))
     finally:
@@ -108,9 +184,10 @@ def n_workers(client) -> int:
 
 
 def run_on_cluster(client, profiles, tiles, pending, formation, options, requested, force, resources=None):
-    """Yield ``(tile, values, device, seconds)`` for the ``pending`` tiles, formed on the cluster."""
+    """Yield ``(tile, values, device, seconds, compute_units)`` for the ``pending`` tiles, formed on
+    the cluster (``device`` names the worker's process and compute units)."""
     distributed = import_distributed()
-    c, own = _client(client)
+    c, own = connect(client)
     try:
         prof = c.scatter(profiles, broadcast=True, hash=False)
         futures = {}
@@ -118,11 +195,13 @@ def run_on_cluster(client, profiles, tiles, pending, formation, options, request
             f = c.submit(_tile_task, prof, tiles[i].grid, formation, options, requested, force, pure=False,
                          retries=2, resources=resources, key=f"clsas-tile-{i}-{os.urandom(4).hex()}")
             futures[f.key] = (f, i)
-        for f, (vals, device, seconds) in distributed.as_completed([f for f, _ in futures.values()],
-                                                                     with_results=True):
+        # as_completed waits on the loop it is given, else the *default* client's: with two clients in
+        # one process (a LocalCluster's and another) the default one's loop may never see these futures
+        for f, (vals, device, seconds, units) in distributed.as_completed([f for f, _ in futures.values()],
+                                                                            loop=c.loop, with_results=True):
             _, i = futures.pop(f.key)
             f.release()
-            yield tiles[i], vals, device, seconds
+            yield tiles[i], vals, device, seconds, units
         del prof
     finally:
         if own:

@@ -56,15 +56,18 @@ class _Tally:
     tiles: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
     pairs: dict = field(default_factory=dict)
+    units: dict = field(default_factory=dict)
 
-    def add(self, device: str, seconds: float, pairs: float) -> None:
+    def add(self, device: str, seconds: float, pairs: float, units: int | None = None) -> None:
         self.tiles[device] = self.tiles.get(device, 0) + 1
         self.seconds[device] = self.seconds.get(device, 0.0) + seconds
         self.pairs[device] = self.pairs.get(device, 0.0) + pairs
+        self.units[device] = units
 
     def report(self) -> dict:
         return {d: {"tiles": self.tiles[d], "busy_s": round(self.seconds[d], 3),
-                    "pairs_per_s": self.pairs[d] / self.seconds[d] if self.seconds[d] > 0 else None}
+                    "pairs_per_s": self.pairs[d] / self.seconds[d] if self.seconds[d] > 0 else None,
+                    "compute_units": self.units[d]}
                 for d in self.tiles}
 
 
@@ -98,13 +101,13 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
     try:
         if progress is not None:
             progress(done, len(tiles))
-        for tile, vals, device, seconds in _run(profiles, tiles, pending, formation, options, selections, request,
-                                                force):
+        for tile, vals, device, seconds, units in _run(profiles, tiles, pending, formation, options, selections,
+                                                       request, force):
             if store is not None:
                 store.write(tile, vals)
             else:
                 values[tile.slices] = vals
-            tally.add(device, seconds, float(tile.size) * profiles.n_meas)
+            tally.add(device, seconds, float(tile.size) * profiles.n_meas, units)
             done += 1
             if progress is not None:
                 progress(done, len(tiles))
@@ -159,8 +162,13 @@ def _auto_shape(grid, profiles, kind, request: TiledRequest, n_parallel: int) ->
     return tile_shape_for(grid, kind, max_memory=budget, fixed_bytes=int(fixed), min_tiles=min_tiles)
 
 
+def _units(selection: cl.Selection) -> int | None:
+    """The compute units of the selection's OpenCL device (None on NumPy)."""
+    return int(selection.queue.device.max_compute_units) if selection.opencl else None
+
+
 def _run(profiles, tiles, pending, formation, options, selections, request, force):
-    """Yield ``(tile, values, device, seconds)`` for each pending tile, as they finish."""
+    """Yield ``(tile, values, device, seconds, compute_units)`` for each pending tile, as they finish."""
     if request.client is not None:
         from .dask import run_on_cluster
 
@@ -169,7 +177,7 @@ def _run(profiles, tiles, pending, formation, options, selections, request, forc
     elif len(selections) == 1:
         for i in pending:
             vals, device, seconds = form_tile(profiles, tiles[i].grid, formation, options, selections[0], force)
-            yield tiles[i], vals, device, seconds
+            yield tiles[i], vals, device, seconds, _units(selections[0])
     else:
         yield from _run_threads(profiles, tiles, pending, formation, options, selections, force)
 
@@ -198,7 +206,7 @@ def _run_threads(profiles, tiles, pending, formation, options, selections, force
             except Exception as exc:  # noqa: BLE001 - handed to the caller's thread and raised there
                 results.put(exc)
                 return
-            results.put((tiles[i], *out))
+            results.put((tiles[i], *out, _units(sel)))
 
     threads = [threading.Thread(target=worker, args=(s,), daemon=True) for s in selections]
     for t in threads:

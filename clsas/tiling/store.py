@@ -3,14 +3,24 @@
 An image file in :mod:`clsas.image`'s layout (so :meth:`clsas.Image.load` and
 :meth:`clsas.Image.open` read it) whose ``values`` are chunked complex64, plus:
 
-- ``tiles_done``: (n_tiles,) uint8, 1 for each tile written (set and flushed after its values);
+- ``tiles_done``: (n_tiles,) uint8, 1 for each tile written (set only after its values are flushed
+  and synced to the disk);
 - attributes ``tile_shape`` (3,), ``request_sha256`` (what was asked: profiles, grid, formation,
   options, backend kind and tile shape) and ``complete`` (False until the last tile and the
   image's attributes are written).
 
+Crash safety (HDF5): every chunk of ``values`` is allocated when the file is made (no fill is
+written), so writing a tile changes no HDF5 metadata, only the tile's own bytes and then its
+byte in ``tiles_done``. A process killed at any moment of a tile (mid-write included) leaves a
+file that opens, whose marked tiles are whole, and the run started again forms the unmarked
+tiles and only those (``tests/test_tiles_crash.py`` kills a writer process mid-run).
+
 A ``.zarr`` store (Zarr v3, :class:`ZarrTileFile`) holds the same arrays, with the attributes as
-JSON. Opening an unfinished file with the same request resumes it: the tiles already written are
-not formed again. A file made by another request is refused, not overwritten.
+JSON; a tile is marked after its values too, but whether a kill mid-write leaves the store
+readable is the store's (not tested by killing a writer).
+
+Opening an unfinished file with the same request resumes it: the tiles already written are not
+formed again. A file made by another request is refused, not overwritten.
 """
 
 from __future__ import annotations
@@ -18,6 +28,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -73,9 +84,12 @@ class TileFile:
         if self.path.exists():
             self._f = h5py.File(self.path, "r+")
             self._check(digest)
-        else:
-            self._f = h5py.File(self.path, "w")
+        else:  # made under another name and renamed once whole: a kill while making it leaves no file here
+            part = self.path.with_name(self.path.name + ".part")
+            self._f = h5py.File(part, "w")
             self._create(grid, tile_shape, digest)
+            self._sync()
+            os.replace(part, self.path)
         self.done = self._f["tiles_done"][()].astype(bool)
         if self.done.any():
             log.info("%s: resuming, %d of %d tiles already written", self.path, int(self.done.sum()), self.n_tiles)
@@ -83,8 +97,12 @@ class TileFile:
     def _create(self, grid, tile_shape, digest) -> None:
         f = self._f
         scales = write_axes(f, grid)
+        import h5py
+
+        dcpl = h5py.h5p.create(h5py.h5p.DATASET_CREATE)
+        dcpl.set_alloc_time(h5py.h5d.ALLOC_TIME_EARLY)  # every chunk placed now: a tile's write is data only
         d = f.create_dataset("values", shape=grid.shape, dtype=np.complex64, chunks=chunk_shape(tile_shape),
-                             fillvalue=np.complex64(0))
+                             fillvalue=np.complex64(0), fill_time="never", dcpl=dcpl)
         attach_values(d, scales)
         f.create_dataset("tiles_done", data=np.zeros(self.n_tiles, np.uint8))
         f.attrs.update(format="clsas image", tile_shape=np.asarray(tile_shape), request_sha256=digest,
@@ -108,12 +126,24 @@ class TileFile:
         return [int(i) for i in np.flatnonzero(~self.done)]
 
     def write(self, tile: Tile, values: np.ndarray) -> None:
-        """Write one tile's values, then mark it done and flush (a crash loses at most this tile)."""
+        """Write one tile's values, flush and sync them to the disk, and only then mark the tile done
+        (a crash at any point loses at most this tile, which the next run forms again)."""
         self._f["values"][tile.slices] = np.asarray(values, np.complex64).reshape(tile.grid.shape)
-        self._f.flush()
+        self._sync()
         self._f["tiles_done"][tile.index] = 1
         self._f.flush()
         self.done[tile.index] = True
+
+    def _sync(self) -> None:
+        """Flush HDF5's buffers to the file and the file to the disk (fsync where the driver has a
+        file descriptor)."""
+        self._f.flush()
+        try:
+            fd = self._f.id.get_vfd_handle()
+        except (AttributeError, ValueError, RuntimeError):  # a driver without one (in-memory, family)
+            return
+        if isinstance(fd, int) and fd >= 0:
+            os.fsync(fd)
 
     def close(self) -> None:
         self._f.close()
