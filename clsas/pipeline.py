@@ -33,10 +33,12 @@ log = logging.getLogger(__name__)
 
 
 def methods() -> tuple[str, ...]:
-    """The names ``reconstruct(method=...)`` takes: ``"bp"`` and every registered sparse method."""
+    """The names ``reconstruct(method=...)`` takes: ``"bp"``, every registered sparse method and every
+    model-based one (:data:`clsas.inverse.MODEL_METHODS`)."""
+    from .inverse import MODEL_METHODS
     from .sparse import SPARSE_METHODS  # scipy.optimize: imported when asked, not by `import clsas`
 
-    return ("bp", *SPARSE_METHODS.names())
+    return ("bp", *SPARSE_METHODS.names(), *MODEL_METHODS.names())
 
 
 def reconstruct(
@@ -44,7 +46,7 @@ def reconstruct(
     backend: str | None = None, device: Any = None, progress: Callable[[int, int], None] | None = None,
     sparse: dict | None = None, force: bool = False, formation: str = "bp", formation_options: dict | None = None,
     out: str | Path | None = None, max_memory: float | str | None = None, client: Any = None,
-    tile_shape: tuple[int, int, int] | None = None,
+    tile_shape: tuple[int, int, int] | None = None, inverse: dict | None = None,
 ) -> Image:
     """Image a dataset on a grid: profiles over the grid's exact delay gate only (``image.plan.describe()``).
 
@@ -91,11 +93,16 @@ def reconstruct(
         every worker once (see :mod:`clsas.tiling.dask`). Needs the ``distributed`` extra.
     tile_shape : (int, int, int), optional
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
+    inverse : dict, optional
+        Options of a model-based method (``"ls"``, ``"l1"``, ``"tv"``, ``"l1-tv"``, ``"psf"``,
+        ``"offgrid"``; :data:`clsas.inverse.methods.INVERSE_OPTIONS`): weights ``lam``, ``lam_tv``,
+        ``noise_std``, ``max_iter``, ``tol``, ``warm_start``, ...
 
     With ``"bp"`` a tiled image equals the whole one (to float32 rounding); a fast formation's
     tile is that formation's image of the tile.
     """
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
+    _check_inverse(method, inverse, formation, out, max_memory, client, tile_shape)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
     selection = _selection(backend, device, tiled)
@@ -108,6 +115,14 @@ def reconstruct(
         return _finish(image, tiled, method=f"bp ({dataset.method} profiles)",
                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
     plan = plan_reconstruction(dataset, grid)
+    if _is_model(method):  # model-based: compressed profiles, then the solver forms the image
+        from .inverse.methods import model_reconstruct
+
+        prof, _, plan = _compressed(dataset, plan, compression, selection)
+        image = model_reconstruct(method, dataset, prof, grid, selection, progress, inverse)
+        plan = _with_kernels(plan, (f"compress ({compression})", prof.backend), ("project+backproject", image.backend))
+        return _finish(image, tiled, plan=plan, timings_s={**prof.timings_s, **image.timings_s,
+                                                           "total": time.perf_counter() - t_start})
     if method == "bp":
         prof, echoes, plan = _compressed(dataset, plan, compression, selection)
     else:
@@ -117,6 +132,28 @@ def reconstruct(
                          ("backproject" if formation == "bp" else formation, image.backend))
     return _finish(image, tiled, method=method, plan=plan, echoes=echoes,
                    timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
+
+
+def _check_inverse(method, inverse, formation, *tiling_args) -> None:
+    """A model-based method's options checked; ``inverse`` refused for any other method."""
+    if not _is_model(method):
+        if inverse is not None:
+            raise ValueError(f"inverse: options of the model-based methods, but method={method!r}")
+        return
+    from .inverse.methods import check_options
+
+    check_options(inverse)
+    if formation != "bp":
+        raise ValueError(f"formation={formation!r}: model-based method {method!r} forms its own image (use 'bp')")
+    if any(a is not None for a in tiling_args):
+        raise ValueError(f"method={method!r} is not formed in tiles: out, max_memory, client and tile_shape "
+                         "must be None")
+
+
+def _is_model(method: str) -> bool:
+    from .inverse import MODEL_METHODS
+
+    return method in MODEL_METHODS
 
 
 def _with_kernels(plan: ReconstructionPlan, *steps: tuple[str, str]) -> ReconstructionPlan:
