@@ -9,9 +9,10 @@ The noise of the profiles is taken as complex Gaussian with per-sample standard 
 whole recordings' matched-filter profiles (every lag, not only the grid's gate) as
 ``median|p| / sqrt(ln 2)`` (exact for pure noise, an overestimate where echoes fill
 more than half the samples: the conservative side). ``n_draws`` noise profile sets with that
-``sigma`` (white recordings through the same compression) give the RMS ``s`` of ``A^H noise`` per
-voxel. The L1 weight is ``lam = s sqrt(ln(n_vox / delta))`` with ``delta = 0.05``: by the union
-bound, pure noise leaves ``|A^H b| < lam`` everywhere, so the L1 solution is 0 (no reflector), in at
+``sigma`` (white recordings through the same compression) give the mean power of ``A^H noise`` per
+voxel, smoothed over the grid (Gaussian, 2 voxels); ``s`` is the square root of its largest value.
+The L1 weight is ``lam = s sqrt(ln(n_vox / delta))`` with ``delta = 0.05``: by the union bound,
+pure noise leaves ``|A^H b| < lam`` everywhere, so the L1 solution is 0 (no reflector), in at
 least 95 % of draws. TV takes ``lam_tv = tv_ratio * lam`` (default ``tv_ratio`` 0.5), L1+TV both.
 Least squares stops by the discrepancy principle, at ``||A x - b|| = 1.05 sigma sqrt(n_data)``.
 """
@@ -46,7 +47,7 @@ MODEL_METHODS: Registry = Registry("model-based method", "method")
 #: options ``reconstruct(..., inverse={...})`` takes, and their defaults
 INVERSE_OPTIONS = {
     "lam": None, "lam_tv": None, "tv_ratio": 0.5, "noise_std": None, "max_iter": None, "tol": 1e-3,
-    "warm_start": "bp", "pulse": True, "tv_iter": 30, "n_draws": 2, "delta": 0.05, "seed": 0,
+    "warm_start": "bp", "pulse": True, "tv_iter": 30, "n_draws": 4, "delta": 0.05, "seed": 0,
     "psf_snr_db": 30.0,
 }
 
@@ -120,14 +121,18 @@ def noise_weight(A: ImagingOperator, dataset: Dataset, profiles: Profiles, *, no
                  n_draws: int = 2, delta: float = 0.05, seed: int = 0) -> tuple[float, float]:
     """``(lam, sigma)``: the L1 weight that leaves pure noise without a reflector in ``1 - delta`` of
     draws, and the profiles' per-sample noise std (module docstring)."""
+    from scipy.ndimage import gaussian_filter
+
     rng = np.random.default_rng(seed)
     sigma, unit = noise_sigma(dataset, profiles, noise_std, rng, A.selection)
-    power = []
+    power = np.zeros(A.shape[1])
     for i in range(n_draws):
         if i:
             unit = noise_sigma(dataset, profiles, 1.0, rng)[1]
-        power.append(np.mean(np.abs(A.rmatvec(sigma * unit.ravel())) ** 2))
-    s = float(np.sqrt(np.mean(power)))
+        power += np.abs(A.rmatvec(sigma * unit.ravel())) ** 2 / n_draws
+    shape = A.grid.shape
+    smooth = gaussian_filter(power.reshape(shape), [2.0 if n > 1 else 0.0 for n in shape], mode="nearest")
+    s = float(np.sqrt(smooth.max()))
     return s * float(np.sqrt(np.log(A.shape[1] / delta))), sigma
 
 
