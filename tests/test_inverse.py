@@ -110,6 +110,22 @@ def test_compressed_pulse_models_a_simulated_point_echo():
     assert np.linalg.norm(prof.data - alpha * m) < 0.1 * np.linalg.norm(prof.data)
 
 
+def test_psf_deconvolution_undoes_a_known_blur(rng):
+    from clsas.inverse.psf import wiener
+
+    x = np.zeros((16, 1, 12), complex)
+    x[5, 0, 4], x[9, 0, 7] = 1.0, 0.5j
+    g = np.exp(-0.5 * ((np.arange(16)[:, None] - 8) ** 2 / 1.5 + (np.arange(12)[None] - 6) ** 2 / 1.0))
+    psf = g[:, None, :] / g.max()
+    kernel = np.roll(np.pad(psf, ((0, 16), (0, 0), (0, 12))), (-8, 0, -6), (0, 1, 2))
+    spectrum = np.fft.fftn(x, (32, 1, 24), axes=(0, 1, 2)) * np.fft.fftn(kernel)
+    blurred = np.fft.ifftn(spectrum)[:16, :, :12]
+    sharp = wiener(blurred, psf, snr_db=60)
+    assert np.abs(sharp - x).max() < 0.05 < np.abs(blurred - x).max()
+    with pytest.raises(ValueError, match="psf shape"):
+        wiener(blurred, psf[:3])
+
+
 def test_operator_rejects_bad_input(rng):
     prof, grid = _profiles(rng)
     with pytest.raises(TypeError, match="profiles"):
@@ -170,7 +186,7 @@ def test_reconstruct_rejects_misused_inverse_options():
     assert {"ls", "l1", "tv", "l1-tv"} <= set(methods())
 
 
-@pytest.mark.parametrize("method", ["ls", "l1", "tv", "l1-tv"])
+@pytest.mark.parametrize("method", ["ls", "l1", "tv", "l1-tv", "psf"])
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_model_based_methods_put_a_point_in_its_voxel(method, backend):
     point = np.array([0.01, 0.0, 0.5])
@@ -182,6 +198,8 @@ def test_model_based_methods_put_a_point_in_its_voxel(method, backend):
     top = image.peaks(1)[0].position_m
     assert np.linalg.norm(top - point) <= 0.0051
     info = image.provenance["inverse"]
-    assert info["iterations"] >= 1 and seen and seen[-1][0] == info["iterations"]
-    assert info["stopped"] in ("tolerance", "discrepancy", "max_iter")
+    assert info["iterations"] >= 1 and seen
+    if method != "psf":
+        assert seen[-1][0] == info["iterations"]
+    assert info["stopped"] in ("tolerance", "discrepancy", "max_iter", "direct")
     assert "project+backproject" in image.plan.describe() or backend == "numpy"
