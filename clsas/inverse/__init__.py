@@ -6,13 +6,14 @@ solvers with sparsity and total-variation priors, PSF deconvolution, and off-gri
 - :mod:`.operator`: :class:`ImagingOperator`, projection and backprojection as a LinearOperator.
 - :mod:`.solvers`: CGLS and monotone FISTA (L1 and TV priors on the magnitude).
 - :mod:`.psf`: PSF deconvolution in the image domain (``method="psf"``).
+- :mod:`.offgrid`: off-grid point reflectors by ADCG (``method="offgrid"``).
 - :mod:`.methods`: the methods ``reconstruct(method=...)`` takes (:data:`MODEL_METHODS`) and the
   noise-level rule for their weights.
 """
 
 from __future__ import annotations
 
-from . import psf  # noqa: F401 - registers method 'psf'
+from . import offgrid, psf  # noqa: F401 - register methods 'offgrid' and 'psf'
 from .methods import MODEL_METHODS, noise_weight
 from .operator import ImagingOperator, compressed_pulse
 

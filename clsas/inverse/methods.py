@@ -48,7 +48,7 @@ MODEL_METHODS: Registry = Registry("model-based method", "method")
 INVERSE_OPTIONS = {
     "lam": None, "lam_tv": None, "tv_ratio": 0.5, "noise_std": None, "max_iter": None, "tol": 1e-3,
     "warm_start": "bp", "pulse": True, "tv_iter": 30, "n_draws": 4, "delta": 0.05, "seed": 0,
-    "psf_snr_db": 30.0,
+    "psf_snr_db": 30.0, "max_reflectors": 8,
 }
 
 
@@ -80,6 +80,7 @@ def check_options(options: dict | None) -> dict:
     if not isinstance(o["seed"], (int, np.integer)) or isinstance(o["seed"], bool):
         raise TypeError(f"inverse['seed'] must be an int, got {o['seed']!r}")
     o["psf_snr_db"] = v.finite("inverse['psf_snr_db']", o["psf_snr_db"])
+    o["max_reflectors"] = v.positive_int("inverse['max_reflectors']", o["max_reflectors"])
     return o
 
 

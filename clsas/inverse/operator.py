@@ -27,7 +27,7 @@ log = logging.getLogger(__name__)
 
 
 def compressed_pulse(waveform: np.ndarray, fs_hz: float, dtau_s: float, fc_hz: float,
-                     rel_floor: float = 1e-3) -> np.ndarray:
+                     rel_floor: float = 1e-3, echo: np.ndarray | None = None) -> np.ndarray:
     """The baseband compressed pulse of ``waveform`` on the profiles' lag grid, centred.
 
     Computed by clsas's own matched filter (the NumPy twin) on a recording holding the waveform at a
@@ -44,6 +44,8 @@ def compressed_pulse(waveform: np.ndarray, fs_hz: float, dtau_s: float, fc_hz: f
         Baseband rotation of the profiles, Hz.
     rel_floor : float
         Tails below this fraction of the peak are cut (the pulse stays odd-length and centred).
+    echo : (n_wave,) array, optional
+        The echo as received (e.g. the waveform after air absorption), default the waveform.
 
     Returns
     -------
@@ -57,7 +59,7 @@ def compressed_pulse(waveform: np.ndarray, fs_hz: float, dtau_s: float, fc_hz: f
     half = -(-n_wave // step) + 2  # lags of the autocorrelation's support on each side
     delay = (half + 1) * step  # a whole number of lags
     rec = np.zeros((1, delay + n_wave + (half + 2) * step))
-    rec[0, delay: delay + n_wave] = waveform
+    rec[0, delay: delay + n_wave] = waveform if echo is None else echo
     tau_d = delay / fs_hz
     prof = compress(rec, waveform, fs_hz, gate_s=(tau_d - half * step / fs_hz, tau_d + half * step / fs_hz),
                     t0_s=0.0, fc_hz=fc_hz, lag_step=step, backend="numpy")
