@@ -100,7 +100,7 @@ def noise_sigma(dataset: Dataset, profiles: Profiles, noise_std: float | None, r
     step = max(1, int(round(profiles.dtau_s * dataset.fs_hz)))
     gate = (float(profiles.tau0_s.min()), float(profiles.tau0_s.max() + (profiles.n_lags - 1) * profiles.dtau_s))
     unit = compress(noise, dataset.waveform, dataset.fs_hz, gate_s=gate, t0_s=dataset.t0_s, fc_hz=profiles.fc_hz,
-                    lag_step=step, backend="numpy").data
+                    lag_step=step, backend=backend).data
     unit = _fit_lags(unit, profiles.n_lags)
     per_sample = float(np.sqrt(np.mean(np.abs(unit) ** 2)))
     if noise_std is not None:
@@ -129,7 +129,7 @@ def noise_weight(A: ImagingOperator, dataset: Dataset, profiles: Profiles, *, no
     power = np.zeros(A.shape[1])
     for i in range(n_draws):
         if i:
-            unit = noise_sigma(dataset, profiles, 1.0, rng)[1]
+            unit = noise_sigma(dataset, profiles, 1.0, rng, A.selection)[1]
         power += np.abs(A.rmatvec(sigma * unit.ravel())) ** 2 / n_draws
     shape = A.grid.shape
     smooth = gaussian_filter(power.reshape(shape), [2.0 if n > 1 else 0.0 for n in shape], mode="nearest")

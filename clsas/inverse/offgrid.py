@@ -9,7 +9,7 @@ compressed pulse at the recording rate, band-limited upsampled 8 times and linea
 grid's centre) and ISO 9613-1 air absorption over the grid centre's mean path (it tilts the
 spectrum): each a 1-2 % model error if left out, more than the noise after compression. The loop:
 
-1. seeds: the strongest local maxima of the L1 grid image (``method="l1"``) above its weight;
+1. seeds: the local maxima of the L1 grid image (``method="l1"``) within -10 dB of its peak;
 2. fit all positions jointly (``scipy.optimize.least_squares``, Levenberg-Marquardt; amplitudes by
    linear least squares at each step: variable projection), clipped to the grid's box; an axis of
    one voxel stays where it is;
@@ -116,7 +116,7 @@ def _fit(model: PointModel, b: np.ndarray, positions: np.ndarray, lo: np.ndarray
         return np.concatenate([r.real, r.imag])
 
     sol = least_squares(residual, start[:, free].ravel(), x_scale=1e-3, diff_step=1e-6,
-                        max_nfev=30 * (free.sum() * K + 1), method="lm")
+                        max_nfev=10 * (free.sum() * K + 1), method="lm")
     pos = np.clip(place(sol.x), lo, hi)
     M = model.columns(pos)
     alpha = np.linalg.lstsq(M, b, rcond=None)[0]
@@ -191,7 +191,9 @@ def offgrid(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, selection: _c
         lam = noise_weight(A, dataset, profiles, noise_std=o["noise_std"], n_draws=o["n_draws"], delta=o["delta"],
                            seed=o["seed"])[0]
     max_reflectors = o["max_reflectors"]
-    seeds = [p.position_m for p in seed_image.peaks(max_reflectors) if p.magnitude > 0]
+    peaks = seed_image.peaks(max_reflectors)
+    top = peaks[0].magnitude if peaks else 0.0
+    seeds = [p.position_m for p in peaks if p.magnitude > 0 and p.magnitude >= 0.3 * top]
     model = PointModel(A, dataset.waveform, dataset.fs_hz, temperature_c=float(np.mean(dataset.temperature_c)),
                        humidity_pct=float(np.mean(dataset.humidity_pct)))
     c = float(np.mean(A.c))
