@@ -46,8 +46,7 @@ def reconstruct(
     backend: str | None = None, device: Any = None, progress: Callable[[int, int], None] | None = None,
     sparse: dict | None = None, force: bool = False, formation: str = "bp", formation_options: dict | None = None,
     out: str | Path | None = None, max_memory: float | str | None = None, client: Any = None,
-    tile_shape: tuple[int, int, int] | None = None, inverse: dict | None = None,
-) -> Image:
+    tile_shape: tuple[int, int, int] | None = None, inverse: dict | None = None) -> Image:
     """Image a dataset on a grid: profiles over the grid's exact delay gate only (``image.plan.describe()``).
 
     Parameters
@@ -94,15 +93,12 @@ def reconstruct(
     tile_shape : (int, int, int), optional
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
     inverse : dict, optional
-        Options of a model-based method (``"ls"``, ``"l1"``, ``"tv"``, ``"l1-tv"``, ``"psf"``,
-        ``"offgrid"``; :data:`clsas.inverse.methods.INVERSE_OPTIONS`): weights ``lam``, ``lam_tv``,
-        ``noise_std``, ``max_iter``, ``tol``, ``warm_start``, ...
+        Options of a model-based method (:data:`clsas.inverse.methods.INVERSE_OPTIONS`).
 
     With ``"bp"`` a tiled image equals the whole one (to float32 rounding); a fast formation's
     tile is that formation's image of the tile.
     """
-    fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
-    _check_inverse(method, inverse, formation, out, max_memory, client, tile_shape)
+    fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options, inverse)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
     selection = _selection(backend, device, tiled)
@@ -115,26 +111,29 @@ def reconstruct(
         return _finish(image, tiled, method=f"bp ({dataset.method} profiles)",
                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
     plan = plan_reconstruction(dataset, grid)
-    if _is_model(method):  # model-based: compressed profiles, then the solver forms the image
-        from .inverse.methods import model_reconstruct
-
-        prof, _, plan = _compressed(dataset, plan, compression, selection)
-        image = model_reconstruct(method, dataset, prof, grid, selection, progress, inverse)
-        plan = _with_kernels(plan, (f"compress ({compression})", prof.backend), ("project+backproject", image.backend))
-        return _finish(image, tiled, plan=plan, timings_s={**prof.timings_s, **image.timings_s,
-                                                           "total": time.perf_counter() - t_start})
-    if method == "bp":
+    if method == "bp" or _is_model(method):
         prof, echoes, plan = _compressed(dataset, plan, compression, selection)
     else:
         prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress)
-    image = _form(prof, grid, formation, fopts, selection, progress, force, tiled)
+    image = (_model_based(method, dataset, prof, grid, selection, progress, inverse, tiled) if _is_model(method)
+             else _form(prof, grid, formation, fopts, selection, progress, force, tiled))
     plan = _with_kernels(plan, (f"compress ({compression})", prof.backend),
                          ("backproject" if formation == "bp" else formation, image.backend))
     return _finish(image, tiled, method=method, plan=plan, echoes=echoes,
                    timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
 
 
-def _check_inverse(method, inverse, formation, *tiling_args) -> None:
+def _model_based(method, dataset, prof, grid, selection, progress, inverse, tiled) -> Image:
+    """Stage: the model-based method (:mod:`clsas.inverse`) forms the image from the compressed profiles."""
+    from .inverse.methods import model_reconstruct
+
+    if tiled is not None:
+        raise ValueError(f"method={method!r} is not formed in tiles: out, max_memory, client, tile_shape and "
+                         "several devices are for the other methods")
+    return model_reconstruct(method, dataset, prof, grid, selection, progress, inverse)
+
+
+def _check_inverse(method: str, inverse: dict | None, formation: str) -> None:
     """A model-based method's options checked; ``inverse`` refused for any other method."""
     if not _is_model(method):
         if inverse is not None:
@@ -145,9 +144,6 @@ def _check_inverse(method, inverse, formation, *tiling_args) -> None:
     check_options(inverse)
     if formation != "bp":
         raise ValueError(f"formation={formation!r}: model-based method {method!r} forms its own image (use 'bp')")
-    if any(a is not None for a in tiling_args):
-        raise ValueError(f"method={method!r} is not formed in tiles: out, max_memory, client and tile_shape "
-                         "must be None")
 
 
 def _is_model(method: str) -> bool:
@@ -170,8 +166,9 @@ def _finish(image: Image, tiled, **changes) -> Image:
     return image if tiled is None or tiled.out is None else tiling.finish(image, tiled.out)
 
 
-def _check_request(dataset, grid, method, compression, sparse, formation, formation_options) -> dict:
+def _check_request(dataset, grid, method, compression, sparse, formation, formation_options, inverse=None) -> dict:
     """Every argument checked before any work; the formation's options as a new dict."""
+    _check_inverse(method, inverse, formation)
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     FORMATIONS.check(formation)

@@ -202,7 +202,7 @@ def test_model_based_methods_put_a_point_in_its_voxel(method, backend):
     if method != "psf":
         assert seen[-1][0] == info["iterations"]
     assert info["stopped"] in ("tolerance", "discrepancy", "max_iter", "direct")
-    assert "project+backproject" in image.plan.describe() or backend == "numpy"
+    assert image.plan is not None and image.timings_s["total"] > 0
 
 
 def test_offgrid_resolves_a_pair_at_half_the_cross_range_resolution():
