@@ -48,7 +48,7 @@ MODEL_METHODS: Registry = Registry("model-based method", "method")
 INVERSE_OPTIONS = {
     "lam": None, "lam_tv": None, "tv_ratio": 0.5, "noise_std": None, "max_iter": None, "tol": 1e-3,
     "warm_start": "bp", "pulse": True, "tv_iter": 30, "n_draws": 4, "delta": 0.05, "seed": 0,
-    "psf_snr_db": 30.0, "max_reflectors": 8,
+    "psf_snr_db": 20.0, "max_reflectors": 8,
 }
 
 

@@ -5,7 +5,7 @@ The point-spread function is clsas's own: the backprojection of a simulated poin
 centre through the same operator (``A^H A e_centre``, forward projector and compressed pulse), so it
 matches the grid, the geometry and the waveform. The deconvolution treats it as shift-invariant over
 the grid (true near the centre, an approximation at the edges of a wide grid) and applies a Wiener
-filter ``conj(H) / (|H|^2 + 10^(-snr_db/10))`` in the 3-D Fourier domain, to complex values.
+filter ``conj(H) / (|H|^2 + max|H|^2 10^(-snr_db/10))`` in the 3-D Fourier domain, to complex values.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ def wiener(image: np.ndarray, psf: np.ndarray, snr_db: float = 30.0) -> np.ndarr
     kernel = np.roll(kernel, [-c for c in centre], axis=(0, 1, 2))
     H = np.fft.fftn(kernel)
     Y = np.fft.fftn(image, pad, axes=(0, 1, 2))
-    X = np.conj(H) * Y / (np.abs(H) ** 2 + 10 ** (-snr_db / 10))
+    power = np.abs(H) ** 2
+    X = np.conj(H) * Y / (power + power.max() * 10 ** (-snr_db / 10))
     return np.fft.ifftn(X)[tuple(slice(0, n) for n in image.shape)]
 
 
@@ -56,7 +57,7 @@ def wiener(image: np.ndarray, psf: np.ndarray, snr_db: float = 30.0) -> np.ndarr
 def psf_deconvolve(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, selection: _cl.Selection,
                    progress=None, **options) -> Image:
     """``method="psf"``: backprojection, then Wiener deconvolution by clsas's PSF (option
-    ``psf_snr_db``, default 30 dB)."""
+    ``psf_snr_db``, default 20 dB)."""
     o = check_options(options)
     t0 = time.perf_counter()
     A = operator_for(dataset, profiles, grid, selection, o["pulse"])
