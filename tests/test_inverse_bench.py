@@ -35,3 +35,21 @@ def test_edge_width_and_tcr_of_a_drawn_rectangle():
     assert abs(width - 2 * np.sqrt(2 * np.log(2)) * sigma * 1e3) < 0.3 and cuts > 100
     clutter = mag + 0.01
     assert abs(tcr_db(clutter, x, y) - 20 * np.log10(1.01 / 0.01)) < 0.1  # peak 1.01 over clutter 0.01
+
+
+def test_cli_takes_the_benchmark_and_the_methods(monkeypatch, tmp_path):
+    """``clsas bench --superres-image`` reaches run_superres_image with its arguments (stubbed: the real
+    run takes minutes); ``clsas reconstruct --method`` offers the model-based methods."""
+    from clsas.cli import build_parser, main
+
+    seen = {}
+
+    def fake(out, **kw):
+        seen.update(out=out, **kw)
+        return {"pairs": [], "airsas": [], "paths": {}}
+
+    monkeypatch.setattr("clsas.bench.superres_image.run_superres_image", fake)
+    assert main(["bench", "--superres-image", "--n-seeds", "3", "--out", str(tmp_path), "-q"]) == 0
+    assert seen["n_trials"] == 3 and seen["airsas_root"] is None and seen["out"] == str(tmp_path)
+    args = build_parser().parse_args(["reconstruct", "x.h5", "--method", "offgrid"])
+    assert args.method == "offgrid"
