@@ -18,6 +18,9 @@
  * work-item the VEC lanes' geometry (path, lag, weight, carrier) is computed as vectors and the
  * scatter runs lane by lane (lanes may hit the same lag). Deterministic: same order every run.
  *
+ * A real per-(voxel, measurement) weight in the backprojection (a transducer beam pattern) enters
+ * here as the same factor on (vr, vi) below, which keeps the two kernels exact adjoints.
+ *
  * Needs common.cl. Voxels past n_vox are padding with x = 0. */
 
 __kernel void project(
