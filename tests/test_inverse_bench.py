@@ -50,6 +50,6 @@ def test_cli_takes_the_benchmark_and_the_methods(monkeypatch, tmp_path):
 
     monkeypatch.setattr("clsas.bench.superres_image.run_superres_image", fake)
     assert main(["bench", "--superres-image", "--n-seeds", "3", "--out", str(tmp_path), "-q"]) == 0
-    assert seen["n_trials"] == 3 and seen["airsas_root"] is None and seen["out"] == str(tmp_path)
+    assert seen["n_trials"] == seen["noise_draws"] == 3 and seen["airsas_root"] is None and seen["out"] == str(tmp_path)
     args = build_parser().parse_args(["reconstruct", "x.h5", "--method", "offgrid"])
     assert args.method == "offgrid"

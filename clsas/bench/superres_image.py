@@ -28,7 +28,7 @@ import numpy as np
 
 import clsas
 
-__all__ = ["METHODS", "airsas", "edge_width_mm", "pair_trial", "resolved", "run_superres_image"]
+__all__ = ["METHODS", "airsas", "edge_width_mm", "pair_trial", "resolved", "run_noise", "run_superres_image"]
 
 log = logging.getLogger(__name__)
 
@@ -130,6 +130,21 @@ def run_pairs(name: str, factors, n_trials: int, methods, status: Callable[[str]
                          "rms_error_res": float(np.sqrt(np.mean(e**2))) if len(e) else None,
                          "median_time_s": float(np.median(a["time_s"]))})
     return rows
+
+
+def run_noise(name: str, n_draws: int, status: Callable[[str], None], seed0: int = 5000) -> dict:
+    """Pure-noise recordings in the set-up's geometry: the share of draws whose ``"l1"`` image (weight
+    from the noise-level rule) holds no reflector at all."""
+    from dataclasses import replace
+
+    base, grid, _, _ = pair_trial(name, 0.5, seed0)
+    empty = 0
+    for i in range(n_draws):
+        noise = np.random.default_rng(seed0 + i).normal(size=base.signals.shape)
+        image = clsas.reconstruct(replace(base, signals=noise), grid, method="l1", inverse={"seed": seed0 + i})
+        empty += int(not np.any(np.asarray(image.values)))
+        status(f"{name} pure noise: {empty} of {i + 1} draws empty")
+    return {"setup": name, "draws": n_draws, "empty_share": empty / n_draws}
 
 
 # -- measured ------------------------------------------------------------------------------------------
@@ -249,6 +264,9 @@ def markdown(out: dict) -> str:
             err = "-" if r["rms_error_res"] is None else f"{r['rms_error_res']:.3f}"
             lines.append(f"| {r['setup']} | {r['factor']} | {r['method']} | {r['resolved_share']:.0%} of "
                          f"{r['trials']} | {err} | {r['median_time_s']:.2f} |")
+    for r in out.get("noise", []):
+        lines += ["", f"Pure noise ({r['setup']}): the l1 image with the noise-level weight is empty in "
+                  f"{r['empty_share']:.0%} of {r['draws']} draws."]
     if out["airsas"]:
         lines += ["", "## Measured AirSAS scans (all pings)", "", "Time (bp's): in units of a warm "
                   "`reconstruct(method=\"bp\")` on the same grid (compression included).", "",
@@ -263,7 +281,7 @@ def markdown(out: dict) -> str:
 
 def run_superres_image(out_dir: str | Path = "bench/results", *, methods=METHODS, setups=("2d-line", "3d-rig"),
                        factors=(0.25, 0.5, 1.0), n_trials: int = 10, airsas_root: str | Path | None = None,
-                       scans=("20k", "5k"), max_iter: int = 10, tag: str = "",
+                       scans=("20k", "5k"), max_iter: int = 10, noise_draws: int = 0, tag: str = "",
                        status: Callable[[str], None] = log.info) -> dict:
     """The whole benchmark; writes ``<out>/<date>-superres-image[-tag].{json,md}`` and a PNG per scan."""
     from clsas import cl
@@ -275,6 +293,7 @@ def run_superres_image(out_dir: str | Path = "bench/results", *, methods=METHODS
            "methods": list(methods), "pairs": [], "airsas": []}
     for name in setups:
         out["pairs"] += run_pairs(name, factors, n_trials, methods, status)
+    out["noise"] = [run_noise(name, noise_draws, status) for name in setups if noise_draws]
     stem = out_dir / f"{out['date']}-superres-image{('-' + tag) if tag else ''}"
     if airsas_root is not None:
         root = Path(airsas_root)

@@ -93,8 +93,8 @@ def _bench_superres_image(args, status) -> int:
     """``clsas bench --superres-image``: model-based methods against bp (see :mod:`clsas.bench.superres_image`)."""
     from clsas.bench.superres_image import run_superres_image
 
-    res = run_superres_image(args.out, n_trials=args.n_seeds or (50 if args.full else 10), airsas_root=args.airsas,
-                             status=status)
+    n = args.n_seeds or (50 if args.full else 10)
+    res = run_superres_image(args.out, n_trials=n, noise_draws=n, airsas_root=args.airsas, status=status)
     for r in res["pairs"]:
         print(f"{r['setup']} pairs at {r['factor']} x res: {r['method']}: {r['resolved_share']:.0%} resolved")
     for r in res["airsas"]:
