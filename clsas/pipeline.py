@@ -34,10 +34,12 @@ log = logging.getLogger(__name__)
 
 
 def methods() -> tuple[str, ...]:
-    """The names ``reconstruct(method=...)`` takes: ``"bp"`` and every registered sparse method."""
+    """The names ``reconstruct(method=...)`` takes: ``"bp"``, every registered sparse method and every
+    model-based one (:data:`clsas.inverse.MODEL_METHODS`)."""
+    from .inverse import MODEL_METHODS
     from .sparse import SPARSE_METHODS  # scipy.optimize: imported when asked, not by `import clsas`
 
-    return ("bp", *SPARSE_METHODS.names())
+    return ("bp", *SPARSE_METHODS.names(), *MODEL_METHODS.names())
 
 
 def reconstruct(
@@ -46,6 +48,7 @@ def reconstruct(
     sparse: dict | None = None, force: bool = False, formation: str = "auto", formation_options: dict | None = None,
     out: str | Path | None = None, max_memory: float | str | None = None, client: Any = None,
     tile_shape: tuple[int, int, int] | None = None, max_error_db: float = DEFAULT_MAX_ERROR_DB,
+    inverse: dict | None = None,
 ) -> Image:
     """Image a dataset on a grid: profiles over the grid's exact delay gate only (``image.plan.describe()``).
 
@@ -101,11 +104,13 @@ def reconstruct(
     max_error_db : float
         With ``formation="auto"``: the largest error against exact backprojection allowed (complex
         error-to-signal over the grid, dB; default -30).
+    inverse : dict, optional
+        Options of a model-based method (:data:`clsas.inverse.methods.INVERSE_OPTIONS`).
 
     With ``"bp"`` a tiled image equals the whole one (to float32 rounding); a fast formation's
     tile is that formation's image of the tile.
     """
-    fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options)
+    fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options, inverse)
     max_error_db = check_max_error_db(max_error_db)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
@@ -114,22 +119,32 @@ def reconstruct(
         # the image must fit before any work starts (with force, the formation warns)
         check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()
+    form = (formation, fopts, selection, progress, force, tiled, max_error_db, inverse)
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
-        formation, fopts, choice = _formation(formation, fopts, dataset, grid, "bp", tiled, selection, max_error_db)
-        image = _recorded(_form(dataset, grid, formation, fopts, selection, progress, force, tiled), choice)
+        image, _ = _image(dataset, dataset, grid, "bp", *form)
         return _finish(image, tiled, method=f"bp ({dataset.method} profiles)",
                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
     plan = plan_reconstruction(dataset, grid)
-    if method == "bp":
+    if method == "bp" or _is_model(method):
         prof, echoes, plan = _compressed(dataset, plan, compression, selection)
     else:
         prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress, tiled)
-    formation, fopts, choice = _formation(formation, fopts, prof, grid, method, tiled, selection, max_error_db)
-    image = _recorded(_form(prof, grid, formation, fopts, selection, progress, force, tiled), choice)
-    plan = _with_kernels(plan, (f"compress ({compression})", prof.backend),
-                         ("backproject" if formation == "bp" else formation, image.backend))
+    image, step = _image(dataset, prof, grid, method, *form)
+    plan = _with_kernels(plan, (f"compress ({compression})", prof.backend), (step, image.backend))
     return _finish(image, tiled, method=method, plan=plan, echoes=echoes,
                    timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
+
+
+def _image(dataset, prof: Profiles, grid: VoxelGrid, method: str, formation: str, fopts: dict,
+           selection: cl.Selection, progress, force: bool, tiled, max_error_db: float,
+           inverse: dict | None) -> tuple[Image, str]:
+    """Stage: the image from the profiles (a model-based method, or the formation auto or the caller
+    chose), with the name of the step that formed it."""
+    if _is_model(method):
+        return _model_based(method, dataset, prof, grid, selection, progress, inverse, tiled), method
+    formation, fopts, choice = _formation(formation, fopts, prof, grid, method, tiled, selection, max_error_db)
+    image = _recorded(_form(prof, grid, formation, fopts, selection, progress, force, tiled), choice)
+    return image, ("backproject" if formation == "bp" else formation)
 
 
 def _formation(formation: str, fopts: dict, prof: Profiles, grid: VoxelGrid, method: str, tiled,
@@ -161,6 +176,36 @@ def _recorded(image: Image, choice: Choice | None) -> Image:
     return replace(image, provenance={**image.provenance, "formation_auto": choice.as_dict()})
 
 
+def _model_based(method, dataset, prof, grid, selection, progress, inverse, tiled) -> Image:
+    """Stage: the model-based method (:mod:`clsas.inverse`) forms the image from the compressed profiles."""
+    from .inverse.methods import model_reconstruct
+
+    if tiled is not None:
+        raise ValueError(f"method={method!r} is not formed in tiles: out, max_memory, client, tile_shape and "
+                         "several devices are for the other methods")
+    return model_reconstruct(method, dataset, prof, grid, selection, progress, inverse)
+
+
+def _check_inverse(method: str, inverse: dict | None, formation: str) -> None:
+    """A model-based method's options checked; ``inverse`` refused for any other method."""
+    if not _is_model(method):
+        if inverse is not None:
+            raise ValueError(f"inverse: options of the model-based methods, but method={method!r}")
+        return
+    from .inverse.methods import check_options
+
+    check_options(inverse)
+    if formation not in ("bp", "auto"):
+        raise ValueError(f"formation={formation!r}: model-based method {method!r} forms its own image (leave "
+                         "formation at its default)")
+
+
+def _is_model(method: str) -> bool:
+    from .inverse import MODEL_METHODS
+
+    return method in MODEL_METHODS
+
+
 def _with_kernels(plan: ReconstructionPlan, *steps: tuple[str, str]) -> ReconstructionPlan:
     """The plan with the steps that ran on OpenCL ((name, backend) pairs) as its kernels, logged."""
     plan = replace(plan, kernels=[name for name, backend in steps if backend == "opencl"])
@@ -175,8 +220,9 @@ def _finish(image: Image, tiled, **changes) -> Image:
     return image if tiled is None or tiled.out is None else tiling.finish(image, tiled.out)
 
 
-def _check_request(dataset, grid, method, compression, sparse, formation, formation_options) -> dict:
+def _check_request(dataset, grid, method, compression, sparse, formation, formation_options, inverse=None) -> dict:
     """Every argument checked before any work; the formation's options as a new dict."""
+    _check_inverse(method, inverse, formation)
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
     if formation != "auto" and (not isinstance(formation, str) or formation not in FORMATIONS):

@@ -198,7 +198,10 @@ def reconstruct_image(ds, grid, args, progress=True):
     if formation == "auto" and method != "bp":
         formation = "bp"  # what auto takes for the sparse methods' profiles
     form = "backproject" if formation == "bp" else f"form ({formation})"
-    steps = (form,) if method == "bp" else (f"super-resolve ({method})", form)
+    from clsas.inverse import MODEL_METHODS
+
+    steps = ((form,) if method == "bp" else (f"solve ({method}, iterations)",) if method in MODEL_METHODS
+             else (f"super-resolve ({method})", form))
     announce_slow_method(ds, grid, method)
     with progress_bar(steps, ds.n_meas, progress, announce=slow_job_notice(method)) as cb:
         return clsas.reconstruct(ds, grid, method=method,
