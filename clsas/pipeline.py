@@ -59,64 +59,53 @@ def reconstruct(
         (:meth:`clsas.Profiles.from_range_profiles`; imaged by ``method="bp"`` only).
     grid : VoxelGrid
     method : str
-        ``"bp"``: pulse compression + the formation. A registered sparse method
-        (:data:`clsas.sparse.SPARSE_METHODS`: ``"bpdn"``, ``"cbp-taylor"``, ``"cbp-polar"``, ...)
-        super-resolves each recording in its own range gate and renders each echo as a narrow pulse.
+        ``"bp"``: pulse compression + the formation. A sparse method (:data:`clsas.sparse.SPARSE_METHODS`:
+        ``"bpdn"``, ``"cbp-polar"``, ...) super-resolves each recording first; a model-based one
+        (:data:`clsas.inverse.MODEL_METHODS`: ``"ls"``, ``"l1"``, ``"tv"``, ``"l1-tv"``, ``"psf"``,
+        ``"offgrid"``) solves for the image through the forward projector.
     compression : str
         A registered compression (:data:`clsas.compression.COMPRESSIONS`): ``"matched"`` or ``"fmcw"``.
     backend : {"auto", "opencl", "numpy"}, optional
         Default ``$CLSAS_BACKEND``, else ``"auto"``: OpenCL where a device exists and the
         kernels build, else the NumPy twins with one warning; ``"opencl"`` raises instead.
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, or a list of them, optional
-        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one). A list (``"numpy"``
-        may be one) spreads tiles over the devices, each taking the next tile when free.
+        The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one); a list spreads tiles.
     progress : callable(done, total), optional
         Measurements backprojected; tiles formed when the grid is formed in tiles.
     sparse : dict, optional
-        Options of the sparse step (:func:`clsas.sparse.profiles.superres_profiles`: ``delta_s``,
-        ``lam``, ``lam_frac``, ``render_width_s``, ``max_echoes``, ``guard_s``, ``method_options``,
-        ``absorption``, ``pulse``). A recording whose sparse recovery fails is imaged by its
-        matched filter, said in ``image.echoes[m].fallback`` and ``.status`` and one warning.
+        Options of the sparse step (:func:`clsas.sparse.profiles.superres_profiles`). A recording whose
+        recovery fails is imaged by its matched filter (``image.echoes[m].fallback``, one warning).
     force : bool
         Image a grid even if it does not seem to fit in memory.
     formation : str
-        How the profiles become an image: ``"auto"`` (default) or one of
-        :data:`clsas.formation.FORMATIONS`: ``"bp"`` (exact, the reference), ``"omega-k"`` (planar
-        uniform apertures), ``"ffbp"`` (any trajectory). ``"auto"`` takes the fastest formation
-        whose predicted error against ``"bp"`` meets ``max_error_db`` for this aperture, grid and
-        device (:func:`clsas.formation.cost.choose`; the choice and its reason are logged and kept in
-        ``image.provenance["formation_auto"]``, and so in the image file); the sparse methods and
-        tiled requests (``out``, ``max_memory``, ``client``, ``tile_shape``) are formed by ``"bp"``.
+        ``"auto"`` (default) or one of :data:`clsas.formation.FORMATIONS` (``"bp"``, exact; ``"omega-k"``;
+        ``"ffbp"``). ``"auto"`` takes the fastest whose predicted error meets ``max_error_db``
+        (:func:`clsas.formation.cost.choose`; logged, kept in ``image.provenance["formation_auto"]``);
+        sparse methods, tiled requests and directional beams take ``"bp"``.
     formation_options : dict, optional
         Passed to the formation (see its module); not with ``"auto"``.
     out : str or Path, optional
-        A chunked file (``.h5`` or ``.zarr``) formed tile by tile, for grids larger than memory; the
-        Image reads it lazily (:meth:`clsas.Image.open`); the same request again resumes it.
+        A chunked file (``.h5``/``.zarr``) formed tile by tile, read lazily; the same request resumes it.
     max_memory : float or str, optional
-        Host memory budget of this process (bytes, or ``"2GB"``): the tiles are sized so that
-        forming one stays within it (Dask: the budget of each worker).
+        Host memory budget (bytes, or ``"2GB"``) of this process or of each Dask worker; sizes the tiles.
     client : distributed.Client or str, optional
-        A Dask client or scheduler address: each tile is a task, the profiles are sent to
-        every worker once (see :mod:`clsas.tiling.dask`); a sparse method's per-recording step runs
-        there too (:mod:`clsas.sparse.parallel`). Needs the ``distributed`` extra.
+        A Dask client or scheduler address: tiles (:mod:`clsas.tiling.dask`) and a sparse method's
+        recordings (:mod:`clsas.sparse.parallel`) run there. Needs the ``distributed`` extra.
     tile_shape : (int, int, int), optional
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
     max_error_db : float
-        With ``formation="auto"``: the largest error against exact backprojection allowed (complex
-        error-to-signal over the grid, dB; default -30).
+        ``formation="auto"``'s largest error against exact bp (error-to-signal over the grid, dB).
     inverse : dict, optional
         Options of a model-based method (:data:`clsas.inverse.methods.INVERSE_OPTIONS`).
 
-    With ``"bp"`` a tiled image equals the whole one (to float32 rounding); a fast formation's
-    tile is that formation's image of the tile.
+    With ``"bp"`` a tiled image equals the whole one (to float32 rounding).
     """
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options, inverse)
     max_error_db = check_max_error_db(max_error_db)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
     selection = _selection(backend, device, tiled)
-    if not force and tiled is None:
-        # the image must fit before any work starts (with force, the formation warns)
+    if not force and tiled is None:  # the image must fit before any work starts
         check_grid(grid, selection.kind, selection.cl_device)
     t_start = time.perf_counter()
     form = (formation, fopts, selection, progress, force, tiled, max_error_db, inverse)
