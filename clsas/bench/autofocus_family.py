@@ -62,7 +62,7 @@ def run_scene(seed: int, rms_m: float, *, backend=None, methods=None, **options)
                "temperature_error_c")},
            "n_voxels": fs.grid.size, "peak_before_db": before, "peak_after_db": after, "improved": rep.improved,
            "time_s": elapsed, "images": len(rep.history), "device": rep.device, "notes": list(rep.notes),
-           "parameters": par, **s}
+           "parameters": par, "check": {k: v for k, v in rep.check.items() if not isinstance(v, dict)}, **s}
     log.info("family seed %d (%s, %.0f mm): %.2f -> %.2f dB, %.0f s", seed, fs.kind, rms_m * 1e3, before, after,
              elapsed)
     return row

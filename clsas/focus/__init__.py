@@ -51,7 +51,7 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "au
 
 log = logging.getLogger(__name__)
 
-METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
+METHODS = ("direct", "temperature", "delay", "phase", "track", "los", "3d", "pga")
 # ("direct", "phase", "temperature") until the held-out run of issue 26 (commit 2f50580) showed
 # "phase" and "temperature" making a third of the held-out scenes worse: now only what the
 # physics determines by default; the focus steps run when named
@@ -65,7 +65,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
               max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
               pga_min_coherence: float | None = None, pga_max_points: int = 32,
               temperature_tolerance_c: float = 0.35, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
-              phase_region_m: float | None = None, heldout_gain: float = 0.2,
+              phase_region_m: float | None = None, heldout_gain: float = 0.2, track_tolerance_m: float = 1e-3,
               backend: str | None = None, device: Any = None,
               progress: Callable[[str, int, float], None] | None = None,
               force: bool = False) -> tuple[Dataset, AutofocusReport]:
@@ -116,6 +116,9 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     heldout_gain : float
         Each interleaved half's phases, predicted onto the other, must raise its log-sharpness
         by at least this.
+    track_tolerance_m : float
+        ``"track"``'s motion is determined where the even and the odd stops, tracked apart, give
+        line-of-sight paths within this of each other (RMS, one way, constant and tilt removed), m.
     phase_region_m : float, optional
         Search the phases on a fine local grid of this half-size at the brightest voxel, m
         (None: on ``grid``; see docs/guide/autofocus.md).
@@ -134,7 +137,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
                        max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
                        pga_max_points, progress)
     options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                                          phase_region_m))
+                                          phase_region_m, track_tolerance_m))
     from .run import run
 
     return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
@@ -181,7 +184,7 @@ def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, tempe
 
 
 def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                           phase_region_m) -> dict:
+                           phase_region_m, track_tolerance_m=1e-3) -> dict:
     """The options of issue 26 (what counts as determined, and the check) checked."""
     margin = v.non_negative("check_margin", check_margin)
     if margin >= 1:
@@ -189,6 +192,7 @@ def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_mar
     return {"temperature_tolerance_c": v.positive("temperature_tolerance_c", temperature_tolerance_c),
             "delay_tolerance_s": v.positive("delay_tolerance_s", delay_tolerance_s), "check_margin": margin,
             "heldout_gain": v.positive("heldout_gain", heldout_gain),
+            "track_tolerance_m": v.positive("track_tolerance_m", track_tolerance_m),
             "phase_region_m": None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)}
 
 
