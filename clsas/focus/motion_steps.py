@@ -113,8 +113,10 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
     if track["determined"]:
         how += ("; positions: " + ", ".join(f"{k} {v * 1e3:.1f} mm" for k, v in where.items() if k.endswith("_m"))
                 + ("" if where["passed"] else " (the correction moves the image's features apart: not applied)"))
+    # each half's path is off by about the halves' difference / sqrt(2); the whole, with twice
+    # the stops, by about half the difference
     rep.parameters["motion"] = ParameterEstimate("motion", "m RMS (one way)", track.get("rms_m", float("nan")),
-                                                 track.get("halves_rms_m", float("nan")), track["determined"],
+                                                 0.5 * track.get("halves_rms_m", float("nan")), track["determined"],
                                                  False, how)
     rep.stages.append({"step": "motion", "methods": "track", "passed": passed, "where": where})
     if not passed:

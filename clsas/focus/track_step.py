@@ -8,8 +8,8 @@ the same path to within ``tolerance_m`` (one way, RMS).
 :func:`where_check` does not trust any similarity of images: it compares positions. The
 brightest voxel of each of two disjoint sub-apertures' images (first and second half of the
 stops in time; left and right) must not lie farther apart after the correction than before
-(plus ``cells`` resolution cells); and the brightest voxel of the whole image must not move by
-more than ``cells`` resolution cells unless the sub-apertures agree on its new place.
+(plus a resolution cell); and the brightest voxel of the whole image must not move by more than
+two resolution cells unless the sub-apertures agree on its new place.
 """
 
 from __future__ import annotations
@@ -85,8 +85,15 @@ def _peak(values, points):
     return points[int(np.argmax(np.abs(values)))]
 
 
-def where_check(fo, shift, c, move, cells: float = 1.0) -> dict:
-    """Positions before and after the correction ``move`` (n_meas, 3), and whether it passes."""
+def where_check(fo, shift, c, move, cells: float = 1.0, moved_cells: float = 2.0) -> dict:
+    """Positions before and after the correction ``move`` (n_meas, 3), and whether it passes.
+
+    Each pair of sub-apertures' brightest points must not lie more than ``cells`` resolution
+    cells farther apart than before; the whole image's brightest point may move by more than
+    ``moved_cells`` only where every sub-aperture puts its own within ``moved_cells`` of the
+    new place (on the tuning seeds a right correction moved it by up to 1.9 cells: the
+    defocused image's brightest point is not always the scene's).
+    """
     points = fo.engine.grid.points()
     before_full = _peak(fo.engine.image(shift, c), points)
     after_full = _peak(fo.engine.image(shift, c, fo.ds.tx_positions + move, fo.ds.rx_positions + move), points)
@@ -100,8 +107,9 @@ def where_check(fo, shift, c, move, cells: float = 1.0) -> dict:
         d0, d1 = float(np.linalg.norm(pa0 - pb0)), float(np.linalg.norm(pa1 - pb1))
         out[f"{name}_apart_before_m"], out[f"{name}_apart_after_m"] = d0, d1
         passed &= d1 <= d0 + cells * cell
-        agree_at_new.append(max(np.linalg.norm(pa1 - after_full), np.linalg.norm(pb1 - after_full)) <= cells * cell)
-    if out["peak_moved_m"] > cells * cell and not all(agree_at_new):
+        agree_at_new.append(max(np.linalg.norm(pa1 - after_full), np.linalg.norm(pb1 - after_full))
+                            <= moved_cells * cell)
+    if out["peak_moved_m"] > moved_cells * cell and not all(agree_at_new):
         passed = False
     out["passed"] = bool(passed)
     return out
