@@ -73,7 +73,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
               max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
               pga_min_coherence: float | None = None, pga_max_points: int = 32,
               temperature_tolerance_c: float = 0.35, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
-              phase_region_m: float | None = None, heldout_gain: float = 0.2, track_tolerance_m: float = 3e-3,
+              phase_region_m: float | None = None, heldout_gain: float = 0.2, track_tolerance_m: float = 2.5e-3,
               backend: str | None = None, device: Any = None,
               progress: Callable[[str, int, float], None] | None = None,
               force: bool = False) -> tuple[Dataset, AutofocusReport]:
@@ -192,7 +192,7 @@ def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, tempe
 
 
 def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                           phase_region_m, track_tolerance_m=3e-3) -> dict:
+                           phase_region_m, track_tolerance_m=2.5e-3) -> dict:
     """The options of issue 26 (what counts as determined, and the check) checked."""
     margin = v.non_negative("check_margin", check_margin)
     if margin >= 1:

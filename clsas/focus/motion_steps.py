@@ -111,7 +111,7 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
            f"{track.get('halves_rms_m', float('nan')) * 1e3:.2f} mm RMS (one way; determined at "
            f"<= {fo.track_tolerance_m * 1e3:.2f} mm)")
     if track["determined"]:
-        how += ("; positions: " + ", ".join(f"{k} {v * 1e3:.1f} mm" for k, v in where.items() if k.endswith("_m"))
+        how += ("; positions: " + ", ".join(f"{k} {v:.3g}" for k, v in where.items() if k != "passed")
                 + ("" if where["passed"] else " (the correction moves the image's features apart: not applied)"))
     # each half's path is off by about the halves' difference / sqrt(2); the whole, with twice
     # the stops, by about half the difference

@@ -33,7 +33,7 @@ FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
         smooth_start=True, pga_options=None, temperature_tolerance_c=0.35, delay_tolerance_s=1e-6,
-        check_margin=0.01, phase_region_m=None, heldout_gain=0.2, track_tolerance_m=3e-3) -> tuple:
+        check_margin=0.01, phase_region_m=None, heldout_gain=0.2, track_tolerance_m=2.5e-3) -> tuple:
     """The stages of :func:`clsas.autofocus` in turn: the direct sound, a delay, the motion, the
     temperature; then the check and the corrected dataset (or the input) and the report."""
     rep = AutofocusReport(metric=metric, methods=list(methods))

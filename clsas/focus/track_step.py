@@ -5,11 +5,12 @@ neighbouring stops (:mod:`.track`), gauge-fixed (constant and tilt across the ap
 zero), and judges it *determined* where the even and the odd stops, tracked on their own, give
 the same path to within ``tolerance_m`` (one way, RMS).
 
-:func:`where_check` does not trust any similarity of images: it compares positions. The
-brightest voxel of each of two disjoint sub-apertures' images (first and second half of the
-stops in time; left and right) must not lie farther apart after the correction than before
-(plus a resolution cell); and the brightest voxel of the whole image must not move by more than
-two resolution cells unless the sub-apertures agree on its new place.
+:func:`where_check` does not trust any similarity of images: it compares positions. Two
+disjoint sub-apertures' images (first and second half of the stops in time; left and right)
+must still find each other's brightest points bright after the correction (a correction that
+focuses each on a scatterer of its own moves them apart); and the brightest voxel of the whole
+image must not move by more than two resolution cells unless the sub-apertures agree on its new
+place.
 """
 
 from __future__ import annotations
@@ -81,35 +82,47 @@ def resolution_cell_m(ds, centre: np.ndarray) -> float:
     return max(c / (2 * abs(f1 - f0)), lam * r / (2 * span))
 
 
-def _peak(values, points):
-    return points[int(np.argmax(np.abs(values)))]
+def _support(values: np.ndarray, points: np.ndarray, at: np.ndarray, radius_m: float) -> float:
+    """The brightest ``|values|`` within ``radius_m`` of ``at``, over the brightest anywhere (0 to 1)."""
+    mag = np.abs(values)
+    near = np.linalg.norm(points - at, axis=1) <= radius_m
+    return float(mag[near].max(initial=0.0) / max(float(mag.max()), 1e-300))
 
 
-def where_check(fo, shift, c, move, cells: float = 1.0, moved_cells: float = 2.0) -> dict:
+def _mutual(va, vb, points, radius_m) -> float:
+    """How well two images agree on where their brightest points are: each one's brightest point
+    is this bright (relative to its own brightest) in the other, the smaller of the two."""
+    pa, pb = points[int(np.argmax(np.abs(va)))], points[int(np.argmax(np.abs(vb)))]
+    return min(_support(vb, points, pa, radius_m), _support(va, points, pb, radius_m))
+
+
+def where_check(fo, shift, c, move, *, drop: float = 0.1, enough: float = 0.5, moved_cells: float = 2.0) -> dict:
     """Positions before and after the correction ``move`` (n_meas, 3), and whether it passes.
 
-    Each pair of sub-apertures' brightest points must not lie more than ``cells`` resolution
-    cells farther apart than before; the whole image's brightest point may move by more than
-    ``moved_cells`` only where every sub-aperture puts its own within ``moved_cells`` of the
-    new place (on the tuning seeds a right correction moved it by up to 1.9 cells: the
-    defocused image's brightest point is not always the scene's).
+    For each pair of disjoint sub-apertures (:attr:`fo.splits`), the *mutual support*: each
+    image's brightest point, how bright the other image is within a resolution cell of it
+    (relative to its own brightest), the smaller of the two. After the correction it must not
+    fall by more than ``drop``, unless it is at least ``enough``: the sub-apertures must not put
+    their brightest points in places the other finds dim. And the whole image's brightest point
+    may move by more than ``moved_cells`` cells only where every sub-aperture is at least half
+    as bright at its new place as at its own brightest.
     """
     points = fo.engine.grid.points()
-    before_full = _peak(fo.engine.image(shift, c), points)
-    after_full = _peak(fo.engine.image(shift, c, fo.ds.tx_positions + move, fo.ds.rx_positions + move), points)
-    cell = resolution_cell_m(fo.ds, after_full)
-    out = {"cell_m": cell, "peak_moved_m": float(np.linalg.norm(after_full - before_full))}
+    full0 = fo.engine.image(shift, c)
+    full1 = fo.engine.image(shift, c, fo.ds.tx_positions + move, fo.ds.rx_positions + move)
+    p0, p1 = points[int(np.argmax(np.abs(full0)))], points[int(np.argmax(np.abs(full1)))]
+    cell = resolution_cell_m(fo.ds, p1)
+    out = {"cell_m": cell, "peak_moved_m": float(np.linalg.norm(p1 - p0))}
     passed = True
-    agree_at_new = []
+    at_new = []
     for name, (a, b) in zip(fo.split_names, fo.splits, strict=False):
-        pa0, pb0 = _peak(a.image(shift, c), points), _peak(b.image(shift, c), points)
-        pa1, pb1 = _peak(a.image(shift, c, move), points), _peak(b.image(shift, c, move), points)
-        d0, d1 = float(np.linalg.norm(pa0 - pb0)), float(np.linalg.norm(pa1 - pb1))
-        out[f"{name}_apart_before_m"], out[f"{name}_apart_after_m"] = d0, d1
-        passed &= d1 <= d0 + cells * cell
-        agree_at_new.append(max(np.linalg.norm(pa1 - after_full), np.linalg.norm(pb1 - after_full))
-                            <= moved_cells * cell)
-    if out["peak_moved_m"] > moved_cells * cell and not all(agree_at_new):
+        va1, vb1 = a.image(shift, c, move), b.image(shift, c, move)
+        m0 = _mutual(a.image(shift, c), b.image(shift, c), points, cell)
+        m1 = _mutual(va1, vb1, points, cell)
+        out[f"{name}_support_before"], out[f"{name}_support_after"] = m0, m1
+        passed &= m1 >= m0 - drop or m1 >= enough
+        at_new.append(min(_support(va1, points, p1, cell), _support(vb1, points, p1, cell)) >= 0.5)
+    if out["peak_moved_m"] > moved_cells * cell and not all(at_new):
         passed = False
     out["passed"] = bool(passed)
     return out
