@@ -87,8 +87,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         time). Spacing about a third of the wavelength or finer.
     methods : sequence of {"direct", "temperature", "delay", "phase", "track", "los", "3d", "pga"}
         The steps (see the module docstring); order is fixed. Default: the direct sound's delay
-        alone; the focus steps (:data:`FOCUS_METHODS`, and los, 3d, pga, delay) made a third of
-        the held-out scenes of issue 26 worse, checks and all (see docs/guide/autofocus.md).
+        alone (for the held-out figures of each, see docs/guide/autofocus.md).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
@@ -116,17 +115,15 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         default :data:`clsas.focus.pga.PGA_MIN_COHERENCE`).
     pga_max_points : int
         Most strong points ``"pga"`` uses (the brightest that qualify).
-    temperature_tolerance_c, delay_tolerance_s : float
-        Applied only where the uncertainty (from the two halves of the stops) is at most this.
+    temperature_tolerance_c, delay_tolerance_s, track_tolerance_m : float
+        Applied only where the uncertainty (from the two halves of the stops) is at most this;
+        ``"track"``: where the even and odd stops' paths agree within it (RMS, one way, m).
     check_margin : float
         Sub-aperture images' agreement (0 to 1) must not fall by more (``"phase"``), or must
         rise by at least this (``"3d"``, ``"los"``, ``"pga"``).
     heldout_gain : float
         Each interleaved half's phases, predicted onto the other, must raise its log-sharpness
         by at least this.
-    track_tolerance_m : float
-        ``"track"``'s motion is determined where the even and the odd stops, tracked apart, give
-        line-of-sight paths within this of each other (RMS, one way, constant and tilt removed), m.
     phase_region_m : float, optional
         Search the phases on a fine local grid of this half-size at the brightest voxel, m
         (None: on ``grid``; see docs/guide/autofocus.md).
