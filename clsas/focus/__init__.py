@@ -17,10 +17,18 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    (:func:`.steps._held_out_phases`): each interleaved half's phases, predicted onto the other,
    must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
    time, left and right) must not agree less (:mod:`.motion_steps`, ``check_margin``);
-4. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
+4. ``"track"`` (issue 26, second session): one line-of-sight path per stop from the phase
+   differences of neighbouring stops' images (in time and on the next row), integrated over
+   the graph of neighbours (no per-stop phase is unwrapped on its own), refined in a smooth
+   basis of stop time (the hand's 0.2-5 Hz band) plus the tilt, constant and tilt then set to
+   zero (:mod:`.track`). *Determined* where the even and the odd stops, tracked apart, give the
+   same path within ``track_tolerance_m``; applied only where the check on positions passes
+   (:func:`.track_step.where_check`: the brightest points of disjoint sub-apertures must not
+   lie farther apart after it, and the image's brightest point moves only where they agree);
+5. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
    gradients (``kernels/autofocus.cl`` and its NumPy twin), phase-gradient autofocus on strong
    points (:mod:`.pga`); nothing held out, so the sub-apertures must agree better;
-5. ``"temperature"``: the sharpest air temperature of each half of the stops (the motion
+6. ``"temperature"``: the sharpest air temperature of each half of the stops (the motion
    applied), within the thermometer's ± ``temperature_range_c``; applied only where their
    uncertainty is within ``temperature_tolerance_c`` and neither is at the search's edge.
 
@@ -51,7 +59,7 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "au
 
 log = logging.getLogger(__name__)
 
-METHODS = ("direct", "temperature", "delay", "phase", "los", "3d", "pga")
+METHODS = ("direct", "temperature", "delay", "phase", "track", "los", "3d", "pga")
 # ("direct", "phase", "temperature") until the held-out run of issue 26 (commit 2f50580) showed
 # "phase" and "temperature" making a third of the held-out scenes worse: now only what the
 # physics determines by default; the focus steps run when named
@@ -65,7 +73,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
               max_iter: int = 40, phase_sweeps: int = 4, max_stop_bytes: int = 1 << 30,
               pga_min_coherence: float | None = None, pga_max_points: int = 32,
               temperature_tolerance_c: float = 0.35, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
-              phase_region_m: float | None = None, heldout_gain: float = 0.2,
+              phase_region_m: float | None = None, heldout_gain: float = 0.2, track_tolerance_m: float = 2.5e-3,
               backend: str | None = None, device: Any = None,
               progress: Callable[[str, int, float], None] | None = None,
               force: bool = False) -> tuple[Dataset, AutofocusReport]:
@@ -77,10 +85,9 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     grid : VoxelGrid
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
-    methods : sequence of {"direct", "temperature", "delay", "phase", "los", "3d", "pga"}
+    methods : sequence of {"direct", "temperature", "delay", "phase", "track", "los", "3d", "pga"}
         The steps (see the module docstring); order is fixed. Default: the direct sound's delay
-        alone; the focus steps (:data:`FOCUS_METHODS`, and los, 3d, pga, delay) made a third of
-        the held-out scenes of issue 26 worse, checks and all (see docs/guide/autofocus.md).
+        alone (for the held-out figures of each, see docs/guide/autofocus.md).
     metric : {"sharpness", "entropy"}
         See :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
@@ -108,8 +115,9 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         default :data:`clsas.focus.pga.PGA_MIN_COHERENCE`).
     pga_max_points : int
         Most strong points ``"pga"`` uses (the brightest that qualify).
-    temperature_tolerance_c, delay_tolerance_s : float
-        Applied only where the uncertainty (from the two halves of the stops) is at most this.
+    temperature_tolerance_c, delay_tolerance_s, track_tolerance_m : float
+        Applied only where the uncertainty (from the two halves of the stops) is at most this;
+        ``"track"``: where the even and odd stops' paths agree within it (RMS, one way, m).
     check_margin : float
         Sub-aperture images' agreement (0 to 1) must not fall by more (``"phase"``), or must
         rise by at least this (``"3d"``, ``"los"``, ``"pga"``).
@@ -134,7 +142,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
                        max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
                        pga_max_points, progress)
     options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                                          phase_region_m))
+                                          phase_region_m, track_tolerance_m))
     from .run import run
 
     return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
@@ -181,7 +189,7 @@ def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, tempe
 
 
 def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                           phase_region_m) -> dict:
+                           phase_region_m, track_tolerance_m=2.5e-3) -> dict:
     """The options of issue 26 (what counts as determined, and the check) checked."""
     margin = v.non_negative("check_margin", check_margin)
     if margin >= 1:
@@ -189,6 +197,7 @@ def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_mar
     return {"temperature_tolerance_c": v.positive("temperature_tolerance_c", temperature_tolerance_c),
             "delay_tolerance_s": v.positive("delay_tolerance_s", delay_tolerance_s), "check_margin": margin,
             "heldout_gain": v.positive("heldout_gain", heldout_gain),
+            "track_tolerance_m": v.positive("track_tolerance_m", track_tolerance_m),
             "phase_region_m": None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)}
 
 

@@ -44,6 +44,11 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
         # carriage's x and y a shift across; the phase search leaves them free, so they go
         nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
         p_stop = p_stop - nuis @ (nuis.T @ p_stop)
+    track = None
+    if "track" in methods:
+        from .track_step import track_step
+
+        p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.track_tolerance_m)
     if "los" in methods:
         p_stop = fo.line_of_sight(shift, c, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter)
     if centre is None:
@@ -58,6 +63,8 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
     after = fo.split_agreement(shift, c, move)
     gain = np.asarray(after) - np.asarray(before)
     held = rep.check.get("phase_heldout")
+    if track is not None and set(methods) & {"phase", "3d", "los", "pga"} == set():
+        return _track_decision(fo, shift, c, move, track, before, after)
     if held is not None and set(methods) & {"3d", "los", "pga"} == set():
         # phases alone: held out (each half predicts the other), and no sub-aperture pair agrees less
         passed = bool(held["passed"] and gain.min() > -margin and np.any(move != 0))
@@ -84,6 +91,39 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
                          f"{margin:g}): the sharpness over-fits, or the scan does not determine the motion; "
                          "not applied")
         return np.zeros((ds.n_meas, 3)), False
+    return move, True
+
+
+def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarray, bool]:
+    """``"track"`` alone: applied where determined (the even and odd stops agree) and where the
+    check on positions (:func:`.track_step.where_check`) passes."""
+    from .track_step import where_check
+
+    rep = fo.rep
+    where = where_check(fo, shift, c, move) if track["determined"] else {"passed": False}
+    passed = bool(track["determined"] and where["passed"] and np.any(move != 0))
+    rep.check.update({f"motion_{n}_before": b for n, b in zip(fo.split_names, before, strict=True)})
+    rep.check.update({f"motion_{n}_after": a for n, a in zip(fo.split_names, after, strict=True)})
+    rep.check.update({f"where_{k}": v for k, v in where.items()})
+    rep.check["motion_passed"] = passed
+    how = (f"track: neighbouring stops' phase differences, integrated (median coherence "
+           f"{track.get('coherence_median', 0):.2f}); even and odd stops tracked apart differ by "
+           f"{track.get('halves_rms_m', float('nan')) * 1e3:.2f} mm RMS (one way; determined at "
+           f"<= {fo.track_tolerance_m * 1e3:.2f} mm)")
+    if track["determined"]:
+        how += ("; positions: " + ", ".join(f"{k} {v:.3g}" for k, v in where.items() if k != "passed")
+                + ("" if where["passed"] else " (the correction moves the image's features apart: not applied)"))
+    # each half's path is off by about the halves' difference / sqrt(2); the whole, with twice
+    # the stops, by about half the difference
+    rep.parameters["motion"] = ParameterEstimate("motion", "m RMS (one way)", track.get("rms_m", float("nan")),
+                                                 0.5 * track.get("halves_rms_m", float("nan")), track["determined"],
+                                                 False, how)
+    rep.stages.append({"step": "motion", "methods": "track", "passed": passed, "where": where})
+    if not passed:
+        rep.notes.append("motion: " + ("not determined by this scan (the even and odd stops disagree)"
+                                       if not track["determined"] else "the check on positions failed")
+                         + "; not applied")
+        return np.zeros((fo.ds.n_meas, 3)), False
     return move, True
 
 

@@ -33,7 +33,7 @@ FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
         smooth_start=True, pga_options=None, temperature_tolerance_c=0.35, delay_tolerance_s=1e-6,
-        check_margin=0.01, phase_region_m=None, heldout_gain=0.2) -> tuple:
+        check_margin=0.01, phase_region_m=None, heldout_gain=0.2, track_tolerance_m=2.5e-3) -> tuple:
     """The stages of :func:`clsas.autofocus` in turn: the direct sound, a delay, the motion, the
     temperature; then the check and the corrected dataset (or the input) and the report."""
     rep = AutofocusReport(metric=metric, methods=list(methods))
@@ -45,6 +45,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     rep.backend, rep.device = engine.backend, engine.device
     fo = _Focus(ds, engine, rep, metric, progress, temp0, per_stop_delay)
     fo.phase_region_m, fo.engine_options, fo.heldout_gain = phase_region_m, eopt, heldout_gain
+    fo.track_tolerance_m = track_tolerance_m
     rep.metric_before = fo.image_metric(np.zeros(ds.n_meas), fo.c_stated, "input")
     stop, t_stop, xy = stops_of(ds)
     fo.splits = [hs for hs in (split_halves(ds, grid, stop, xy, how, backend=engine.selection, **eopt)
@@ -57,7 +58,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     fo.delay_parameters("delay" in methods, max_delay_s, delay_tolerance_s)
     zero3 = np.zeros((ds.n_meas, 3))
     move, motion_ok = zero3, False
-    if {"phase", "los", "3d", "pga"} & set(methods) and fo.halves is not None:
+    if {"phase", "track", "los", "3d", "pga"} & set(methods) and fo.halves is not None:
         move, motion_ok = fo.motion(methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, phase_sweeps,
                                     max_stop_bytes, smooth_start, pga_options or {}, check_margin)
     d_temp = 0.0
@@ -286,7 +287,7 @@ def _fill(rep, ds, t0_est, c_est, d_temp, temp0, move, stop, methods, applied: b
     rep.temperature_c = float(np.mean(temp0) + d_temp)
     rep.c_mps = float(np.mean(c_est))
     first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
-    if {"los", "phase", "3d", "pga"} & set(methods) and rep.focus_centre_m is not None:
+    if {"los", "phase", "track", "3d", "pga"} & set(methods) and rep.focus_centre_m is not None:
         rep.los_path_m = _los_path(ds, rep.focus_centre_m, move, first)
     rep.position_correction_m = move
     rep.stop_index = stop
