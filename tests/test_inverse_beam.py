@@ -127,7 +127,8 @@ def test_operator_takes_bps_default_beam(rng):
     prof, grid = _profiles(rng)
     limited = ImagingOperator(prof, grid, backend="numpy")
     assert limited.weights is not None and limited.weights.gate == pytest.approx(gate_level(-12.0))
-    assert ImagingOperator(prof, grid, backend="numpy", beam_floor_db=-6.0).weights.gate == pytest.approx(gate_level(-6.0))
+    six = ImagingOperator(prof, grid, backend="numpy", beam_floor_db=-6.0)
+    assert six.weights.gate == pytest.approx(gate_level(-6.0))
     assert ImagingOperator(prof, grid, backend="numpy", beam="none").weights is None
     assert ImagingOperator(replace(prof, beams=None), grid, backend="numpy").weights is None
     omni = Beams("omni", "omni", (0, 0, 1), (0, 0, 1), 7)
@@ -176,6 +177,25 @@ def test_model_based_methods_use_the_choice_bp_would(monkeypatch):
         w = made[-1].weights
         gates.append("none" if w is None else ("weighted" if w.gate is None else w.gate))
     assert gates[0] == pytest.approx(gate_level(-12.0)) and gates[1:] == ["weighted", "none"]
+
+
+def test_offgrid_point_model_carries_the_same_pair_weights(rng):
+    """The off-grid method's continuous point model weights each measurement's echo by the operator's
+    beam weight of that pair (the ADCG fit and the grid operator see the same beams)."""
+    from clsas.beam import pair_weights
+    from clsas.inverse.offgrid import PointModel
+
+    prof, grid = _profiles(rng)
+    wave = clsas.lfm_chirp(20e3, 30e3, 2e-3, 96e3, taper=0.1)
+    pos = np.array([[0.02, 0.0, 0.41]])
+    cols = {}
+    for mode in ("none", "weighted"):
+        A = ImagingOperator(prof, grid, backend="numpy", beam=mode)
+        cols[mode] = PointModel(A, wave, 96e3).columns(pos)[:, 0].reshape(7, 50)
+    w = A.weights
+    pw = [pair_weights(w.luts, A.tx[m], A.rx[m], w.tx_dir[m], w.rx_dir[m], pos, None)[0] for m in range(7)]
+    assert np.ptp(pw) > 0.1  # the measurements see the point at different weights
+    np.testing.assert_allclose(cols["weighted"], np.array(pw)[:, None] * cols["none"], rtol=1e-12, atol=1e-15)
 
 
 @pytest.mark.oclgrind
