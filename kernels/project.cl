@@ -18,10 +18,17 @@
  * work-item the VEC lanes' geometry (path, lag, weight, carrier) is computed as vectors and the
  * scatter runs lane by lane (lanes may hit the same lag). Deterministic: same order every run.
  *
- * A real per-(voxel, measurement) weight in the backprojection (a transducer beam pattern) enters
- * here as the same factor on (vr, vi) below, which keeps the two kernels exact adjoints.
+ * Transducer beams (issue 33): built with beam.cl and -DBEAM, the real two-way weight of each
+ * voxel-measurement pair scales the carrier (c, s) exactly as in backproject.cl, so it enters
+ * (vr, vi) as the same real factor and the two kernels stay exact adjoints. Without -DBEAM the
+ * hooks expand to nothing (the omnidirectional kernel, bit for bit).
  *
- * Needs common.cl. Voxels past n_vox are padding with x = 0. */
+ * Needs common.cl (and beam.cl for -DBEAM). Voxels past n_vox are padding with x = 0. */
+
+#ifndef BEAM_WEIGHT /* built without beam.cl: omnidirectional */
+#define BEAM_ARGS
+#define BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m)
+#endif
 
 __kernel void project(
     __global const float *x_re,      /* (n_vox_padded,) real part of the voxels, 0 on padding  */
@@ -38,8 +45,9 @@ __kernel void project(
     const int nz,                    /* voxels along z                                         */
     const int n_blocks,              /* blocks of VEC voxels (the padded grid / VEC)           */
     const int m_begin,               /* measurement of work-items (., 0)                       */
-    __global float2 *out)            /* (n_chunk_meas, n_items, n_lags) partial profiles,
+    __global float2 *out             /* (n_chunk_meas, n_items, n_lags) partial profiles,
                                         (re, im); fully overwritten                            */
+    BEAM_ARGS)                       /* beam.cl: the beam's buffers with -DBEAM, else nothing  */
 {
     const int item = get_global_id(0);
     const int n_items = get_global_size(0);
@@ -78,7 +86,8 @@ __kernel void project(
         floatV cyc = path * r.w;
         cyc -= RINT(cyc);
         floatV c;
-        const floatV s = sincos_2pi(cyc, &c);
+        floatV s = sincos_2pi(cyc, &c);
+        BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m);
         const floatV xr = vloadV(0, x_re + v0), xi = vloadV(0, x_im + v0);
         /* x e^{-j phi} = (xr c + xi s) + j (xi c - xr s); zero outside the window */
         lanes_f vr, vi, lw, li;

@@ -15,6 +15,13 @@ The L1 weight is ``lam = s sqrt(ln(n_vox / delta))`` with ``delta = 0.05``: by t
 pure noise leaves ``|A^H b| < lam`` everywhere, so the L1 solution is 0 (no reflector), in at
 least 95 % of draws. TV takes ``lam_tv = tv_ratio * lam`` (default ``tv_ratio`` 0.5), L1+TV both.
 Least squares stops by the discrepancy principle, at ``||A x - b|| = 1.05 sigma sqrt(n_data)``.
+
+Transducer beams (issue 33)
+---------------------------
+Options ``beam`` and ``beam_floor_db`` are bp's (:func:`clsas.backproject`): the operator weights
+every voxel-measurement pair by the profiles' two-way beam in both the forward projection and the
+backprojection (so ``A^H`` stays the exact adjoint); default ``"limited"`` where the dataset carries
+directional beams, else ``"none"`` -- the choice bp makes for the same dataset.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
+from ..beam import BEAM_MODES
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from ..image import Image
@@ -48,7 +56,7 @@ MODEL_METHODS: Registry = Registry("model-based method", "method")
 INVERSE_OPTIONS = {
     "lam": None, "lam_tv": None, "tv_ratio": 0.5, "noise_std": None, "max_iter": None, "tol": 1e-3,
     "warm_start": "bp", "pulse": True, "tv_iter": 30, "n_draws": 4, "delta": 0.05, "seed": 0,
-    "psf_snr_db": 20.0, "max_reflectors": 8,
+    "psf_snr_db": 20.0, "max_reflectors": 8, "beam": None, "beam_floor_db": -12.0,
 }
 
 
@@ -81,14 +89,19 @@ def check_options(options: dict | None) -> dict:
         raise TypeError(f"inverse['seed'] must be an int, got {o['seed']!r}")
     o["psf_snr_db"] = v.finite("inverse['psf_snr_db']", o["psf_snr_db"])
     o["max_reflectors"] = v.positive_int("inverse['max_reflectors']", o["max_reflectors"])
+    if o["beam"] is not None:
+        o["beam"] = v.choice("inverse['beam']", o["beam"], BEAM_MODES)
+    o["beam_floor_db"] = v.finite("inverse['beam_floor_db']", o["beam_floor_db"])
     return o
 
 
 def operator_for(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, selection: _cl.Selection,
-                 pulse: bool = True) -> ImagingOperator:
-    """The imaging operator of ``profiles``' geometry on ``grid`` (with the dataset's compressed pulse)."""
+                 pulse: bool = True, beam: str | None = None, beam_floor_db: float = -12.0) -> ImagingOperator:
+    """The imaging operator of ``profiles``' geometry on ``grid`` (with the dataset's compressed pulse),
+    weighting pairs by the profiles' beams as bp would (``beam`` None: ``"limited"`` for directional
+    beams, else ``"none"``)."""
     h = compressed_pulse(dataset.waveform, dataset.fs_hz, profiles.dtau_s, profiles.fc_hz) if pulse else None
-    return ImagingOperator(profiles, grid, pulse=h, backend=selection)
+    return ImagingOperator(profiles, grid, pulse=h, backend=selection, beam=beam, beam_floor_db=beam_floor_db)
 
 
 def noise_sigma(dataset: Dataset, profiles: Profiles, noise_std: float | None, rng,
@@ -149,7 +162,7 @@ def _solve(kind: str, dataset: Dataset, profiles: Profiles, grid: VoxelGrid, sel
            progress: Callable[[int, int], None] | None, options: dict) -> Image:
     o = check_options(options)
     t0 = time.perf_counter()
-    A = operator_for(dataset, profiles, grid, selection, o["pulse"])
+    A = operator_for(dataset, profiles, grid, selection, o["pulse"], o["beam"], o["beam_floor_db"])
     b = A.data
     lam, sigma = o["lam"], None
     if lam is None or kind == "ls":

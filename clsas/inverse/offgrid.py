@@ -33,6 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .. import cl as _cl
+from ..beam import pair_weights
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from ..image import Image, Peak
@@ -81,6 +82,10 @@ class PointModel:
         i0c = np.clip(i0, 0, len(self.fine) - 2)
         val = np.where(ok, (1 - w) * self.fine[i0c] + w * self.fine[i0c + 1], 0)
         spread = self.r0 / np.maximum(r_tx * r_rx, 1e-6)  # spherical spreading, 1 at the grid's centre
+        if A.weights is not None:  # the operator's beam weights (issue 33), the same pair by pair
+            bw = A.weights
+            spread = spread * np.stack([pair_weights(bw.luts, A.tx[m], A.rx[m], bw.tx_dir[m], bw.rx_dir[m], pos,
+                                                     bw.gate) for m in range(A.n_meas)], axis=1)
         val = val * (spread * np.exp(-2j * np.pi * A.fc * tau))[..., None]
         return val.reshape(len(pos), -1).T
 
@@ -185,7 +190,7 @@ def offgrid(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, selection: _c
     o = check_options(options)
     t0 = time.perf_counter()
     seed_image = _solve("l1", dataset, profiles, grid, selection, progress, options)
-    A = operator_for(dataset, profiles, grid, selection, o["pulse"])
+    A = operator_for(dataset, profiles, grid, selection, o["pulse"], o["beam"], o["beam_floor_db"])
     lam = o["lam"]
     if lam is None:
         lam = noise_weight(A, dataset, profiles, noise_std=o["noise_std"], n_draws=o["n_draws"], delta=o["delta"],

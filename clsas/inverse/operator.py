@@ -14,6 +14,7 @@ from scipy.sparse.linalg import LinearOperator
 
 from .. import cl as _cl
 from .. import validate as v
+from ..beam import BEAM_MODES, Beams, BeamWeights, beam_weights
 from ..formation import bp_numpy
 from ..formation.bp_opencl import BackprojectPlan
 from ..geometry import VoxelGrid
@@ -78,6 +79,25 @@ def compressed_pulse(waveform: np.ndarray, fs_hz: float, dtau_s: float, fc_hz: f
     return out
 
 
+def _pair_weights(beams: Beams | None, beam: str | None, floor_db: float, fc_hz: float, c: np.ndarray,
+                  n_meas: int) -> BeamWeights | None:
+    """The pair weights of ``beam`` for ``beams`` by :class:`clsas.formation.bp.Backprojector`'s rule
+    (default ``"limited"`` for directional beams, else ``"none"``); None where nothing is weighted."""
+    if beam is not None:
+        beam = v.choice("beam", beam, BEAM_MODES)
+    floor_db = v.finite("beam_floor_db", floor_db)
+    if beams is not None and not isinstance(beams, Beams):
+        raise TypeError(f"beams must be clsas.beam.Beams or None, got {type(beams).__name__}")
+    mode = beam or ("limited" if beams is not None and not beams.is_omni else "none")
+    if beam is None and mode == "limited":
+        log.info("imaging operator: the profiles carry directional beams: beam='limited' (pairs above %g dB)",
+                 floor_db)
+    weights = beam_weights(beams, mode, fc_hz, c, floor_db)
+    if weights is not None and len(weights.tx_dir) != n_meas:
+        raise ValueError(f"beams must have {n_meas} boresights (one per measurement), got {len(weights.tx_dir)}")
+    return weights
+
+
 class ImagingOperator(LinearOperator):
     """Voxels on ``grid`` -> the profiles of ``profiles``' geometry, and back.
 
@@ -99,10 +119,20 @@ class ImagingOperator(LinearOperator):
     backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
     device : optional
         As for :func:`clsas.backproject`.
+    beam : {"none", "limited", "weighted"}, optional
+        Apodization by the transducers' beams, as :func:`clsas.backproject` takes it (issue 33): the
+        same real two-way weight (or gate) of each voxel-measurement pair in ``A`` and ``A^H``, so
+        ``A^H`` stays the exact adjoint and equals beam-weighted backprojection. Default, as bp's:
+        ``"limited"`` where the beams are directional, else ``"none"``.
+    beam_floor_db : float
+        The two-way level of ``beam="limited"``, dB (default -12, as bp's).
+    beams : clsas.beam.Beams, optional
+        The transducers' beams, default the profiles' (from the dataset).
     """
 
     def __init__(self, profiles: Profiles, grid: VoxelGrid, *, pulse: np.ndarray | None = None,
-                 backend: str | _cl.Selection | None = None, device: Any = None):
+                 backend: str | _cl.Selection | None = None, device: Any = None, beam: str | None = None,
+                 beam_floor_db: float = -12.0, beams: Beams | None = None):
         if not isinstance(profiles, Profiles):
             raise TypeError(f"profiles must be clsas.Profiles, got {type(profiles).__name__}")
         if not isinstance(grid, VoxelGrid):
@@ -123,15 +153,20 @@ class ImagingOperator(LinearOperator):
             if len(pulse) % 2 != 1:
                 raise ValueError(f"pulse must have an odd length (centred), got {len(pulse)}")
         self.pulse = pulse
+        self.weights = _pair_weights(profiles.beams if beams is None else beams, beam, beam_floor_db, self.fc,
+                                     self.c, n)
+        lut = 0 if self.weights is None else self.weights.luts.shape[1]
         self.grid, self.n_meas, self.n_lags = grid, n, profiles.n_lags
         self.data = np.asarray(profiles.data, np.complex128).ravel()
         self.selection = _cl.select(backend, device)
         self._points = None
         self._fwd = self._adj = None
         if self.selection.opencl:
-            self._fwd, self.selection = self.selection.plan(lambda q: ProjectPlan(grid, n, self.n_lags, queue=q))
+            self._fwd, self.selection = self.selection.plan(lambda q: ProjectPlan(grid, n, self.n_lags, queue=q,
+                                                                                       beam_lut=lut))
         if self.selection.opencl:
-            self._adj, self.selection = self.selection.plan(lambda q: BackprojectPlan(grid, n, self.n_lags, queue=q))
+            self._adj, self.selection = self.selection.plan(lambda q: BackprojectPlan(grid, n, self.n_lags, queue=q,
+                                                                                           beam_lut=lut))
         self.n_forward = self.n_adjoint = 0
         super().__init__(np.complex128, (n * self.n_lags, grid.size))
 
@@ -148,14 +183,18 @@ class ImagingOperator(LinearOperator):
     def project(self, x: np.ndarray) -> np.ndarray:
         """Forward projection of (n_vox,) voxels -> (n_meas, n_lags) profiles, without the pulse."""
         if self._fwd is not None:
-            return self._fwd(x, self.tau0, self.dtau, self.fc, self.tx, self.rx, self.c).astype(np.complex128)
-        return twin.project(x, self.tau0, self.dtau, self.n_lags, self.fc, self.tx, self.rx, self.c, self.points())
+            return self._fwd(x, self.tau0, self.dtau, self.fc, self.tx, self.rx, self.c,
+                             beam=self.weights).astype(np.complex128)
+        return twin.project(x, self.tau0, self.dtau, self.n_lags, self.fc, self.tx, self.rx, self.c, self.points(),
+                            beam=self.weights)
 
     def backproject(self, y: np.ndarray) -> np.ndarray:
         """Backprojection of (n_meas, n_lags) profiles -> (n_vox,) voxels (:func:`clsas.backproject`)."""
         if self._adj is not None:
-            return self._adj(y, self.tau0, self.dtau, self.fc, self.tx, self.rx, self.c).astype(np.complex128)
-        return bp_numpy.backproject(y, self.tau0, self.dtau, self.fc, self.tx, self.rx, self.c, self.points())
+            return self._adj(y, self.tau0, self.dtau, self.fc, self.tx, self.rx, self.c,
+                             beam=self.weights).astype(np.complex128)
+        return bp_numpy.backproject(y, self.tau0, self.dtau, self.fc, self.tx, self.rx, self.c, self.points(),
+                                    beam=self.weights)
 
     def _convolve(self, q: np.ndarray, adjoint: bool) -> np.ndarray:
         if self.pulse is None:

@@ -1,7 +1,8 @@
 """NumPy twin of kernels/project.cl: the forward projector, float64, written to be read.
 
 It is the exact adjoint of :func:`clsas.formation.bp_numpy.backproject`: the same bistatic
-path, linear-interpolation weights, window test and carrier, transposed and conjugated.
+path, linear-interpolation weights, window test, carrier and (optional) beam weight, transposed
+and conjugated.
 """
 
 from __future__ import annotations
@@ -9,6 +10,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+
+from ..beam import BeamWeights, pair_weights
 
 
 def project(
@@ -22,6 +25,7 @@ def project(
     c_mps: float | np.ndarray,
     points_m: np.ndarray,
     progress: Callable[[int, int], None] | None = None,
+    beam: BeamWeights | None = None,
 ) -> np.ndarray:
     """Complex voxels -> complex baseband range profiles (the adjoint of backprojection).
 
@@ -39,6 +43,10 @@ def project(
     c_mps : float or (n_meas,) array
         Speed of sound, m/s; an array gives each measurement its own.
     points_m : (n_vox, 3) voxel centres, m.
+    beam : clsas.beam.BeamWeights, optional
+        Weight (or gate) each pair by the two-way beam (:func:`clsas.beam.pair_weights`), as
+        :func:`clsas.formation.bp_numpy.backproject` does with the same weights (so this stays
+        its adjoint); None: omnidirectional.
 
     Returns
     -------
@@ -59,6 +67,9 @@ def project(
         i0 = np.clip(np.floor(idx), 0, n_lags - 2).astype(np.int64)[inside]
         w = (idx[inside] - i0)
         val = x[inside] * np.exp(-2j * np.pi * fc_hz * tau[inside])
+        if beam is not None:
+            val = val * pair_weights(beam.luts, tx_positions[m], rx_positions[m], beam.tx_dir[m], beam.rx_dir[m],
+                                     points_m[inside], beam.gate)
         for part, lags in (((1 - w) * val, i0), (w * val, i0 + 1)):
             out[m] += np.bincount(lags, part.real, n_lags) + 1j * np.bincount(lags, part.imag, n_lags)
         if progress is not None:

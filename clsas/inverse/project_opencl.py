@@ -31,13 +31,17 @@ class ProjectPlan(Plan):
         compute units and the number of measurements.
     chunk : int, optional
         Measurements per launch.
+    beam_lut : int, optional
+        Samples per beam table (:class:`clsas.beam.BeamWeights`): the ``-DBEAM`` variant that weights
+        each pair as the backprojection does (kernels/beam.cl); 0 (default): omnidirectional.
     """
 
     KERNEL = "project"
-    SOURCES = ("common.cl", "project.cl")
+    SOURCES = ("common.cl", "beam.cl", "project.cl")
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
-                 n_items=None):
+                 n_items=None, beam_lut: int = 0):
+        self.beam_lut = int(beam_lut)  # samples per beam table; 0: omnidirectional (no -DBEAM)
         super().__init__(queue, vec)
         self.sum_kernel = kernel(self.context, self.SOURCES, "project_sum", {"VEC": self.vec})
         self.grid, self.n_meas, self.n_lags = grid, n_meas, max(2, n_lags)
@@ -58,6 +62,28 @@ class ProjectPlan(Plan):
         self.d_s0 = self.alloc(4 * n_meas, "r")
         self.d_part = self.alloc(per_meas * self.chunk)
         self.d_prof = self.alloc(8 * n_meas * self.n_lags, "w")
+        if self.beam_lut:
+            self.d_beam_dir = self.alloc(32 * n_meas, "r")
+            self.d_beam_lut = self.alloc(8 * self.beam_lut, "r")
+
+    def defines(self) -> dict:
+        return {"BEAM": 1} if self.beam_lut else {}
+
+    def _beam_args(self, beam) -> tuple:
+        """The kernel's beam arguments (beam.cl's BEAM_ARGS), buffers written; () without -DBEAM
+        (the layout of :class:`clsas.formation.bp_opencl.BackprojectPlan`'s)."""
+        if not self.beam_lut:
+            if beam is not None:
+                raise ValueError("this plan was built without a beam (beam_lut=0)")
+            return ()
+        if beam is None or beam.luts.shape != (2, self.beam_lut):
+            raise ValueError(f"beam: a plan built with beam_lut={self.beam_lut} needs BeamWeights of that size")
+        dirs = np.zeros((2, self.n_meas, 4), np.float32)
+        dirs[0, :, :3], dirs[1, :, :3] = beam.tx_dir, beam.rx_dir
+        self.write(self.d_beam_dir, dirs, np.float32)
+        self.write(self.d_beam_lut, beam.luts, np.float32)
+        gate = 0.0 if beam.gate is None else beam.gate
+        return self.d_beam_dir, self.d_beam_lut, np.int32(self.beam_lut), np.int32(self.n_meas), np.float32(gate)
 
     def __call__(
         self,
@@ -69,9 +95,11 @@ class ProjectPlan(Plan):
         rx_positions: np.ndarray,
         c_mps: float | np.ndarray,
         progress: Callable[[int, int], None] | None = None,
+        beam=None,
     ) -> np.ndarray:
         """Project ``values`` ((n_vox,) complex); the twin's arguments less ``n_lags`` and the
-        points (fixed by the plan). Returns (n_meas, n_lags) complex64 profiles."""
+        points (fixed by the plan), ``beam`` a :class:`clsas.beam.BeamWeights` of the plan's
+        ``beam_lut`` (None without one). Returns (n_meas, n_lags) complex64 profiles."""
         x = np.zeros(self.n_pad, np.complex64)
         x[: self.n_vox] = np.ravel(values)
         c = np.broadcast_to(np.asarray(c_mps, float), (self.n_meas,))
@@ -91,10 +119,11 @@ class ProjectPlan(Plan):
         step = np.array([*g.spacing(), 0], np.float32)
         fixed = (self.d_xre, self.d_xim, np.int32(self.n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
                  np.int32(g.shape[1]), np.int32(g.shape[2]), np.int32(self.n_blocks))
+        beam_args = self._beam_args(beam)
         lag_items = -(-self.n_lags // 64) * 64
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
-            self.launch((self.n_items, m1 - m0), *fixed, np.int32(m0), self.d_part)
+            self.launch((self.n_items, m1 - m0), *fixed, np.int32(m0), self.d_part, *beam_args)
             evt = self.sum_kernel(self.queue, (lag_items, m1 - m0), None, self.d_part, np.int32(self.n_items),
                                   np.int32(self.n_lags), np.int32(m0), self.d_prof)
             self._events.append(evt)
@@ -115,3 +144,23 @@ class ProjectPlan(Plan):
         got = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, n_items=2)(x, tau0, 1 / fs, 25e3, tx, rx, c)
         want = twin.project(x, tau0, 1 / fs, 40, 25e3, tx, rx, c, grid.points())
         return float(np.abs(got - want).max() / np.abs(want).max())
+
+
+def beam_selftest(queue, vec: int, mode: str = "weighted") -> float:
+    """The selftest scene through the beam variant (-DBEAM): a piston speaker tilted per measurement
+    and a cone microphone (the backprojection's :func:`clsas.formation.bp_opencl.beam_selftest`),
+    ``mode`` "weighted" or "limited", two chunks, two voxel slabs; error against the twin relative
+    to the peak."""
+    from ..beam import Beams, Piston, beam_weights
+    from ..formation.bp_opencl import selftest_scene
+    from . import project_numpy as twin
+
+    grid, _, tau0, fs, tx, rx, c, rng = selftest_scene()
+    tilt = np.c_[rng.uniform(-0.3, 0.3, (3, 2)), np.ones(3)]
+    beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), 3)
+    w = beam_weights(beams, mode, 25e3, 343.0, -12.0)
+    x = rng.normal(size=grid.size) + 1j * rng.normal(size=grid.size)
+    plan = ProjectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, n_items=2, beam_lut=w.luts.shape[1])
+    got = plan(x, tau0, 1 / fs, 25e3, tx, rx, c, beam=w)
+    want = twin.project(x, tau0, 1 / fs, 40, 25e3, tx, rx, c, grid.points(), beam=w)
+    return float(np.abs(got - want).max() / np.abs(want).max())

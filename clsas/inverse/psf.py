@@ -60,7 +60,7 @@ def psf_deconvolve(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, select
     ``psf_snr_db``, default 20 dB)."""
     o = check_options(options)
     t0 = time.perf_counter()
-    A = operator_for(dataset, profiles, grid, selection, o["pulse"])
+    A = operator_for(dataset, profiles, grid, selection, o["pulse"], o["beam"], o["beam_floor_db"])
     bp = A.rmatvec(A.data).reshape(grid.shape)
     if progress is not None:
         progress(1, 3)
