@@ -12,14 +12,15 @@ backprojection ``y``,
     F(x) = 0.5 Re(x^H G x) - Re(x^H y) + lam ||x||_1,
 
 which monotone FISTA minimises with each iteration two FFTs on the grid (zero-padded to twice its
-size or more, a fast FFT length, against wrap-around) instead of a projection and a backprojection. ``G``'s transfer function is
-that of ``g`` made Hermitian (``(g(r) + conj(g(-r))) / 2``, so its FFT is real) and clipped at 0 (so
-``G`` is positive semi-definite and ``F`` convex); the step size is ``1 / max H`` (no power
-iteration). The weight is the noise-level rule of :mod:`clsas.inverse.methods` with one noise draw
-(one backprojection of noise); since ``F``'s gradient at 0 is ``-y``, ``x = 0`` exactly when
-``|y| <= lam`` everywhere, as for ``"l1"``. Option ``polish`` (default 0) then runs that many
-iterations of ``"l1"``'s FISTA with the real operator from the Gram solution (step size ``1 / max H``
-again: the monotone variant rejects a step that would raise the objective).
+size or more, a fast FFT length, against wrap-around) instead of a projection and a backprojection.
+``G``'s transfer function is that of ``g`` made Hermitian (``(g(r) + conj(g(-r))) / 2``, so its FFT
+is real) and clipped at 0 (so ``G`` is positive semi-definite and ``F`` convex); the step size is
+``1 / max H`` (no power iteration). The weight is the noise-level rule of
+:mod:`clsas.inverse.methods` with one noise draw (one backprojection of noise); since ``F``'s
+gradient at 0 is ``-y``, ``x = 0`` exactly when ``|y| <= lam`` everywhere, as for ``"l1"``. Option
+``polish`` (default 0) then runs that many iterations of ``"l1"``'s FISTA with the real operator
+from the Gram solution (step size ``1 / max H`` again: the monotone variant rejects a step that
+would raise the objective).
 
 Cost: one backprojection (``y``), one projection and one backprojection (the PSF), one compression
 and backprojection of noise, and one projection and backprojection per polishing iteration.
