@@ -173,8 +173,8 @@ def _point_echo(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, selection
 def gram_psf(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, selection: _cl.Selection,
              progress=None, **options) -> Image:
     """``method="l1-psf"``: L1 on the PSF-convolution model of the Gram, then ``polish`` exact
-    iterations (default 0; module docstring). Options: ``lam``, ``noise_std``, ``max_iter`` (Gram iterations,
-    default 300), ``tol`` (default 1e-3, of the Gram solve as of ``"l1"``), ``polish``, ``seed``."""
+    iterations (default 0; module docstring). Options: ``lam``, ``noise_std``, ``max_iter`` (Gram
+    iterations, default 300), ``tol`` (default 1e-3, as ``"l1"``'s), ``polish``, ``seed``."""
     o = check_options(options)
     t0 = time.perf_counter()
     A = operator_for(dataset, profiles, grid, selection, o["pulse"])
@@ -186,9 +186,8 @@ def gram_psf(dataset: Dataset, profiles: Profiles, grid: VoxelGrid, selection: _
         lam, sigma = noise_weight(A, dataset, profiles, noise_std=o["noise_std"], n_draws=1,
                                   delta=o["delta"], seed=o["seed"])
     t_setup = time.perf_counter() - t0
-    gbp = G.apply(bp)
-    den = float(np.vdot(bp, gbp).real)
-    x0 = bp * (float(np.vdot(bp, bp).real) / den) if den > 0 and o["warm_start"] == "bp" else None
+    den = _dot(bp, G.apply(bp))
+    x0 = bp * (_dot(bp, bp) / den) if den > 0 and o["warm_start"] == "bp" else None
     res = fista_gram(G, bp, lam, x0, max_iter=o["max_iter"] or 300, tol=o["tol"], progress=_say("l1-psf", progress))
     t_gram = time.perf_counter() - t0 - t_setup
     x, polish = res.x, None
