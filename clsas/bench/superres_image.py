@@ -1,7 +1,7 @@
 """``clsas bench --superres-image``: model-based reconstruction against backprojection (issue 28).
 
 Error against run time for ``bp``, per-profile ``cbp-polar``, ``psf`` (Wiener deconvolution), ``ls``,
-``l1``, ``tv``, ``l1-tv`` and ``offgrid``, in one run:
+``l1``, ``l1-psf`` (L1 on the PSF model of the Gram), ``tv``, ``l1-tv`` and ``offgrid``, in one run:
 
 - simulated point pairs (:func:`pair_trial`): two reflectors ``s`` x the cross-range resolution
   ``lambda R / (2 D)`` apart (``s`` in 0.25, 0.5, 1), random centre, amplitudes in [0.7, 1], 20 dB,
@@ -32,7 +32,7 @@ __all__ = ["METHODS", "airsas", "edge_width_mm", "pair_trial", "resolved", "run_
 
 log = logging.getLogger(__name__)
 
-METHODS = ("bp", "cbp-polar", "psf", "ls", "l1", "tv", "l1-tv", "offgrid")
+METHODS = ("bp", "cbp-polar", "psf", "ls", "l1", "l1-psf", "tv", "l1-tv", "offgrid")
 FC_HZ, C_MPS = 25e3, 343.0
 SETUPS = {
     # stops along x (y = 0), range R, aperture D, grid half-widths (x, z) and spacing, m
@@ -205,7 +205,7 @@ def edge_width_mm(mag: np.ndarray, x: np.ndarray, y: np.ndarray, window_m: float
 def airsas(root: Path, scan: str, methods, status: Callable[[str], None], step_m: float = 0.0015,
            max_iter: int = 10) -> tuple[list, dict]:
     """Every method on one measured scan (all pings): TCR, edge width, time (also in units of a warm
-    ``reconstruct(method="bp")``, compression included); and the images."""
+    ``reconstruct(method="bp")``, compression included, the median of 3); and the images."""
     ds = airsas_dataset(root, scan)
     x = np.arange(-0.12, 0.12 + 1e-9, step_m)
     y = np.arange(-0.16, 0.16 + 1e-9, step_m)
@@ -216,9 +216,12 @@ def airsas(root: Path, scan: str, methods, status: Callable[[str], None], step_m
         if m == "offgrid":  # point reflectors: not a model of an extended target
             continue
         kw = {"inverse": {"max_iter": max_iter}} if m in ("ls", "l1", "tv", "l1-tv") else {}
-        t0 = time.perf_counter()
-        image = clsas.reconstruct(ds, grid, method=m, **kw)
-        dt = time.perf_counter() - t0
+        times = []
+        for _ in range(3 if m == "bp" else 1):  # bp: the median of 3 (the unit of time)
+            t0 = time.perf_counter()
+            image = clsas.reconstruct(ds, grid, method=m, **kw)
+            times.append(time.perf_counter() - t0)
+        dt = float(np.median(times))
         if m == "bp":
             t_bp = dt
         mag = np.abs(np.asarray(image.values)[:, :, 0])

@@ -153,9 +153,9 @@ def add_parser(sub) -> None:
                    help="with --autofocus: RMS of the hand motion, mm (default 3)")
     b.add_argument("--n-seeds", type=int, default=None, help="with --autofocus: the first N seeds of the set only")
     b.add_argument("--superres-image", action="store_true",
-                   help="run only the model-based reconstruction benchmark: bp, cbp-polar, psf, ls, l1, tv, l1-tv "
-                   "and offgrid on simulated point pairs (--n-seeds trials, default 10, 50 with --full) and, with "
-                   "--airsas, on the measured AirSAS scans")
+                   help="run only the model-based reconstruction benchmark: bp, cbp-polar, psf, ls, l1, l1-psf, tv, "
+                   "l1-tv and offgrid on simulated point pairs (--n-seeds trials, default 10, 50 with --full) and, "
+                   "with --airsas, on the measured AirSAS scans")
     b.add_argument("--airsas", default=None, metavar="DIR",
                    help="with --superres-image: local copy of CSAS_Deconvolution_INR (or its airsas_deconv_pipeline)")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")

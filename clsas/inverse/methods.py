@@ -1,5 +1,6 @@
 """The model-based methods ``reconstruct(method=...)`` takes: ``"ls"``, ``"l1"``, ``"tv"``, ``"l1-tv"``
-(solvers on :class:`~clsas.inverse.ImagingOperator`) and ``"psf"`` (image-domain deconvolution), each
+(solvers on :class:`~clsas.inverse.ImagingOperator`), ``"psf"`` (image-domain deconvolution) and
+``"l1-psf"`` (L1 on the PSF-convolution model of the Gram, :mod:`clsas.inverse.gram`), each
 registered in :data:`MODEL_METHODS`.
 
 Weights from the noise level (when ``lam`` is not given)
@@ -56,7 +57,7 @@ MODEL_METHODS: Registry = Registry("model-based method", "method")
 INVERSE_OPTIONS = {
     "lam": None, "lam_tv": None, "tv_ratio": 0.5, "noise_std": None, "max_iter": None, "tol": 1e-3,
     "warm_start": "bp", "pulse": True, "tv_iter": 30, "n_draws": 4, "delta": 0.05, "seed": 0,
-    "psf_snr_db": 20.0, "max_reflectors": 8, "beam": None, "beam_floor_db": -12.0,
+    "psf_snr_db": 20.0, "max_reflectors": 8, "beam": None, "beam_floor_db": -12.0, "polish": 0,
 }
 
 
@@ -92,6 +93,8 @@ def check_options(options: dict | None) -> dict:
     if o["beam"] is not None:
         o["beam"] = v.choice("inverse['beam']", o["beam"], BEAM_MODES)
     o["beam_floor_db"] = v.finite("inverse['beam_floor_db']", o["beam_floor_db"])
+    if isinstance(o["polish"], bool) or not isinstance(o["polish"], int | np.integer) or o["polish"] < 0:
+        raise TypeError(f"inverse['polish'] must be an int >= 0, got {o['polish']!r}")
     return o
 
 
