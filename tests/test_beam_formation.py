@@ -67,7 +67,8 @@ def test_bp_beam_option_is_validated_by_name():
     with pytest.raises(ValueError, match="beam_floor_db"):
         clsas.Backprojector(grid, beam="limited", beam_floor_db=float("nan"), backend="numpy")
     with pytest.raises(ValueError, match="formation 'bp' takes beam, beam_floor_db"):
-        clsas.reconstruct(_dataset_in_water(), grid, formation="bp", formation_options={"beam_width": 3}, backend="numpy")
+        clsas.reconstruct(_dataset_in_water(), grid, formation="bp", formation_options={"beam_width": 3},
+                          backend="numpy")
     prof = clsas.compress(_dataset_in_water(), backend="numpy")
     with pytest.raises(ValueError, match="formation 'bp' takes beam, beam_floor_db"):
         clsas.formation.form(prof, grid, "bp", beam_width=3)

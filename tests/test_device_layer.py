@@ -309,7 +309,7 @@ def test_only_the_device_layer_imports_pyopencl():
 
 def test_a_plan_declares_its_kernel_and_registers_itself():
     spec = cl.kernel_spec("backproject")
-    assert spec.sources == ("common.cl", "backproject.cl")
+    assert spec.sources == ("common.cl", "beam.cl", "backproject.cl")
     assert (spec.module, spec.qualname) == ("clsas.formation.bp_opencl", "BackprojectPlan")
     try:
         class ToyPlan(cl.Plan):

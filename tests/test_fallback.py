@@ -20,12 +20,13 @@ from clsas import cl
 from clsas.focus import numpy as focus_twin
 from clsas.focus.engine import FocusEngine
 from clsas.formation import FORMATIONS, form
+from clsas.inverse import project_opencl  # noqa: F401 (its plan registers the project kernel)
 
 pytestmark = [pytest.mark.opencl, needs_opencl]
 
 MARK = "clsas_fallback_test_undeclared"  # the identifier the compiler's log must name
 ALL_KERNELS = ("matched_filter", "fmcw_dechirp", "matched_fft", "backproject", "focus_gradient", "stolt_spread",
-               "ffbp_leaf", "ffbp_merge")
+               "ffbp_leaf", "ffbp_merge", "project")
 
 
 def broken_source(kernel: str, only_with: str | None = None) -> tuple[str, str]:
@@ -110,6 +111,16 @@ def _gradient(scene, backend):
     return got, eng.backend
 
 
+def _project(scene, backend):
+    """The model-based methods' forward projector (clsas.inverse.ImagingOperator.matvec)."""
+    from clsas.inverse import ImagingOperator
+
+    _, grid, prof = scene
+    op = ImagingOperator(prof, grid, backend=backend)
+    x = np.random.default_rng(2).normal(size=grid.size) + 0j
+    return op.matvec(x), op.backend
+
+
 CASES = {
     "matched_filter": (None, _compress(algorithm="direct")),
     "fmcw_dechirp": (None, _compress(method="fmcw")),
@@ -119,6 +130,7 @@ CASES = {
     "stolt_spread": (None, _formation("omega-k")),
     "ffbp_leaf": (None, _formation("ffbp", depth=1)),
     "ffbp_merge": ("TAPS", _formation("ffbp", depth=1, order=1)),  # the leaf kernel still builds
+    "project": (None, _project),
 }
 
 

@@ -27,6 +27,7 @@ RUN_ELSEWHERE = {
                                     "through UFF and back)",
     ("Volumes past memory and past one machine", "python", 0):
         "tests/test_docs.py (the large-volumes page, after its setup block)",
+    ("Apodization: `formation_options={\"beam\": ...}`", "python", 0): "tests/test_docs.py (the beams page)",
     ("Python API in ten lines", "python", 0):
         "tests/test_first_hour.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
@@ -35,6 +36,7 @@ RUN_HERE = {
     ("Your own data", "bash", 0): "test_your_own_data_command_line",
     ("Your own data", "toml", 0): "test_your_own_data_preprocess_table",
     ("Command line", "toml", 0): "test_command_line_scene_file",
+    ("Beam models and boresights", "toml", 0): "test_beams_table",
     ("Fast image formation", "python", 0): "test_fragments_on_a_small_scan",
     ("Fast image formation", "python", 1): "test_fragments_on_a_small_scan",
     ("Extending clsas: one module and one line", "python", 0): "test_extending_registers_a_formation",
@@ -164,6 +166,17 @@ def test_command_line_scene_file(tmp_path):
     (tmp_path / "scene.toml").write_text(block("Command line", "toml"))
     cfg = load_config(tmp_path / "scene.toml")
     assert cfg is not None
+
+
+def test_beams_table(tmp_path):
+    """The beams page's [beams] table, in the command-line page's scene file."""
+    from clsas.scenes import load_config
+
+    text = block("Command line", "toml") + "\n" + block("Beam models and boresights", "toml")
+    (tmp_path / "scene.toml").write_text(text)
+    cfg = load_config(tmp_path / "scene.toml")
+    assert cfg.beams.specs()["speaker"] == {"model": "piston", "diameter_m": 0.006}
+    assert np.allclose(cfg.beams.tx_boresight, [0, 0, 1])
 
 
 def test_fragments_on_a_small_scan():

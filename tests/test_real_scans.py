@@ -131,7 +131,7 @@ def test_preprocessing_steps_do_what_they_say():
     sig = 0.3 + np.sin(2 * np.pi * 60 * t) + np.sin(2 * np.pi * 20e3 * t)
     ds = clsas.Dataset(np.tile(sig, (2, 1)), np.zeros((2, 3)), np.tile([0.05, 0, 0], (2, 1)), fs,
                        clsas.lfm_chirp(10e3, 30e3, 1e-3, fs, taper=0.1),
-                       chirp={"f_start_hz": 30e3, "f_stop_hz": 10e3})
+                       chirp={"f_start_hz": 30e3, "f_stop_hz": 10e3}, temperature_c=20.0)
     dc = pp.remove_dc(ds)
     assert abs(dc.signals.mean()) < 1e-12
     bp = pp.bandpass(ds)

@@ -111,6 +111,7 @@ def test_the_registries_hold_the_built_in_algorithms():
     import clsas.io
     from clsas.compression import COMPRESSIONS
     from clsas.formation import FORMATIONS
+    from clsas.inverse import MODEL_METHODS
     from clsas.pipeline import methods
     from clsas.sparse import SPARSE_METHODS
 
@@ -118,7 +119,8 @@ def test_the_registries_hold_the_built_in_algorithms():
     assert {"bpdn", "cbp-taylor", "cbp-polar"} <= set(SPARSE_METHODS)
     assert set(COMPRESSIONS) == {"matched", "fmcw"}
     assert set(clsas.io.IMPORTERS) >= {"airsas", "folder"}
-    assert methods()[0] == "bp" and set(methods()[1:]) == set(SPARSE_METHODS)
+    assert {"ls", "l1", "tv", "l1-tv", "l1-psf", "psf", "offgrid"} <= set(MODEL_METHODS)
+    assert methods()[0] == "bp" and set(methods()[1:]) == set(SPARSE_METHODS) | set(MODEL_METHODS)
 
 
 def test_a_registry_refuses_a_taken_name_and_names_the_parameter():
@@ -139,7 +141,7 @@ def test_a_registry_refuses_a_taken_name_and_names_the_parameter():
 def test_unknown_names_are_refused_by_name_before_any_work():
     ds = _scan()
     grid = clsas.VoxelGrid.from_bounds((-0.02, 0.02), (-0.02, 0.02), (0.58, 0.62), 0.02)
-    with pytest.raises(ValueError, match="formation must be one of"):
+    with pytest.raises(ValueError, match="formation must be 'auto' or one of"):
         clsas.reconstruct(ds, grid, formation="nope")
     with pytest.raises(ValueError, match="method must be one of"):
         clsas.reconstruct(ds, grid, method="nope")

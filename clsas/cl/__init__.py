@@ -13,6 +13,7 @@ Selection is passed down (every function that takes ``backend`` takes one), and
   vector-ABI warning.
 - :mod:`.variants`: the vector width per device, verified once in a child process and cached
   on disk (:func:`cache_dir`, :func:`clear_cache`).
+- :mod:`.fission`: a sub-device of some compute units (Dask workers), a device's copy time.
 - :mod:`.plan`: the :class:`Plan` base class; each plan declares its ``KERNEL`` and ``SOURCES``
   and registers them in :data:`KERNELS` when its module is imported.
 """
@@ -35,6 +36,7 @@ from .device import (
     resolve_backend,
     select,
 )
+from .fission import copy_seconds, sub_device_queue
 from .plan import Plan
 from .program import BuildError, build, kernel, kernel_source, override_source
 from .variants import (
@@ -54,7 +56,8 @@ __all__ = [
     "BACKENDS", "BuildError", "DeviceRow", "KERNELS", "KernelSpec", "OpenCLUnavailable", "Plan", "Selection",
     "Verdict", "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend",
     "describe", "device_info", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source", "kernel_spec",
-    "list_devices", "override_source", "register_kernel", "resolve_backend", "select",
+    "copy_seconds", "list_devices", "override_source", "register_kernel", "resolve_backend", "select",
+    "sub_device_queue",
 ]
 
 

@@ -22,7 +22,6 @@ fission), and the compute units each worker used are in ``image.provenance["tile
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
 
@@ -130,31 +129,10 @@ def worker_selection(requested, device=None, threads: int | None = None) -> tupl
     threads = _worker_threads() if threads is None else int(threads)
     if threads is None or not cl.is_cpu(whole) or whole.max_compute_units <= threads:
         return selection, int(whole.max_compute_units)
-    queue = _sub_device_queue(whole.int_ptr, threads)
+    queue = cl.sub_device_queue(whole.int_ptr, threads)
     if queue is None:
         return selection, int(whole.max_compute_units)
     return cl.select(requested, queue), int(queue.device.max_compute_units)
-
-
-@functools.cache
-def _sub_device_queue(device_ptr: int, units: int):
-    """A profiling queue on a sub-device of ``units`` compute units of the device (memoised per
-    process); None where the device cannot be split so."""
-    import pyopencl as pcl
-
-    device = next(d for p in pcl.get_platforms() for d in p.get_devices() if d.int_ptr == device_ptr)
-    prop = pcl.device_partition_property
-    try:
-        sub = device.create_sub_devices([prop.BY_COUNTS, units, prop.BY_COUNTS_LIST_END])[0]
-    except (pcl.Error, AttributeError) as exc:  # a driver without fission: the whole device
-        log.info("%s: no sub-device of %d compute units (%s); using the whole device", cl.describe(device),
-                 units, exc)
-        return None
-    ctx = pcl.Context([sub])
-    log.info("%s: a sub-device of %d of %d compute units", cl.describe(device), units, device.max_compute_units)
-    # the queue names the sub-device: PoCL 3.0 lists the parent as the context's device, and a queue
-    # made without naming the device then runs kernels on every core (measured: per-thread CPU ticks)
-    return pcl.CommandQueue(ctx, device=sub, properties=pcl.command_queue_properties.PROFILING_ENABLE)
 
 
 def _tile_task(profiles, grid, formation, options, requested, force):
