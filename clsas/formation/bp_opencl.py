@@ -10,7 +10,61 @@ from ..cl import Plan
 from ..geometry import VoxelGrid
 
 
-class BackprojectPlan(Plan):
+class BeamPlan(Plan):
+    """What a backprojection-type plan built with or without a beam (kernels/beam.cl) shares: the
+    beam buffers, the ``-DBEAM`` define, the beam arguments and the per-measurement geometry.
+    Subclasses set ``self.beam_lut`` before ``super().__init__`` (the build reads :meth:`defines`)."""
+
+    beam_lut = 0  # samples per beam table; 0: omnidirectional (no -DBEAM)
+
+    def defines(self) -> dict:
+        return {"BEAM": 1} if self.beam_lut else {}
+
+    def alloc_beam(self, n_meas: int) -> None:
+        """The beam buffers (boresights, tables) where the plan is built with a beam."""
+        if self.beam_lut:
+            self.d_beam_dir = self.alloc(32 * n_meas, "r")
+            self.d_beam_lut = self.alloc(8 * self.beam_lut, "r")
+
+    def beam_args(self, beam) -> tuple:
+        """The kernel's beam arguments (beam.cl's BEAM_ARGS), buffers written; () without -DBEAM."""
+        if not self.beam_lut:
+            if beam is not None:
+                raise ValueError("this plan was built without a beam (beam_lut=0)")
+            return ()
+        if beam is None or beam.luts.shape != (2, self.beam_lut):
+            raise ValueError(f"beam: a plan built with beam_lut={self.beam_lut} needs BeamWeights of that size")
+        dirs = np.zeros((2, self.n_meas, 4), np.float32)
+        dirs[0, :, :3], dirs[1, :, :3] = beam.tx_dir, beam.rx_dir
+        self.write(self.d_beam_dir, dirs, np.float32)
+        self.write(self.d_beam_lut, beam.luts, np.float32)
+        gate = 0.0 if beam.gate is None else beam.gate
+        return self.d_beam_dir, self.d_beam_lut, np.int32(self.beam_lut), np.int32(self.n_meas), np.float32(gate)
+
+    def write_geometry(self, tau0_s, dtau_s: float, fc_hz: float, tx_positions, rx_positions, c_mps) -> None:
+        """Positions with their path scales in the w lanes, and the zero-delay index, to the device."""
+        c = np.broadcast_to(np.asarray(c_mps, float), (self.n_meas,))
+        pos4 = np.zeros((2, self.n_meas, 4), np.float32)
+        pos4[0, :, :3] = tx_positions
+        pos4[0, :, 3] = 1.0 / (c * dtau_s)  # profile samples per metre of path
+        pos4[1, :, :3] = rx_positions
+        pos4[1, :, 3] = fc_hz / c  # carrier cycles per metre of path
+        self.write(self.d_tx, pos4[0], np.float32)
+        self.write(self.d_rx, pos4[1], np.float32)
+        self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
+
+
+def selftest_beam_weights(rng, mode: str):
+    """The beams the beam selftests use: a piston speaker tilted per measurement (drawn from
+    ``rng``) and a cone microphone, for the selftest scene's 3 measurements at 25 kHz."""
+    from ..beam import Beams, Piston, beam_weights
+
+    tilt = np.c_[rng.uniform(-0.3, 0.3, (3, 2)), np.ones(3)]
+    beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), 3)
+    return beam_weights(beams, mode, 25e3, 343.0, -12.0)
+
+
+class BackprojectPlan(BeamPlan):
     """Compiled kernel and device buffers for one grid and profile shape.
 
     Measurements go through the kernel in chunks of ``chunk`` (bounded launches, profiles of
@@ -34,27 +88,7 @@ class BackprojectPlan(Plan):
         self.d_s0 = self.alloc(4 * n_meas, "r")
         self.d_re = self.alloc(4 * self.n_pad)
         self.d_im = self.alloc(4 * self.n_pad)
-        if self.beam_lut:
-            self.d_beam_dir = self.alloc(32 * n_meas, "r")
-            self.d_beam_lut = self.alloc(8 * self.beam_lut, "r")
-
-    def defines(self) -> dict:
-        return {"BEAM": 1} if self.beam_lut else {}
-
-    def _beam_args(self, beam) -> tuple:
-        """The kernel's beam arguments (beam.cl's BEAM_ARGS), buffers written; () without -DBEAM."""
-        if not self.beam_lut:
-            if beam is not None:
-                raise ValueError("this plan was built without a beam (beam_lut=0)")
-            return ()
-        if beam is None or beam.luts.shape != (2, self.beam_lut):
-            raise ValueError(f"beam: a plan built with beam_lut={self.beam_lut} needs BeamWeights of that size")
-        dirs = np.zeros((2, self.n_meas, 4), np.float32)
-        dirs[0, :, :3], dirs[1, :, :3] = beam.tx_dir, beam.rx_dir
-        self.write(self.d_beam_dir, dirs, np.float32)
-        self.write(self.d_beam_lut, beam.luts, np.float32)
-        gate = 0.0 if beam.gate is None else beam.gate
-        return self.d_beam_dir, self.d_beam_lut, np.int32(self.beam_lut), np.int32(self.n_meas), np.float32(gate)
+        self.alloc_beam(n_meas)
 
     def __call__(
         self,
@@ -75,17 +109,9 @@ class BackprojectPlan(Plan):
         pairs = np.empty((self.n_meas, self.n_lags, 2), np.complex64)
         pairs[:, :, 0] = prof[:, :-1]
         pairs[:, :, 1] = prof[:, 1:]
-        c = np.broadcast_to(np.asarray(c_mps, float), (self.n_meas,))
-        pos4 = np.zeros((2, self.n_meas, 4), np.float32)
-        pos4[0, :, :3] = tx_positions
-        pos4[0, :, 3] = 1.0 / (c * dtau_s)  # profile samples per metre of path
-        pos4[1, :, :3] = rx_positions
-        pos4[1, :, 3] = fc_hz / c  # carrier cycles per metre of path
         self.begin()
         self.write(self.d_prof, pairs, np.complex64)
-        self.write(self.d_tx, pos4[0], np.float32)
-        self.write(self.d_rx, pos4[1], np.float32)
-        self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
+        self.write_geometry(tau0_s, dtau_s, fc_hz, tx_positions, rx_positions, c_mps)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
@@ -93,7 +119,7 @@ class BackprojectPlan(Plan):
             self.d_prof, np.int32(self.n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
             np.int32(g.shape[1]), np.int32(g.shape[2]),
         )
-        beam_args = self._beam_args(beam)
+        beam_args = self.beam_args(beam)
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
             evt = self.launch(
@@ -125,13 +151,10 @@ def beam_selftest(queue, vec: int, mode: str = "weighted") -> float:
     """The selftest scene through the beam variant (-DBEAM): a piston speaker tilted per
     measurement and a cone microphone, ``mode`` "weighted" or "limited"; error against the twin
     relative to the peak."""
-    from ..beam import Beams, Piston, beam_weights
     from . import bp_numpy as twin
 
     grid, prof, tau0, fs, tx, rx, c, rng = selftest_scene()
-    tilt = np.c_[rng.uniform(-0.3, 0.3, (3, 2)), np.ones(3)]
-    beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), 3)
-    w = beam_weights(beams, mode, 25e3, 343.0, -12.0)
+    w = selftest_beam_weights(rng, mode)
     plan = BackprojectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, beam_lut=w.luts.shape[1])
     got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c, beam=w)
     want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points(), beam=w)

@@ -7,14 +7,15 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..cl import Plan, kernel
+from ..cl import kernel
+from ..formation.bp_opencl import BeamPlan
 from ..geometry import VoxelGrid
 
 #: bytes of partial profiles one chunk of measurements may hold on the device
 PARTIAL_BYTES = 64 << 20
 
 
-class ProjectPlan(Plan):
+class ProjectPlan(BeamPlan):
     """Compiled kernels and device buffers of the forward projection onto one profile shape.
 
     Each measurement's profile is accumulated in ``n_items`` private copies (one per voxel slab,
@@ -62,28 +63,7 @@ class ProjectPlan(Plan):
         self.d_s0 = self.alloc(4 * n_meas, "r")
         self.d_part = self.alloc(per_meas * self.chunk)
         self.d_prof = self.alloc(8 * n_meas * self.n_lags, "w")
-        if self.beam_lut:
-            self.d_beam_dir = self.alloc(32 * n_meas, "r")
-            self.d_beam_lut = self.alloc(8 * self.beam_lut, "r")
-
-    def defines(self) -> dict:
-        return {"BEAM": 1} if self.beam_lut else {}
-
-    def _beam_args(self, beam) -> tuple:
-        """The kernel's beam arguments (beam.cl's BEAM_ARGS), buffers written; () without -DBEAM
-        (the layout of :class:`clsas.formation.bp_opencl.BackprojectPlan`'s)."""
-        if not self.beam_lut:
-            if beam is not None:
-                raise ValueError("this plan was built without a beam (beam_lut=0)")
-            return ()
-        if beam is None or beam.luts.shape != (2, self.beam_lut):
-            raise ValueError(f"beam: a plan built with beam_lut={self.beam_lut} needs BeamWeights of that size")
-        dirs = np.zeros((2, self.n_meas, 4), np.float32)
-        dirs[0, :, :3], dirs[1, :, :3] = beam.tx_dir, beam.rx_dir
-        self.write(self.d_beam_dir, dirs, np.float32)
-        self.write(self.d_beam_lut, beam.luts, np.float32)
-        gate = 0.0 if beam.gate is None else beam.gate
-        return self.d_beam_dir, self.d_beam_lut, np.int32(self.beam_lut), np.int32(self.n_meas), np.float32(gate)
+        self.alloc_beam(n_meas)
 
     def __call__(
         self,
@@ -102,24 +82,16 @@ class ProjectPlan(Plan):
         ``beam_lut`` (None without one). Returns (n_meas, n_lags) complex64 profiles."""
         x = np.zeros(self.n_pad, np.complex64)
         x[: self.n_vox] = np.ravel(values)
-        c = np.broadcast_to(np.asarray(c_mps, float), (self.n_meas,))
-        pos4 = np.zeros((2, self.n_meas, 4), np.float32)
-        pos4[0, :, :3] = tx_positions
-        pos4[0, :, 3] = 1.0 / (c * dtau_s)  # profile samples per metre of path
-        pos4[1, :, :3] = rx_positions
-        pos4[1, :, 3] = fc_hz / c  # carrier cycles per metre of path
         self.begin()
         self.write(self.d_xre, x.real, np.float32)
         self.write(self.d_xim, x.imag, np.float32)
-        self.write(self.d_tx, pos4[0], np.float32)
-        self.write(self.d_rx, pos4[1], np.float32)
-        self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
+        self.write_geometry(tau0_s, dtau_s, fc_hz, tx_positions, rx_positions, c_mps)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
         fixed = (self.d_xre, self.d_xim, np.int32(self.n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
                  np.int32(g.shape[1]), np.int32(g.shape[2]), np.int32(self.n_blocks))
-        beam_args = self._beam_args(beam)
+        beam_args = self.beam_args(beam)
         lag_items = -(-self.n_lags // 64) * 64
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
@@ -151,14 +123,11 @@ def beam_selftest(queue, vec: int, mode: str = "weighted") -> float:
     and a cone microphone (the backprojection's :func:`clsas.formation.bp_opencl.beam_selftest`),
     ``mode`` "weighted" or "limited", two chunks, two voxel slabs; error against the twin relative
     to the peak."""
-    from ..beam import Beams, Piston, beam_weights
-    from ..formation.bp_opencl import selftest_scene
+    from ..formation.bp_opencl import selftest_beam_weights, selftest_scene
     from . import project_numpy as twin
 
     grid, _, tau0, fs, tx, rx, c, rng = selftest_scene()
-    tilt = np.c_[rng.uniform(-0.3, 0.3, (3, 2)), np.ones(3)]
-    beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), 3)
-    w = beam_weights(beams, mode, 25e3, 343.0, -12.0)
+    w = selftest_beam_weights(rng, mode)
     x = rng.normal(size=grid.size) + 1j * rng.normal(size=grid.size)
     plan = ProjectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, n_items=2, beam_lut=w.luts.shape[1])
     got = plan(x, tau0, 1 / fs, 25e3, tx, rx, c, beam=w)
