@@ -219,18 +219,6 @@ def _need(spec: dict, key: str, name: str) -> Any:
     return spec[key]
 
 
-def _unit_rows(name: str, value: Any, n: int) -> np.ndarray:
-    """(n, 3) unit vectors from one (3,) vector or (n, 3) rows, refusing zero rows."""
-    arr = np.asarray(value, float)
-    if arr.shape == (3,):
-        arr = np.broadcast_to(arr, (n, 3))
-    arr = v.array(name, arr, shape=(n, 3))
-    norm = np.linalg.norm(arr, axis=1)
-    if np.any(norm == 0):
-        raise ValueError(f"{name}: a boresight must not be the zero vector (row {int(np.argmin(norm))})")
-    return arr / norm[:, None]
-
-
 @dataclass(frozen=True)
 class Beams:
     """The speaker's and the microphone's beam and their boresights per measurement.
@@ -256,8 +244,8 @@ class Beams:
         n = v.positive_int("n_meas", self.n_meas)
         object.__setattr__(self, "speaker", beam_from_spec(self.speaker, "speaker"))
         object.__setattr__(self, "microphone", beam_from_spec(self.microphone, "microphone"))
-        object.__setattr__(self, "tx_boresight", _unit_rows("tx_boresight", self.tx_boresight, n))
-        object.__setattr__(self, "rx_boresight", _unit_rows("rx_boresight", self.rx_boresight, n))
+        object.__setattr__(self, "tx_boresight", v.unit_rows("tx_boresight", self.tx_boresight, n))
+        object.__setattr__(self, "rx_boresight", v.unit_rows("rx_boresight", self.rx_boresight, n))
 
     @property
     def is_omni(self) -> bool:
@@ -275,7 +263,7 @@ class Beams:
 def planar_boresights(n_meas: int, normal: Any = (0.0, 0.0, 1.0)) -> np.ndarray:
     """(n_meas, 3) boresights of a planar rig: every transducer faces ``normal`` (+z, the
     scan plane's normal, by default)."""
-    return _unit_rows("normal", normal, v.positive_int("n_meas", n_meas)).copy()
+    return v.unit_rows("normal", normal, v.positive_int("n_meas", n_meas)).copy()
 
 
 def axis_boresights(positions_m: Any, axis_point_m: Any = (0.0, 0.0, 0.0),
@@ -283,12 +271,12 @@ def axis_boresights(positions_m: Any, axis_point_m: Any = (0.0, 0.0, 0.0),
     """(n, 3) boresights of a turntable or cylindrical scan: from each position straight
     toward the rotation axis (through ``axis_point_m`` along ``axis_dir``), perpendicular to it."""
     p = v.array("positions_m", positions_m, shape=(None, 3))
-    a = _unit_rows("axis_dir", axis_dir, 1)[0]
+    a = v.unit_rows("axis_dir", axis_dir, 1)[0]
     rel = p - v.array("axis_point_m", axis_point_m, shape=(3,))
     radial = rel - np.outer(rel @ a, a)
     if np.any(np.linalg.norm(radial, axis=1) == 0):
         raise ValueError("positions_m: a position on the rotation axis has no direction toward it")
-    return _unit_rows("boresight", -radial, len(p))
+    return v.unit_rows("boresight", -radial, len(p))
 
 
 def lookup_table(beam: Beam, fc_hz: float, c_mps: float, n: int = LUT_SIZE) -> np.ndarray:

@@ -26,17 +26,6 @@ from . import validate as v
 __all__ = ["Surface"]
 
 
-def _unit(name: str, value, n: int) -> np.ndarray:
-    arr = np.asarray(value, float)
-    if arr.shape == (3,):
-        arr = np.broadcast_to(arr, (n, 3))
-    arr = v.array(name, arr, shape=(n, 3))
-    norm = np.linalg.norm(arr, axis=1)
-    if np.any(norm == 0):
-        raise ValueError(f"{name}: zero vector in row {int(np.argmin(norm))}")
-    return arr / norm[:, None]
-
-
 @dataclass(frozen=True)
 class Surface:
     """Flat facets that reflect specularly (see the module docstring).
@@ -60,7 +49,7 @@ class Surface:
         k = len(p)
         if k == 0:
             raise ValueError("centers_m: a surface needs at least one facet")
-        n = _unit("normals", self.normals, k)
+        n = v.unit_rows("normals", self.normals, k)
         size = np.asarray(self.size_m, float)
         size = v.array("size_m", np.broadcast_to(size, (k, 2)) if size.shape == (2,) else size, shape=(k, 2))
         if np.any(size <= 0):
@@ -90,7 +79,7 @@ class Surface:
         c = v.array("center_m", center_m, shape=(3,))
         ext = v.array("extent_m", extent_m, shape=(2,))
         f = v.positive("facet_m", facet_m)
-        nrm = _unit("normal", normal, 1)
+        nrm = v.unit_rows("normal", normal, 1)
         proto = cls(c[None], nrm, (f, f), reflectivity)
         u, w = proto.axes()
         nu, nv = (max(1, int(np.ceil(e / f))) for e in ext)

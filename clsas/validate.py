@@ -133,3 +133,15 @@ def cell_number(text: str, where: str) -> float:
     if not math.isfinite(x):
         raise ValueError(f"{where}: {s!r} is NaN or infinite")
     return x
+
+
+def unit_rows(name: str, value: Any, n: int) -> np.ndarray:
+    """(n, 3) unit vectors from one (3,) vector or (n, 3) rows, refusing a zero row (naming it)."""
+    arr = np.asarray(value, float)
+    if arr.shape == (3,):
+        arr = np.broadcast_to(arr, (n, 3))
+    arr = array(name, arr, shape=(n, 3))
+    norm = np.linalg.norm(arr, axis=1)
+    if np.any(norm == 0):
+        raise ValueError(f"{name}: a direction must not be the zero vector (row {int(np.argmin(norm))})")
+    return arr / norm[:, None]
