@@ -12,6 +12,8 @@
 #define intV CAT(int, VEC)
 #define vloadV CAT(vload, VEC)
 #define vstoreV CAT(vstore, VEC)
+#define as_intV CAT(as_int, VEC)
+#define as_floatV CAT(as_float, VEC)
 
 /* a vector and its lanes */
 typedef union { floatV v; float s[VEC]; } lanes_f;

@@ -11,7 +11,29 @@
  * and c0 alpha^p is added, for each term p, to the W cells around pos (modulo M) with the
  * weight exp(beta (sqrt(1 - (2 x / W)^2) - 1)), x the cell's distance from pos.
  * The phase is reduced to cycles in [-0.5, 0.5] before sin/cos. NumPy twin:
- * clsas/formation/stolt.py:spread. Needs common.cl (RINT). */
+ * clsas/formation/stolt.py:spread. Needs common.cl (RINT, sincos_2pi, the lane unions).
+ *
+ * The VEC columns of a work-item are its vector lanes: everything per sample (kz, window,
+ * strength, position) and per kernel tap (the weight) is computed for the VEC columns at once,
+ * with operators rather than builtins (common.cl's note), and only the read-modify-write of a
+ * cell goes lane by lane. The tap weight exp(beta (sqrt(1 - x^2) - 1)) uses exp_neg below. */
+
+/* exp(y) for y in [-126 ln 2, 0]: 2^n 2^f, n = rint(y log2 e), f in [-0.5, 0.5]; 2^f by its
+ * Taylor polynomial of degree 6 in f ln 2 (relative error < 2e-7), 2^n from the bits. */
+inline floatV exp_neg(const floatV y)
+{
+    floatV t = y * 1.44269504089f;
+    t = t < -126.0f ? (floatV)(-126.0f) : t;
+    const floatV n = RINT(t);
+    const floatV x = (t - n) * 0.69314718056f;
+    const floatV p = 1.0f + x * (1.0f + x * (0.5f + x * (1.0f / 6.0f + x * (1.0f / 24.0f
+                   + x * (1.0f / 120.0f + x * (1.0f / 720.0f))))));
+    /* n + 127 in [1, 127] sits in the low mantissa bits of n + (2^23 + 127) */
+    const intV e = (as_intV(n + 8388735.0f) & 0xff) << 23;
+    return p * as_floatV(e);
+}
+
+
 
 __kernel void stolt_spread(
     __global const float2 *spec,     /* (n_cols, n_f) data spectrum, weights applied            */
@@ -32,48 +54,79 @@ __kernel void stolt_spread(
     const int c_first = get_global_id(0) * VEC;
     const float b2 = win.x * win.x + win.y * win.y;
     const float hw = 0.5f * (float)width;     /* half the kernel width, cells */
+    const float inv_hw = 1.0f / hw;
+    const float fm = (float)n_cells, inv_m = 1.0f / (float)n_cells;
+    lanes_f kx, ky;
+    lanes_i live;                             /* -1 for a real column, 0 for padding */
     for (int l = 0; l < VEC; ++l) {
         const int col = c_first + l;
-        if (col >= n_cols) break;
-        for (int p = 0; p < n_terms; ++p)
-            for (int m = 0; m < n_cells; ++m)
-                cells[((size_t)p * n_cols + col) * n_cells + m] = (float2)(0.0f, 0.0f);
-        const float2 kp = kuv[col];
-        const float kp2 = kp.x * kp.x + kp.y * kp.y;
-        const float proj = win.x * kp.x + win.y * kp.y;
-        for (int j = 0; j < n_f; ++j) {
-            const float kk = k[j];
-            const float kz2 = kk * kk - kp2;
-            if (kz2 <= 0.0f) continue;
-            const float s = sqrt(kp2) / fabs(kk);
-            if (s >= s2) continue;
-            const float ramp = (s - win.z) * win.w;
-            const float w = ramp <= 0.0f ? 1.0f : 0.5f * (1.0f + cospi(ramp));
-            const float kz = copysign(sqrt(kz2), kk);    /* negative frequencies: kz < 0 */
-            const float alpha = 0.125f * kz * (b2 - proj * proj / (kk * kk));
-            float cyc = kz * geo.y + alpha * geo.w;
-            cyc -= RINT(cyc);
-            const float ph_c = cospi(2.0f * cyc), ph_s = sinpi(2.0f * cyc);
-            const float amp = w * 6.28318530718f * kk / kz2;
-            const float q = geo.z / kz;                      /* the 1 / (kz zref) term */
-            const float2 d = spec[(size_t)col * n_f + j];
-            /* d * amp * (1 + i q) * (ph_c + i ph_s) */
-            const float ar = amp * (ph_c - q * ph_s), ai = amp * (ph_s + q * ph_c);
-            const float2 c0 = (float2)(d.x * ar - d.y * ai, d.x * ai + d.y * ar);
-            const float pos = kz * geo.x;
-            const float first = ceil(pos - hw);
-            for (int t = 0; t < width; ++t) {
-                const float cell = first + (float)t;
-                const float x = (cell - pos) / hw;
-                const float arg = 1.0f - x * x;
-                if (arg <= 0.0f) continue;
-                const float phi = exp(beta * (sqrt(arg) - 1.0f));
-                const int ci = (int)cell;
-                const int idx = ci - n_cells * (int)floor((float)ci / (float)n_cells);
-                float2 v = phi * c0;
+        live.s[l] = col < n_cols ? -1 : 0;
+        const float2 kp = kuv[col < n_cols ? col : n_cols - 1];
+        kx.s[l] = kp.x;
+        ky.s[l] = kp.y;
+        if (col < n_cols)
+            for (int p = 0; p < n_terms; ++p)
+                for (int m = 0; m < n_cells; ++m)
+                    cells[((size_t)p * n_cols + col) * n_cells + m] = (float2)(0.0f, 0.0f);
+    }
+    const floatV kp2 = kx.v * kx.v + ky.v * ky.v;
+    const floatV kp = sqrt(kp2);
+    const floatV proj = win.x * kx.v + win.y * ky.v;
+    const floatV proj2 = proj * proj;
+    for (int j = 0; j < n_f; ++j) {
+        const float kk = k[j];
+        const float inv_kk2 = 1.0f / (kk * kk);
+        const floatV kz2 = kk * kk - kp2;
+        const floatV s = kp * fabs(1.0f / kk);
+        lanes_i ok;
+        ok.v = live.v & (kz2 > 0.0f) & (s < s2);
+        const floatV kz_abs = sqrt(kz2 > 0.0f ? kz2 : (floatV)(1.0f));
+        const floatV kz = kk < 0.0f ? -kz_abs : kz_abs;   /* negative frequencies: kz < 0 */
+        const floatV ramp = (s - win.z) * win.w;
+        floatV wc;
+        sincos_2pi(0.5f * (ramp > 1.0f ? (floatV)(1.0f) : ramp), &wc);   /* cos(pi ramp) */
+        const floatV w = ramp <= 0.0f ? (floatV)(1.0f) : 0.5f * (1.0f + wc);
+        const floatV alpha = 0.125f * kz * (b2 - proj2 * inv_kk2);
+        floatV cyc = kz * geo.y + alpha * geo.w;
+        cyc -= RINT(cyc);
+        floatV ph_c;
+        const floatV ph_s = sincos_2pi(cyc, &ph_c);
+        const floatV amp = w * (6.28318530718f * kk) / (kz_abs * kz_abs);
+        const floatV q = geo.z / kz;                      /* the 1 / (kz zref) term */
+        lanes_f dr, di;
+        for (int l = 0; l < VEC; ++l) {
+            const float2 d = ok.s[l] ? spec[(size_t)(c_first + l) * n_f + j] : (float2)(0.0f, 0.0f);
+            dr.s[l] = d.x;
+            di.s[l] = d.y;
+        }
+        /* d * amp * (1 + i q) * (ph_c + i ph_s) */
+        const floatV ar = amp * (ph_c - q * ph_s), ai = amp * (ph_s + q * ph_c);
+        const floatV c0r = dr.v * ar - di.v * ai, c0i = dr.v * ai + di.v * ar;
+        const floatV pos = kz * geo.x;
+        floatV first = RINT(pos - hw);
+        first = first < pos - hw ? first + 1.0f : first;   /* ceil */
+        for (int t = 0; t < width; ++t) {
+            const floatV cell = first + (float)t;
+            const floatV x = (cell - pos) * inv_hw;
+            const floatV arg = 1.0f - x * x;
+            const floatV phi = arg > 0.0f ? exp_neg(beta * (sqrt(arg > 0.0f ? arg : (floatV)(0.0f)) - 1.0f))
+                                          : (floatV)(0.0f);
+            /* the cell modulo M, from floats (|cell| < 2^22) */
+            floatV fold = RINT(cell * inv_m);
+            fold = fold * fm > cell ? fold - 1.0f : fold;
+            lanes_f idx, vr, vi, al;
+            idx.v = cell - fold * fm;
+            al.v = alpha;
+            vr.v = phi * c0r;
+            vi.v = phi * c0i;
+            for (int l = 0; l < VEC; ++l) {
+                if (!ok.s[l]) continue;
+                int ci = (int)idx.s[l];
+                ci = ci >= n_cells ? ci - n_cells : (ci < 0 ? ci + n_cells : ci);
+                                float2 v = (float2)(vr.s[l], vi.s[l]);
                 for (int p = 0; p < n_terms; ++p) {
-                    cells[((size_t)p * n_cols + col) * n_cells + idx] += v;
-                    v *= alpha;
+                    cells[((size_t)p * n_cols + c_first + l) * n_cells + ci] += v;
+                    v *= al.s[l];
                 }
             }
         }
