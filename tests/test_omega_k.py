@@ -314,3 +314,21 @@ def test_stolt_interpolation_equals_the_direct_sum():
     for term in range(p.n_terms):
         want = np.einsum("cf,cfz->cz", np.where(valid, c0 * alpha**term, 0), phase)
         assert np.abs(got[term] - want).max() < 1e-4 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("n_z", [1, 6, 11, 12], ids=lambda n: f"nz{n}")
+def test_terms_to_depths_is_the_weighted_sum_of_columns_to_depths(n_z):
+    # omega-k's fused step: the terms weighted per depth and summed, in the cells' precision
+    from clsas.formation.opencl import StoltPlan
+    from clsas.formation.stolt import columns_to_depths, terms_to_depths
+
+    spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    cells = spread(spec, k, ku, kv, p)
+    rng = np.random.default_rng(5)
+    factors = rng.normal(size=(p.n_terms, n_z)) + 1j * rng.normal(size=(p.n_terms, n_z))
+    want = np.einsum("pcz,pz->cz", columns_to_depths(cells, n_z, p), factors)
+    got = terms_to_depths(cells.copy(), n_z, p, factors)
+    assert got.dtype == cells.dtype
+    assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
+    got32 = terms_to_depths(cells.astype(np.complex64), n_z, p, factors)
+    assert got32.dtype == np.complex64 and np.abs(got32 - want).max() < 1e-5 * np.abs(want).max()

@@ -465,8 +465,7 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
         else:
             cells = stolt.spread(block, k, ku_all[iu_], kv_all[iv_], params)
         t_stolt += time.perf_counter() - t
-        terms = stolt.columns_to_depths(cells, nz, params, workers)  # (terms, cols, nz)
-        T[iu_, iv_] = np.einsum("pcz,pz->cz", terms, factors)
+        T[iu_, iv_] = stolt.terms_to_depths(cells, nz, params, factors, workers)  # (cols, nz)
         if progress is not None:
             progress(min(len(cols), c0 + o["chunk"]), len(cols))
     del dspec

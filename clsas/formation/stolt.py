@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["StoltParams", "spread", "deapodization", "columns_to_depths", "es_beta"]
+__all__ = ["StoltParams", "spread", "deapodization", "columns_to_depths", "terms_to_depths", "es_beta"]
 
 
 def es_beta(width: int) -> float:
@@ -165,3 +165,40 @@ def columns_to_depths(cells: np.ndarray, n_z: int, p: StoltParams, workers: int 
     b = scipy.fft.ifft(cells, axis=-1, workers=workers)
     ell = np.arange(n_z) - n_z // 2
     return b[..., np.mod(ell, M)] * (M * deapodization(n_z, p)).astype(b.dtype)
+
+
+def terms_to_depths(cells: np.ndarray, n_z: int, p: StoltParams, factors: np.ndarray,
+                    workers: int | None = None) -> np.ndarray:
+    """``sum_p factors[p, z] columns_to_depths(cells)[p, :, z]``, in the cells' precision.
+
+    What ω-k needs of :func:`columns_to_depths`: the terms weighted per depth (the bistatic
+    expansion's ``(i u_z)^p / p!``) and summed. The weights, the de-apodisation and ``M`` are
+    folded into one (n_terms, n_z) table, and the depths are read as the two contiguous runs
+    of the inverse FFT they are (no gather, no float64 promotion).
+
+    Parameters
+    ----------
+    cells : (n_terms, n_cols, M) complex
+    n_z : int
+    p : StoltParams
+    factors : (n_terms, n_z) complex
+    workers : int, optional
+        FFT threads.
+
+    Returns
+    -------
+    (n_cols, n_z) complex, the dtype of ``cells``.
+    """
+    import scipy.fft
+
+    M = p.n_cells
+    b = scipy.fft.ifft(cells, axis=-1, workers=workers, overwrite_x=True)
+    coef = (np.asarray(factors) * (M * deapodization(n_z, p))[None, :]).astype(b.dtype)
+    h = n_z // 2  # planes l = -h .. -1 sit at the FFT's end, l = 0 .. n_z - h - 1 at its start
+    out = np.empty(b.shape[1:2] + (n_z,), b.dtype)
+    out[:, :h] = b[0, :, M - h:] * coef[0, :h]
+    out[:, h:] = b[0, :, : n_z - h] * coef[0, h:]
+    for q in range(1, b.shape[0]):
+        out[:, :h] += b[q, :, M - h:] * coef[q, :h]
+        out[:, h:] += b[q, :, : n_z - h] * coef[q, h:]
+    return out
