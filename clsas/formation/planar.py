@@ -29,7 +29,7 @@ import numpy as np
 from .. import validate as v
 from ..geometry import VoxelGrid
 
-__all__ = ["Lattice", "PlanarAperture", "NotPlanarUniform", "planar_aperture", "well_sampled_cone"]
+__all__ = ["Lattice", "PlanarAperture", "NotPlanarUniform", "planar_aperture", "well_sampled_cone", "cone_of"]
 
 ALTERNATIVES = "use formation='ffbp' (any trajectory) or formation='bp' (exact backprojection) instead"
 
@@ -194,7 +194,12 @@ def well_sampled_cone(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, f_max_hz:
     c_mps = v.positive("c_mps", c_mps)
     margin = v.positive("margin", margin)
     tol = c_mps / f_max_hz / 100 if tol_m is None else v.positive("tol_m", tol_m)
-    ap = planar_aperture(tx, rx, grid, tol)
+    return cone_of(planar_aperture(tx, rx, grid, tol), grid, f_max_hz, c_mps, margin)
+
+
+def cone_of(ap: PlanarAperture, grid: VoxelGrid, f_max_hz: float, c_mps: float, margin: float = 0.8) -> np.ndarray:
+    """:func:`well_sampled_cone` of an aperture already analysed (``planar_aperture``'s result
+    for this grid; arguments as there, not validated again)."""
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
     U, V, W = np.meshgrid(pu, pv, np.abs(pw - ap.w_m), indexing="ij")
