@@ -349,3 +349,25 @@ def test_dft_axis_direct_product_equals_the_chirp_z(monkeypatch, dtype):
         monkeypatch.setattr(ok, "_DIRECT_MAX", direct_max)
         got = ok._dft_axis(a, k, x, 1)
         assert got.dtype == dtype and np.abs(got - want).max() < tol * np.abs(want).max()
+
+
+def test_planar_aperture_is_remembered_by_content_and_shared_read_only():
+    # auto sizes omega-k and omega-k then forms the image: one analysis serves both
+    from clsas.formation.planar import NotPlanarUniform, planar_aperture
+
+    ap = clsas.raster_aperture(6, 5, 0.05, 0.04)
+    tx, rx = ap.tx_positions.copy(), ap.rx_positions.copy()
+    grid = clsas.VoxelGrid(np.linspace(-0.02, 0.02, 5), np.linspace(-0.02, 0.02, 4), np.linspace(0.3, 0.4, 3))
+    first = planar_aperture(tx, rx, grid, 1e-4)
+    assert planar_aperture(tx.copy(), rx.copy(), grid, 1e-4) is first
+    assert all(not g.index.flags.writeable and not g.iu.flags.writeable for g in first.groups)
+    moved = tx.copy()
+    moved[:, 0] *= 2  # another lattice spacing: analysed anew
+    rx2 = rx.copy()
+    rx2[:, 0] *= 2
+    assert planar_aperture(moved, rx2, grid, 1e-4).groups[0].spacing_uv != first.groups[0].spacing_uv
+    bad = tx.copy()
+    bad[3, 0] += 3e-3  # a stop moved: refused, and refused again from memory with the same words
+    for _ in range(2):
+        with pytest.raises(NotPlanarUniform, match="do not fill a 6 x 5 lattice"):
+            planar_aperture(bad, rx, grid, 1e-4)

@@ -17,8 +17,8 @@ Time. Each formation's time is a sum of counted work times seconds per unit:
   x taps³), sizes from :func:`clsas.formation.ffbp.plan_tree`.
 
 The built-in seconds per unit (:data:`BUILTIN`) were fitted on a 2-core AMD EPYC VM (PoCL CPU
-device, 2026-11-25) and are scaled to other devices by their compute units (kernels) and host
-cores (host FFTs). ``clsas bench`` measures the formations on the device and stores one factor
+device, 2026-11-25, refitted on the quiet host 2026-11-27) and are scaled to other devices by
+their compute units (kernels) and host cores (host FFTs). ``clsas bench`` measures the formations on the device and stores one factor
 per formation (measured over predicted, the median over its cases) beside the kernel-variant
 verdicts (:func:`calibration_path`); :func:`choose` applies it. The model need only rank the
 formations: within a factor of two is enough where they differ by more. Sizing ω-k and planning
@@ -71,10 +71,12 @@ FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
 FORMAT = 1
 
 # seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
+# (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
+# kernel: the 2026-11-25 fit had been taken at load 12-14 and over-predicted ω-k 5x, bp 2.5x)
 BUILTIN: dict[str, dict[str, float]] = {
-    "bp": {"fixed": 5e-3, "pairs": 5e-9},
-    "omega-k": {"fixed": 0.05, "delay": 9e-9, "lattice": 3.5e-9, "stolt": 3e-7, "depths": 9e-9, "out": 5e-9},
-    "ffbp": {"fixed": 0.01, "leaf": 2e-8, "merge": 5e-9, "grid": 5e-9},
+    "bp": {"fixed": 5e-3, "pairs": 2e-9},
+    "omega-k": {"fixed": 5e-3, "delay": 2e-9, "lattice": 7e-10, "stolt": 6e-8, "depths": 2e-9, "out": 1e-9},
+    "ffbp": {"fixed": 5e-3, "leaf": 1e-8, "merge": 2.5e-9, "grid": 2.5e-9},
 }
 # the tree's planning (host, Python) takes about this per measurement (0.35 s for 4096 stops); with
 # 1.5 times the last step's time it bounds FFBP's time from below before a tree is planned

@@ -22,6 +22,7 @@ benchmark (:mod:`clsas.bench.formation`) and the tests measure errors inside thi
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,7 @@ class NotPlanarUniform(ValueError):
     """The measurements do not form a planar, uniform aperture (the message says why)."""
 
     def __init__(self, why: str):
+        self.why = why
         super().__init__(f"omega-k needs a planar, uniform aperture: {why}; {ALTERNATIVES}")
 
 
@@ -110,6 +112,46 @@ def planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: floa
         How far a position may be off the plane or off the lattice, m (a position error e
         costs a phase of up to 2 k e).
     """
+    key = _aperture_key(tx, rx, grid, tol_m)
+    hit = _APERTURES.get(key)
+    if hit is not None:
+        if isinstance(hit, NotPlanarUniform):
+            raise NotPlanarUniform(hit.why)
+        return hit
+    try:
+        ap = _planar_aperture(tx, rx, grid, tol_m)
+    except NotPlanarUniform as exc:
+        _remember(key, exc)
+        raise
+    _remember(key, ap)
+    return ap
+
+
+# formation="auto" sizes omega-k (planar_aperture) and omega-k then forms the image: the same
+# analysis twice per request, a few ms each at 1e3-1e4 stops; the last few are remembered by
+# the positions' digest (their bytes, the grid's axes and the tolerance), answers and refusals
+_APERTURES: dict[bytes, object] = {}
+_APERTURES_KEPT = 8
+
+
+def _aperture_key(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: float) -> bytes:
+    h = hashlib.blake2b(digest_size=20)
+    for a in (tx, rx, grid.x_m, grid.y_m, grid.z_m):
+        a = np.ascontiguousarray(a, np.float64)
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    h.update(np.float64(tol_m).tobytes())
+    return h.digest()
+
+
+def _remember(key: bytes, value) -> None:
+    _APERTURES.pop(key, None)
+    _APERTURES[key] = value
+    while len(_APERTURES) > _APERTURES_KEPT:
+        _APERTURES.pop(next(iter(_APERTURES)))
+
+
+def _planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: float) -> PlanarAperture:
     pts = np.concatenate([tx, rx])
     bounds = grid.bounds()
     candidates = [a for a in (2, 0, 1) if np.ptp(pts[:, a]) <= 2 * tol_m]
@@ -155,6 +197,8 @@ def _groups(tx: np.ndarray, rx: np.ndarray, axis: int, tol_m: float) -> tuple[La
                                    "(missing or repeated stops)")
         bl = b.mean(axis=0)
         bl[2] = 0.0
+        for a in (index, iu, iv, bl):  # shared by every caller of a remembered aperture
+            a.setflags(write=False)
         groups.append(Lattice(index, iu, iv, (u0, v0), (du, dv), (nu, nv), bl))
     return tuple(groups)
 
