@@ -18,13 +18,13 @@ Time. Each formation's time is a sum of counted work times seconds per unit:
 
 The built-in seconds per unit (:data:`BUILTIN`) were fitted on a 2-core AMD EPYC VM (PoCL CPU
 device, 2026-11-25, refitted on the quiet host 2026-11-27) and are scaled to other devices by
-their compute units (kernels) and host cores (host FFTs). ``clsas bench`` measures the
-formations on the device and stores one factor per formation (measured over predicted, the
-median over its cases) beside the kernel-variant verdicts (:func:`calibration_path`);
-:func:`choose` applies it. The model need only rank the formations: within a factor of two is enough where they differ by more. Sizing ω-k and planning
-an FFBP tree cost time themselves (0.03 s and 0.35 s at 64 x 64 stops), lost where that
-formation is not chosen: each is done only where a lower bound of its time is under
-``PLAN_IF_UNDER`` (0.7) times the best time so far.
+their compute units (kernels) and host cores (host FFTs). ``clsas bench`` measures the formations
+on the device and stores one factor per formation (measured over predicted, the median over its
+cases) beside the kernel-variant verdicts (:func:`calibration_path`); :func:`choose` applies it.
+The model need only rank the formations: within a factor of two is enough where they differ by
+more. Sizing ω-k and planning an FFBP tree cost time themselves (0.03 s and 0.35 s at 64 x 64
+stops), lost where that formation is not chosen: each is done only where a lower bound of its time
+is under ``PLAN_IF_UNDER`` (0.7) times the best time so far.
 
 Error. ``bp`` is the reference (exact). ``omega-k`` is refused for apertures that are not
 planar-uniform (:class:`~clsas.formation.planar.NotPlanarUniform`); otherwise its error is its
