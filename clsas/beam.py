@@ -204,13 +204,18 @@ def beam_from_spec(spec: Any, name: str = "beam") -> Beam:
                          f"known: {', '.join(_SPEC_KEYS[model]) or 'none'}")
     if model == "omni":
         return Omni()
-    if model == "piston":
-        return Piston(_need(spec, "diameter_m", name))
-    if model == "cone":
-        if ("half_angle_deg" in spec) == ("f_number" in spec):
-            raise ValueError(f"{name}: a cone takes exactly one of half_angle_deg and f_number")
-        return Cone(spec["half_angle_deg"]) if "half_angle_deg" in spec else Cone.from_f_number(spec["f_number"])
-    return Table(tuple(_need(spec, "angles_deg", name)), tuple(_need(spec, "amplitudes", name)))
+    if model == "cone" and ("half_angle_deg" in spec) == ("f_number" in spec):
+        raise ValueError(f"{name}: a cone takes exactly one of half_angle_deg and f_number")
+    try:  # the model's own checks, named after the transducer they concern
+        if model == "piston":
+            return Piston(_need(spec, "diameter_m", name))
+        if model == "cone":
+            return Cone(spec["half_angle_deg"]) if "half_angle_deg" in spec else Cone.from_f_number(spec["f_number"])
+        return Table(tuple(_need(spec, "angles_deg", name)), tuple(_need(spec, "amplitudes", name)))
+    except (ValueError, TypeError) as exc:
+        if str(exc).startswith(f"{name}:"):
+            raise
+        raise type(exc)(f"{name}: {exc}") from None
 
 
 def _need(spec: dict, key: str, name: str) -> Any:

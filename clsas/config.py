@@ -31,8 +31,8 @@ T = TypeVar("T")
 
 #: top-level tables of a scene file and of a rig file
 SCENE_TABLES = ("chirp", "aperture", "air", "noise", "points", "walls", "grid", "preprocess", "beams")
-# a rig file's [beams] awaits the rig's file writer (clsas/rig/store.py) storing them (issue 33)
-RIG_TABLES = ("stage", "scan", "aperture", "audio", "recorder", "chirp", "air", "grid", "simulate", "preprocess")
+RIG_TABLES = ("stage", "scan", "aperture", "audio", "recorder", "chirp", "air", "grid", "simulate", "preprocess",
+              "beams")
 BEAM_KEYS = ("speaker", "microphone", "boresight", "normal", "axis_point_m", "axis_dir")
 CHIRP_KEYS = ("f_start_hz", "f_stop_hz", "duration_s", "taper")
 POINT_KEYS = ("position_m", "amplitude", "visible")

@@ -259,12 +259,16 @@ class SimulatedIO:
 
     Faults (stop indices are 0-based): ``clip_at_stop`` and ``xrun_at_stop`` spoil the first
     attempt of that stop (retried), ``error_at_stop`` raises an audio device error.
+    ``beams_for`` (speaker and microphone positions (m, 3) -> :class:`clsas.beam.Beams` or None,
+    e.g. :meth:`clsas.rig.RigConfig.beams_for`) gives the transducers' directivity, which the
+    simulator then applies.
     """
 
     def __init__(self, scene: Scene, fs_hz: float, *, latency_samples: int = 300, noise_rms: float = 1e-4,
                  mic_gain: float = 0.05, seed: int = 0, clip_at_stop: int | None = None,
-                 xrun_at_stop: int | None = None, error_at_stop: int | None = None) -> None:
+                 xrun_at_stop: int | None = None, error_at_stop: int | None = None, beams_for=None) -> None:
         self.scene = scene
+        self.beams_for = beams_for
         self.fs_hz = float(fs_hz)
         self.latency = int(latency_samples)
         self.noise_rms = float(noise_rms)
@@ -281,7 +285,8 @@ class SimulatedIO:
         wave = out[: nz[-1] + 1] if len(nz) else out[:1]
         m = len(ctx.rx_m)
         ap = Aperture(np.repeat(ctx.tx_m[None, :], m, 0), ctx.rx_m, np.repeat(ctx.tx_m[None, :], m, 0))
-        mics = simulate(self.scene, ap, wave, self.fs_hz, n_samples=n, t0_s=-lat / self.fs_hz).signals
+        beams = None if self.beams_for is None else self.beams_for(ap.tx_positions, ap.rx_positions)
+        mics = simulate(self.scene, ap, wave, self.fs_hz, n_samples=n, t0_s=-lat / self.fs_hz, beams=beams).signals
         rng = np.random.default_rng([self.seed, ctx.index, ctx.attempt, ctx.repeat])
         rec = np.zeros((n, 1 + m))
         rec[lat:, 0] = out[: n - lat]

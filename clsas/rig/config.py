@@ -130,6 +130,7 @@ class RigConfig:
     simulate: dict = field(default_factory=dict)  # [simulate], checked: points, walls, numbers
     preprocess: dict = field(default_factory=dict)  # [preprocess], checked by clsas.preprocess.from_table
     grid: VoxelGrid | None = None  # [grid], where `clsas reconstruct` images by default
+    beams: dict | None = None  # [beams] as written (checked on the planned stops); None: omnidirectional
 
     @property
     def port(self) -> str | None:
@@ -182,6 +183,14 @@ class RigConfig:
         return c.build_scene(points, self.simulate.get("walls", []),
                              self.temperature_c if temperature_c is None else temperature_c,
                              self.humidity_pct if humidity_pct is None else humidity_pct)
+
+    def beams_for(self, tx_m: np.ndarray, rx_m: np.ndarray):
+        """The transducers' beams (:class:`clsas.beam.Beams`) of measurements at these positions
+        ((n, 3) speaker and microphone, m), boresights by the ``[beams]`` rule; None without
+        ``[beams]`` (omnidirectional)."""
+        if self.beams is None:
+            return None
+        return c.beams_table({"beams": self.beams}, "rig configuration", tx_m, rx_m)
 
     def read_air(self) -> tuple[float, float]:
         """Temperature (C) and humidity (%) now: from ``sensor_command`` if set, else the file's."""
@@ -301,6 +310,7 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
     recorder = _recorder_settings(rec, level, record_s)
     audio = {"device": device, "fs_hz": fs, "output_channel": au.integer("output_channel", 1, low=1),
              "loopback_channel": loop, "mic_channels": mics}
+    beams = _beams_table(cfg, source, stops, tx_off, rx)
     return RigConfig(
         text=text, stage=stage, home=sc.boolean("home", True), origin_mm=origin,
         settle_s=float(sc.number("settle_s", 0.5, low=0)), audio=audio, recorder=recorder, stops_m=stops,
@@ -308,8 +318,21 @@ def parse_rig_config(text: str, source: str = "rig configuration") -> RigConfig:
         temperature_c=float(air.number("temperature_c", 20.0, low=-273.15)),
         humidity_pct=float(air.number("humidity_pct", 50.0, low=0, high=100)),
         sensor_command=air.string("sensor_command", None), simulate=_simulate_table(cfg, source),
-        preprocess=c.preprocess_table(cfg, source), grid=c.grid_table(cfg, source),
+        preprocess=c.preprocess_table(cfg, source), grid=c.grid_table(cfg, source), beams=beams,
     )
+
+
+def _beams_table(cfg: dict, source: str, stops: np.ndarray, tx_off: np.ndarray, rx: np.ndarray) -> dict | None:
+    """``[beams]`` (the scene file's table: speaker, microphone, boresight rule), checked by
+    building the beams of every planned measurement; each stop's are built again from its
+    measured position when it is stored (:meth:`RigConfig.beams_for`)."""
+    if "beams" not in cfg:
+        return None
+    m = len(rx)
+    tx = np.repeat(stops + tx_off, m, axis=0)
+    rxs = (stops[:, None, :] + rx[None, :, :]).reshape(-1, 3)
+    c.beams_table(cfg, source, tx, rxs)
+    return dict(cfg["beams"])
 
 
 def _tables(cfg: dict, source: str) -> tuple:

@@ -73,7 +73,7 @@ def audio_for(config: RigConfig, simulate: bool, air: tuple[float, float]):
     sim = config.simulate
     return SimulatedIO(config.scene(*air), config.fs_hz, latency_samples=int(sim.get("latency_samples", 300)),
                        noise_rms=float(sim.get("noise_rms", 1e-4)), mic_gain=float(sim.get("mic_gain", 0.05)),
-                       seed=int(sim.get("seed", 0)))
+                       seed=int(sim.get("seed", 0)), beams_for=config.beams_for)
 
 
 def recorder_for(config: RigConfig, audio_io) -> Recorder:
@@ -92,7 +92,9 @@ def store_for(config: RigConfig, out: Path, resume: bool, air: tuple[float, floa
     return ScanFile.create(out, fs_hz=config.fs_hz, waveform=config.level * config.waveform,
                            n_samples=config.n_samples, n_mics=config.n_mics, n_stops=config.n_stops,
                            temperature_c=air[0], humidity_pct=air[1], c_mps=speed_of_sound(air[0]),
-                           chirp=config.chirp, config_text=config.text)
+                           chirp=config.chirp, config_text=config.text,
+                           beams=config.beams_for(config.stops_m[:1] + config.tx_offset_m,
+                                                  config.stops_m[:1] + config.rx_offsets_m[:1]))
 
 
 def run_stops(config: RigConfig, stage: GrblStage, recorder: Recorder, store: ScanFile, *, settle_s: float,
@@ -118,7 +120,8 @@ def run_stops(config: RigConfig, stage: GrblStage, recorder: Recorder, store: Sc
         take = recorder.take(i, tx, rx)
         retried += take.attempts > 1
         store.append(i, signals=take.signals, tx_m=tx, rx_m=rx, t0_s=take.t0_s, stage_m=carriage,
-                     timestamp=time.time(), loopback=take.loopback)
+                     timestamp=time.time(), loopback=take.loopback,
+                     beams=config.beams_for(np.repeat(tx[None, :], len(rx), axis=0), rx))
         if progress is not None:
             progress(i + 1, config.n_stops)
     return retried

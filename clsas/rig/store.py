@@ -4,6 +4,8 @@ The layout is the Dataset file's (``clsas.load`` and ``clsas reconstruct`` read 
 progress as it is), plus ``stop_index`` (the stop each measurement belongs to). Each stop is
 written with ``signals`` last and the file is flushed before the next move, so after a crash
 the arrays may only run ahead of ``signals``; opening the file to resume trims them back.
+A rig with ``[beams]`` also grows the ``beams`` group's boresights a stop at a time (the
+transducers' models are its attributes, written once).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ __all__ = ["ScanFile"]
 log = logging.getLogger(__name__)
 
 _AUX = ("tx_positions", "rx_positions", "t0_s", "stage_positions", "timestamps", "loopback", "stop_index")
+_BORESIGHTS = ("beams/tx_boresight", "beams/rx_boresight")
 
 
 class ScanFile:
@@ -34,7 +37,9 @@ class ScanFile:
     @classmethod
     def create(cls, path: str | Path, *, fs_hz: float, waveform: np.ndarray, n_samples: int, n_mics: int,
                n_stops: int, temperature_c: float, humidity_pct: float, c_mps: float, chirp: dict,
-               config_text: str) -> ScanFile:
+               config_text: str, beams=None) -> ScanFile:
+        """A new scan file; ``beams`` (:class:`clsas.beam.Beams`, any measurements) gives the
+        transducers' models to store, their boresights come with each stop."""
         import h5py
 
         from .. import __version__
@@ -59,6 +64,14 @@ class ScanFile:
         })
         for k, val in chirp.items():
             f.attrs[f"chirp_{k}"] = val
+        if beams is not None:
+            g = f.create_group("beams")
+            g.attrs["about"] = "transducer directivity (clsas.beam): one-way patterns and boresights"
+            for k, val in beams.specs().items():
+                g.attrs[f"{k}_json"] = json.dumps(val)
+            for name in _BORESIGHTS:
+                d = f.create_dataset(name, shape=(0, 3), maxshape=(None, 3), dtype=np.float64, chunks=(chunk, 3))
+                d.attrs["units"] = "1 (unit vector)"
         f.flush()
         return cls(f, n_mics)
 
@@ -82,7 +95,7 @@ class ScanFile:
                              "same rig.toml (the one stored in the file's 'config_toml' attribute)")
         n_mics = int(f.attrs["n_mics"])
         n = f["signals"].shape[0] - f["signals"].shape[0] % n_mics
-        for name in ("signals", *_AUX):
+        for name in ("signals", *_AUX, *(b for b in _BORESIGHTS if b in f)):
             if f[name].shape[0] != n:
                 log.info("trimming %s from %d to %d rows (a stop in flight when the scan stopped)",
                          name, f[name].shape[0], n)
@@ -101,10 +114,18 @@ class ScanFile:
     def done_stop_indices(self) -> np.ndarray:
         return self._f["stop_index"][::self.n_mics]
 
+    @property
+    def has_beams(self) -> bool:
+        return "beams" in self._f
+
     def append(self, stop: int, *, signals: np.ndarray, tx_m: np.ndarray, rx_m: np.ndarray, t0_s: float,
-               stage_m: np.ndarray, timestamp: float, loopback: np.ndarray) -> None:
-        """Write one stop (``n_mics`` measurements) and flush."""
+               stage_m: np.ndarray, timestamp: float, loopback: np.ndarray, beams=None) -> None:
+        """Write one stop (``n_mics`` measurements) and flush; ``beams`` (:class:`clsas.beam.Beams`
+        of the stop's measurements) where the file was created with beams."""
         f, m = self._f, self.n_mics
+        if (beams is not None) != self.has_beams:
+            raise ValueError(f"beams: {self.path} was created {'with' if self.has_beams else 'without'} transducer "
+                             f"beams, and stop {stop} comes {'with' if beams is not None else 'without'} them")
         n = f["signals"].shape[0]
         rows = {
             "tx_positions": np.repeat(np.asarray(tx_m, float)[None, :], m, 0),
@@ -115,6 +136,11 @@ class ScanFile:
             "loopback": np.repeat(np.asarray(loopback, np.float32)[None, :], m, 0),
             "stop_index": np.full(m, stop, np.int32),
         }
+        if beams is not None:
+            if beams.n_meas != m:
+                raise ValueError(f"beams: {beams.n_meas} boresights for a stop of {m} measurements")
+            rows["beams/tx_boresight"] = beams.tx_boresight
+            rows["beams/rx_boresight"] = beams.rx_boresight
         for name, val in rows.items():
             f[name].resize(n + m, axis=0)
             f[name][n:] = val
