@@ -4,12 +4,11 @@ read back as the dataset's beams, applied by the simulated microphone, kept acro
 import h5py
 import numpy as np
 import pytest
+from test_rig import rig_toml  # noqa: E402  (the rig tests' configuration)
 
 import clsas
 from clsas import rig
 from clsas.rig import Faults, ScanAborted
-
-from test_rig import rig_toml  # noqa: E402  (the rig tests' configuration)
 
 BEAMS = """
 [beams]
