@@ -214,3 +214,19 @@ def test_bp_without_the_beam_model_puts_the_surface_above_itself(flat_surface_un
     assert share_on_surface("none") < 0.8
     assert share_on_surface("limited") >= 0.95
     assert share_on_surface(None) >= 0.95  # the default for profiles that carry beams
+
+
+def test_formation_table_has_the_directional_case():
+    # issue 33: bp with and without the beam model, omega-k and FFBP in `clsas bench`'s table
+    from clsas.bench import formation as bf
+
+    res = bf.run_beams_case(4)
+    rows = {r["formation"]: r for r in res["rows"]}
+    assert list(rows)[:6] == ["bp", "bp beam=none", "bp beam=weighted", "omega-k", "omega-k beam=weighted",
+                              "ffbp beam=none"]
+    assert rows["bp"]["error_all_db"] is None  # the reference: bp's default with beams ("limited")
+    assert all(r.get("time_s", 0) > 0 or "refused" in r for r in res["rows"])
+    assert rows["auto"]["chose"] == "bp"  # directional beams take bp
+    table = "\n".join(bf.markdown({"cases": [res]}))
+    assert "| beams | bp beam=none |" in table and "| beams | auto -> bp |" in table
+    assert "beams" in bf.ALL_CASES and "beams" in bf.FULL["cases"] and "beams" not in bf.QUICK["cases"]

@@ -14,7 +14,8 @@ For every formation in :data:`clsas.formation.FORMATIONS` (with its defaults) an
 Cases: ``demo`` (the demo's front scene: 18 x 12 stops over 1 m, the mannequin, the demo grid),
 ``dense`` (a dense planar scan: 128 x 128 stops over 0.75 m, 256 x 256 x 128 voxels of 2.9 mm,
 a few reflectors; ``scale`` shrinks both sides), ``circular`` (360 stops on a 1 m circle, a
-5 mm grid; ``scale`` < 1 thins both).
+5 mm grid; ``scale`` < 1 thins both), ``beams`` (directional transducers over a flat surface at
+MHz in water, :func:`run_beams_case`; full set only).
 Every case also times ``auto`` (:func:`clsas.formation.cost.choose`, its choosing included) and
 names the formation it took. The crossover table (:func:`crossover`, in :mod:`clsas.bench.crossover`)
 times bp, ω-k, FFBP and auto on dense planar scans of N x N stops (N = 16-64 quick, 16-128 full)
@@ -44,11 +45,14 @@ __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", 
 log = logging.getLogger(__name__)
 
 CASES = ("demo", "dense", "circular")
-# the crossover table (clsas.bench.crossover) runs as a case of its own
-ALL_CASES = (*CASES, "crossover")
-# what ``clsas bench`` runs: the quick set shrinks the dense scan to 32 x 32 stops
-QUICK = {"cases": ALL_CASES, "scale": 0.25, "sides": (8, 12, 16)}
+# the crossover table (clsas.bench.crossover) and the directional-transducer case (issue 33,
+# run_beams_case) run as cases of their own
+ALL_CASES = (*CASES, "beams", "crossover")
+# what ``clsas bench`` runs: the quick set shrinks the dense scan to 32 x 32 stops and leaves out
+# the beams case (FFBP at MHz alone takes most of a minute)
+QUICK = {"cases": (*CASES, "crossover"), "scale": 0.25, "sides": (8, 12, 16)}
 FULL = {"cases": ALL_CASES, "scale": 1.0, "sides": (12, 16, 24, 32, 48)}
+BEAM_STOPS = 16  # the beams case: n x n stops at 1.5 mm (clsas.bench.beams.make_case)
 FS = 96e3
 F_TOP = 30e3
 PITCH = 0.75 / 127  # the dense scan's stop spacing, m (lambda/2 at 29 kHz)
@@ -156,6 +160,52 @@ def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dic
     return out
 
 
+def run_beams_case(n: int | None = None, status=None) -> dict:
+    """The directional-transducer case (issue 33) in the formation table's form: water, 1-4 MHz, a
+    flat surface and two pins under ``n`` x ``n`` stops 2.5 wavelengths apart, 6 mm pistons
+    (:func:`clsas.bench.beams.make_case`). Rows: bp with the beam model (its default with beams,
+    "limited": the reference of the error columns), bp without it and weighted, ω-k limited and
+    weighted, FFBP without beams (it refuses them), and auto."""
+    from ..formation.planar import well_sampled_cone
+    from .beams import C_WATER, make_case
+
+    say = status or (lambda s: log.info("%s", s))
+    n = BEAM_STOPS if n is None else int(n)
+    t = time.perf_counter()
+    prof, grid, what = make_case(n)
+    t_prof = time.perf_counter() - t
+    data, _, _, _, tx, rx, _ = prof.arrays()
+    cone = well_sampled_cone(tx, rx, grid, 4e6, C_WATER)
+    out = {"case": "beams", "what": what, "measurements": prof.n_meas, "voxels": grid.size,
+           "pairs": float(prof.n_meas) * grid.size, "compress_s": t_prof, "load_before": os.getloadavg(),
+           "cone_fraction": float(cone.mean()), "rows": []}
+    ref = None
+    for label, f, opts in (("bp", "bp", {}), ("bp beam=none", "bp", {"beam": "none"}),
+                           ("bp beam=weighted", "bp", {"beam": "weighted"}), ("omega-k", "omega-k", {}),
+                           ("omega-k beam=weighted", "omega-k", {"beam": "weighted"}),
+                           ("ffbp beam=none", "ffbp", {"beam": "none"})):
+        say(f"formation {label} on the beams case ({what})")
+        row = {"formation": label, "options": opts}
+        try:
+            row["time_s"], img = _timed(lambda f=f, opts=opts: form(prof, grid, f, **opts))
+        except ValueError as exc:
+            row.update(refused=str(exc))
+            out["rows"].append(row)
+            continue
+        row.update(backend=img.backend, load_after=os.getloadavg())
+        if ref is None:
+            ref = img.values
+            row["error_cone_db"] = row["error_all_db"] = None
+        else:
+            row["error_all_db"] = error_to_signal_db(img.values, ref)
+            row["error_cone_db"] = error_to_signal_db(img.values, ref, cone) if cone.any() else None
+            row["speedup"] = out["rows"][0]["time_s"] / row["time_s"]
+        out["rows"].append(row)
+    say("formation auto on the beams case")
+    out["rows"].append(auto_row(prof, grid, ref, cone if cone.any() else None, out["rows"]))
+    return out
+
+
 def scaling(formations=None, sides=(12, 16, 24, 32), bp_max_pairs: float = 2e9, status=None) -> dict:
     """Time of each formation on N x N stops and 2N x 2N x N voxels; fitted exponent in N."""
     say = status or (lambda s: log.info("%s", s))
@@ -197,8 +247,9 @@ def run(cases=CASES, formations=None, scale: float = 1.0, sides=(12, 16, 24, 32)
             raise ValueError(f"case must be one of {ALL_CASES}, got {c!r}")
     _warm_up(formations)
     res = {"formations": formations, "scale": scale,
-           "cases": [run_case(c, formations, 1.0 if c == "demo" else scale, status=status) for c in cases
-                     if c != "crossover"]}
+           "cases": [run_beams_case(status=status) if c == "beams"
+                     else run_case(c, formations, 1.0 if c == "demo" else scale, status=status)
+                     for c in cases if c != "crossover"]}
     if "crossover" in cases:
         from .crossover import CROSSOVER_FULL, CROSSOVER_QUICK, crossover
 

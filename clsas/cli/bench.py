@@ -144,7 +144,7 @@ def add_parser(sub) -> None:
                    "with --full, else 0.25)")
     b.add_argument("--scale-parts", nargs="+", choices=("rss", "tiles", "scaling"), default=["rss", "tiles", "scaling"],
                    help="with --scale: which parts (default all)")
-    b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular", "crossover"), default=None,
+    b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular", "beams", "crossover"), default=None,
                    help="with --formation: which cases (default all)")
     b.add_argument("--autofocus", nargs="?", const="tuning", choices=("tuning", "held-out"), default=None,
                    help="run only the autofocus benchmark on the seeded scene family: its tuning seeds (default) or "
