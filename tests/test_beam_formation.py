@@ -230,3 +230,22 @@ def test_formation_table_has_the_directional_case():
     table = "\n".join(bf.markdown({"cases": [res]}))
     assert "| beams | bp beam=none |" in table and "| beams | auto -> bp |" in table
     assert "beams" in bf.ALL_CASES and "beams" in bf.FULL["cases"] and "beams" not in bf.QUICK["cases"]
+
+
+def test_omega_k_cone_share_counts_only_angles_inside_the_beams(caplog):
+    # stops 2 cm apart alias every steep angle at 30 kHz; 2-degree cones keep only angles the
+    # lattice samples unaliased, so the share is the whole grid and nothing is warned
+    fs = 96e3
+    wave = clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.1)
+    ap = clsas.raster_aperture(12, 12, 0.22, 0.22)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.7, 0.9), 0.02)
+    scene = clsas.Scene(np.array([[0.0, 0.0, 0.8]]))
+    shares = {}
+    for name, beams in (("omni", None), ("cones", Beams(Cone(2.0), Cone(2.0), (0, 0, 1), (0, 0, 1), ap.n_meas))):
+        ds = clsas.simulate(scene, ap, wave, fs, beams=beams, temperature_c=20.0)
+        caplog.clear()
+        img = clsas.reconstruct(ds, grid, formation="omega-k", backend="numpy")
+        shares[name] = img.provenance["omega_k"]["cone_fraction"]
+        shares[name + "_warned"] = "samples only" in caplog.text
+    assert shares["omni"] < 0.5 and shares["omni_warned"]
+    assert shares["cones"] == 1.0 and not shares["cones_warned"]

@@ -321,7 +321,7 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     inv = np.argsort(ap.perm)
     values = np.transpose(values, inv)
     if o["upsample"] == 1:
-        info["cone_fraction"] = _warn_outside_cone(ap, grid, f_top, c_ref)
+        info["cone_fraction"] = _warn_outside_cone(ap, grid, f_top, c_ref, o["angular"])
     total = time.perf_counter() - t_start
     timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
     info["backend"] = sel.kind
@@ -366,11 +366,23 @@ def _beam_angular(profiles: Profiles, o: dict, fc: float, c, ap, grid: VoxelGrid
     return weights
 
 
-def _warn_outside_cone(ap, grid: VoxelGrid, f_top: float, c_ref: float) -> float:
-    """The share of the grid in the aperture's well-sampled cone, with a warning where it is under half."""
+def _beam_edge_sine(weights) -> float:
+    """The sine of the steepest angle from the normal that the beams' angular weights keep (1
+    without beams): where a weight first stays under 1e-3 of its peak."""
+    if weights is None:
+        return 1.0
+    s = np.linspace(0.0, 1.0, 2001)
+    w = angular_weights(weights, s)
+    kept = np.flatnonzero(w > 1e-3 * max(float(w.max()), 1e-300))
+    return float(s[kept[-1]]) if len(kept) else 0.0
+
+
+def _warn_outside_cone(ap, grid: VoxelGrid, f_top: float, c_ref: float, weights=None) -> float:
+    """The share of the grid in the aperture's well-sampled cone (within the beams' edge, where the
+    profiles carry beams), with a warning where it is under half."""
     from .planar import cone_of
 
-    frac = float(cone_of(ap, grid, f_top, c_ref).mean())
+    frac = float(cone_of(ap, grid, f_top, c_ref, max_sine=_beam_edge_sine(weights)).mean())
     if frac < 0.5:
         log.warning("omega-k: the aperture's lattice samples only %.0f %% of the grid unaliased at %.0f kHz "
                     "(its well-sampled cone); elsewhere backprojection also forms aliased angles (grating "

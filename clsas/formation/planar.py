@@ -241,9 +241,13 @@ def well_sampled_cone(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, f_max_hz:
     return cone_of(planar_aperture(tx, rx, grid, tol), grid, f_max_hz, c_mps, margin)
 
 
-def cone_of(ap: PlanarAperture, grid: VoxelGrid, f_max_hz: float, c_mps: float, margin: float = 0.8) -> np.ndarray:
+def cone_of(ap: PlanarAperture, grid: VoxelGrid, f_max_hz: float, c_mps: float, margin: float = 0.8,
+            max_sine: float = 1.0) -> np.ndarray:
     """:func:`well_sampled_cone` of an aperture already analysed (``planar_aperture``'s result
-    for this grid; arguments as there, not validated again)."""
+    for this grid; arguments as there, not validated again). ``max_sine``: the sine of the
+    steepest angle from the normal at which a stop contributes at all (a transducer beam's edge,
+    1 without beams): pairs beyond it are left out by bp and ω-k alike, so their aliasing does
+    not count."""
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
     U, V, W = np.meshgrid(pu, pv, np.abs(pw - ap.w_m), indexing="ij")
@@ -254,8 +258,8 @@ def cone_of(ap: PlanarAperture, grid: VoxelGrid, f_max_hz: float, c_mps: float, 
         # nearest in-plane distance to the lattice's rectangle along the other axis
         dv = np.maximum(0.0, np.maximum(v0 - V, V - v1))
         du = np.maximum(0.0, np.maximum(u0 - U, U - u1))
-        su = np.maximum(_max_sin(U - u0, dv, W), _max_sin(U - u1, dv, W))
-        sv = np.maximum(_max_sin(V - v0, du, W), _max_sin(V - v1, du, W))
+        su = np.minimum(np.maximum(_max_sin(U - u0, dv, W), _max_sin(U - u1, dv, W)), max_sine)
+        sv = np.minimum(np.maximum(_max_sin(V - v0, du, W), _max_sin(V - v1, du, W)), max_sine)
         inside &= (k2 * su <= margin * np.pi / g.spacing_uv[0]) & (k2 * sv <= margin * np.pi / g.spacing_uv[1])
     # back to the grid's (x, y, z) order
     inv = np.argsort(ap.perm)
