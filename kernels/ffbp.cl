@@ -11,9 +11,10 @@
  * r = r0 + ir dr, u = u0 + iu du, v = v0 + iv dv; a direction with u^2 + v^2 >= 1 holds 0.
  * A sub-image at P is  sum_m bp_m(P) exp(-j 2 pi kref ref_n(P)),  ref_n(P) = |P - T| + |P - R|.
  *
- * Scalar code, one work-item per sample: a sample's work (a few measurements, or TAPS^3 taps
- * of each child) has no lanes of its own; PoCL vectorises across the work-group.
- * Needs common.cl (RINT, sincos_2pi_1); VEC, set by the device layer, changes nothing here.
+ * ffbp_leaf: VEC consecutive samples per work-item as vector lanes (they share a block, so a
+ * node and its measurements; the loop is backproject.cl's). ffbp_merge: scalar code, one
+ * work-item per sample (each lane would need its own TAPS^3 stencil); PoCL vectorises across
+ * the work-group. Needs common.cl (RINT, sincos_2pi, sincos_2pi_1, lag_floor, GATHER_PAIRS).
  * TAPS (2, 4 or 6) is set with -DTAPS=n. */
 #ifndef TAPS
 #define TAPS 4
@@ -98,43 +99,57 @@ __kernel void ffbp_leaf(
     const float kref,                /* reference cycles per metre of path, f0 / c_ref          */
     __global float2 *out)            /* (size,) leaf sub-images                                 */
 {
-    const int s = get_global_id(0);
-    float px, py, pz;
-    const int node = sample_point(s, block_node, geom, ints, &px, &py, &pz);
-    if (node < 0) {
-        out[s] = (float2)(0.0f, 0.0f);
-        return;
-    }
+    /* VEC consecutive samples per work-item, its vector lanes: they share a BLOCK (BLOCK is a
+     * multiple of VEC), so one node and one run of measurements, looped over as bp loops. */
+    const int s_first = get_global_id(0) * VEC;
+    const int node = block_node[s_first / BLOCK];
     __global const float *g = geom + node * NG;
     __global const int *it = ints + node * NI;
-    float cref = kref * (dist(px, py, pz, g + 12) + dist(px, py, pz, g + 15));
-    cref -= RINT(cref);
+    lanes_f lx, ly, lz, lref;
+    lanes_i keep;
+    for (int l = 0; l < VEC; ++l) {
+        float px, py, pz;
+        const int n = sample_point(s_first + l, block_node, geom, ints, &px, &py, &pz);
+        keep.s[l] = n >= 0 ? -1 : 0;
+        lx.s[l] = px;
+        ly.s[l] = py;
+        lz.s[l] = pz;
+        float cref = kref * (dist(px, py, pz, g + 12) + dist(px, py, pz, g + 15));
+        lref.s[l] = cref - RINT(cref);
+    }
+    const floatV X = lx.v, Y = ly.v, Z = lz.v, CREF = lref.v;
     const float last = (float)(n_lags - 1);
-    float acc_re = 0.0f, acc_im = 0.0f;
+    floatV acc_re = (floatV)(0.0f), acc_im = (floatV)(0.0f);
     for (int m = it[4]; m < it[5]; ++m) {
         const float4 t = tx[m];
         const float4 r = rx[m];
-        const float dtx = px - t.x, dty = py - t.y, dtz = pz - t.z;
-        const float drx = px - r.x, dry = py - r.y, drz = pz - r.z;
-        const float path = sqrt(dtx * dtx + dty * dty + dtz * dtz) + sqrt(drx * drx + dry * dry + drz * drz);
-        const float idx = path * t.w - s0[m];
-        const int inside = (idx >= 0.0f) & (idx <= last);
-        float i0 = floor_1(idx);
-        i0 = i0 < 0.0f ? 0.0f : (i0 > last - 1.0f ? last - 1.0f : i0);
-        const float w = idx - i0;
-        const float4 p = pairs[(size_t)m * n_lags + (int)i0];
-        const float re = inside ? p.x + w * (p.z - p.x) : 0.0f;
-        const float im = inside ? p.y + w * (p.w - p.y) : 0.0f;
-        float cyc = path * r.w;
+        const floatV dtx = X - t.x, dty = Y - t.y, dtz = Z - t.z;
+        const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
+        const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz) + sqrt(drx * drx + dry * dry + drz * drz);
+        const floatV idx = path * t.w - s0[m];
+        const intV inside = (idx >= 0.0f) & (idx <= last);
+        const floatV i0 = lag_floor(idx, last);
+        const floatV w = idx - i0;
+        lanes_f li;
+        li.v = i0;
+        __global const float4 *row = pairs + (size_t)m * n_lags;
+        GATHER_PAIRS(row, li, are, aim, bre, bim)
+        const floatV re = inside ? are + w * (bre - are) : (floatV)(0.0f);
+        const floatV im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+        floatV cyc = path * r.w;
         cyc -= RINT(cyc);
-        cyc -= cref;
+        cyc -= CREF;
         cyc -= RINT(cyc);
-        float c;
-        const float sn = sincos_2pi_1(cyc, &c);
+        floatV c;
+        const floatV sn = sincos_2pi(cyc, &c);
         acc_re += re * c - im * sn;
         acc_im += re * sn + im * c;
     }
-    out[s] = (float2)(acc_re, acc_im);
+    lanes_f ore, oim;
+    ore.v = acc_re;
+    oim.v = acc_im;
+    for (int l = 0; l < VEC; ++l)
+        out[s_first + l] = keep.s[l] ? (float2)(ore.s[l], oim.s[l]) : (float2)(0.0f, 0.0f);
 }
 
 __kernel void ffbp_merge(

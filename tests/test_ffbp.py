@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import BACKENDS, needs_opencl, small_dataset
+from conftest import BACKENDS, needs_opencl, small_dataset, width_or_skip
 
 import clsas
 from clsas.formation import error_to_signal_db, form
@@ -132,6 +132,25 @@ def test_kernel_selftests_pass():
     q = cl.get_queue()
     assert FfbpLeafPlan.selftest(q, 4) < TOL_FFBP
     assert FfbpMergePlan.selftest(q, 4) < TOL_FFBP
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+def test_leaf_kernel_equals_its_twin_at_every_width(raster_case, vec):
+    # the leaf kernel's samples are vector lanes (a block of 64 shared by VEC of them): every
+    # width the device accepts, on a depth-2 tree with padding and samples outside the disc
+    from clsas import cl
+    from clsas.formation.ffbp_opencl import FfbpLeafPlan
+
+    width_or_skip("ffbp_leaf", vec)
+    _, prof, grid, _ = raster_case
+    tree = plan_tree(prof, grid, depth=2)
+    o = tree.order
+    args = (prof.data[o], prof.tau0_s[o], prof.dtau_s, prof.fc_hz, prof.tx_positions[o], prof.rx_positions[o],
+            np.full(prof.n_meas, prof.c_mps))
+    want = twin.form_leaves(*args, tree.levels[-1], tree.kref)
+    got = FfbpLeafPlan(cl.get_queue(), vec)(*args, tree.levels[-1], tree.kref)
+    assert np.any(want == 0) and np.abs(got - want).max() / np.abs(want).max() < TOL_FFBP
 
 
 @needs_opencl

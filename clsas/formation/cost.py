@@ -76,7 +76,7 @@ FORMAT = 1
 BUILTIN: dict[str, dict[str, float]] = {
     "bp": {"fixed": 5e-3, "pairs": 2e-9},
     "omega-k": {"fixed": 5e-3, "delay": 2e-9, "lattice": 7e-10, "stolt": 6e-8, "depths": 2e-9, "out": 1e-9},
-    "ffbp": {"fixed": 5e-3, "leaf": 1e-8, "merge": 2.5e-9, "grid": 2.5e-9},
+    "ffbp": {"fixed": 5e-3, "leaf": 2e-9, "merge": 2.5e-9, "grid": 2.5e-9},
 }
 # the tree's planning (host, Python) takes about this per measurement (0.35 s for 4096 stops); with
 # 1.5 times the last step's time it bounds FFBP's time from below before a tree is planned

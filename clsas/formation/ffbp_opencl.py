@@ -63,8 +63,9 @@ class FfbpLeafPlan(Plan):
     SOURCES = ("common.cl", "ffbp.cl")
 
     def launch_level(self, prof, tables: _LevelTables, kref: float, d_out):
-        return self.launch((tables.size,), *prof, tables.geom, tables.ints, tables.blocks, np.float32(kref), d_out,
-                           local_size=(BLOCK,))
+        # VEC samples per work-item (BLOCK, the level's padding unit, is a multiple of every VEC)
+        return self.launch((tables.size // self.vec,), *prof, tables.geom, tables.ints, tables.blocks,
+                           np.float32(kref), d_out, local_size=(BLOCK // self.vec,))
 
     def __call__(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: float) -> np.ndarray:
         """Same arguments as :func:`clsas.formation.ffbp_numpy.form_leaves`; (level.size,) complex64."""
