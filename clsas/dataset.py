@@ -194,7 +194,10 @@ class Dataset:
         return np.ndim(self.c_mps) > 0
 
     def replace(self, **changes) -> Dataset:
-        """A copy with some fields replaced (arrays not named are shared, not copied)."""
+        """A copy with some fields replaced (arrays not named are shared, not copied).
+
+        A new ``temperature_c`` or ``humidity_pct`` without a ``c_mps`` gives a new ``c_mps``
+        from the new air (a humidity that was assumed stays assumed)."""
         fields = {k: getattr(self, k) for k in self.__dataclass_fields__}
         if ("temperature_c" in changes or "humidity_pct" in changes) and "c_mps" not in changes:
             fields["c_mps"] = None  # follow the new air

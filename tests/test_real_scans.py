@@ -190,7 +190,8 @@ def test_dataset_air_per_measurement_is_validated():
     with pytest.raises(ValueError, match="humidity_pct"):
         clsas.Dataset(sig, pos, pos, 96e3, np.ones(4), humidity_pct=[50, 50, 150])
     same = clsas.Dataset(sig, pos, pos, 96e3, np.ones(4), temperature_c=[21, 21, 21])
-    assert not same.air_varies and same.c_mps == pytest.approx(clsas.speed_of_sound(21, 50))  # humidity not logged: 50 % assumed
+    # humidity not logged: 50 % assumed
+    assert not same.air_varies and same.c_mps == pytest.approx(clsas.speed_of_sound(21, 50))
 
 
 def test_profiles_from_elsewhere_image_like_the_library_s_own(quiet_scan):
@@ -235,8 +236,8 @@ def test_cli_preprocess_and_reconstruct_with_a_box(tmp_path, capsys):
     assert main(["preprocess", str(tmp_path / "scan.h5"), str(tmp_path / "clean.h5"),
                  "--config", str(sub / "pre.toml")]) == 0
     clean = clsas.load(tmp_path / "clean.h5")
-    assert [p["step"] for p in clean.provenance][1:] == ["speed_of_sound", "group_delay", "dc", "bandpass", "background",
-                                                          "blank_direct"]
+    assert [p["step"] for p in clean.provenance][1:] == ["speed_of_sound", "group_delay", "dc", "bandpass",
+                                                          "background", "blank_direct"]
     assert clean.provenance[5]["source"].endswith("empty.h5")
     capsys.readouterr()
     box = "--box=-0.11,0.11,-0.11,0.11,-0.03,0.03"
