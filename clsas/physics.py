@@ -298,8 +298,7 @@ def resolution_limits(
     width_m, height_m, nx, ny : float, float, int, int
         The aperture's extent (metres) and its stops along x and y.
     range_m, temperature_c, humidity_pct : float
-        Range of the target (metres); air (degrees Celsius, percent relative humidity), which
-        gives the speed of sound (:func:`speed_of_sound`, humid air) and the absorption.
+        Range of the target (metres); air (degrees C, % RH: c of humid air, absorption).
 
     Returns
     -------

@@ -55,10 +55,9 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
         Apply air absorption.
     chirp, config : stored in the dataset's attributes.
     temperature_c : float or (n_meas,) array, optional
-        Air temperature during each measurement (default the scene's): air that changes
-        during a scan gives each measurement its own speed of sound (at the scene's
-        humidity, :func:`clsas.speed_of_sound`). Absorption uses the mean temperature. The
-        dataset records it and the scene's humidity (and so the same ``c_mps`` per measurement).
+        Air temperature during each measurement (default the scene's): air that changes during a
+        scan gives each measurement its own speed of sound (at the scene's humidity). Absorption
+        uses the mean temperature. The dataset records both (so the same ``c_mps`` per measurement).
     progress : callable(done, total), optional
         Called after each block of measurements.
     position_error : float, HandMotion or array, optional

@@ -90,7 +90,6 @@ from typing import Any
 import numpy as np
 
 from ..dataset import Dataset
-from ..physics import ASSUMED_HUMIDITY_PCT, HUMID_FORMULA
 from ..signals import lfm_chirp
 from ..validate import cell_number
 from ._common import attach_background, is_number, read_numbers, stack_padded
@@ -149,10 +148,8 @@ def import_airsas(
     -------
     Dataset
         ``signals`` (n_pings * n_mics, n_samples); positions (n, 3) in metres in the target's
-        frame; ``t0_s = -group_delay / fs``; ``temperature_c`` per ping; ``humidity_pct`` 50
-        (assumed: the scans log none) and ``c_mps`` from both (:func:`clsas.speed_of_sound`);
-        ``chirp`` parameters; ``provenance`` = ``[{"step": "import", "format": "airsas", ...},
-        {"step": "speed_of_sound", "c_mps_source": "cramer1993 at 50 % RH (assumed: not logged)", ...}]``.
+        frame; ``t0_s = -group_delay / fs``; ``temperature_c`` per ping (50 % RH assumed for c);
+        ``chirp``; ``provenance`` = ``[{"step": "import", ...}, {"step": "speed_of_sound", ...}]``.
 
     Raises
     ------
@@ -190,9 +187,8 @@ def import_airsas(
                            microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg,
                            radius_m=radius_m)
         ds = ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
-    log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz; humidity not logged: "
-             "c_mps from the logged temperature at an assumed %g %% RH (%s)", folder, len(pings["flight"]), n_ch,
-             ds.n_samples, fs, ASSUMED_HUMIDITY_PCT, HUMID_FORMULA)
+    log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz; c_mps from the logged temperature, "
+             "%s", folder, len(pings["flight"]), n_ch, ds.n_samples, fs, ds.provenance[-1]["c_mps_source"])
     return ds
 
 
