@@ -11,8 +11,10 @@ row swaps ingredients for the owners' (``sim_csas_package`` and ``airsas_utils``
 
 - ``clock``: the clock from the direct sound (clsas) or ``Group Delay`` as stated (theirs);
 - ``radius``: ``SysParams.csv`` (speaker 0.8485 m, microphone 0.8615 m) or 0.85 m for both;
-- ``c``: 331.3 sqrt(1 + T / 273.15) (clsas) or 331.4 + 0.6 T (theirs), T per ping; or, for
-  scale, Cramer's (1993) formula for air at 50 % relative humidity (the scans log no humidity);
+- ``c``: clsas's (``clsas.speed_of_sound`` at the Dataset's humidity: since 2026-11-27 humid air,
+  Cramer's humid/dry ratio on 331.3 sqrt(1 + T / 273.15), at an assumed 50 % RH; before, dry) or
+  331.4 + 0.6 T (theirs), T per ping; or, for scale, Cramer's (1993) own absolute value for air at
+  50 % relative humidity (``clsas.physics.cramer_speed_of_sound``; the scans log no humidity);
 - ``common``: clsas's mean over pings, or their weighted removal (``owners_common``);
 - ``blank``: clsas's direct-path blanking, or none (theirs);
 - ``filters``: clsas's DC removal and band-pass, or none (theirs: the matched filter alone).
@@ -48,6 +50,7 @@ import clsas  # noqa: E402
 import clsas.io  # noqa: E402
 from clsas import preprocess as pp  # noqa: E402
 from clsas.focus.direct import direct_arrivals  # noqa: E402
+from clsas.physics import cramer_speed_of_sound  # noqa: E402
 
 CLSAS = {"clock": "direct", "radius": "sysparams", "c": "clsas", "common": "mean", "blank": True, "filters": True}
 ROWS = [
@@ -66,24 +69,9 @@ ROWS = [
                              "blank": False}),
     ("... and no DC / band-pass (all theirs but the matched filter and interpolation)",
      {"radius": "owners", "clock": "stated", "c": "owners", "common": "owners", "blank": False, "filters": False}),
-    ("c of air at 50 % RH (Cramer 1993; not logged)", {"c": "humid50"}),
-    ("c of air at 50 % RH, Group Delay as stated", {"c": "humid50", "clock": "stated"}),
+    ("c of air at 50 % RH (Cramer 1993 absolute; not logged)", {"c": "humid50"}),
+    ("c of air at 50 % RH (Cramer absolute), Group Delay as stated", {"c": "humid50", "clock": "stated"}),
 ]
-
-
-def cramer_c(temperature_c: np.ndarray, humidity_pct: float, pressure_pa: float = 101325.0,
-             co2_fraction: float = 4e-4) -> np.ndarray:
-    """Speed of sound in humid air, m/s (Cramer, J. Acoust. Soc. Am. 93, 2510, 1993; its eq. 2
-    with Davis's (1992) saturation pressure and enhancement factor)."""
-    t = np.asarray(temperature_c, float)
-    k = t + 273.15
-    p_sv = np.exp(1.2378847e-5 * k**2 - 1.9121316e-2 * k + 33.93711047 - 6.3431645e3 / k)
-    f = 1.00062 + 3.14e-8 * pressure_pa + 5.6e-7 * t**2
-    xw = humidity_pct / 100.0 * f * p_sv / pressure_pa
-    xc, p = co2_fraction, pressure_pa
-    return (331.5024 + 0.603055 * t - 0.000528 * t**2 + (51.471935 + 0.1495874 * t - 0.000782 * t**2) * xw
-            + (-1.82e-7 + 3.73e-8 * t - 2.93e-10 * t**2) * p + (-85.20931 - 0.228525 * t + 5.91e-5 * t**2) * xc
-            - 2.835149 * xw**2 - 2.15e-13 * p**2 + 29.179762 * xc**2 + 0.000486 * xw * p * xc)
 
 
 def owners_common(signals: np.ndarray) -> np.ndarray:
@@ -102,7 +90,7 @@ def dataset(scan: Path, bg: Path, opts: dict) -> clsas.Dataset:
     if o["c"] == "owners":
         ds = ds.replace(c_mps=331.4 + 0.6 * np.asarray(ds.temperature_c, float))
     elif o["c"] == "humid50":
-        ds = ds.replace(c_mps=cramer_c(ds.temperature_c, 50.0))
+        ds = ds.replace(c_mps=cramer_speed_of_sound(ds.temperature_c, 50.0))
     ds = pp.apply(ds, direct_clock=o["clock"] == "direct", dc=o["filters"], bandpass=o["filters"], background=True,
                   common=o["common"] == "mean", blank_direct=False)
     if o["common"] == "owners":
@@ -144,9 +132,10 @@ def main() -> int:
            "scan": args.scan, "reference": "scene.npy" if shipped.is_file() else "port of their delay-and-sum",
            "c_at_mean_temperature_mps": {}, "direct_sound": direct_sound(scan, bg), "rows": []}
     temp = float(np.mean(clsas.io.import_airsas(scan).temperature_c))
-    out["c_at_mean_temperature_mps"] = {"temperature_c": temp, "clsas": float(clsas.speed_of_sound(temp)),
-                                        "owners": 331.4 + 0.6 * temp, "cramer_dry": float(cramer_c(temp, 0.0)),
-                                        "cramer_50pct_rh": float(cramer_c(temp, 50.0))}
+    out["c_at_mean_temperature_mps"] = {"temperature_c": temp, "clsas": float(clsas.speed_of_sound(temp, 50.0)),
+                                        "clsas_dry": float(clsas.speed_of_sound(temp)), "owners": 331.4 + 0.6 * temp,
+                                        "cramer_dry": float(cramer_speed_of_sound(temp, 0.0)),
+                                        "cramer_50pct_rh": float(cramer_speed_of_sound(temp, 50.0))}
     for label, opts in ROWS:
         t = time.perf_counter()
         m = metrics(image(dataset(scan, bg, opts), args.backend), theirs)
@@ -172,7 +161,8 @@ def markdown(out: dict) -> str:
                      f"{r['tcr_db']:.1f} / {r['reference_tcr_db']:.1f} dB |")
     lines.append("")
     c = out["c_at_mean_temperature_mps"]
-    lines.append(f"Speed of sound at the scan's mean {c['temperature_c']:.2f} C: clsas {c['clsas']:.2f}, theirs "
+    dry = f" (dry {c['clsas_dry']:.2f})" if "clsas_dry" in c else ""
+    lines.append(f"Speed of sound at the scan's mean {c['temperature_c']:.2f} C: clsas {c['clsas']:.2f}{dry}, theirs "
                  f"{c['owners']:.2f}, Cramer dry {c['cramer_dry']:.2f}, Cramer 50 % RH {c['cramer_50pct_rh']:.2f} m/s.")
     lines.append("")
     for name, d in out["direct_sound"].items():

@@ -233,7 +233,10 @@ def run_scan(name: str, root: Path, backend: str, calibrate: bool) -> tuple[dict
     ours = image(ds, backend)
     t_ours = time.perf_counter() - t
     port = to_clsas(owners_das(scan, bg))
+    air = [p for p in ds.provenance if p.get("step") == "speed_of_sound"]
     row: dict = {"scan": name, "pings": ds.n_meas, "time_import_preprocess_image_s": t_ours,
+                 "c_mean_mps": float(ds.c_per_meas.mean()),
+                 "c_mps_source": air[-1]["c_mps_source"] if air else "as the dataset states it",
                  "vs_port": metrics(ours, port)}
     pics = {"clsas (README pipeline)": ours, "owners' delay-and-sum (port)": port}
     shipped = root / f"{name}_scene" / "scene.npy"
@@ -316,6 +319,9 @@ def markdown(out: dict) -> str:
         if "port_vs_scene_npy_complex_correlation" in row:
             lines.append(f"\nPort of the owners' delay-and-sum vs their scene.npy ({row['scan']}): complex "
                          f"correlation {row['port_vs_scene_npy_complex_correlation']:.5f}.")
+        if "c_mps_source" in row:
+            lines.append(f"\nSpeed of sound ({row['scan']}): {row['c_mean_mps']:.2f} m/s on average over the pings, "
+                         f"{row['c_mps_source']}.")
         lines.append(f"\nDirect sound ({row['scan']}): sample 0 is {row['direct_sound_t0_shift_s'] * 1e6:+.1f} us "
                      "later than Group Delay says (at the stated speaker-microphone spacing).")
         for par, c in row.get("calibration", {}).items():

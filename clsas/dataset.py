@@ -11,14 +11,17 @@ import numpy as np
 
 from . import validate as v
 from .beam import Beams
-from .physics import speed_of_sound
+from .physics import ASSUMED_HUMIDITY_PCT, speed_of_sound, speed_of_sound_source
 
-__all__ = ["Dataset", "load", "FORMAT_VERSION", "UNITS", "json_default", "AIR_FALLBACK"]
+__all__ = ["Dataset", "load", "FORMAT_VERSION", "UNITS", "json_default", "AIR_FALLBACK", "SOUND_SPEED_STEP"]
 
 log = logging.getLogger(__name__)
 
 # the provenance entry of a dataset that was given neither c_mps nor temperature_c
 AIR_FALLBACK = {"step": "assumed_air", "c_mps_source": "speed of sound in air at 20 degC (no c_mps, no temperature_c)"}
+
+# the provenance step of a dataset whose c_mps came from its temperature and humidity
+SOUND_SPEED_STEP = "speed_of_sound"
 
 FORMAT_VERSION = 1
 
@@ -55,13 +58,20 @@ class Dataset:
     t0_s : (n_meas,) time of sample 0 after the transmit start (latency included), s; may be
         negative (a transducer group delay removed, see :func:`clsas.preprocess.remove_delay`)
     c_mps : float or (n_meas,) array
-        Speed of sound, m/s; default from ``temperature_c``. Given neither, the dataset takes
-        air at 20 °C (343.2 m/s), logs a warning naming ``c_mps`` and records
-        :data:`AIR_FALLBACK` in its provenance (a water scan must give ``c_mps``). An array gives each measurement
-        its own (air that changes during a scan); compression, backprojection and every
-        reconstruction method use it per measurement.
+        Speed of sound, m/s; default from ``temperature_c`` and ``humidity_pct``
+        (:func:`clsas.speed_of_sound`, humid air after Cramer 1993), the formula and humidity
+        recorded in the provenance (a ``"speed_of_sound"`` step, e.g. ``c_mps_source =
+        "cramer1993 at 50 % RH (assumed: not logged)"``). Given neither ``c_mps`` nor
+        ``temperature_c``, the dataset takes air at 20 °C (343.8 m/s at 50 % RH), logs a warning
+        naming ``c_mps`` and records :data:`AIR_FALLBACK` in its provenance (a water scan must
+        give ``c_mps``). An array gives each measurement its own (air that changes during a
+        scan); compression, backprojection and every reconstruction method use it per measurement.
     temperature_c, humidity_pct : float or (n_meas,) array
-        Air, as logged; a per-measurement temperature gives a per-measurement ``c_mps``.
+        Air, as logged; a per-measurement temperature or humidity gives a per-measurement
+        ``c_mps``. ``humidity_pct=None`` (the default): not logged, 50 % assumed
+        (:data:`clsas.physics.ASSUMED_HUMIDITY_PCT`: indoor air is 30-60 % RH, and the dry-air
+        formula is biased low for all of it); the attribute then holds 50.0 and the provenance
+        says it was assumed.
     background : (n_meas, n_samples) array, optional
         Recordings of the empty scene taken at the same stops (for background subtraction).
     chirp : chirp parameters (stored as attributes)
@@ -102,7 +112,7 @@ class Dataset:
     t0_s: np.ndarray | None = None
     c_mps: float | np.ndarray | None = None
     temperature_c: float | np.ndarray | None = None
-    humidity_pct: float | np.ndarray = 50.0
+    humidity_pct: float | np.ndarray | None = None
     stage_positions: np.ndarray | None = None
     timestamps: np.ndarray | None = None
     loopback: np.ndarray | None = None
@@ -128,27 +138,29 @@ class Dataset:
             if self.t0_s is None
             else v.array("t0_s", np.broadcast_to(np.asarray(self.t0_s, float), (n,)).copy())
         )
+        if not isinstance(self.provenance, list) or not all(isinstance(p, dict) for p in self.provenance):
+            raise TypeError("provenance must be a list of dicts (one per processing step)")
+        assumed = self.humidity_pct is None
+        self.humidity_pct = _per_meas("humidity_pct", ASSUMED_HUMIDITY_PCT if assumed else self.humidity_pct, n)
+        h = np.asarray(self.humidity_pct)
+        if np.any((h < 0) | (h > 100)):
+            raise ValueError(f"humidity_pct must be in [0, 100], got {h.min():g} to {h.max():g}")
         if self.temperature_c is None:
             if self.c_mps is None and AIR_FALLBACK not in self.provenance:
                 log.warning("Dataset: neither c_mps nor temperature_c given; assuming air at 20 degC, "
                             "c_mps = %.1f m/s (give c_mps for any other medium, e.g. 1480 for water)",
-                            speed_of_sound(20.0))
+                            np.mean(speed_of_sound(20.0, self.humidity_pct)))
                 self.provenance = [*self.provenance, dict(AIR_FALLBACK)]
             self.temperature_c = 20.0
         self.temperature_c = _per_meas("temperature_c", self.temperature_c, n)
-        self.humidity_pct = _per_meas("humidity_pct", self.humidity_pct, n)
-        h = np.asarray(self.humidity_pct)
-        if np.any((h < 0) | (h > 100)):
-            raise ValueError(f"humidity_pct must be in [0, 100], got {h.min():g} to {h.max():g}")
         if self.c_mps is None:
-            self.c_mps = speed_of_sound(self.temperature_c)
+            self.c_mps = speed_of_sound(self.temperature_c, self.humidity_pct)
+            self.provenance = _with_sound_speed_step(self.provenance, self.humidity_pct, assumed)
         self.c_mps = _per_meas("c_mps", self.c_mps, n)
         if np.any(np.asarray(self.c_mps) <= 0):
             raise ValueError(f"c_mps must be > 0, got min {np.min(self.c_mps):g}")
         if self.background is not None:
             self.background = v.array("background", self.background, shape=sig.shape, dtype=None)
-        if not isinstance(self.provenance, list) or not all(isinstance(p, dict) for p in self.provenance):
-            raise TypeError("provenance must be a list of dicts (one per processing step)")
         if not isinstance(self.truth, dict) or not all(isinstance(k, str) for k in self.truth):
             raise TypeError("truth must be a dict with str keys")
         for name, shape in (("stage_positions", (n, 3)), ("timestamps", (n,))):
@@ -182,10 +194,15 @@ class Dataset:
         return np.ndim(self.c_mps) > 0
 
     def replace(self, **changes) -> Dataset:
-        """A copy with some fields replaced (arrays not named are shared, not copied)."""
+        """A copy with some fields replaced (arrays not named are shared, not copied).
+
+        A new ``temperature_c`` or ``humidity_pct`` without a ``c_mps`` gives a new ``c_mps``
+        from the new air (a humidity that was assumed stays assumed)."""
         fields = {k: getattr(self, k) for k in self.__dataclass_fields__}
-        if "temperature_c" in changes and "c_mps" not in changes:
-            fields["c_mps"] = None  # follow the new temperature
+        if ("temperature_c" in changes or "humidity_pct" in changes) and "c_mps" not in changes:
+            fields["c_mps"] = None  # follow the new air
+            if "humidity_pct" not in changes and _humidity_assumed(self.provenance):
+                fields["humidity_pct"] = None  # still not logged
         fields.update(changes)
         fields["chirp"] = dict(fields["chirp"])
         fields["provenance"] = list(fields["provenance"])
@@ -221,6 +238,22 @@ class Dataset:
             _write_truth(f, self.truth)
             _write_beams(f, self.beams)
         return path
+
+
+def _humidity_assumed(provenance: list) -> bool:
+    """Whether the latest speed-of-sound step of ``provenance`` assumed the humidity."""
+    steps = [p for p in provenance if p.get("step") == SOUND_SPEED_STEP]
+    return bool(steps and steps[-1].get("humidity_assumed"))
+
+
+def _with_sound_speed_step(provenance: list, humidity_pct, assumed: bool) -> list:
+    """``provenance`` with a step saying how ``c_mps`` came from the temperature (unless its
+    latest step says so already)."""
+    h = np.asarray(humidity_pct, float)
+    step = {"step": SOUND_SPEED_STEP, "c_mps_source": speed_of_sound_source(humidity_pct, assumed),
+            "formula": "cramer1993 humid/dry ratio x 331.3 sqrt(1 + T/273.15)",
+            "humidity_pct": float(h) if h.ndim == 0 else "per measurement", "humidity_assumed": assumed}
+    return provenance if provenance and provenance[-1] == step else [*provenance, step]
 
 
 def _per_meas(name: str, value, n: int) -> float | np.ndarray:

@@ -387,6 +387,9 @@ class Scene:
         only through a wall's mirror image).
     walls : mirror walls; each adds a first-order image of every reflector (both legs by the
         wall, amplitude times reflectivity squared) and, if ``wall_echo``, the wall's own echo.
+    temperature_c, humidity_pct : the air, degrees Celsius and percent relative humidity; they
+        give the speed of sound (``c_mps``, :func:`clsas.speed_of_sound`, humid air) and the
+        absorption, and the simulated dataset carries both.
 
     Examples
     --------
@@ -418,14 +421,12 @@ class Scene:
         object.__setattr__(self, "amplitudes", a)
         object.__setattr__(self, "visible", vis)
         object.__setattr__(self, "walls", tuple(self.walls))
-        speed_of_sound(self.temperature_c)  # validates the temperature
-        h = v.finite("humidity_pct", self.humidity_pct)
-        if not 0 <= h <= 100:
-            raise ValueError(f"humidity_pct must be in [0, 100], got {h:g}")
+        speed_of_sound(self.temperature_c, self.humidity_pct)  # validates the temperature and humidity
 
     @property
     def c_mps(self) -> float:
-        return speed_of_sound(self.temperature_c)
+        """The speed of sound in the scene's air (its temperature and humidity), m/s."""
+        return speed_of_sound(self.temperature_c, self.humidity_pct)
 
     def image_sources(self) -> tuple[np.ndarray, np.ndarray]:
         """Every reflector the rig hears: direct ones and first-order mirror images.

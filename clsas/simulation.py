@@ -55,9 +55,9 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
         Apply air absorption.
     chirp, config : stored in the dataset's attributes.
     temperature_c : float or (n_meas,) array, optional
-        Air temperature during each measurement (default the scene's): air that changes
-        during a scan gives each measurement its own speed of sound. Absorption uses the
-        mean temperature. The dataset records it (and so its ``c_mps`` per measurement).
+        Air temperature during each measurement (default the scene's): air that changes during a
+        scan gives each measurement its own speed of sound (at the scene's humidity). Absorption
+        uses the mean temperature. The dataset records both (so the same ``c_mps`` per measurement).
     progress : callable(done, total), optional
         Called after each block of measurements.
     position_error : float, HandMotion or array, optional
@@ -88,7 +88,7 @@ def simulate(scene: Scene, aperture: Aperture, waveform: np.ndarray, fs_hz: floa
     """
     fs, wave, t0, snr_db, temperature_c = _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c)
     err = _errors(aperture, seed, position_error, temperature_error_c, group_delay_s, timing_jitter_s)
-    true_temp, c, t0_true = _true_air_and_t0(temperature_c, t0, err, aperture.n_meas, c_mps)
+    true_temp, c, t0_true = _true_air_and_t0(temperature_c, t0, err, aperture.n_meas, c_mps, scene.humidity_pct)
     tx, rx, path, gain, n_sources, shaping = _echoes(scene, aperture, err, direct_gain, beams, surfaces, c)
     delay = path / c[:, None] - t0_true[:, None]  # delay into the recording, s
     n_samples = v.positive_int("n_samples", _n_samples(delay, fs, len(wave)) if n_samples is None else n_samples)
@@ -123,12 +123,13 @@ def _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c):
     return fs, wave, t0, snr_db, temperature_c
 
 
-def _true_air_and_t0(temperature_c, t0: np.ndarray, err: dict, n_meas: int, c_mps: float | None = None):
+def _true_air_and_t0(temperature_c, t0: np.ndarray, err: dict, n_meas: int, c_mps: float | None = None,
+                     humidity_pct: float = 50.0):
     """The true air temperature (the stated one plus the error), °C, its speed of sound per
-    measurement, m/s (``c_mps`` for another medium), and the true t0 per measurement (less the
-    unknown delays), s."""
+    measurement at ``humidity_pct`` (the scene's, which the dataset carries), m/s (``c_mps`` for
+    another medium), and the true t0 per measurement (less the unknown delays), s."""
     true_temp = np.asarray(temperature_c, float) + err["temperature_error_c"]
-    c = np.broadcast_to(np.asarray(speed_of_sound(true_temp), float), (n_meas,))
+    c = np.broadcast_to(np.asarray(speed_of_sound(true_temp, humidity_pct), float), (n_meas,))
     if c_mps is not None:
         if err["temperature_error_c"]:
             raise ValueError("temperature_error_c applies to air; it cannot go with c_mps")

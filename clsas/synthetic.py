@@ -92,6 +92,7 @@ def turntable_scan(
     target_m: np.ndarray | None = None,
     temperature_c: tuple[float, float] = (20.0, 26.0),
     background_temperature_c: float | None = None,
+    humidity_pct: float = 50.0,
     clutter_db: float = 12.0,
     direct_db: float = 30.0,
     dc: float = 0.05,
@@ -106,7 +107,8 @@ def turntable_scan(
     axis (the z axis) from ``range_m``; the turntable makes one turn in ``n_pings`` steps.
     Room clutter: three strong scatterers fixed in the room near the turntable (its stand, a
     post), ``clutter_db`` above the target's strongest echo. The air warms linearly from
-    ``temperature_c[0]`` to ``temperature_c[1]`` during the scan.
+    ``temperature_c[0]`` to ``temperature_c[1]`` during the scan, at ``humidity_pct`` relative
+    humidity (the scan's and the background's, which both datasets state).
 
     Returns
     -------
@@ -125,7 +127,8 @@ def turntable_scan(
     kw = dict(n_samples=n_samples, t0_s=t0, chirp=chirp, absorption=True)
     # the target: unit scatterers with a little spread
     amps = rng.uniform(0.6, 1.0, len(target))
-    echo = simulate(Scene(target, amps), ap_target, wave, fs_hz, temperature_c=temps, **kw).signals
+    echo = simulate(Scene(target, amps, humidity_pct=humidity_pct), ap_target, wave, fs_hz, temperature_c=temps,
+                    **kw).signals
     peak = float(np.abs(echo).max())
     # the turntable's fixed stand and a post beside it: at the target's range, so their echoes
     # fall into the imaged gate (as rings: they do not turn with the target)
@@ -134,8 +137,10 @@ def turntable_scan(
     direct_pt = 0.5 * (tx_room + rx_room)[None, :]
 
     def room(temp, noise_seed):
-        clut = simulate(Scene(clutter, np.ones(len(clutter))), ap_room, wave, fs_hz, temperature_c=temp, **kw)
-        dirc = simulate(Scene(direct_pt, np.ones(1)), ap_room, wave, fs_hz, temperature_c=temp, **kw)
+        clut = simulate(Scene(clutter, np.ones(len(clutter)), humidity_pct=humidity_pct), ap_room, wave, fs_hz,
+                        temperature_c=temp, **kw)
+        dirc = simulate(Scene(direct_pt, np.ones(1), humidity_pct=humidity_pct), ap_room, wave, fs_hz,
+                        temperature_c=temp, **kw)
         sig = clut.signals * (peak * 10 ** (clutter_db / 20) / max(np.abs(clut.signals).max(), 1e-300))
         sig += dirc.signals * (peak * 10 ** (direct_db / 20) / max(np.abs(dirc.signals).max(), 1e-300))
         r = np.random.default_rng(noise_seed)
@@ -146,7 +151,7 @@ def turntable_scan(
 
     signals = echo + room(temps, seed + 1)
     bg_signals = room(np.full(n, t_bg), seed + 2)
-    common = dict(fs_hz=fs_hz, waveform=wave, t0_s=np.zeros(n), chirp=chirp)
+    common = dict(fs_hz=fs_hz, waveform=wave, t0_s=np.zeros(n), chirp=chirp, humidity_pct=humidity_pct)
     ds = Dataset(signals, ap_target.tx_positions, ap_target.rx_positions, temperature_c=temps,
                  provenance=[{"step": "synthetic", "kind": "turntable_scan", "seed": seed}], **common)
     bg = Dataset(bg_signals, ap_target.tx_positions, ap_target.rx_positions, temperature_c=t_bg,

@@ -60,10 +60,10 @@ def chirp96():
 
 
 def small_dataset(points, amplitudes=None, nx=9, ny=7, width=0.4, height=0.3, snr_db=None, walls=(),
-                  visible=None, duration_s=2e-3, fs=96e3):
+                  visible=None, duration_s=2e-3, fs=96e3, humidity_pct=50.0):
     w = clsas.lfm_chirp(20e3, 30e3, duration_s, fs, taper=0.1)
     ap = clsas.raster_aperture(nx, ny, width, height)
-    scene = clsas.Scene(np.asarray(points, float), amplitudes, visible, walls)
+    scene = clsas.Scene(np.asarray(points, float), amplitudes, visible, walls, humidity_pct=humidity_pct)
     return clsas.simulate(scene, ap, w, fs, snr_db=snr_db,
                           chirp={"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": duration_s})
 

@@ -18,7 +18,10 @@ def test_backproject_opencl_equals_twin(rng, vec, shape):
     from clsas.formation.bp_opencl import BackprojectPlan
 
     width_or_skip("backproject", vec)
-    ds = small_dataset([[0.02, -0.01, 0.6]])
+    # dry air, the data this tolerance was set on: on the "line" (2 cm beside the target, so its
+    # own peak is low) float32's error relative to that peak moves between 1.6e-4 and 3.2e-4 with
+    # the speed of sound (0 to 70 % RH at 20 C); the other shapes stay near 4e-5
+    ds = small_dataset([[0.02, -0.01, 0.6]], humidity_pct=0.0)
     p = clsas.compress(ds, gate_s=(2e-3, 6e-3), backend="numpy")
     axes = [np.linspace(-0.1, 0.1, n) if n > 1 else np.zeros(1) for n in shape[:2]]
     grid = clsas.VoxelGrid(axes[0], axes[1], np.linspace(0.5, 0.7, shape[2]))

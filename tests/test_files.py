@@ -42,7 +42,9 @@ def test_xarray_reads_image_coordinates(tmp_path, image, scan):
         prov = json.loads(x.attrs["provenance_json"])
     assert prov["method"] == "bp" and prov["formation"] == "bp" and prov["note"] == "test"
     assert prov["source_sha256"] == __import__("hashlib").sha256(scan_path.read_bytes()).hexdigest()
-    assert prov["dataset_provenance"] == [{"step": "dc"}]
+    # c followed the new temperatures (at the scene's 50 % RH): the scan says so after its own steps
+    assert [p["step"] for p in prov["dataset_provenance"]] == ["dc", "speed_of_sound"]
+    assert prov["dataset_provenance"][-1]["c_mps_source"] == "cramer1993 at 50 % RH"
     assert prov["spacing_m"] == pytest.approx([0.02, 0.02, 0.02])
     back = Image.load(path)
     np.testing.assert_array_equal(back.values, image.values)

@@ -78,8 +78,12 @@ def test_airsas_positions_t0_air_and_waveform(tmp_path):
     np.testing.assert_allclose(ds.waveform, clsas.lfm_chirp(30e3, 10e3, 1e-3, FS, 0.1))
     rec = clsas.io.import_airsas(tmp_path / "scan", waveform="recorded")
     np.testing.assert_allclose(rec.waveform, ds.waveform, atol=1e-6)
-    (prov,) = ds.provenance
+    prov, air = ds.provenance
     assert prov["step"] == "import" and prov["format"] == "airsas" and prov["group_delay_samples"] == GD
+    # the scans log no humidity: c from each ping's temperature at an assumed 50 % RH, and it says so
+    assert ds.humidity_pct == 50.0
+    np.testing.assert_allclose(ds.c_per_meas, clsas.speed_of_sound(ds.temperature_c, 50.0), rtol=1e-14)
+    assert air["step"] == "speed_of_sound" and air["c_mps_source"] == "cramer1993 at 50 % RH (assumed: not logged)"
     mirrored = clsas.io.import_airsas(tmp_path / "scan", angle_sign=-1)
     np.testing.assert_allclose(mirrored.tx_positions[3], _on_turntable(SPEAKER, [-angles[3]])[0], atol=1e-12)
 
@@ -181,6 +185,8 @@ def test_folder_of_wav_files(tmp_path, caplog):
     np.testing.assert_allclose(ds.t0_s, np.array([0.001, 0.001, 0.0]) - 48.0 / 96000)
     np.testing.assert_allclose(ds.temperature_c, [21.5, 21.5, 22.5])
     assert ds.humidity_pct == 40.0
+    np.testing.assert_allclose(ds.c_per_meas, clsas.speed_of_sound(np.array([21.5, 21.5, 22.5]), 40.0), rtol=1e-14)
+    assert ds.provenance[-1]["c_mps_source"] == "cramer1993 at 40 % RH"
     np.testing.assert_allclose(ds.waveform, clsas.lfm_chirp(20e3, 30e3, 0.002, 96000, 0.1))
     assert ds.chirp["f_stop_hz"] == 30e3 and "[chirp]" in ds.config
     prov = ds.provenance[0]

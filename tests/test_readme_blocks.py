@@ -156,8 +156,8 @@ def test_your_own_data_preprocess_table(tmp_path):
     table = preprocess_table(cfg, str(tmp_path / "steps.toml"))
     table["background"] = str(tmp_path / table["background"])
     out = pp.from_table(scan.dataset, table)
-    assert [p["step"] for p in out.provenance][1:] == ["group_delay", "dc", "bandpass", "direct_clock", "background",
-                                                      "common", "blank_direct"]
+    assert [p["step"] for p in out.provenance][1:] == ["speed_of_sound", "group_delay", "dc", "bandpass",
+                                                      "direct_clock", "background", "common", "blank_direct"]
 
 
 def test_command_line_scene_file(tmp_path):

@@ -253,7 +253,8 @@ def test_take_aligns_on_the_loopback_and_sets_t0():
     take = _recorder(io).take(0, np.zeros(3), np.zeros((1, 3)))
     assert take.onset_samples == pytest.approx(333, abs=1e-6) and take.t0_s == pytest.approx(0.0, abs=1e-9)
     echo = rig.find_onset(take.signals[0], _recorder(io).waveform)
-    assert echo == pytest.approx(1.0 / 343.2 * 96e3, abs=0.05)  # the echo at its acoustic delay, latency removed
+    assert echo == pytest.approx(1.0 / clsas.speed_of_sound(20.0, 50.0) * 96e3, abs=0.05)  # the echo at its acoustic
+    # delay (the scene's air: 20 C, 50 % RH), latency removed
 
 
 @pytest.mark.parametrize("fault", ["clip_at_stop", "xrun_at_stop"])
@@ -612,11 +613,12 @@ def test_air_sensor_command_sets_the_speed_of_sound(tmp_path):
     assert cfg.read_air() == (30.0, 40.0)
     rig.acquire(cfg, tmp_path / "warm.h5", simulate=True)
     ds = clsas.load(tmp_path / "warm.h5")
-    assert ds.temperature_c == 30.0 and ds.c_mps == pytest.approx(clsas.speed_of_sound(30.0))
+    assert ds.temperature_c == 30.0 and ds.humidity_pct == 40.0
+    assert ds.c_mps == pytest.approx(clsas.speed_of_sound(30.0, 40.0))
     p = np.array([0.05, -0.03, 0.9])  # the [simulate] reflector
     path = np.linalg.norm(p - ds.tx_positions[0]) + np.linalg.norm(p - ds.rx_positions[0])
     heard = rig.find_onset(ds.signals[0], cfg.waveform) / ds.fs_hz + ds.t0_s[0]
-    assert heard == pytest.approx(path / clsas.speed_of_sound(30.0), abs=0.2 / ds.fs_hz)  # the room is at 30 C too
+    assert heard == pytest.approx(path / clsas.speed_of_sound(30.0, 40.0), abs=0.2 / ds.fs_hz)  # the room's air too
     bad = rig.parse_rig_config(rig_toml(nx=2, ny=1) + '\n[air]\nsensor_command = "echo warm"\n')
     with pytest.raises(ValueError, match="air.sensor_command 'echo warm' must print"):
         bad.read_air()

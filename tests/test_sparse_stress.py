@@ -273,7 +273,7 @@ def test_imaging_atom_with_absorption_fits_a_simulated_echo_better():
     chirp = clsas.lfm_chirp(20e3, 40e3, 1e-3, FS, taper=0.2)
     ap = clsas.raster_aperture(2, 1, 0.04, 0.0)
     ds = clsas.simulate(clsas.Scene(np.array([[0.0, 0.0, 3.0]])), ap, chirp, FS, n_samples=1900, snr_db=60)
-    tau = 2 * 3.0 / clsas.speed_of_sound(20.0)
+    tau = 2 * 3.0 / clsas.speed_of_sound(20.0, 50.0)  # the scene's air
     gates = np.tile([tau - 2e-4, tau + 2e-4], (ds.n_meas, 1))
     amps = {}
     for absorption in (False, True):

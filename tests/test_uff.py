@@ -11,7 +11,7 @@ from clsas.cli import main
 from clsas.geometry import Aperture
 
 FS = 200e3
-C = float(clsas.speed_of_sound(20.0))  # m/s, the air of the simulations
+C = float(clsas.speed_of_sound(20.0, 50.0))  # m/s, the air of the simulations (a Scene's default: 20 C, 50 % RH)
 TARGET = np.array([0.01, -0.02, 0.30])
 WAVE = clsas.lfm_chirp(20e3, 40e3, 0.5e-3, FS, taper=0.2)
 

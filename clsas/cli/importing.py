@@ -30,7 +30,10 @@ def cmd_import(args) -> int:
         print(f"  waveform: {len(ds.waveform)} samples ({len(ds.waveform) / ds.fs_hz * 1e3:.3g} ms)")
     t, c, t0 = np.asarray(ds.temperature_c), ds.c_per_meas, ds.t0_s * 1e3
     t0_text = f"{t0[0]:.4g}" if np.ptp(t0) == 0 else f"{t0.min():.4g} to {t0.max():.4g}"
-    print(f"  t0: {t0_text} ms; air: {t.min():.1f} to {t.max():.1f} C, c {c.min():.1f} to {c.max():.1f} m/s")
+    steps = [p for p in ds.provenance if p.get("step") == "speed_of_sound"]
+    source = steps[-1]["c_mps_source"] if steps else "as the files state it"
+    print(f"  t0: {t0_text} ms; air: {t.min():.1f} to {t.max():.1f} C, c {c.min():.1f} to {c.max():.1f} m/s "
+          f"({source})")
     pos = np.concatenate([ds.tx_positions, ds.rx_positions])
     lo, hi = pos.min(axis=0), pos.max(axis=0)
     print("  aperture (speakers and microphones): " + ", ".join(

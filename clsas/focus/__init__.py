@@ -51,7 +51,6 @@ import numpy as np
 from .. import validate as v
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
-from ..physics import speed_of_sound
 from .metrics import METRICS
 from .report import AutofocusReport
 
@@ -246,6 +245,3 @@ def score(report: AutofocusReport, dataset: Dataset) -> dict:
         out["los_residual_raw_rms_m"] = float(np.sqrt(np.mean((est - true_dp) ** 2)) / 2)
     return out
 
-
-def _speed(temperature_c) -> np.ndarray:
-    return np.asarray(speed_of_sound(temperature_c), float)

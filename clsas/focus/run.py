@@ -79,9 +79,10 @@ class _Focus:
         self.halves = None
         self.extra_delay = 0.0  # a global delay determined without the direct sound, s
 
-    def c_at(self, dt):  # the stated c scaled as a temperature offset dt scales it
-        temp0 = self.temp0
-        return self.c_stated * np.asarray(speed_of_sound(temp0 + dt), float) / np.asarray(speed_of_sound(temp0), float)
+    def c_at(self, dt):  # the stated c scaled as a temperature offset dt scales it (at the dataset's humidity)
+        temp0, hum = self.temp0, self.ds.humidity_pct
+        return self.c_stated * (np.asarray(speed_of_sound(temp0 + dt, hum), float)
+                                / np.asarray(speed_of_sound(temp0, hum), float))
 
     def image_metric(self, shift, c, step, tx=None, rx=None):
         m = metric_and_weight(self.engine.image(shift, c, tx, rx), self.metric)[0]

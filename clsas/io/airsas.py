@@ -74,7 +74,8 @@ their handedness). ``angle_sign=-1`` alone gives the owners' image turned by 180
 
 Timing: sample 0 is recorded ``Group Delay`` samples before the sound leaves the speaker,
 so ``t0_s = -group_delay / fs`` (negative). The speed of sound follows each ping's
-temperature (``Dataset.temperature_c`` per measurement).
+temperature (``Dataset.temperature_c`` per measurement) at 50 % relative humidity, assumed:
+the scans log no humidity (:class:`clsas.Dataset`; the provenance says so).
 """
 
 from __future__ import annotations
@@ -147,8 +148,8 @@ def import_airsas(
     -------
     Dataset
         ``signals`` (n_pings * n_mics, n_samples); positions (n, 3) in metres in the target's
-        frame; ``t0_s = -group_delay / fs``; ``temperature_c`` per ping; ``chirp`` parameters;
-        ``provenance`` = ``[{"step": "import", "format": "airsas", ...}]``.
+        frame; ``t0_s = -group_delay / fs``; ``temperature_c`` per ping (50 % RH assumed for c);
+        ``chirp``; ``provenance`` = ``[{"step": "import", ...}, {"step": "speed_of_sound", ...}]``.
 
     Raises
     ------
@@ -186,8 +187,8 @@ def import_airsas(
                            microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg,
                            radius_m=radius_m)
         ds = ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
-    log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz", folder,
-             len(pings["flight"]), n_ch, ds.n_samples, fs)
+    log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz; c_mps from the logged temperature, "
+             "%s", folder, len(pings["flight"]), n_ch, ds.n_samples, fs, ds.provenance[-1]["c_mps_source"])
     return ds
 
 

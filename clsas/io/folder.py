@@ -32,8 +32,8 @@ recording file; column names are case-insensitive, positions are in metres in on
 ``rxK_x``, ``rxK_y``, ``rxK_z`` microphone of channel K of a multi-channel file, m
 ``t0_s``                        time of sample 0 after the transmit start, s (default 0)
 ``temperature_c``               air temperature during this recording, degC
-``humidity_pct``                relative humidity, %
-``c_mps``                       speed of sound, m/s (default: from the temperature)
+``humidity_pct``                relative humidity, % (default 50, assumed: see :class:`clsas.Dataset`)
+``c_mps``                       speed of sound, m/s (default: from the temperature and humidity)
 ``timestamp_s``                 when, s since the Unix epoch
 ==============================  ============================================================
 
@@ -82,6 +82,7 @@ from typing import Any
 import numpy as np
 
 from ..dataset import Dataset
+from ..physics import ASSUMED_HUMIDITY_PCT, speed_of_sound
 from ..signals import lfm_chirp
 from ..validate import cell_number
 from ._common import attach_background, read_numbers, read_settings, read_wav, sniff_delimiter, stack_padded
@@ -144,12 +145,13 @@ def _per_measurement(table: Path, src, cfg: dict, group_delay_s: float):
     air, delay = cfg["air"], cfg["delay"]
     t0 = _column(table, src, "t0_s", delay.get("t0_s", 0.0)) - group_delay_s
     temperature = _column(table, src, "temperature_c", air.get("temperature_c", 20.0))
-    humidity = _column(table, src, "humidity_pct", air.get("humidity_pct", 50.0))
+    humidity = _column(table, src, "humidity_pct", air.get("humidity_pct"), partial=True)  # None: not logged
+    if humidity is not None and np.any(np.isnan(humidity)):  # cells left empty: the Dataset's assumed air
+        humidity = np.where(np.isnan(humidity), ASSUMED_HUMIDITY_PCT, humidity)
     c = _column(table, src, "c_mps", air.get("c_mps"), partial=True)
-    if c is not None and np.any(np.isnan(c)):  # cells left empty: from that row's temperature
-        from ..physics import speed_of_sound
-
-        c = np.where(np.isnan(c), speed_of_sound(temperature), c)
+    if c is not None and np.any(np.isnan(c)):  # cells left empty: from that row's temperature and humidity
+        c = np.where(np.isnan(c), speed_of_sound(temperature, ASSUMED_HUMIDITY_PCT if humidity is None else humidity),
+                     c)
     return t0, temperature, humidity, c, _column(table, src, "timestamp_s", None)
 
 

@@ -91,7 +91,7 @@ def store_for(config: RigConfig, out: Path, resume: bool, air: tuple[float, floa
         return store
     return ScanFile.create(out, fs_hz=config.fs_hz, waveform=config.level * config.waveform,
                            n_samples=config.n_samples, n_mics=config.n_mics, n_stops=config.n_stops,
-                           temperature_c=air[0], humidity_pct=air[1], c_mps=speed_of_sound(air[0]),
+                           temperature_c=air[0], humidity_pct=air[1], c_mps=speed_of_sound(air[0], air[1]),
                            chirp=config.chirp, config_text=config.text,
                            beams=config.beams_for(config.stops_m[:1] + config.tx_offset_m,
                                                   config.stops_m[:1] + config.rx_offsets_m[:1]))

@@ -301,7 +301,7 @@ class _Recordings:
         if not self.absorption:
             return Atom(self.heard, fs, n_window, complex=True), None
         temp, hum = float(self.air_t[m]), float(self.air_h[m])
-        c = speed_of_sound(temp) if self.air_c is None else float(self.air_c[m])
+        c = speed_of_sound(temp, hum) if self.air_c is None else float(self.air_c[m])
         path_m = c * 0.5 * float(self.gates[m, 0] + self.gates[m, 1])
         return Atom(absorbed_pulse(self.heard, fs, path_m, temperature_c=temp, humidity_pct=hum), fs, n_window,
                     complex=True), path_m
