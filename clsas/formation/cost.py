@@ -196,9 +196,10 @@ def _speed(selection, formation: str) -> float:
 
 
 def _seconds(formation: str, work: dict, selection, factors: dict) -> float:
+    # the fixed part (set-up, launches, Python) does not scale with the device's speed
     coef = BUILTIN[formation]
-    t = sum(coef[k] * float(n) for k, n in work.items() if k != "plan")
-    t = t / _speed(selection, formation) + work.get("plan", 0.0)
+    t = sum(coef[k] * float(n) for k, n in work.items() if k not in ("plan", "fixed"))
+    t = coef["fixed"] * float(work.get("fixed", 0)) + t / _speed(selection, formation) + work.get("plan", 0.0)
     return t * factors.get(formation, 1.0)
 
 
