@@ -58,7 +58,7 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "au
 
 log = logging.getLogger(__name__)
 
-METHODS = ("direct", "temperature", "delay", "phase", "track", "envelope", "los", "3d", "pga")
+METHODS = ("direct", "temperature", "delay", "phase", "track", "los", "3d", "pga")
 # ("direct", "phase", "temperature") until the held-out run of issue 26 (commit 2f50580) showed
 # "phase" and "temperature" making a third of the held-out scenes worse: now only what the
 # physics determines by default; the focus steps run when named

@@ -78,10 +78,6 @@ class FocusEngine:
         rot = np.exp(-2j * np.pi * ((p.fc_hz * shift_s) % 1.0))
         return p.data * rot[:, None], p.tau0_s + shift_s
 
-    def shifted_profiles(self, shift_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(data, tau0_s)``: the compressed profiles as the image reads them at these shifts."""
-        return self._shifted(shift_s)
-
     def image(self, shift_s: np.ndarray, c_mps: np.ndarray, tx: np.ndarray | None = None,
               rx: np.ndarray | None = None) -> np.ndarray:
         """(n_vox,) complex image with per-measurement shifts (s), speeds (m/s) and positions."""

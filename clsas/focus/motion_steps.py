@@ -44,8 +44,6 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
         # carriage's x and y a shift across; the phase search leaves them free, so they go
         nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
         p_stop = p_stop - nuis @ (nuis.T @ p_stop)
-    if "envelope" in methods:
-        return _envelope_decision(fo, shift, c, stop, xy)
     track = None
     if "track" in methods:
         from .track_step import track_step
@@ -124,41 +122,6 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
     if not passed:
         rep.notes.append("motion: " + ("not determined by this scan (the even and odd stops disagree)"
                                        if not track["determined"] else "the check on positions failed")
-                         + "; not applied")
-        return np.zeros((fo.ds.n_meas, 3)), False
-    return move, True
-
-
-def _envelope_decision(fo, shift, c, stop, xy) -> tuple[np.ndarray, bool]:
-    """``"envelope"`` (:mod:`.envelope`): applied where determined (the echo's phase agrees with
-    its envelope) and where the check on positions (:func:`.track_step.where_check`) passes."""
-    from .envelope import ENVELOPE_TOLERANCE_M, envelope_step
-    from .envelope import MIN_AGREE as ENVELOPE_MIN_AGREE
-    from .track_step import where_check
-
-    rep = fo.rep
-    move, info = envelope_step(fo, shift, c, stop, xy, ENVELOPE_TOLERANCE_M)
-    before = fo.split_agreement(shift, c, None)
-    after = fo.split_agreement(shift, c, move)
-    where = where_check(fo, shift, c, move) if info["determined"] else {"passed": False}
-    passed = bool(info["determined"] and where["passed"] and np.any(move != 0))
-    rep.focus_centre_m = np.asarray(info["point_m"])
-    rep.check.update({f"motion_{n}_before": b for n, b in zip(fo.split_names, before, strict=True)})
-    rep.check.update({f"motion_{n}_after": a for n, a in zip(fo.split_names, after, strict=True)})
-    rep.check.update({f"where_{k}": v for k, v in where.items()})
-    rep.check["motion_passed"] = passed
-    how = (f"envelope: each stop's path to the brightest point from its echo's envelope, then its phase; they "
-           f"agree in {100 * info['agree']:.0f} % of the stops, {info['uncertainty_m'] * 1e3:.2f} mm RMS apart "
-           f"(one way; determined at >= {100 * ENVELOPE_MIN_AGREE:.0f} % and <= {ENVELOPE_TOLERANCE_M * 1e3:.2f} mm)")
-    if info["determined"]:
-        how += ("; positions: " + ", ".join(f"{k} {v:.3g}" for k, v in where.items() if k != "passed")
-                + ("" if where["passed"] else " (the correction moves the image's features apart: not applied)"))
-    rep.parameters["motion"] = ParameterEstimate("motion", "m RMS (one way)", info["rms_m"], info["uncertainty_m"],
-                                                 info["determined"], False, how)
-    rep.stages.append({"step": "motion", "methods": "envelope", "passed": passed, "where": where})
-    if not passed:
-        rep.notes.append("motion: " + ("not determined by this scan (the echoes' phase and envelope disagree)"
-                                       if not info["determined"] else "the check on positions failed")
                          + "; not applied")
         return np.zeros((fo.ds.n_meas, 3)), False
     return move, True
