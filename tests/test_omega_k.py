@@ -4,7 +4,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import BACKENDS, TOL, needs_opencl
+from conftest import BACKENDS, TOL, needs_opencl, width_or_skip
 
 import clsas
 from clsas.formation import error_to_signal_db, form
@@ -236,6 +236,21 @@ def test_stolt_kernel_equals_its_twin():
     spec2 = np.tile(spec, (3, 1))
     got2 = plan(spec2, k, np.tile(ku, 3), np.tile(kv, 3), p)
     assert np.abs(got2[:, : len(ku)] - want).max() / np.abs(want).max() < TOL["stolt"]
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+def test_stolt_kernel_equals_its_twin_at_every_width(vec):
+    # the kernel's columns are its vector lanes: every width the device accepts, with a ragged
+    # last work-item (37 columns), evanescent and windowed samples and folded positions
+    from clsas import cl
+    from clsas.formation.opencl import StoltPlan
+
+    width_or_skip("stolt_spread", vec)
+    spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    got = StoltPlan(queue=cl.get_queue(), vec=vec)(spec, k, ku, kv, p)
+    want = spread(spec, k, ku, kv, p)
+    assert np.abs(got - want).max() / np.abs(want).max() < TOL["stolt"]
 
 
 def test_cli_reconstruct_with_a_formation(tmp_path, capsys):
