@@ -386,3 +386,16 @@ def test_planar_aperture_is_remembered_by_content_and_shared_read_only():
     for _ in range(2):
         with pytest.raises(NotPlanarUniform, match="do not fill a 6 x 5 lattice"):
             planar_aperture(bad, rx, grid, 1e-4)
+
+
+def test_terms_to_depths_leaves_its_cells_and_refuses_more_depths_than_cells():
+    from clsas.formation.opencl import StoltPlan
+    from clsas.formation.stolt import terms_to_depths
+
+    spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    cells = spread(spec, k, ku, kv, p)
+    kept = cells.copy()
+    terms_to_depths(cells, 5, p, np.ones((p.n_terms, 5)))
+    np.testing.assert_array_equal(cells, kept)
+    with pytest.raises(ValueError, match="n_z must be between 1 and the cells per column"):
+        terms_to_depths(cells, p.n_cells + 1, p, np.ones((p.n_terms, p.n_cells + 1)))

@@ -23,6 +23,7 @@ benchmark (:mod:`clsas.bench.formation`) and the tests measure errors inside thi
 from __future__ import annotations
 
 import hashlib
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -113,7 +114,8 @@ def planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: floa
         costs a phase of up to 2 k e).
     """
     key = _aperture_key(tx, rx, grid, tol_m)
-    hit = _APERTURES.get(key)
+    with _APERTURES_LOCK:
+        hit = _APERTURES.get(key)
     if hit is not None:
         if isinstance(hit, NotPlanarUniform):
             raise NotPlanarUniform(hit.why)
@@ -132,6 +134,7 @@ def planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: floa
 # the positions' digest (their bytes, the grid's axes and the tolerance), answers and refusals
 _APERTURES: dict[bytes, object] = {}
 _APERTURES_KEPT = 8
+_APERTURES_LOCK = threading.Lock()  # Dask workers' threads may form images side by side
 
 
 def _aperture_key(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: float) -> bytes:
@@ -145,10 +148,11 @@ def _aperture_key(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: float)
 
 
 def _remember(key: bytes, value) -> None:
-    _APERTURES.pop(key, None)
-    _APERTURES[key] = value
-    while len(_APERTURES) > _APERTURES_KEPT:
-        _APERTURES.pop(next(iter(_APERTURES)))
+    with _APERTURES_LOCK:
+        _APERTURES.pop(key, None)
+        _APERTURES[key] = value
+        while len(_APERTURES) > _APERTURES_KEPT:
+            _APERTURES.pop(next(iter(_APERTURES)))
 
 
 def _planar_aperture(tx: np.ndarray, rx: np.ndarray, grid: VoxelGrid, tol_m: float) -> PlanarAperture:

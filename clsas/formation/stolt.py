@@ -187,12 +187,14 @@ def terms_to_depths(cells: np.ndarray, n_z: int, p: StoltParams, factors: np.nda
 
     Returns
     -------
-    (n_cols, n_z) complex, the dtype of ``cells``.
+    (n_cols, n_z) complex, the dtype of ``cells`` (which is left as it was).
     """
     import scipy.fft
 
     M = p.n_cells
-    b = scipy.fft.ifft(cells, axis=-1, workers=workers, overwrite_x=True)
+    if not 1 <= int(n_z) <= M:
+        raise ValueError(f"n_z must be between 1 and the cells per column ({M}), got {n_z!r}")
+    b = scipy.fft.ifft(cells, axis=-1, workers=workers)
     coef = (np.asarray(factors) * (M * deapodization(n_z, p))[None, :]).astype(b.dtype)
     h = n_z // 2  # planes l = -h .. -1 sit at the FFT's end, l = 0 .. n_z - h - 1 at its start
     out = np.empty(b.shape[1:2] + (n_z,), b.dtype)
