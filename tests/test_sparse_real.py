@@ -342,3 +342,18 @@ def test_pulse_option_is_validated():
         superres_profiles(ds, gates, "bpdn", pulse=np.ones(ds.n_samples + 1))
     with pytest.raises(ValueError, match="pulse"):
         superres_profiles(ds, gates, "bpdn", pulse=np.ones((2, 10)))
+
+
+def test_super_resolved_profiles_carry_the_datasets_beams():
+    # issue 33: the sparse methods' profiles keep the transducers' beams, so bp applies them
+    from clsas.beam import Beams, Cone
+    from clsas.sparse.profiles import superres_profiles
+
+    ap = clsas.raster_aperture(3, 1, 0.04, 0.0)
+    beams = Beams(Cone(40.0), Cone(40.0), (0, 0, 1), (0, 0, 1), ap.n_meas)
+    ds = clsas.simulate(clsas.Scene(np.array([[0.005, 0.0, 0.43]])), ap, CHIRP, FS, n_samples=450, snr_db=30,
+                        beams=beams)
+    prof, _ = superres_profiles(ds, _gates(ds), "bpdn")
+    assert prof.beams is ds.beams
+    omni, _ = superres_profiles(ds.replace(beams=None), _gates(ds), "bpdn")
+    assert omni.beams is None

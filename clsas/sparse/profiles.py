@@ -198,7 +198,7 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
     _render(data, echoes, grid, lo, dtau, width, fc)
     prof = Profiles(data, np.full(dataset.n_meas, lo), dtau, fc, method, "numpy",
                     tx_positions=dataset.tx_positions, rx_positions=dataset.rx_positions, c_mps=dataset.c_mps,
-                    timings_s={"superres": time.perf_counter() - t_start})
+                    timings_s={"superres": time.perf_counter() - t_start}, beams=dataset.beams)
     return prof, echoes
 
 
