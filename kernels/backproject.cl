@@ -65,15 +65,8 @@ __kernel void backproject(
         const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz)
                           + sqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - s0[m];
-        const intV inside = (idx >= 0.0f) & (idx <= last);
-        const floatV i0 = lag_floor(idx, last);
-        const floatV w = idx - i0;
-        lanes_f li;
-        li.v = i0;
-        __global const float4 *row = pairs + (size_t)m * n_lags;
-        GATHER_PAIRS(row, li, are, aim, bre, bim)
-        const floatV re = inside ? are + w * (bre - are) : (floatV)(0.0f);
-        const floatV im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+        floatV re, im;
+        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im);
         floatV cyc = path * r.w;
         cyc -= RINT(cyc);
         floatV c;

@@ -92,3 +92,17 @@ inline floatV lag_floor(const floatV idx, const float last)
 #else
 #error "VEC must be 4, 8 or 16"
 #endif
+
+/* The baseband profile `row` ((p[k], p[k+1]) records, GATHER_PAIRS's layout) linearly
+ * interpolated at fractional lags idx, lane by lane; 0 outside [0, last] (last = n_lags - 1).
+ * What backproject.cl and ffbp.cl's leaves read per voxel-measurement pair. */
+inline void lerp_pairs(__global const float4 *row, const floatV idx, const float last, floatV *re, floatV *im)
+{
+    const intV inside = (idx >= 0.0f) & (idx <= last);
+    lanes_f li;
+    li.v = lag_floor(idx, last);
+    const floatV w = idx - li.v;
+    GATHER_PAIRS(row, li, are, aim, bre, bim)
+    *re = inside ? are + w * (bre - are) : (floatV)(0.0f);
+    *im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+}

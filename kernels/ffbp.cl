@@ -14,7 +14,7 @@
  * ffbp_leaf: VEC consecutive samples per work-item as vector lanes (they share a block, so a
  * node and its measurements; the loop is backproject.cl's). ffbp_merge: scalar code, one
  * work-item per sample (each lane would need its own TAPS^3 stencil); PoCL vectorises across
- * the work-group. Needs common.cl (RINT, sincos_2pi, sincos_2pi_1, lag_floor, GATHER_PAIRS).
+ * the work-group. Needs common.cl (RINT, sincos_2pi, sincos_2pi_1, lerp_pairs).
  * TAPS (2, 4 or 6) is set with -DTAPS=n. */
 #ifndef TAPS
 #define TAPS 4
@@ -127,15 +127,8 @@ __kernel void ffbp_leaf(
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
         const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz) + sqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - s0[m];
-        const intV inside = (idx >= 0.0f) & (idx <= last);
-        const floatV i0 = lag_floor(idx, last);
-        const floatV w = idx - i0;
-        lanes_f li;
-        li.v = i0;
-        __global const float4 *row = pairs + (size_t)m * n_lags;
-        GATHER_PAIRS(row, li, are, aim, bre, bim)
-        const floatV re = inside ? are + w * (bre - are) : (floatV)(0.0f);
-        const floatV im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+        floatV re, im;
+        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im);
         floatV cyc = path * r.w;
         cyc -= RINT(cyc);
         cyc -= CREF;

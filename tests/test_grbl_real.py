@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from grbl_kit import SETUP, STEP_MM, RealGrbl
 
+import clsas
 from clsas import rig
 from clsas.rig import GrblStage
 
@@ -96,6 +97,27 @@ def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(uno, tmp_
     targets = np.array([cfg.carriage_m(cfg.stage_target_mm(i)) for i in range(cfg.n_stops)])
     np.testing.assert_allclose(stage_m[:, :2], targets[:, :2], atol=STEP_MM / 1000)  # within a motor step
     assert "\\x18" not in uno.transcript().split("reset on open (DTR)")[-1]  # the boot banner was waited for
+
+
+def test_rig_beams_are_stored_per_stop_on_the_real_firmware(uno, tmp_path, capsys):
+    """A rig file with [beams] (issue 33) on the real firmware: every stop's boresights follow the
+    axis rule from the position the firmware reports, stored with the stop."""
+    from clsas.cli import main
+
+    assert main(["acquire", "--sample-config"]) == 0
+    text = capsys.readouterr().out.replace('port = "/dev/ttyUSB0"', f'port = "{uno.port}"')
+    small = (text.replace("nx = 18", "nx = 2").replace("ny = 12", "ny = 2").replace("width_m = 0.96", "width_m = 0.04")
+             .replace("height_m = 0.96", "height_m = 0.04").replace("settle_s = 0.5", "settle_s = 0")
+             .replace("repeats = 4", "repeats = 1").replace("feed_mm_min = 3000", "feed_mm_min = 6000"))
+    small += ('\n[beams]\nspeaker = { model = "cone", half_angle_deg = 30 }\nmicrophone = { model = "omni" }\n'
+              'boresight = "axis"\naxis_point_m = [0.5, 0.5, 0]\naxis_dir = [0, 0, 1]\n')
+    conf, out = tmp_path / "rig.toml", tmp_path / "scan.h5"
+    conf.write_text(small)
+    assert main(["acquire", str(conf), str(out), "--simulate", "audio", "-q"]) == 0
+    ds = clsas.load(out)
+    assert ds.beams is not None and ds.beams.n_meas == ds.n_meas == 4
+    want = clsas.beam.axis_boresights(ds.tx_positions, (0.5, 0.5, 0.0), (0.0, 0.0, 1.0))
+    np.testing.assert_allclose(ds.beams.tx_boresight, want, atol=1e-12)
 
 
 @pytest.fixture
