@@ -9,8 +9,8 @@ Time. Each formation's time is a sum of counted work times seconds per unit:
 
 - ``bp``: voxel-measurement pairs;
 - ``omega-k``: the delay FFT (``n_meas n_fft log2 n_fft``), the lattice FFTs (``mu mv n_f log2(mu mv)``
-  per lattice), the Stolt spreading (columns x frequencies), the depth FFTs (columns x cells x
-  log2 cells) and the chirp-z transforms onto the grid, sizes from
+  per lattice), the Stolt spreading (columns x frequencies x bistatic terms x kernel width), the depth FFTs
+  (columns x cells x log2 cells x terms) and the chirp-z transforms onto the grid, sizes from
   :func:`clsas.formation.omega_k.plan_sizes` (no data transformed);
 - ``ffbp``: the tree's own planning (timed, it is run), the leaves (leaf samples x measurements
   per leaf), the merges (samples x factor x taps³ per level) and the last step (voxels x factor
@@ -68,14 +68,16 @@ MARGIN_DB = 3.0  # a formation is chosen only where its predicted error is this 
 OMEGA_K_BASE_DB = -42.0
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
-FORMAT = 2  # 2: the 2026-11-27 refit (factors measured against the older model no longer apply)
+FORMAT = 3  # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms (older factors no longer apply)
 
 # seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
 # (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
-# kernel: the 2026-11-25 fit had been taken at load 12-14 and over-predicted ω-k 5x, bp 2.5x)
+# kernel: the 2026-11-25 fit had been taken at load 12-14 and over-predicted ω-k 5x, bp 2.5x;
+# omega-k's Stolt and depth terms divided by the 3 bistatic terms (and the Stolt term by the 6-cell
+# kernel) of the cases they were fitted on when its work began to count them)
 BUILTIN: dict[str, dict[str, float]] = {
     "bp": {"fixed": 5e-3, "pairs": 2e-9},
-    "omega-k": {"fixed": 5e-3, "delay": 2e-9, "lattice": 7e-10, "stolt": 6e-8, "depths": 2e-9, "out": 1e-9},
+    "omega-k": {"fixed": 5e-3, "delay": 2e-9, "lattice": 7e-10, "stolt": 3.3e-9, "depths": 7e-10, "out": 1e-9},
     "ffbp": {"fixed": 5e-3, "leaf": 2e-9, "merge": 2.5e-9, "grid": 2.5e-9},
 }
 # the tree's planning (host, Python) takes about this per measurement (0.35 s for 4096 stops); with
@@ -216,9 +218,10 @@ def work_omega_k(sizes: dict) -> dict:
          "depths": 0.0, "out": 0.0}
     for g in sizes["groups"]:
         mu, mv, up, cols, cells = g["mu"], g["mv"], g["up"], g["columns"], g["n_cells"]
+        terms, width = g.get("terms", 3), g.get("width", 6)
         w["lattice"] += mu * mv * n_f * math.log2(max(mu * mv, 2))
-        w["stolt"] += cols * n_f
-        w["depths"] += cols * cells * math.log2(max(cells, 2))
+        w["stolt"] += cols * n_f * terms * width
+        w["depths"] += cols * cells * math.log2(max(cells, 2)) * terms
         lu, lv = up * mu + len(pu), up * mv + len(pv)
         w["out"] += up * mv * nz * lu * math.log2(lu) + len(pu) * nz * lv * math.log2(lv)
     return w
