@@ -264,9 +264,13 @@ def alias_fraction(sizes: dict, n_vox: int = 7, n_stops: int = 144, n_freq: int 
         du_, dv_ = U[..., None] - SU, V[..., None] - SV
         r = np.sqrt(du_**2 + dv_**2 + W[..., None] ** 2)
         lim_u, lim_v = np.pi / g.spacing_uv[0], np.pi / g.spacing_uv[1]
-        bad = ((k2 * np.abs(du_ / r)[..., None] > lim_u) | (k2 * np.abs(dv_ / r)[..., None] > lim_v))
+        # a pair is aliased at every wavenumber above the lower of its two axes' limits
+        # (k2 |sin_a| > lim_a): the share of the (increasing) k2 above it, by one search
+        with np.errstate(divide="ignore"):
+            k_alias = np.minimum(lim_u * r / np.abs(du_), lim_v * r / np.abs(dv_))
+        bad_share = (len(k2) - np.searchsorted(k2, k_alias, side="right")) / len(k2)
         wt = 1.0 / r**2  # a stop's echo falls as 1 / (r_tx r_rx): the steep (aliased) stops weigh less
-        aliased += (bad.mean(axis=-1) * wt).sum(axis=-1)
+        aliased += (bad_share * wt).sum(axis=-1)
         total = total + wt.sum(axis=-1)
     return aliased / total
 
