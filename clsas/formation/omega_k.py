@@ -484,8 +484,10 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     factors = np.array([(1j * u_z) ** p / math.factorial(p) for p in range(n_terms)])  # (terms, nz)
     T = np.zeros((up * mu, up * mv, nz), np.complex64)
     t_stolt = 0.0
-    for c0 in range(0, len(cols), o["chunk"]):
-        cc = cols[c0: c0 + o["chunk"]]
+    # chunks of at most o["chunk"] columns, as even as can be (no launch for a short remainder)
+    step = -(-len(cols) // max(1, -(-len(cols) // o["chunk"]))) if len(cols) else 1
+    for c0 in range(0, len(cols), step):
+        cc = cols[c0: c0 + step]
         iu_, iv_ = cc[:, 0], cc[:, 1]
         block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_])[:, None]
         block *= _plane_wave_beam(o["angular"], ku_all[iu_], kv_all[iv_], k)  # issue 33: 1 without beams
@@ -495,9 +497,9 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
         else:
             cells = stolt.spread(block, k, ku_all[iu_], kv_all[iv_], params)
         t_stolt += time.perf_counter() - t
-        T[iu_, iv_] = stolt.terms_to_depths(cells, nz, params, factors, workers)  # (cols, nz)
+        T[iu_, iv_] = stolt.terms_to_depths(cells, nz, params, factors, workers, overwrite=True)  # (cols, nz)
         if progress is not None:
-            progress(min(len(cols), c0 + o["chunk"]), len(cols))
+            progress(min(len(cols), c0 + step), len(cols))
     del dspec
     T *= (1j * depth[None, None, :]).astype(np.complex64)
     img = _dft_axis(T, ku_all, pu - g.origin_uv[0], workers)

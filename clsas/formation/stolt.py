@@ -168,7 +168,7 @@ def columns_to_depths(cells: np.ndarray, n_z: int, p: StoltParams, workers: int 
 
 
 def terms_to_depths(cells: np.ndarray, n_z: int, p: StoltParams, factors: np.ndarray,
-                    workers: int | None = None) -> np.ndarray:
+                    workers: int | None = None, overwrite: bool = False) -> np.ndarray:
     """``sum_p factors[p, z] columns_to_depths(cells)[p, :, z]``, in the cells' precision.
 
     What ω-k needs of :func:`columns_to_depths`: the terms weighted per depth (the bistatic
@@ -184,17 +184,20 @@ def terms_to_depths(cells: np.ndarray, n_z: int, p: StoltParams, factors: np.nda
     factors : (n_terms, n_z) complex
     workers : int, optional
         FFT threads.
+    overwrite : bool
+        The inverse FFT may work in ``cells`` (for a caller that has no further use of them:
+        no copy of the cells is made).
 
     Returns
     -------
-    (n_cols, n_z) complex, the dtype of ``cells`` (which is left as it was).
+    (n_cols, n_z) complex, the dtype of ``cells`` (left as it was unless ``overwrite``).
     """
     import scipy.fft
 
     M = p.n_cells
     if not 1 <= int(n_z) <= M:
         raise ValueError(f"n_z must be between 1 and the cells per column ({M}), got {n_z!r}")
-    b = scipy.fft.ifft(cells, axis=-1, workers=workers)
+    b = scipy.fft.ifft(cells, axis=-1, workers=workers, overwrite_x=bool(overwrite))
     coef = (np.asarray(factors) * (M * deapodization(n_z, p))[None, :]).astype(b.dtype)
     h = n_z // 2  # planes l = -h .. -1 sit at the FFT's end, l = 0 .. n_z - h - 1 at its start
     out = np.empty(b.shape[1:2] + (n_z,), b.dtype)
