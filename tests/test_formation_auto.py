@@ -158,3 +158,32 @@ def test_cli_reconstruct_says_what_auto_chose(dense, tmp_path, capsys):
     assert back.provenance["formation_auto"]["max_error_db"] == -35
     with pytest.raises(SystemExit):
         main([*args[:-2], "--formation", "fourier"])
+
+
+def test_alias_fraction_counts_the_share_of_frequencies_above_each_pairs_limit():
+    # the per-pair search against a test at every frequency, written out
+    import math
+
+    from clsas.formation.omega_k import plan_sizes
+
+    ds, grid = _planar(10, 0.03, 0.03)  # 30 mm stops: aliased at 30 kHz off the normal
+    sizes = plan_sizes(clsas.compress(ds, backend="numpy"), grid)
+    got = cost.alias_fraction(sizes, n_vox=5, n_stops=25, n_freq=6)
+    pu, pv, depth = sizes["axes"]
+
+    def sub(a):
+        return a[np.unique(np.linspace(0, len(a) - 1, min(len(a), 5)).astype(int))]
+
+    U, V, W = np.meshgrid(sub(pu), sub(pv), sub(depth), indexing="ij")
+    k2 = 4 * np.pi * np.linspace(max(sizes["f_band_hz"][0], 1.0), sizes["f_top_hz"], 6) / sizes["c_mps"]
+    g = sizes["aperture"].groups[0]
+    (u0, u1), (v0, v1) = g.extent_uv
+    su = np.linspace(u0, u1, min(g.shape[0], int(math.sqrt(25)) + 1))
+    sv = np.linspace(v0, v1, min(g.shape[1], int(math.sqrt(25)) + 1))
+    SU, SV = (a.ravel() for a in np.meshgrid(su, sv, indexing="ij"))
+    du, dv = U[..., None] - SU, V[..., None] - SV
+    r = np.sqrt(du**2 + dv**2 + W[..., None] ** 2)
+    lim_u, lim_v = np.pi / g.spacing_uv[0], np.pi / g.spacing_uv[1]
+    bad = (k2 * np.abs(du / r)[..., None] > lim_u) | (k2 * np.abs(dv / r)[..., None] > lim_v)
+    want = (bad.mean(axis=-1) / r**2).sum(axis=-1) / (1 / r**2).sum(axis=-1)
+    assert 0 < want.max() and np.allclose(got, want, rtol=0, atol=1e-12)

@@ -347,6 +347,9 @@ def test_terms_to_depths_is_the_weighted_sum_of_columns_to_depths(n_z):
     assert np.abs(got - want).max() < 1e-12 * np.abs(want).max()
     got32 = terms_to_depths(cells.astype(np.complex64), n_z, p, factors)
     assert got32.dtype == np.complex64 and np.abs(got32 - want).max() < 1e-5 * np.abs(want).max()
+    # overwrite=True (omega-k's own call: the IFFT works in the cells) gives the same values
+    np.testing.assert_array_equal(terms_to_depths(cells.astype(np.complex64), n_z, p, factors, overwrite=True),
+                                  got32)
 
 
 @pytest.mark.parametrize("dtype", [np.complex64, np.complex128], ids=["c64", "c128"])

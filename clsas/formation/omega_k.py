@@ -45,9 +45,10 @@ wavenumber domain. The steps, and what each costs in accuracy:
 5. **The bistatic offset** is compensated: the path differs from twice the midpoint range by
    ``d^2 (1 - cos^2 psi) / (4 R)`` (0.22 rad at 30 kHz for the default 4 cm baseline at 1 m);
    as ``alpha / z`` per plane-wave component it is expanded about a reference depth in powers
-   of ``(1/z - 1/z_ref)``, as many as ``phase_tol`` (default 1e-2 rad: an image error under 1 %, -40 dB) needs over the grid's
-   depth range (2 for 1.0-1.4 m). The neglected terms are of order ``k d^4 / R^3`` (1e-3 rad
-   at 1 m for 4 cm). ``bistatic=False`` uses the midpoint approximation (for comparison).
+   of ``(1/z - 1/z_ref)``, as many as ``phase_tol`` (default 1e-2 rad: an image error under
+   1 %, -40 dB) needs over the grid's depth range (2 for 1.0-1.4 m). The neglected terms are
+   of order ``k d^4 / R^3`` (1e-3 rad at 1 m for 4 cm). ``bistatic=False`` uses the midpoint
+   approximation (for comparison).
 6. **Onto the grid.** The depths come out on the grid's own ``z`` samples (the folded ``kz``
    axis has period ``2 pi / dz``); the lateral axes are an exact inverse DFT evaluated at the
    grid's ``x`` and ``y`` by a chirp-z (Bluestein) transform. Nothing is interpolated in the

@@ -11,11 +11,11 @@ with an "exponential of semicircle" kernel of width ``W`` cells (Barnett et al.,
 the cells are inverse-FFT'd, and the result is divided by the kernel's Fourier transform
 (de-apodisation). The spreading is what :func:`spread` (and the OpenCL kernel) computes; the
 rest is :func:`columns_to_depths`. With ``M = 2 n_z`` the relative error is about
-``10^-(W-1)`` (1e-3 at ω-k's default ``W = 4``, far under the method's own error), whatever the spacing of the ``kz_j``: no
-resampling onto a uniform ``kz`` grid is needed, and no Jacobian either, since the sum runs
-over the uniform frequency samples themselves. Folding the ``kz`` axis modulo ``2 pi / dz``
-makes depths sampled more coarsely than the data's bandwidth come out as backprojection
-samples them (exactly, not aliased twice).
+``10^-(W-1)`` (1e-3 at ω-k's default ``W = 4``, far under the method's own error), whatever
+the spacing of the ``kz_j``: no resampling onto a uniform ``kz`` grid is needed, and no
+Jacobian either, since the sum runs over the uniform frequency samples themselves. Folding
+the ``kz`` axis modulo ``2 pi / dz`` makes depths sampled more coarsely than the data's
+bandwidth come out as backprojection samples them (exactly, not aliased twice).
 
 Per sample, the kernel forms the strengths ``c_j`` from the data spectrum ``D``:
 
