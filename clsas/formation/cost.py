@@ -74,10 +74,12 @@ FORMAT = 3  # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic ter
 # (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
 # kernel: the 2026-11-25 fit had been taken at load 12-14 and over-predicted ω-k 5x, bp 2.5x;
 # omega-k's Stolt and depth terms divided by the 3 bistatic terms (and the Stolt term by the 6-cell
-# kernel) of the cases they were fitted on when its work began to count them)
+# kernel) of the cases they were fitted on when its work began to count them; then omega-k's fixed
+# part (1.5 ms, was 5 ms) and its variable part (x 1.15) refitted on the crossover scans of
+# bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128 stops a side)
 BUILTIN: dict[str, dict[str, float]] = {
     "bp": {"fixed": 5e-3, "pairs": 2e-9},
-    "omega-k": {"fixed": 5e-3, "delay": 2e-9, "lattice": 7e-10, "stolt": 3.3e-9, "depths": 7e-10, "out": 1e-9},
+    "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9},
     "ffbp": {"fixed": 5e-3, "leaf": 2e-9, "merge": 2.5e-9, "grid": 2.5e-9},
 }
 # the tree's planning (host, Python) takes about this per measurement (0.35 s for 4096 stops); with
