@@ -24,7 +24,10 @@ What it measures (JSON + Markdown + PNG under --out):
    and 0.8615 m): the "owners' frame" comparison (their geometry and clock, every other step
    the guide's). ``bench/airsas_ablation.py`` takes the difference apart one ingredient at a time.
 5. With ``--calibrate``: ``clsas.focus.calibrate`` of the ring radius, the group delay and the
-   transducers' height on each scan (each alone), and the image with the radius applied.
+   transducers' height on each scan (each alone), and the image with the radius applied; and a
+   check that trusts no sharpness: the ring radius offset at which the images of 8 disjoint
+   45-degree sectors of the turn agree best (mean |.|-correlation of every pair over the target
+   box), with the guide's clock and with the clock as ``Group Delay`` states it.
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ N_PIX, HALF_M = 400, 0.3
 BOX = ((-0.07, 0.07), (-0.11, 0.11), None)  # the target: the cork cut-out, in clsas's frame
 SCANS = {"20k": ("small_features_cutout_20k", "bg_20k"), "5k": ("small_features_cutout_5k", "bg_5k")}
 OWNERS_RADIUS_M = 0.85
+OWNERS_OFFSET_MM = (OWNERS_RADIUS_M - 0.5 * (0.8485 + 0.8615)) * 1e3  # from SysParams.csv's mean radius
 
 
 def owners_axes() -> tuple[np.ndarray, np.ndarray]:
@@ -253,6 +257,8 @@ def run_scan(name: str, root: Path, backend: str, calibrate: bool) -> tuple[dict
     row["owners_radius_vs_port"] = metrics(owners_r, port)
     pics[f"clsas, Group Delay as stated, radius {OWNERS_RADIUS_M} m"] = owners_r
     if calibrate:
+        row["sector_agreement"] = {"guide clock": sector_agreement(ds, backend),
+                                   "Group Delay as stated": sector_agreement(stated, backend)}
         row["calibration"], fixed = calibrations(ds, backend)
         calibrated = image(fixed, backend)
         row["calibrated_vs_port"] = metrics(calibrated, port)
@@ -274,6 +280,37 @@ def calibrations(ds: clsas.Dataset, backend: str) -> tuple[dict, clsas.Dataset]:
         if par == "radius":
             fixed = applied
     return out, fixed
+
+
+SECTOR_OFFSETS_M = tuple(np.round(np.arange(-0.014, 0.0141, 0.002), 4))
+
+
+def sector_agreement(ds: clsas.Dataset, backend: str, offsets_m=SECTOR_OFFSETS_M, sectors: int = 8) -> dict:
+    """Mean |.|-correlation of every pair of the ``sectors`` disjoint sectors' images (and of
+    neighbouring sectors) over the target box, per ring radius offset; the offset where the mean
+    over all pairs peaks."""
+    grid = clsas.VoxelGrid.from_bounds(BOX[0], BOX[1], (0.0, 0.0), 0.0015)
+    n = ds.n_meas
+    r0 = np.hypot(ds.tx_positions[:, 0], ds.tx_positions[:, 1]), np.hypot(ds.rx_positions[:, 0], ds.rx_positions[:, 1])
+
+    def corr(a, b):
+        return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
+
+    rows = []
+    for dr in offsets_m:
+        pos = []
+        for p, r in zip((ds.tx_positions, ds.rx_positions), r0, strict=True):
+            q = p.copy()
+            q[:, :2] *= ((r + dr) / r)[:, None]
+            pos.append(q)
+        moved = ds.replace(tx_positions=pos[0], rx_positions=pos[1])
+        ims = [np.abs(np.asarray(clsas.reconstruct(moved.subset(np.arange(k * n // sectors, (k + 1) * n // sectors)),
+                                                   grid, backend=backend).values)[:, :, 0]) for k in range(sectors)]
+        pairs = [corr(ims[i], ims[j]) for i in range(sectors) for j in range(i + 1, sectors)]
+        near = [corr(ims[k], ims[(k + 1) % sectors]) for k in range(sectors)]
+        rows.append({"offset_m": float(dr), "all_pairs": float(np.mean(pairs)), "neighbours": float(np.mean(near))})
+    best = max(rows, key=lambda r: r["all_pairs"])
+    return {"rows": rows, "best_offset_m": best["offset_m"], "sectors": sectors}
 
 
 def picture(path: Path, name: str, pics: dict) -> None:
@@ -329,6 +366,12 @@ def markdown(out: dict) -> str:
             lines.append(f"\nCalibration by focus, {par} ({row['scan']}): {c['estimate'] * k:+.2f} {u} +- "
                          f"{c['uncertainty'] * k:.2f} {u} (halves {c['halves'][0] * k:+.2f}, {c['halves'][1] * k:+.2f} "
                          f"{u}){'; at the edge of the range' if c['at_edge'] else ''}, {c['time_s']:.0f} s.")
+        for clock, sa in row.get("sector_agreement", {}).items():
+            curve = ", ".join(f"{r['offset_m'] * 1e3:+.0f}: {r['all_pairs']:.3f}" for r in sa["rows"])
+            lines.append(f"\nSectors agree best ({row['scan']}, {clock}; {sa['sectors']} disjoint sectors, mean "
+                         f"|.|-correlation of every pair over the target box) at a ring radius offset of "
+                         f"{sa['best_offset_m'] * 1e3:+.0f} mm (the owners' 0.85 m is {OWNERS_OFFSET_MM:+.0f} mm on "
+                         f"average): {curve}.")
     return "\n".join(lines) + "\n"
 
 
