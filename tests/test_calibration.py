@@ -44,6 +44,18 @@ def test_calibration_recovers_a_known_radius_error(error_m):
     assert fixed.provenance[-1]["step"] == "calibrate"
 
 
+@pytest.mark.parametrize("error_m", [0.006, -0.004], ids=["radius+6mm", "radius-4mm"])
+def test_sector_agreement_recovers_a_known_radius_error(error_m):
+    # the check that trusts no sharpness: 8 arcs of the turn imaged alone agree best at the truth
+    ds, grid = _scan()
+    tx, rx, _ = perturb(ds, "radius", error_m)
+    stated = ds.replace(tx_positions=tx, rx_positions=rx)
+    _, cal = calibrate(stated, grid, "radius", span=0.012, step=0.001, metric="sectors", backend="numpy")
+    assert abs(cal.estimate + error_m) < 0.001, cal.summary()
+    assert cal.metric_name == "sectors" and not cal.at_edge and cal.uncertainty < 0.002
+    assert 0 < cal.metric.max() <= 1
+
+
 def test_calibration_recovers_a_known_group_delay():
     ds, grid = _scan()
     stated = ds.replace(t0_s=ds.t0_s + 2.0e-5)  # 20 us of delay nobody stated
@@ -61,4 +73,10 @@ def test_calibration_inputs_are_checked():
         calibrate(ds, grid, "radius", span=0.001, step=0.002)
     with pytest.raises(TypeError, match="dataset"):
         calibrate(ds.signals, grid)
+    with pytest.raises(ValueError, match="metric"):
+        calibrate(ds, grid, "radius", metric="contrast")
+    with pytest.raises(ValueError, match="sectors"):
+        calibrate(ds, grid, "radius", metric="sectors", sectors=1)
+    with pytest.raises(ValueError, match="sectors=8 needs at least 16 measurements"):
+        calibrate(ds, grid, "radius", metric="sectors")
     assert set(PARAMETERS) == {"radius", "height", "group_delay"}
