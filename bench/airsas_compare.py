@@ -279,6 +279,9 @@ def calibrations(ds: clsas.Dataset, backend: str) -> tuple[dict, clsas.Dataset]:
         out[par] = {**cal.as_dict(), "time_s": time.perf_counter() - t}
         if par == "radius":
             fixed = applied
+    t = time.perf_counter()  # the library's check that trusts no sharpness (metric="sectors")
+    _, cal = cal_fn(ds, grid, "radius", span=0.02, step=0.002, metric="sectors", backend=backend)
+    out["radius (sectors)"] = {**cal.as_dict(), "time_s": time.perf_counter() - t}
     return out, fixed
 
 
