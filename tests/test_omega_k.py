@@ -239,15 +239,18 @@ def test_stolt_kernel_equals_its_twin():
 
 
 @needs_opencl
+@pytest.mark.parametrize("cells", [6, 4], ids=lambda w: f"kernel{w}")
 @pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
-def test_stolt_kernel_equals_its_twin_at_every_width(vec):
+def test_stolt_kernel_equals_its_twin_at_every_width(vec, cells):
     # the kernel's columns are its vector lanes: every width the device accepts, with a ragged
-    # last work-item (37 columns), evanescent and windowed samples and folded positions
+    # last work-item (37 columns), evanescent and windowed samples and folded positions; the
+    # spreading kernel at 6 cells and at omega-k's default 4
     from clsas import cl
     from clsas.formation.opencl import StoltPlan
 
     width_or_skip("stolt_spread", vec)
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    p = dataclasses.replace(p, width=cells)
     got = StoltPlan(queue=cl.get_queue(), vec=vec)(spec, k, ku, kv, p)
     want = spread(spec, k, ku, kv, p)
     assert np.abs(got - want).max() / np.abs(want).max() < TOL["stolt"]
@@ -402,3 +405,18 @@ def test_terms_to_depths_leaves_its_cells_and_refuses_more_depths_than_cells():
     np.testing.assert_array_equal(cells, kept)
     with pytest.raises(ValueError, match="n_z must be between 1 and the cells per column"):
         terms_to_depths(cells, p.n_cells + 1, p, np.ones((p.n_terms, p.n_cells + 1)))
+
+
+def test_columns_in_several_chunks_give_the_same_image_and_report_progress():
+    # omega-k's Stolt step in chunks of 7 columns against one chunk: the same image; progress
+    # counts up to every column
+    ds = _scan(TARGETS, n=12)
+    prof = _profiles(ds, GRID)
+    one = form(prof, GRID, "omega-k", backend="numpy")
+    seen = []
+    many = form(prof, GRID, "omega-k", backend="numpy", chunk=7,
+                progress=lambda done, total: seen.append((done, total)))
+    assert np.abs(many.values - one.values).max() <= 1e-5 * np.abs(one.values).max()
+    done = [d for d, _ in seen]
+    assert len(seen) > 2 and done == sorted(done) and done[-1] == seen[-1][1]
+    assert max(b - a for a, b in zip([0, *done[:-1]], done, strict=True)) <= 7

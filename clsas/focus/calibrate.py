@@ -16,7 +16,8 @@ whole data's estimate to their mean, whichever is larger. Their disagreement als
 model error that a single curve cannot show (e.g. an axis that is not where the geometry
 says); their agreement does not prove the model right (a metric with two peaks can put both
 halves on the same wrong one). The metric's curvature at the peak is reported too, as the
-offset at which the log-metric drops by 0.01 (a width, not a standard deviation).
+offset at which the log-metric drops by 0.01 (a width, not a standard deviation; with
+``metric="sectors"``, where the sectors' mean correlation drops by 0.01).
 
 ``metric="sectors"`` trusts no sharpness: the measurements are cut into ``sectors`` (8)
 disjoint runs in acquisition order (on a turntable, arcs of the turn that see the target from
@@ -77,7 +78,9 @@ class Calibration:
     halves : (float, float)
         The estimates from the first and the second half of the measurements.
     width : float
-        Offset from the peak at which the log-metric has dropped by 0.01 (from the parabola).
+        Offset from the peak at which the log-metric has dropped by 0.01 (from the parabola);
+        for ``metric="sectors"``, at which the sectors' mean correlation (0 to 1, not a log) has
+        dropped by 0.01.
     offsets, metric : arrays
         The scanned offsets and the metric at each (full data).
     at_edge : bool
@@ -241,9 +244,10 @@ def calibrate(
         raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
     v.choice("parameter", parameter, tuple(PARAMETERS))
     v.choice("metric", metric, CAL_METRICS)
-    sectors = v.positive_int("sectors", sectors)
-    if sectors < 2:
-        raise ValueError(f"sectors must be 2 or more, got {sectors}")
+    if metric == "sectors":
+        sectors = v.positive_int("sectors", sectors)
+        if sectors < 2:
+            raise ValueError(f"sectors must be 2 or more, got {sectors}")
     d_span, d_step = _DEFAULT_SPAN[parameter]
     span = d_span if span is None else v.positive("span", span)
     step = d_step if step is None else v.positive("step", step)

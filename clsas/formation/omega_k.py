@@ -29,12 +29,13 @@ wavenumber domain. The steps, and what each costs in accuracy:
    rendered pulses are wider than their carrier): backprojection forms them too.
 3. **Spatial FFT.** Per frequency the lattice is zero-padded to ``M_u x M_v`` (default: enough
    that the spread of the processed angles does not wrap onto the grid, from the geometry) and
-   2-D FFT'd (scipy.fft with ``workers``). The band's outer ``taper`` (default 10 %) of each
-   spatial-frequency axis falls off with a raised cosine; ``window="hann"`` windows the whole
-   band instead (lower sidelobes, not backprojection's values). ``upsample=U`` repeats the
-   periodic spectrum U times along each axis, which forms the aliased angles as well
-   (backprojection's grating lobes), at U^2 the cost; ``"auto"`` takes the U that covers every
-   voxel-stop angle.
+   2-D FFT'd (scipy.fft with ``workers``); the padding covers the angles the look-angle window
+   (step 4) passes at half weight or more, so only its taper's outer half can wrap. The band's
+   outer ``taper`` (default 10 %) of each spatial-frequency axis falls off with a raised cosine;
+   ``window="hann"`` windows the whole band instead (lower sidelobes, not backprojection's
+   values). ``upsample=U`` repeats the periodic spectrum U times along each axis, which forms
+   the aliased angles as well (backprojection's grating lobes), at U^2 the cost; ``"auto"``
+   takes the U that covers every voxel-stop angle.
 4. **Stolt mapping** ``kz = sqrt(k^2 - ku^2 - kv^2)`` with the exact amplitude of the kernel's
    plane-wave expansion, the bistatic correction and a look-angle window, then the sum over
    frequency onto the grid's depths as a type-1 non-uniform FFT (see
@@ -485,12 +486,12 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     factors = np.array([(1j * u_z) ** p / math.factorial(p) for p in range(n_terms)])  # (terms, nz)
     T = np.zeros((up * mu, up * mv, nz), np.complex64)
     t_stolt = 0.0
-    # chunks of at most o["chunk"] columns, as even as can be (no launch for a short remainder)
+    # chunks of at most o["chunk"] columns, of about equal length (no launch for a short remainder)
     step = -(-len(cols) // max(1, -(-len(cols) // o["chunk"]))) if len(cols) else 1
     for c0 in range(0, len(cols), step):
         cc = cols[c0: c0 + step]
         iu_, iv_ = cc[:, 0], cc[:, 1]
-        block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_])[:, None]
+        block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_]).astype(np.float32)[:, None]
         block *= _plane_wave_beam(o["angular"], ku_all[iu_], kv_all[iv_], k)  # issue 33: 1 without beams
         t = time.perf_counter()
         if runner is not None:
