@@ -194,6 +194,29 @@ def _sector_curve(engine, ds: Dataset, parameter: str, offsets: np.ndarray, axis
     return out
 
 
+def _checked(dataset, parameter: str, metric: str, sectors, span, step) -> tuple[float, float, int]:
+    """:func:`calibrate`'s inputs checked by name, before any work: ``(span, step, sectors)``."""
+    if not isinstance(dataset, Dataset):
+        raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
+    v.choice("parameter", parameter, tuple(PARAMETERS))
+    v.choice("metric", metric, CAL_METRICS)
+    if metric == "sectors":
+        sectors = v.positive_int("sectors", sectors)
+        if sectors < 2:
+            raise ValueError(f"sectors must be 2 or more, got {sectors}")
+    d_span, d_step = _DEFAULT_SPAN[parameter]
+    span = d_span if span is None else v.positive("span", span)
+    step = d_step if step is None else v.positive("step", step)
+    if step > span:
+        raise ValueError(f"step ({step:g}) must not exceed span ({span:g})")
+    if dataset.n_meas < 4:
+        raise ValueError(f"calibrate needs at least 4 measurements, the dataset has {dataset.n_meas}")
+    if metric == "sectors" and dataset.n_meas < 2 * sectors:
+        raise ValueError(f"sectors={sectors} needs at least {2 * sectors} measurements (each half of the data is "
+                         f"cut into that many), the dataset has {dataset.n_meas}")
+    return span, step, sectors
+
+
 def calibrate(
     dataset: Dataset,
     grid: VoxelGrid,
@@ -240,24 +263,7 @@ def calibrate(
     """
     from .engine import FocusEngine
 
-    if not isinstance(dataset, Dataset):
-        raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
-    v.choice("parameter", parameter, tuple(PARAMETERS))
-    v.choice("metric", metric, CAL_METRICS)
-    if metric == "sectors":
-        sectors = v.positive_int("sectors", sectors)
-        if sectors < 2:
-            raise ValueError(f"sectors must be 2 or more, got {sectors}")
-    d_span, d_step = _DEFAULT_SPAN[parameter]
-    span = d_span if span is None else v.positive("span", span)
-    step = d_step if step is None else v.positive("step", step)
-    if step > span:
-        raise ValueError(f"step ({step:g}) must not exceed span ({span:g})")
-    if dataset.n_meas < 4:
-        raise ValueError(f"calibrate needs at least 4 measurements, the dataset has {dataset.n_meas}")
-    if metric == "sectors" and dataset.n_meas < 2 * sectors:
-        raise ValueError(f"sectors={sectors} needs at least {2 * sectors} measurements (each half of the data is "
-                         f"cut into that many), the dataset has {dataset.n_meas}")
+    span, step, sectors = _checked(dataset, parameter, metric, sectors, span, step)
     n = int(np.floor(span / step + 1e-9))
     offsets = step * np.arange(-n, n + 1)
     margin = span if parameter == "group_delay" else 2.5 * span / 300.0 + 1e-4
