@@ -24,10 +24,10 @@ What it measures (JSON + Markdown + PNG under --out):
    and 0.8615 m): the "owners' frame" comparison (their geometry and clock, every other step
    the guide's). ``bench/airsas_ablation.py`` takes the difference apart one ingredient at a time.
 5. With ``--calibrate``: ``clsas.focus.calibrate`` of the ring radius, the group delay and the
-   transducers' height on each scan (each alone), and the image with the radius applied; and a
-   check that trusts no sharpness: the ring radius offset at which the images of 8 disjoint
-   45-degree sectors of the turn agree best (mean |.|-correlation of every pair over the target
-   box), with the guide's clock and with the clock as ``Group Delay`` states it.
+   transducers' height on each scan (each alone), and the image with the radius applied; and the
+   check that trusts no sharpness (``calibrate(..., metric="sectors")``): the ring radius at
+   which the images of 8 disjoint 45-degree sectors of the turn agree best, with the guide's
+   clock and with the clock as ``Group Delay`` states it.
 """
 
 from __future__ import annotations
@@ -279,41 +279,18 @@ def calibrations(ds: clsas.Dataset, backend: str) -> tuple[dict, clsas.Dataset]:
         out[par] = {**cal.as_dict(), "time_s": time.perf_counter() - t}
         if par == "radius":
             fixed = applied
-    t = time.perf_counter()  # the library's check that trusts no sharpness (metric="sectors")
-    _, cal = cal_fn(ds, grid, "radius", span=0.02, step=0.002, metric="sectors", backend=backend)
-    out["radius (sectors)"] = {**cal.as_dict(), "time_s": time.perf_counter() - t}
     return out, fixed
 
 
-SECTOR_OFFSETS_M = tuple(np.round(np.arange(-0.014, 0.0141, 0.002), 4))
+def sector_agreement(ds: clsas.Dataset, backend: str) -> dict:
+    """The ring radius at which 8 disjoint sectors of the turn image alike over the target box:
+    :func:`clsas.focus.calibrate.calibrate` with ``metric="sectors"`` (+-20 mm in 2 mm steps)."""
+    from clsas.focus.calibrate import calibrate as cal_fn
 
-
-def sector_agreement(ds: clsas.Dataset, backend: str, offsets_m=SECTOR_OFFSETS_M, sectors: int = 8) -> dict:
-    """Mean |.|-correlation of every pair of the ``sectors`` disjoint sectors' images (and of
-    neighbouring sectors) over the target box, per ring radius offset; the offset where the mean
-    over all pairs peaks."""
     grid = clsas.VoxelGrid.from_bounds(BOX[0], BOX[1], (0.0, 0.0), 0.0015)
-    n = ds.n_meas
-    r0 = np.hypot(ds.tx_positions[:, 0], ds.tx_positions[:, 1]), np.hypot(ds.rx_positions[:, 0], ds.rx_positions[:, 1])
-
-    def corr(a, b):
-        return float((a * b).sum() / np.sqrt((a * a).sum() * (b * b).sum()))
-
-    rows = []
-    for dr in offsets_m:
-        pos = []
-        for p, r in zip((ds.tx_positions, ds.rx_positions), r0, strict=True):
-            q = p.copy()
-            q[:, :2] *= ((r + dr) / r)[:, None]
-            pos.append(q)
-        moved = ds.replace(tx_positions=pos[0], rx_positions=pos[1])
-        ims = [np.abs(np.asarray(clsas.reconstruct(moved.subset(np.arange(k * n // sectors, (k + 1) * n // sectors)),
-                                                   grid, backend=backend).values)[:, :, 0]) for k in range(sectors)]
-        pairs = [corr(ims[i], ims[j]) for i in range(sectors) for j in range(i + 1, sectors)]
-        near = [corr(ims[k], ims[(k + 1) % sectors]) for k in range(sectors)]
-        rows.append({"offset_m": float(dr), "all_pairs": float(np.mean(pairs)), "neighbours": float(np.mean(near))})
-    best = max(rows, key=lambda r: r["all_pairs"])
-    return {"rows": rows, "best_offset_m": best["offset_m"], "sectors": sectors}
+    t = time.perf_counter()
+    _, cal = cal_fn(ds, grid, "radius", span=0.02, step=0.002, metric="sectors", backend=backend)
+    return {**cal.as_dict(), "time_s": time.perf_counter() - t}
 
 
 def picture(path: Path, name: str, pics: dict) -> None:
@@ -370,11 +347,13 @@ def markdown(out: dict) -> str:
                          f"{c['uncertainty'] * k:.2f} {u} (halves {c['halves'][0] * k:+.2f}, {c['halves'][1] * k:+.2f} "
                          f"{u}){'; at the edge of the range' if c['at_edge'] else ''}, {c['time_s']:.0f} s.")
         for clock, sa in row.get("sector_agreement", {}).items():
-            curve = ", ".join(f"{r['offset_m'] * 1e3:+.0f}: {r['all_pairs']:.3f}" for r in sa["rows"])
-            lines.append(f"\nSectors agree best ({row['scan']}, {clock}; {sa['sectors']} disjoint sectors, mean "
-                         f"|.|-correlation of every pair over the target box) at a ring radius offset of "
-                         f"{sa['best_offset_m'] * 1e3:+.0f} mm (the owners' 0.85 m is {OWNERS_OFFSET_MM:+.0f} mm on "
-                         f"average): {curve}.")
+            pts = zip(sa["offsets"], sa["metric_values"], strict=True)
+            curve = ", ".join(f"{o * 1e3:+.0f}: {m:.3f}" for o, m in pts)
+            lines.append(f"\nSectors agree best ({row['scan']}, {clock}; calibrate(metric='sectors'): 8 disjoint "
+                         f"sectors, mean |.|-correlation of every pair over the target box) at a ring radius offset "
+                         f"of {sa['estimate'] * 1e3:+.2f} mm +- {sa['uncertainty'] * 1e3:.2f} mm (halves "
+                         f"{sa['halves'][0] * 1e3:+.2f}, {sa['halves'][1] * 1e3:+.2f} mm; the owners' 0.85 m is "
+                         f"{OWNERS_OFFSET_MM:+.0f} mm on average), {sa['time_s']:.0f} s: {curve}.")
     return "\n".join(lines) + "\n"
 
 

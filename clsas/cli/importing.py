@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..dataset import SOUND_SPEED_STEP
+
 
 def cmd_import(args) -> int:
     import clsas.io
@@ -30,7 +32,7 @@ def cmd_import(args) -> int:
         print(f"  waveform: {len(ds.waveform)} samples ({len(ds.waveform) / ds.fs_hz * 1e3:.3g} ms)")
     t, c, t0 = np.asarray(ds.temperature_c), ds.c_per_meas, ds.t0_s * 1e3
     t0_text = f"{t0[0]:.4g}" if np.ptp(t0) == 0 else f"{t0.min():.4g} to {t0.max():.4g}"
-    steps = [p for p in ds.provenance if p.get("step") == "speed_of_sound"]
+    steps = [p for p in ds.provenance if p.get("step") == SOUND_SPEED_STEP]
     source = steps[-1]["c_mps_source"] if steps else "as the files state it"
     print(f"  t0: {t0_text} ms; air: {t.min():.1f} to {t.max():.1f} C, c {c.min():.1f} to {c.max():.1f} m/s "
           f"({source})")
