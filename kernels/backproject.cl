@@ -1,13 +1,21 @@
 /* 3-D bistatic backprojection of complex baseband range profiles.
  *
- * For every voxel v and measurement m:
+ * For every voxel v and measurement m (the definition, clsas/formation/bp_numpy.py):
  *   path  = |v - tx_m| + |v - rx_m|                      (m)
  *   idx   = path / (c_m dtau) - s0_m                      (profile samples)
  *   value = lerp(profile_m, idx) * exp(+j 2 pi fc path / c_m)
  * and the image is the sum over m. The speed of sound c_m is per measurement (air that
- * changes during a scan): its two path scales ride in the w lanes of tx and rx. Samples outside [0, n_lags - 1] contribute nothing.
- * The carrier phase is reduced to cycles in [-0.5, 0.5] before sin/cos, so float32 keeps
- * it to ~1e-5 cycles at a few metres.
+ * changes during a scan): its path scale rides in the w lane of tx. Samples outside
+ * [0, n_lags - 1] contribute nothing.
+ *
+ * The carrier is split at the profile's samples. Since fc path / c_m = fc dtau (idx + s0_m),
+ * with idx = k + f (k = floor(idx), f in [0, 1]) and phi = 2 pi fc dtau,
+ *   value = [(1 - f) q_k + f r_k] * exp(j phi (f - 1/2)),
+ *   q_k = p_k R_mk,  r_k = p_{k+1} R_mk,  R_mk = exp(j phi (k + 1/2 + s0_m)),
+ * exactly. The host writes the records (q_k, r_k) already rotated (in double precision), so the
+ * kernel evaluates only the sub-sample rotation, a short polynomial for |phi (f - 1/2)| <= 0.6 pi
+ * (the host upsamples the profile, which linear interpolation leaves unchanged, until
+ * fc dtau <= 0.6). No per-pair range reduction and no full carrier phase in float32.
  *
  * Needs common.cl. Each work-item owns VEC consecutive voxels of the flattened grid
  * (C order, z fastest), so a single plane costs a plane; voxels past n_vox are padding.
@@ -19,18 +27,19 @@
 #endif
 
 __kernel void backproject(
-    __global const float4 *pairs,    /* (n_meas, n_lags) (p[k], p[k+1]) of the baseband complex
-                                        profiles, as (re, im, re, im); p[n_lags] = 0           */
+    __global const float4 *pairs,    /* (n_meas, n_lags) records (q_k, r_k) above: the samples
+                                        k and k + 1 of the baseband profile rotated by R_mk,
+                                        as (re, im, re, im); p[n_lags] = 0                    */
     const int n_lags,                /* samples per profile                                   */
     __global const float4 *tx,       /* (n_meas,) speaker position xyz, m; w: 1 / (c_m dtau),
                                         profile samples per metre of path                     */
-    __global const float4 *rx,       /* (n_meas,) microphone position xyz, m; w: fc / c_m,
-                                        carrier cycles per metre of path                      */
+    __global const float4 *rx,       /* (n_meas,) microphone position xyz, m; w unused         */
     __global const float *s0,        /* (n_meas,) profile index of zero delay: tau0_m / dtau  */
     const float4 origin,             /* centre of voxel (0, 0, 0), m                          */
     const float4 step,               /* voxel spacing along x, y, z, m                        */
     const int ny,                    /* voxels along y                                        */
     const int nz,                    /* voxels along z                                        */
+    const float phi,                 /* 2 pi fc dtau, carrier radians per profile sample, <= 0.6 pi */
     const int m_begin,               /* first measurement of this chunk                       */
     const int m_end,                 /* one past the last measurement of this chunk           */
     const int accumulate,            /* 0: overwrite the image, 1: add to it                  */
@@ -62,15 +71,13 @@ __kernel void backproject(
         const float4 r = rx[m];
         const floatV dtx = X - t.x, dty = Y - t.y, dtz = Z - t.z;
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
-        const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz)
-                          + sqrt(drx * drx + dry * dry + drz * drz);
+        const floatV path = vsqrt(dtx * dtx + dty * dty + dtz * dtz)
+                          + vsqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - s0[m];
-        floatV re, im;
-        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im);
-        floatV cyc = path * r.w;
-        cyc -= RINT(cyc);
+        floatV re, im, f;
+        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im, &f);
         floatV c;
-        floatV s = sincos_2pi(cyc, &c);
+        floatV s = sincos_small(phi * (f - 0.5f), &c);
         BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m);
         acc_re += re * c - im * s;
         acc_im += re * s + im * c;

@@ -47,6 +47,34 @@ inline floatV sincos_2pi(const floatV c, floatV *cos_out) SINCOS_2PI_BODY(floatV
 /* sincos_2pi for one lane (scalar kernels: ffbp.cl) */
 inline float sincos_2pi_1(const float c, float *cos_out) SINCOS_2PI_BODY(float, int)
 
+/* sin(x) and cos(x) for |x| <= 0.6 pi, no range reduction: least-squares polynomials of
+ * degree 9 and 10 on Chebyshev nodes of that interval (error < 3e-7 in float32). The
+ * sub-sample carrier rotation of backproject.cl. */
+inline floatV sincos_small(const floatV x, floatV *cos_out)
+{
+    const floatV x2 = x * x;
+    *cos_out = 9.999999981e-01f + x2 * (-4.999999609e-01f + x2 * (4.166653804e-02f
+             + x2 * (-1.388733850e-03f + x2 * (2.471691025e-05f + x2 * (-2.541245750e-07f)))));
+    return x * (9.999998575e-01f + x2 * (-1.666658625e-01f + x2 * (8.332060710e-03f
+             + x2 * (-1.975884462e-04f + x2 * 2.520583304e-06f))));
+}
+
+/* sqrt lane by lane with the compiler's own square root, which every clang-based OpenCL
+ * compiler inlines (PoCL 3's vector sqrt builtin is an out-of-line call, and every vector
+ * register is spilled around it); other compilers, and Oclgrind (whose interpreter lacks the
+ * llvm.sqrt intrinsic; the host defines CLSAS_OPENCL_SQRT for it), use the builtin. */
+inline floatV vsqrt(const floatV x)
+{
+#if defined(__clang__) && !defined(CLSAS_OPENCL_SQRT)
+    lanes_f u;
+    u.v = x;
+    for (int l = 0; l < VEC; ++l) u.s[l] = __builtin_sqrtf(u.s[l]);
+    return u.v;
+#else
+    return sqrt(x);
+#endif
+}
+
 /* floor(idx) clamped to [0, last - 1] (last = n_lags - 1 >= 1), with operators only: the left
  * sample of the linear interpolation at fractional lag idx */
 inline floatV lag_floor(const floatV idx, const float last)
@@ -95,8 +123,11 @@ inline floatV lag_floor(const floatV idx, const float last)
 
 /* The baseband profile `row` ((p[k], p[k+1]) records, GATHER_PAIRS's layout) linearly
  * interpolated at fractional lags idx, lane by lane; 0 outside [0, last] (last = n_lags - 1).
- * What backproject.cl and ffbp.cl's leaves read per voxel-measurement pair. */
-inline void lerp_pairs(__global const float4 *row, const floatV idx, const float last, floatV *re, floatV *im)
+ * What backproject.cl and ffbp.cl's leaves read per voxel-measurement pair; also
+ * returns the interpolation weight idx - floor(idx) (floor clamped to [0, last - 1]), 0.5 in
+ * the lanes outside [0, last]. */
+inline void lerp_pairs(__global const float4 *row, const floatV idx, const float last, floatV *re, floatV *im,
+                       floatV *w_out)
 {
     const intV inside = (idx >= 0.0f) & (idx <= last);
     lanes_f li;
@@ -105,4 +136,5 @@ inline void lerp_pairs(__global const float4 *row, const floatV idx, const float
     GATHER_PAIRS(row, li, are, aim, bre, bim)
     *re = inside ? are + w * (bre - are) : (floatV)(0.0f);
     *im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+    *w_out = inside ? w : (floatV)(0.5f); /* in [0, 1] where the sample counts */
 }

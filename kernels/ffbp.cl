@@ -14,7 +14,8 @@
  * ffbp_leaf: VEC consecutive samples per work-item as vector lanes (they share a block, so a
  * node and its measurements; the loop is backproject.cl's). ffbp_merge: scalar code, one
  * work-item per sample (each lane would need its own TAPS^3 stencil); PoCL vectorises across
- * the work-group. Needs common.cl (RINT, sincos_2pi, sincos_2pi_1, lerp_pairs).
+ * the work-group. Needs common.cl (RINT, sincos_2pi, sincos_2pi_1, sincos_small, vsqrt,
+ * lerp_pairs).
  * TAPS (2, 4 or 6) is set with -DTAPS=n. */
 #ifndef TAPS
 #define TAPS 4
@@ -87,12 +88,14 @@ inline void weights(__global const float *table, const float t, float *w)
 }
 
 __kernel void ffbp_leaf(
-    __global const float4 *pairs,    /* (n_meas, n_lags) (p[k], p[k+1]) of the baseband profiles,
-                                        tree order, as (re, im, re, im); p[n_lags] = 0          */
+    __global const float4 *pairs,    /* (n_meas, n_lags) records of the baseband profiles rotated
+                                        by the carrier at each sample, as backproject.cl takes
+                                        them; tree order, as (re, im, re, im); p[n_lags] = 0    */
     const int n_lags,                /* samples per profile                                     */
     __global const float4 *tx,       /* (n_meas,) speaker xyz, m; w: 1 / (c_m dtau), samples/m  */
-    __global const float4 *rx,       /* (n_meas,) microphone xyz, m; w: fc / c_m, cycles/m      */
+    __global const float4 *rx,       /* (n_meas,) microphone xyz, m; w unused                   */
     __global const float *s0,        /* (n_meas,) profile index of zero delay, tau0_m / dtau     */
+    const float phi,                 /* 2 pi fc dtau, carrier radians per sample, <= 0.6 pi      */
     __global const float *geom,      /* (n_nodes, NG) leaf tables                               */
     __global const int *ints,        /* (n_nodes, NI)                                           */
     __global const int *block_node,  /* (size / BLOCK,) node of each block                      */
@@ -125,18 +128,21 @@ __kernel void ffbp_leaf(
         const float4 r = rx[m];
         const floatV dtx = X - t.x, dty = Y - t.y, dtz = Z - t.z;
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
-        const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz) + sqrt(drx * drx + dry * dry + drz * drz);
+        const floatV path = vsqrt(dtx * dtx + dty * dty + dtz * dtz) + vsqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - s0[m];
-        floatV re, im;
-        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im);
-        floatV cyc = path * r.w;
-        cyc -= RINT(cyc);
-        cyc -= CREF;
-        cyc -= RINT(cyc);
+        floatV re, im, f;
+        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im, &f);
         floatV c;
-        const floatV sn = sincos_2pi(cyc, &c);
+        const floatV sn = sincos_small(phi * (f - 0.5f), &c);   /* the carrier as backproject.cl */
         acc_re += re * c - im * sn;
         acc_im += re * sn + im * c;
+    }
+    {   /* less the reference phase, the same for every measurement: one rotation of the sum */
+        floatV c;
+        const floatV sn = sincos_2pi(-CREF, &c);
+        const floatV re = acc_re * c - acc_im * sn;
+        acc_im = acc_re * sn + acc_im * c;
+        acc_re = re;
     }
     lanes_f ore, oim;
     ore.v = acc_re;

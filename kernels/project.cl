@@ -8,7 +8,11 @@
  *   B[v, (m, i0)] = (1 - w) e^{+j 2 pi fc path / c_m},  B[v, (m, i0 + 1)] = w e^{...}
  * (zero where idx is outside [0, n_lags - 1]). This kernel computes its adjoint,
  *   p[m, k] = sum_v conj(B[v, (m, k)]) x[v],
- * i.e. each voxel spreads (1 - w) and w of x[v] e^{-j 2 pi fc path / c_m} onto lags i0, i0 + 1.
+ * with the carrier split as backproject.cl splits it: e^{j 2 pi fc path / c_m} =
+ * R_{m,i0} e^{j phi (w - 1/2)}. Each voxel spreads (1 - w) and w of x[v] e^{-j phi (w - 1/2)}
+ * onto the two slots (A, B) of record i0; the host multiplies record k by conj(R_mk) and adds
+ * slot A to lag k and slot B to lag k + 1 (clsas/inverse/project_opencl.py), so the two
+ * kernels round alike and stay adjoint to float32 accuracy.
  *
  * Strategy (no atomics): the scatter is made race-free by ownership. Work-item (i, j) owns
  * measurement m = m_begin + j and the contiguous voxel slab [i * slab, (i + 1) * slab) (in
@@ -36,17 +40,17 @@ __kernel void project(
     const int n_lags,                /* samples per profile (>= 2)                              */
     __global const float4 *tx,       /* (n_meas,) speaker position xyz, m; w: 1 / (c_m dtau),
                                         profile samples per metre of path                      */
-    __global const float4 *rx,       /* (n_meas,) microphone position xyz, m; w: fc / c_m,
-                                        carrier cycles per metre of path                       */
+    __global const float4 *rx,       /* (n_meas,) microphone position xyz, m; w unused          */
     __global const float *s0,        /* (n_meas,) profile index of zero delay: tau0_m / dtau   */
     const float4 origin,             /* centre of voxel (0, 0, 0), m                           */
     const float4 step,               /* voxel spacing along x, y, z, m                         */
     const int ny,                    /* voxels along y                                         */
     const int nz,                    /* voxels along z                                         */
+    const float phi,                 /* 2 pi fc dtau, carrier radians per sample, <= 0.6 pi     */
     const int n_blocks,              /* blocks of VEC voxels (the padded grid / VEC)           */
     const int m_begin,               /* measurement of work-items (., 0)                       */
-    __global float2 *out             /* (n_chunk_meas, n_items, n_lags) partial profiles,
-                                        (re, im); fully overwritten                            */
+    __global float4 *out             /* (n_chunk_meas, n_items, n_lags) partial records,
+                                        (A re, A im, B re, B im); fully overwritten            */
     BEAM_ARGS)                       /* beam.cl: the beam's buffers with -DBEAM, else nothing  */
 {
     const int item = get_global_id(0);
@@ -57,8 +61,8 @@ __kernel void project(
     const float4 r = rx[m];
     const float sm = s0[m];
     const float last = (float)(n_lags - 1);
-    __global float2 *acc = out + ((size_t)j * n_items + item) * n_lags;
-    for (int k = 0; k < n_lags; ++k) acc[k] = (float2)(0.0f, 0.0f);
+    __global float4 *acc = out + ((size_t)j * n_items + item) * n_lags;
+    for (int k = 0; k < n_lags; ++k) acc[k] = (float4)(0.0f);
 
     const int per = (n_blocks + n_items - 1) / n_items;
     const int b_begin = item * per;
@@ -77,46 +81,42 @@ __kernel void project(
         const floatV X = fx.v, Y = fy.v, Z = fz.v;
         const floatV dtx = X - t.x, dty = Y - t.y, dtz = Z - t.z;
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
-        const floatV path = sqrt(dtx * dtx + dty * dty + dtz * dtz)
-                          + sqrt(drx * drx + dry * dry + drz * drz);
+        const floatV path = vsqrt(dtx * dtx + dty * dty + dtz * dtz)
+                          + vsqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - sm;
         const intV inside = (idx >= 0.0f) & (idx <= last);
         const floatV i0 = lag_floor(idx, last);
-        const floatV w = idx - i0;
-        floatV cyc = path * r.w;
-        cyc -= RINT(cyc);
+        const floatV w = inside ? idx - i0 : (floatV)(0.5f);   /* in [0, 1] where it counts */
         floatV c;
-        floatV s = sincos_2pi(cyc, &c);
+        floatV s = sincos_small(phi * (w - 0.5f), &c);
         BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m);
         const floatV xr = vloadV(0, x_re + v0), xi = vloadV(0, x_im + v0);
-        /* x e^{-j phi} = (xr c + xi s) + j (xi c - xr s); zero outside the window */
+        /* x e^{-j phi (w - 1/2)} = (xr c + xi s) + j (xi c - xr s); zero outside the window */
         lanes_f vr, vi, lw, li;
         vr.v = inside ? xr * c + xi * s : (floatV)(0.0f);
         vi.v = inside ? xi * c - xr * s : (floatV)(0.0f);
         lw.v = w;
         li.v = i0;
         for (int l = 0; l < VEC; ++l) {
-            const int k0 = (int)li.s[l];
             const float2 val = (float2)(vr.s[l], vi.s[l]);
-            acc[k0] += (1.0f - lw.s[l]) * val;
-            acc[k0 + 1] += lw.s[l] * val;
+            acc[(int)li.s[l]] += (float4)((1.0f - lw.s[l]) * val, lw.s[l] * val);
         }
     }
 }
 
-/* Sum the n_items partial profiles of each measurement of a chunk into the profiles. */
+/* Sum the n_items partial records of each measurement of a chunk into the records. */
 __kernel void project_sum(
-    __global const float2 *part,     /* (n_chunk_meas, n_items, n_lags) partial profiles        */
+    __global const float4 *part,     /* (n_chunk_meas, n_items, n_lags) partial records         */
     const int n_items,               /* partial copies per measurement                          */
-    const int n_lags,                /* samples per profile                                     */
+    const int n_lags,                /* records per profile                                     */
     const int m_begin,               /* first measurement of the chunk                          */
-    __global float2 *profiles)       /* (n_meas, n_lags) complex profiles, (re, im)             */
+    __global float4 *records)        /* (n_meas, n_lags) records (A re, A im, B re, B im)       */
 {
     const int k = get_global_id(0);
     const int j = get_global_id(1);
     if (k >= n_lags) return;
-    __global const float2 *p = part + (size_t)j * n_items * n_lags + k;
-    float2 sum = (float2)(0.0f, 0.0f);
+    __global const float4 *p = part + (size_t)j * n_items * n_lags + k;
+    float4 sum = (float4)(0.0f);
     for (int i = 0; i < n_items; ++i) sum += p[(size_t)i * n_lags];
-    profiles[(size_t)(m_begin + j) * n_lags + k] = sum;
+    records[(size_t)(m_begin + j) * n_lags + k] = sum;
 }

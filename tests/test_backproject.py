@@ -33,6 +33,57 @@ def test_backproject_opencl_equals_twin(rng, vec, shape):
     assert err < TOL["backproject"], err
 
 
+@pytest.mark.parametrize("cycles", [0.0, 0.26, 0.6, 1.3, 2.7])
+def test_carrier_records_reproduce_the_carrier_exactly(rng, cycles):
+    """The kernel's split of the carrier (records rotated at each sample, the sub-sample rotation
+    in the kernel), evaluated in NumPy, equals lerp(profile) * exp(j 2 pi fc tau) at random
+    delays, upsampled profiles (fc dtau > 0.6) included."""
+    from clsas.formation.bp_opencl import MAX_CYCLES_PER_SAMPLE, carrier_records
+
+    n_meas, n_lags, dtau = 3, 40, 1 / 96e3
+    fc = cycles / dtau
+    data = rng.normal(size=(n_meas, n_lags - 5)) + 1j * rng.normal(size=(n_meas, n_lags - 5))
+    tau0 = rng.uniform(1e-3, 3e-3, n_meas)
+    pairs, dtau_up, phi = carrier_records(data, n_lags, tau0, dtau, fc)
+    up = round(dtau / dtau_up)
+    assert up == max(1, int(np.ceil(cycles / MAX_CYCLES_PER_SAMPLE - 1e-9)))
+    assert phi == pytest.approx(2 * np.pi * fc * dtau_up) and phi / 2 <= 0.6 * np.pi + 1e-12
+    assert pairs.shape == (n_meas, (n_lags - 1) * up + 1, 2)
+    prof = np.zeros((n_meas, n_lags), complex)
+    prof[:, : data.shape[1]] = data
+    for m in range(n_meas):
+        idx = rng.uniform(0, n_lags - 1, 200)  # in samples of the given profile
+        tau = tau0[m] + idx * dtau
+        want = np.interp(idx, np.arange(n_lags), prof[m].real) + 1j * np.interp(idx, np.arange(n_lags), prof[m].imag)
+        want = want * np.exp(2j * np.pi * fc * tau)
+        fine = idx * up
+        k = np.minimum(np.floor(fine).astype(int), pairs.shape[1] - 1)
+        f = fine - k
+        got = ((1 - f) * pairs[m, k, 0] + f * pairs[m, k, 1]) * np.exp(1j * phi * (f - 0.5))
+        assert np.abs(got - want).max() < 2e-6 * np.abs(prof).max()
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+def test_backproject_of_coarse_profiles_equals_twin(rng, vec):
+    """Profiles of more than 0.6 carrier cycles per sample (upsampled on the host) through the
+    kernel: the twin's image, every measurement with its own speed of sound."""
+    from clsas.formation.bp_opencl import BackprojectPlan
+
+    width_or_skip("backproject", vec)
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 9), np.linspace(-0.05, 0.05, 5), np.linspace(0.3, 0.7, 17))
+    n, n_lags, dtau = 12, 40, 1 / 24e3
+    tx = np.c_[rng.uniform(-0.2, 0.2, (n, 2)), np.zeros(n)]
+    rx = tx + [0.03, 0, 0]
+    c = rng.uniform(340, 346, n)
+    prof = rng.normal(size=(n, n_lags)) + 1j * rng.normal(size=(n, n_lags))
+    tau0 = 0.8 / 343 - 20 * dtau + rng.uniform(-3, 3, n) * dtau  # voxels in and out of the window
+    want = twin.backproject(prof, tau0, dtau, 25e3, tx, rx, c, grid.points())
+    got = BackprojectPlan(grid, n, n_lags, vec=vec, chunk=5)(prof, tau0, dtau, 25e3, tx, rx, c)
+    assert np.any(want == 0) and np.any(want != 0)
+    assert np.abs(got - want).max() < TOL["backproject"] * np.abs(want).max()
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_point_target_lands_in_its_voxel(backend):
     target = np.array([0.03, -0.02, 0.55])

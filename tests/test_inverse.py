@@ -78,6 +78,31 @@ def test_kernel_equals_twin(rng, vec, chunk, n_items):
     np.testing.assert_array_equal(again, got)
 
 
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+def test_kernels_on_coarse_profiles_equal_twins_and_stay_adjoint(rng, vec):
+    """Profiles of 1.3 carrier cycles per sample (both plans upsample them for the carrier):
+    the projection equals its twin, and projection and backprojection pass the dot-product test."""
+    from clsas.formation import bp_numpy
+    from clsas.formation.bp_opencl import BackprojectPlan
+    from clsas.inverse.project_opencl import ProjectPlan
+
+    width_or_skip("project", vec)
+    width_or_skip("backproject", vec)
+    grid, tx, rx, c, tau0, _ = _scene(rng)
+    dtau = 1.3 / 25e3
+    x = rng.normal(size=grid.size) + 1j * rng.normal(size=grid.size)
+    y = rng.normal(size=(7, 50)) + 1j * rng.normal(size=(7, 50))
+    ax = ProjectPlan(grid, 7, 50, vec=vec, chunk=3, n_items=2)(x, tau0, dtau, 25e3, tx, rx, c)
+    want = twin.project(x, tau0, dtau, 50, 25e3, tx, rx, c, grid.points())
+    assert np.abs(ax - want).max() <= 1e-4 * np.abs(want).max()
+    ahy = BackprojectPlan(grid, 7, 50, vec=vec, chunk=3)(y, tau0, dtau, 25e3, tx, rx, c)
+    want_bp = bp_numpy.backproject(y, tau0, dtau, 25e3, tx, rx, c, grid.points())
+    assert np.abs(ahy - want_bp).max() <= 1e-4 * np.abs(want_bp).max()
+    lhs, rhs = np.vdot(y, ax), np.vdot(ahy, x)
+    assert abs(lhs - rhs) <= 1e-5 * abs(lhs)
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 @pytest.mark.parametrize("with_pulse", [False, True], ids=["no-pulse", "pulse"])
 def test_operator_passes_the_dot_product_test(rng, backend, with_pulse):

@@ -23,8 +23,9 @@ log = logging.getLogger(__name__)
 
 # floating-point operations per voxel-measurement pair in backproject.cl, counted by hand:
 # two distances (3 sub, 3 mul, 2 add, 1 sqrt each), delay and index (3), interpolation (6),
-# carrier phase (3) with sin and cos counted as 10 each, complex multiply-accumulate (8).
-FLOPS_PER_PAIR = 2 * 9 + 3 + 6 + 3 + 20 + 8
+# the sub-sample carrier angle (2) with its sine and cosine polynomials (x^2, then 4 and 5
+# multiply-adds: 19), complex multiply-accumulate (8).
+FLOPS_PER_PAIR = 2 * 9 + 3 + 6 + 2 + 19 + 8
 
 
 def backprojection_workload(grid, n_meas, rng, fs=96e3, lag_step=2, c=343.2):

@@ -85,8 +85,17 @@ def _variant(defines: tuple[tuple[str, Any], ...]) -> str:
     return " ".join(f"-D{k}={val}" for k, val in defines) or "no defines"
 
 
-def _options(defines: tuple[tuple[str, Any], ...]) -> list[str]:
-    return [f"-D{k}={val}" for k, val in defines] + list(BUILD_OPTIONS)
+def _options(defines: tuple[tuple[str, Any], ...], device: Any = None) -> list[str]:
+    return [f"-D{k}={val}" for k, val in defines] + list(BUILD_OPTIONS) + device_options(device)
+
+
+def device_options(device: Any) -> list[str]:
+    """Build options a device needs besides the variant's: Oclgrind's interpreter has no
+    ``llvm.sqrt`` intrinsic, so its kernels take the OpenCL ``sqrt`` builtin instead of the
+    inlined one (``vsqrt`` in kernels/common.cl; the same square root)."""
+    if device is not None and "oclgrind" in str(getattr(device, "name", "")).lower():
+        return ["-DCLSAS_OPENCL_SQRT=1"]
+    return []
 
 
 @functools.cache
@@ -98,7 +107,7 @@ def _build(ctx: Any, files: tuple[str, ...], defines: tuple[tuple[str, Any], ...
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # pyopencl's CompilerWarning: the log is read below
         try:
-            prog.build(options=_options(defines))
+            prog.build(options=_options(defines, device))
         except cl.RuntimeError as exc:
             raise BuildError(
                 files, describe(device), f"{_variant(defines)}: the compiler failed", _log(prog, device) or str(exc)

@@ -54,6 +54,72 @@ class BeamPlan(Plan):
         self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
 
 
+# fc dtau, carrier cycles per profile sample, up to which backproject.cl's sub-sample rotation
+# (a polynomial for |angle| <= 0.6 pi) holds; coarser profiles are upsampled first
+MAX_CYCLES_PER_SAMPLE = 0.6
+
+
+def upsample_factor(fc_hz: float, dtau_s: float) -> int:
+    """The smallest integer factor that brings a profile to :data:`MAX_CYCLES_PER_SAMPLE` or less."""
+    return max(1, int(np.ceil(abs(fc_hz) * dtau_s / MAX_CYCLES_PER_SAMPLE - 1e-9)))
+
+
+def upsample(prof: np.ndarray, up: int) -> np.ndarray:
+    """(n, L) profiles -> (n, (L - 1) up + 1) by linear interpolation between their samples
+    (their linear interpolation is unchanged)."""
+    n, L = prof.shape
+    fine = np.zeros((n, (L - 1) * up + 1), prof.dtype)
+    for i in range(up):
+        fine[:, i : (L - 1) * up : up] = (1 - i / up) * prof[:, :-1] + (i / up) * prof[:, 1:]
+    fine[:, -1] = prof[:, -1]
+    return fine
+
+
+def upsample_adjoint(fine: np.ndarray, up: int) -> np.ndarray:
+    """The adjoint of :func:`upsample`: (n, (L - 1) up + 1) -> (n, L)."""
+    n = fine.shape[0]
+    L = (fine.shape[1] - 1) // up + 1
+    out = np.zeros((n, L), fine.dtype)
+    out[:, -1] = fine[:, -1]
+    for i in range(up):
+        part = fine[:, i : (L - 1) * up : up]
+        out[:, :-1] += (1 - i / up) * part
+        out[:, 1:] += (i / up) * part
+    return out
+
+
+def carrier_rotation(n_records: int, tau0_s, dtau_s: float, fc_hz: float) -> np.ndarray:
+    """(n_meas, n_records) complex64: ``exp(j 2 pi fc dtau (k + 1/2 + tau0_m / dtau))``, the
+    carrier at the middle of record k (computed in double precision, reduced to a turn)."""
+    cycles = fc_hz * dtau_s
+    k = np.arange(n_records)
+    s0 = np.asarray(tau0_s, float) / dtau_s
+    return (np.exp(2j * np.pi * np.mod(cycles * (k + 0.5), 1.0)).astype(np.complex64)[None, :]
+            * np.exp(2j * np.pi * np.mod(cycles * s0, 1.0)).astype(np.complex64)[:, None])
+
+
+def carrier_records(data: np.ndarray, n_lags: int, tau0_s, dtau_s: float, fc_hz: float):
+    """The profiles as kernels/backproject.cl reads them: record k of measurement m holds samples
+    k and k + 1, both rotated by :func:`carrier_rotation`, so that the kernel's carrier is the
+    sub-sample rotation only.
+
+    ``data`` (n_meas, <= n_lags) is zero-padded to ``n_lags`` samples. Where ``fc dtau`` exceeds
+    :data:`MAX_CYCLES_PER_SAMPLE` the profile is first upsampled (:func:`upsample`). Returns
+    ``(records (n_meas, n_lags', 2) complex64, dtau', phi = 2 pi fc dtau')``.
+    """
+    n_meas = data.shape[0]
+    prof = np.zeros((n_meas, n_lags), np.complex64)
+    prof[:, : data.shape[1]] = data
+    up = upsample_factor(fc_hz, dtau_s)
+    if up > 1:
+        prof, dtau_s = upsample(prof, up), dtau_s / up
+    rot = carrier_rotation(prof.shape[1], tau0_s, dtau_s, fc_hz)
+    pairs = np.zeros((n_meas, prof.shape[1], 2), np.complex64)  # p[n_lags] = 0
+    pairs[:, :, 0] = prof * rot
+    pairs[:, :-1, 1] = prof[:, 1:] * rot[:, :-1]
+    return pairs, dtau_s, 2 * np.pi * fc_hz * dtau_s
+
+
 def selftest_beam_weights(rng, mode: str):
     """The beams the beam selftests use: a piston speaker tilted per measurement (drawn from
     ``rng``) and a cone microphone, for the selftest scene's 3 measurements at 25 kHz."""
@@ -82,7 +148,7 @@ class BackprojectPlan(BeamPlan):
         self.n_vox = grid.size
         self.n_pad = -(-self.n_vox // self.vec) * self.vec
         self.chunk = chunk or int(np.clip(4e7 // self.n_pad, 4, 256))
-        self.d_prof = self.alloc(16 * n_meas * self.n_lags, "r")
+        self.d_prof, self.n_lags_dev = self.alloc(16 * n_meas * self.n_lags, "r"), self.n_lags
         self.d_tx = self.alloc(16 * n_meas, "r")
         self.d_rx = self.alloc(16 * n_meas, "r")
         self.d_s0 = self.alloc(4 * n_meas, "r")
@@ -103,12 +169,10 @@ class BackprojectPlan(BeamPlan):
         beam=None,
     ) -> np.ndarray:
         """Backproject; same arguments as the NumPy twin (grid fixed). Returns (n_vox,) complex64."""
-        # pair layout: record k holds samples k and k + 1, so one load per voxel serves lerp
-        prof = np.zeros((self.n_meas, self.n_lags + 1), np.complex64)
-        prof[:, : data.shape[1]] = data
-        pairs = np.empty((self.n_meas, self.n_lags, 2), np.complex64)
-        pairs[:, :, 0] = prof[:, :-1]
-        pairs[:, :, 1] = prof[:, 1:]
+        pairs, dtau_s, phi = carrier_records(data, self.n_lags, tau0_s, dtau_s, fc_hz)
+        n_lags = pairs.shape[1]
+        if n_lags != self.n_lags_dev:  # upsampled (fc dtau > MAX_CYCLES_PER_SAMPLE): a larger buffer
+            self.d_prof, self.n_lags_dev = self.alloc(pairs.nbytes, "r"), n_lags
         self.begin()
         self.write(self.d_prof, pairs, np.complex64)
         self.write_geometry(tau0_s, dtau_s, fc_hz, tx_positions, rx_positions, c_mps)
@@ -116,8 +180,8 @@ class BackprojectPlan(BeamPlan):
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
         fixed = (
-            self.d_prof, np.int32(self.n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
-            np.int32(g.shape[1]), np.int32(g.shape[2]),
+            self.d_prof, np.int32(n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
+            np.int32(g.shape[1]), np.int32(g.shape[2]), np.float32(phi),
         )
         beam_args = self.beam_args(beam)
         for m0 in range(0, self.n_meas, self.chunk):

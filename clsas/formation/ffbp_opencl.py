@@ -16,6 +16,7 @@ import numpy as np
 from ..cl import Plan
 from ..geometry import VoxelGrid
 from . import ffbp_numpy as twin
+from .bp_opencl import carrier_records
 from .ffbp_tree import BLOCK, Level, Tree
 
 __all__ = ["FfbpLeafPlan", "FfbpMergePlan", "FfbpPipeline"]
@@ -33,23 +34,18 @@ class _LevelTables:
 
 
 def _profiles(plan: Plan, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps):
-    """Device copies of the profiles as backproject.cl takes them: (p[k], p[k+1]) records and
-    positions with the path scales in their w lanes."""
+    """Device copies of the profiles as backproject.cl takes them (records rotated by the
+    carrier at each sample, :func:`~clsas.formation.bp_opencl.carrier_records`), the positions
+    with the path scale in tx's w lane, the zero-delay indices and the sub-sample phase step."""
     n, n_lags = data.shape
-    n_lags = max(2, n_lags)
-    prof = np.zeros((n, n_lags + 1), np.complex64)
-    prof[:, : data.shape[1]] = data
-    pairs = np.empty((n, n_lags, 2), np.complex64)
-    pairs[:, :, 0] = prof[:, :-1]
-    pairs[:, :, 1] = prof[:, 1:]
+    pairs, dtau_s, phi = carrier_records(data, max(2, n_lags), tau0_s, dtau_s, fc_hz)
     c = np.broadcast_to(np.asarray(c_mps, float), (n,))
     pos4 = np.zeros((2, n, 4), np.float32)
     pos4[0, :, :3] = tx
     pos4[0, :, 3] = 1.0 / (c * dtau_s)
     pos4[1, :, :3] = rx
-    pos4[1, :, 3] = fc_hz / c
-    return (plan.upload(pairs, np.complex64), np.int32(n_lags), plan.upload(pos4[0], np.float32),
-            plan.upload(pos4[1], np.float32), plan.upload(np.asarray(tau0_s) / dtau_s, np.float32))
+    return (plan.upload(pairs, np.complex64), np.int32(pairs.shape[1]), plan.upload(pos4[0], np.float32),
+            plan.upload(pos4[1], np.float32), plan.upload(np.asarray(tau0_s) / dtau_s, np.float32), np.float32(phi))
 
 
 def _complex(host: np.ndarray) -> np.ndarray:

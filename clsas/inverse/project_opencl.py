@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..cl import kernel
-from ..formation.bp_opencl import BeamPlan
+from ..formation.bp_opencl import BeamPlan, carrier_rotation, upsample_adjoint, upsample_factor
 from ..geometry import VoxelGrid
 
 #: bytes of partial profiles one chunk of measurements may hold on the device
@@ -54,16 +54,23 @@ class ProjectPlan(BeamPlan):
         target = dev.max_compute_units * (256 if gpu else 4)
         self.n_items = int(n_items or np.clip(-(-target // n_meas), 1, self.n_blocks))
         self.n_items = min(self.n_items, self.n_blocks)
-        per_meas = 8 * self.n_items * self.n_lags
-        self.chunk = int(chunk or np.clip(PARTIAL_BYTES // per_meas, 1, n_meas))
+        self.user_chunk = chunk
+        self._size_records(self.n_lags)
         self.d_xre = self.alloc(4 * self.n_pad, "r")
         self.d_xim = self.alloc(4 * self.n_pad, "r")
         self.d_tx = self.alloc(16 * n_meas, "r")
         self.d_rx = self.alloc(16 * n_meas, "r")
         self.d_s0 = self.alloc(4 * n_meas, "r")
-        self.d_part = self.alloc(per_meas * self.chunk)
-        self.d_prof = self.alloc(8 * n_meas * self.n_lags, "w")
         self.alloc_beam(n_meas)
+
+    def _size_records(self, n_rec: int) -> None:
+        """Chunk and buffers for ``n_rec`` records per profile (more than ``n_lags`` where the
+        profile is upsampled for the carrier, :func:`~clsas.formation.bp_opencl.carrier_records`)."""
+        per_meas = 16 * self.n_items * n_rec
+        self.chunk = int(self.user_chunk or np.clip(PARTIAL_BYTES // per_meas, 1, self.n_meas))
+        self.d_part = self.alloc(per_meas * self.chunk)
+        self.d_prof = self.alloc(16 * self.n_meas * n_rec, "w")
+        self.n_rec = n_rec
 
     def __call__(
         self,
@@ -82,6 +89,10 @@ class ProjectPlan(BeamPlan):
         ``beam_lut`` (None without one). Returns (n_meas, n_lags) complex64 profiles."""
         x = np.zeros(self.n_pad, np.complex64)
         x[: self.n_vox] = np.ravel(values)
+        up = upsample_factor(fc_hz, dtau_s)
+        n_rec, dtau_s = (self.n_lags - 1) * up + 1, dtau_s / up
+        if n_rec != self.n_rec:
+            self._size_records(n_rec)
         self.begin()
         self.write(self.d_xre, x.real, np.float32)
         self.write(self.d_xim, x.imag, np.float32)
@@ -89,20 +100,25 @@ class ProjectPlan(BeamPlan):
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
-        fixed = (self.d_xre, self.d_xim, np.int32(self.n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
-                 np.int32(g.shape[1]), np.int32(g.shape[2]), np.int32(self.n_blocks))
+        fixed = (self.d_xre, self.d_xim, np.int32(n_rec), self.d_tx, self.d_rx, self.d_s0, origin, step,
+                 np.int32(g.shape[1]), np.int32(g.shape[2]), np.float32(2 * np.pi * fc_hz * dtau_s),
+                 np.int32(self.n_blocks))
         beam_args = self.beam_args(beam)
-        lag_items = -(-self.n_lags // 64) * 64
+        lag_items = -(-n_rec // 64) * 64
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
             self.launch((self.n_items, m1 - m0), *fixed, np.int32(m0), self.d_part, *beam_args)
             evt = self.sum_kernel(self.queue, (lag_items, m1 - m0), None, self.d_part, np.int32(self.n_items),
-                                  np.int32(self.n_lags), np.int32(m0), self.d_prof)
+                                  np.int32(n_rec), np.int32(m0), self.d_prof)
             self._events.append(evt)
             if progress is not None:
                 evt.wait()
                 progress(m1, self.n_meas)
-        return self.read(self.d_prof, (self.n_meas, self.n_lags), np.complex64)
+        rec = self.read(self.d_prof, (self.n_meas, n_rec, 2), np.complex64)
+        rot = np.conj(carrier_rotation(n_rec, tau0_s, dtau_s, fc_hz))
+        prof = rec[:, :, 0] * rot  # slot A of record k to lag k, slot B to lag k + 1
+        prof[:, 1:] += rec[:, :-1, 1] * rot[:, :-1]
+        return (upsample_adjoint(prof, up) if up > 1 else prof).astype(np.complex64)
 
     @classmethod
     def selftest(cls, queue, vec: int) -> float:
