@@ -102,9 +102,9 @@ def _md_backprojection(res: dict) -> list[str]:
         best = max((r["opencl_kernel"]["rate_per_s"] for r in res["backprojection"] if "opencl_kernel" in r),
                    default=0.0)
         md += ["", f"Compute bound of the device: {cb['peak_flops'] / 1e9:.1f} GFLOP/s (compute units x clock x "
-                   f"float vector width x 2 for FMA) / about {cb['flops_per_pair']} flops per pair (sin and cos "
-                   f"counted as 10 each) = {cb['pairs_per_s']:.3g} pairs/s; the kernel reaches "
-                   f"{100 * best / cb['pairs_per_s']:.0f} % of it."]
+                   f"float vector width x 2 for FMA) / about {cb['flops_per_pair']} flops per pair (the sub-sample "
+                   f"sine and cosine polynomials counted in full) = {cb['pairs_per_s']:.3g} pairs/s; the kernel "
+                   f"reaches {100 * best / cb['pairs_per_s']:.0f} % of it."]
         if cb.get("memory_pairs_per_s"):
             md += ["", f"Roofline of the bp kernel: arithmetic ceiling {cb['pairs_per_s']:.3g} pairs/s; memory "
                        f"ceiling {cb['memory_pairs_per_s']:.3g} pairs/s ({cb['bandwidth_bps'] / 1e9:.1f} GB/s measured "
