@@ -89,13 +89,16 @@ def _options(defines: tuple[tuple[str, Any], ...], device: Any = None) -> list[s
     return [f"-D{k}={val}" for k, val in defines] + list(BUILD_OPTIONS) + device_options(device)
 
 
+def is_simulator(device: Any) -> bool:
+    """Whether ``device`` is the Oclgrind simulator (it interprets kernels, it does not compile them)."""
+    return "oclgrind" in device.platform.name.lower()
+
+
 def device_options(device: Any) -> list[str]:
     """Build options a device needs besides the variant's: Oclgrind's interpreter has no
     ``llvm.sqrt`` intrinsic, so its kernels take the OpenCL ``sqrt`` builtin instead of the
     inlined one (``vsqrt`` in kernels/common.cl; the same square root)."""
-    if device is not None and "oclgrind" in str(getattr(device, "name", "")).lower():
-        return ["-DCLSAS_OPENCL_SQRT=1"]
-    return []
+    return ["-DCLSAS_OPENCL_SQRT=1"] if device is not None and is_simulator(device) else []
 
 
 @functools.cache

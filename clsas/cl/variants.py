@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from .device import _cl, describe
-from .program import BuildError, kernel, kernel_source, sources_hash
+from .program import BuildError, is_simulator, kernel, kernel_source, sources_hash
 
 __all__ = [
     "KERNELS", "KernelSpec", "Verdict", "cache_dir", "candidate_widths", "check", "choose", "clear_cache",
@@ -241,10 +241,6 @@ def _run_probe(device: Any, name: str, vec: int) -> tuple[Verdict, bool]:
     return verdict, bool(report.get("definitive", True))
 
 
-def _is_simulator(device: Any) -> bool:
-    return "Oclgrind" in device.platform.name
-
-
 def check(queue: Any, name: str, vec: int) -> Verdict:
     """Verdict for kernel ``name`` at width ``vec`` on the queue's device (memoised, cached on disk)."""
     spec = kernel_spec(name)
@@ -255,7 +251,7 @@ def check(queue: Any, name: str, vec: int) -> Verdict:
     if digest in _MEMO:
         return _MEMO[digest]
     verdict = None
-    if not (_IN_PROBE or _is_simulator(device)):
+    if not (_IN_PROBE or is_simulator(device)):
         verdict = _load(digest)
         if verdict is None:
             verdict, definitive = _run_probe(device, name, vec)

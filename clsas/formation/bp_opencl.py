@@ -41,14 +41,14 @@ class BeamPlan(Plan):
         gate = 0.0 if beam.gate is None else beam.gate
         return self.d_beam_dir, self.d_beam_lut, np.int32(self.beam_lut), np.int32(self.n_meas), np.float32(gate)
 
-    def write_geometry(self, tau0_s, dtau_s: float, fc_hz: float, tx_positions, rx_positions, c_mps) -> None:
-        """Positions with their path scales in the w lanes, and the zero-delay index, to the device."""
+    def write_geometry(self, tau0_s, dtau_s: float, tx_positions, rx_positions, c_mps) -> None:
+        """Positions (tx's w lane: profile samples per metre of path; rx's unused: the carrier
+        rides in the records, :func:`carrier_records`) and the zero-delay index, to the device."""
         c = np.broadcast_to(np.asarray(c_mps, float), (self.n_meas,))
         pos4 = np.zeros((2, self.n_meas, 4), np.float32)
         pos4[0, :, :3] = tx_positions
-        pos4[0, :, 3] = 1.0 / (c * dtau_s)  # profile samples per metre of path
+        pos4[0, :, 3] = 1.0 / (c * dtau_s)
         pos4[1, :, :3] = rx_positions
-        pos4[1, :, 3] = fc_hz / c  # carrier cycles per metre of path
         self.write(self.d_tx, pos4[0], np.float32)
         self.write(self.d_rx, pos4[1], np.float32)
         self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
@@ -115,8 +115,8 @@ def carrier_records(data: np.ndarray, n_lags: int, tau0_s, dtau_s: float, fc_hz:
         prof, dtau_s = upsample(prof, up), dtau_s / up
     rot = carrier_rotation(prof.shape[1], tau0_s, dtau_s, fc_hz)
     pairs = np.zeros((n_meas, prof.shape[1], 2), np.complex64)  # p[n_lags] = 0
-    pairs[:, :, 0] = prof * rot
-    pairs[:, :-1, 1] = prof[:, 1:] * rot[:, :-1]
+    np.multiply(prof, rot, out=pairs[:, :, 0])
+    np.multiply(prof[:, 1:], rot[:, :-1], out=pairs[:, :-1, 1])
     return pairs, dtau_s, 2 * np.pi * fc_hz * dtau_s
 
 
@@ -175,7 +175,7 @@ class BackprojectPlan(BeamPlan):
             self.d_prof, self.n_lags_dev = self.alloc(pairs.nbytes, "r"), n_lags
         self.begin()
         self.write(self.d_prof, pairs, np.complex64)
-        self.write_geometry(tau0_s, dtau_s, fc_hz, tx_positions, rx_positions, c_mps)
+        self.write_geometry(tau0_s, dtau_s, tx_positions, rx_positions, c_mps)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)

@@ -96,7 +96,7 @@ class ProjectPlan(BeamPlan):
         self.begin()
         self.write(self.d_xre, x.real, np.float32)
         self.write(self.d_xim, x.imag, np.float32)
-        self.write_geometry(tau0_s, dtau_s, fc_hz, tx_positions, rx_positions, c_mps)
+        self.write_geometry(tau0_s, dtau_s, tx_positions, rx_positions, c_mps)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
