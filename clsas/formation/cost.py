@@ -22,7 +22,7 @@ their compute units (kernels) and host cores (host FFTs). ``clsas bench`` measur
 on the device and stores one factor per formation (measured over predicted, the median over its
 cases) beside the kernel-variant verdicts (:func:`calibration_path`); :func:`choose` applies it.
 The model need only rank the formations: within a factor of two is enough where they differ by
-more. Sizing ω-k and planning an FFBP tree cost time themselves (0.03 s and 0.35 s at 64 x 64
+more. Sizing ω-k and planning an FFBP tree cost time themselves (0.03 s and 0.07 s at 64 x 64
 stops), lost where that formation is not chosen: each is done only where a lower bound of its time
 is under ``PLAN_IF_UNDER`` (0.7) times the best time so far.
 
@@ -76,15 +76,19 @@ FORMAT = 3  # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic ter
 # omega-k's Stolt and depth terms divided by the 3 bistatic terms (and the Stolt term by the 6-cell
 # kernel) of the cases they were fitted on when its work began to count them; then omega-k's fixed
 # part (1.5 ms, was 5 ms) and its variable part (x 1.15) refitted on the crossover scans of
-# bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128 stops a side)
+# bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128 stops a side; bp's pairs term
+# x 0.81 (2e-9 before) on 2026-11-28 after the split-carrier kernel, its measured over predicted on
+# the crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier.json)
 BUILTIN: dict[str, dict[str, float]] = {
-    "bp": {"fixed": 5e-3, "pairs": 2e-9},
+    "bp": {"fixed": 5e-3, "pairs": 1.6e-9},
     "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9},
     "ffbp": {"fixed": 5e-3, "leaf": 2e-9, "merge": 2.5e-9, "grid": 2.5e-9},
 }
-# the tree's planning (host, Python) takes about this per measurement (0.35 s for 4096 stops); with
+# the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
+# for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
+# before, 2026-11-28); with
 # 1.5 times the last step's time it bounds FFBP's time from below before a tree is planned
-FFBP_PLAN_S_PER_MEAS = 8e-5
+FFBP_PLAN_S_PER_MEAS = 2e-5
 PLAN_IF_UNDER = 0.7
 REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
 NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses

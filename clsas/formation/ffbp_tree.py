@@ -266,10 +266,13 @@ def _regions(geom, grid_bounds, parent_geom, parent_ints, factor, chunk=2048) ->
     return box
 
 
-def _unit_from(p: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """Unit vectors from the points ``x`` (m, 3) to ``p`` (m, k, 3)."""
-    d = p - x[:, None, :]
-    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+def _unit_sum(p: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The sum of the unit vectors from ``x`` and from ``y`` (m, 3) to the points ``p`` (m, k, 3)."""
+    out = np.zeros_like(p)
+    for q in (x, y):
+        d = p - q[:, None, :]
+        out += d / np.sqrt(np.einsum("mkj,mkj->mk", d, d))[..., None]
+    return out
 
 
 def _rates(geom, box, tx, rx, c, sizes, band, f0, c_ref, chunk=2048):
@@ -279,7 +282,10 @@ def _rates(geom, box, tx, rx, c, sizes, band, f0, c_ref, chunk=2048):
 
     A term of measurement m at frequency f varies as ``exp(j 2 pi (f tau_m(P) - f0 tau_ref(P)))``;
     its local frequency along a coordinate q is ``f d tau_m / dq - f0 d tau_ref / dq``, with
-    ``d |P - x| / dq`` the unit vector from x to P dotted with ``dP/dq``.
+    ``d |P - x| / dq`` the unit vector from x to P dotted with ``dP/dq``. The lattice, the
+    reference's term and the frame are the node's; only the unit vectors from each measurement's
+    transducers are per measurement (their dot products with the node's frame vectors give the
+    three derivatives: ``dP/dr = n``, ``dP/du = r (e1 - u/s w)``, ``dP/dv = r (e2 - v/s w)``).
     """
     nn = len(geom)
     node_of = np.repeat(np.arange(nn), sizes)
@@ -287,26 +293,29 @@ def _rates(geom, box, tx, rx, c, sizes, band, f0, c_ref, chunk=2048):
     t = np.linspace(0.0, 1.0, 3)
     tr, tu, tv = np.meshgrid(t, t, t, indexing="ij")
     unit = np.stack([tr.ravel(), tu.ravel(), tv.ravel()], axis=1)  # (k, 3)
+    lo, hi = box[:, [0, 2, 4]], box[:, [1, 3, 5]]
+    lat = lo[:, None, :] + unit[None] * (hi - lo)[:, None, :]  # (nn, k, 3) r, u, v
+    r, u, v = lat[..., 0], lat[..., 1], lat[..., 2]
+    s = np.sqrt(np.maximum(1.0 - u**2 - v**2, 0.04))
+    e1, e2, w = geom[:, 3:6], geom[:, 6:9], geom[:, 9:12]
+    p = geom[:, None, 0:3] + r[..., None] * (u[..., None] * e1[:, None] + v[..., None] * e2[:, None]
+                                              + s[..., None] * w[:, None])
+
+    def derivatives(vec, rows):  # (d/dr, d/du, d/dv) of the paths whose unit-vector sum is vec
+        a1, a2, aw = (np.einsum("mkj,mj->mk", vec, f[rows]) for f in (e1, e2, w))
+        rr, uu, vv, ss = r[rows], u[rows], v[rows], s[rows]
+        return uu * a1 + vv * a2 + ss * aw, rr * (a1 - uu / ss * aw), rr * (a2 - vv / ss * aw)
+
+    every = np.arange(nn)
+    d_ref = [f0 * d / c_ref for d in derivatives(_unit_sum(p, geom[:, 12:15], geom[:, 15:18]), every)]
     per_meas = np.zeros((len(node_of), 3))
     for a in range(0, len(node_of), chunk):
         nodes = node_of[a:a + chunk]
-        g, bx = geom[nodes], box[nodes]
-        lo, hi = bx[:, [0, 2, 4]], bx[:, [1, 3, 5]]
-        lat = lo[:, None, :] + unit[None] * (hi - lo)[:, None, :]  # (m, k, 3) r, u, v
-        r, u, v = lat[..., 0], lat[..., 1], lat[..., 2]
-        s = np.sqrt(np.maximum(1.0 - u**2 - v**2, 0.04))
-        e1, e2, w = g[:, None, 3:6], g[:, None, 6:9], g[:, None, 9:12]
-        n_hat = u[..., None] * e1 + v[..., None] * e2 + s[..., None] * w
-        p = g[:, None, 0:3] + r[..., None] * n_hat
-        dp = (n_hat, r[..., None] * (e1 - (u / s)[..., None] * w), r[..., None] * (e2 - (v / s)[..., None] * w))
-
-        pair = (_unit_from(p, tx[a:a + chunk]), _unit_from(p, rx[a:a + chunk]))
-        ref = (_unit_from(p, g[:, 12:15]), _unit_from(p, g[:, 15:18]))
         cm = c[a:a + chunk, None]
+        d_tau = derivatives(_unit_sum(p[nodes], tx[a:a + chunk], rx[a:a + chunk]), nodes)
         for q in range(3):
-            d_tau = np.sum((pair[0] + pair[1]) * dp[q], axis=-1) / cm
-            d_ref = np.sum((ref[0] + ref[1]) * dp[q], axis=-1) / c_ref
-            fq = np.maximum(np.abs(band[0] * d_tau - f0 * d_ref), np.abs(band[1] * d_tau - f0 * d_ref))
+            dt, dr = d_tau[q] / cm, d_ref[q][nodes]
+            fq = np.maximum(np.abs(band[0] * dt - dr), np.abs(band[1] * dt - dr))
             per_meas[a:a + chunk, q] = fq.max(axis=1)
     rates = np.maximum.reduceat(per_meas, starts, axis=0)
     return rates[:, 0], rates[:, 1], rates[:, 2]
