@@ -78,11 +78,13 @@ FORMAT = 3  # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic ter
 # part (1.5 ms, was 5 ms) and its variable part (x 1.15) refitted on the crossover scans of
 # bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128 stops a side; bp's pairs term
 # x 0.81 (2e-9 before) on 2026-11-28 after the split-carrier kernel, its measured over predicted on
-# the crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier.json)
+# the crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier.json; FFBP's
+# variable terms x 0.55 (its median measured over predicted on the crossover scans of
+# bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json, after its faster leaves and planning)
 BUILTIN: dict[str, dict[str, float]] = {
     "bp": {"fixed": 5e-3, "pairs": 1.6e-9},
     "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9},
-    "ffbp": {"fixed": 5e-3, "leaf": 2e-9, "merge": 2.5e-9, "grid": 2.5e-9},
+    "ffbp": {"fixed": 5e-3, "leaf": 1.1e-9, "merge": 1.4e-9, "grid": 1.4e-9},
 }
 # the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
 # for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
