@@ -68,7 +68,9 @@ MARGIN_DB = 3.0  # a formation is chosen only where its predicted error is this 
 OMEGA_K_BASE_DB = -42.0
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
-FORMAT = 3  # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms (older factors no longer apply)
+# 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
+# bp and FFBP (a factor stored by an older format no longer applies)
+FORMAT = 4
 
 # seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
 # (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
