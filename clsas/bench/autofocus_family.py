@@ -1,6 +1,6 @@
 """Autofocus on the seeded scene family (:mod:`clsas.scene_family`): the distribution.
 
-Each scene is drawn from its seed, imaged as recorded, autofocused with :data:`BENCH_METHODS` (direct, track),
+Each scene is drawn from its seed, imaged as recorded, autofocused with :data:`BENCH_METHODS` (direct, points, track),
 and scored against the same scan without errors:
 
 - *peak loss*: the local peak (on a 1.5 mm grid within 1.5 cm) at the error-free image's
@@ -36,10 +36,12 @@ __all__ = ["BENCH_METHODS", "oracle_per_stop", "run_family", "summarise", "famil
 
 log = logging.getLogger(__name__)
 
-#: The methods the family is scored with: the direct sound's delay, then the neighbouring stops'
+#: The methods the family is scored with: the direct sound's delay, then the phases the strong
+#: points share (``"points"``, where the scene has isolated points), else the neighbouring stops'
 #: phases (``"track"``). Issue 26's first held-out run used ``FOCUS_METHODS`` (direct, phase,
 #: temperature); the temperature step was determined in 2 of 30 scenes and 2-3 C wrong there.
-BENCH_METHODS = ("direct", "track")
+#: ``"points"`` joined in the fifth session.
+BENCH_METHODS = ("direct", "points", "track")
 
 
 def _local_peak_db(ds, point, radius_m=0.015, step_m=0.0015, backend=None) -> float:

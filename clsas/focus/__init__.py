@@ -58,7 +58,7 @@ __all__ = ["AutofocusReport", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "au
 
 log = logging.getLogger(__name__)
 
-METHODS = ("direct", "temperature", "delay", "phase", "track", "los", "3d", "pga")
+METHODS = ("direct", "temperature", "delay", "phase", "points", "track", "los", "3d", "pga")
 # ("direct", "phase", "temperature") until the held-out run of issue 26 (commit 2f50580) showed
 # "phase" and "temperature" making a third of the held-out scenes worse: now only what the
 # physics determines by default; the focus steps run when named
@@ -84,7 +84,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     grid : VoxelGrid
         Where the focus is measured: the scene, not much more (empty voxels add nothing but
         time). Spacing about a third of the wavelength or finer.
-    methods : sequence of {"direct", "temperature", "delay", "phase", "track", "los", "3d", "pga"}
+    methods : sequence of {"direct", "temperature", "delay", "phase", "points", "track", "los", "3d", "pga"}
         The steps (see the module docstring); order is fixed. Default: the direct sound's delay
         alone (for the held-out figures of each, see docs/guide/autofocus.md).
     metric : {"sharpness", "entropy"}

@@ -58,7 +58,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     fo.delay_parameters("delay" in methods, max_delay_s, delay_tolerance_s)
     zero3 = np.zeros((ds.n_meas, 3))
     move, motion_ok = zero3, False
-    if {"phase", "track", "los", "3d", "pga"} & set(methods) and fo.halves is not None:
+    if {"phase", "points", "track", "los", "3d", "pga"} & set(methods) and fo.halves is not None:
         move, motion_ok = fo.motion(methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, phase_sweeps,
                                     max_stop_bytes, smooth_start, pga_options or {}, check_margin)
     d_temp = 0.0
@@ -288,7 +288,7 @@ def _fill(rep, ds, t0_est, c_est, d_temp, temp0, move, stop, methods, applied: b
     rep.temperature_c = float(np.mean(temp0) + d_temp)
     rep.c_mps = float(np.mean(c_est))
     first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
-    if {"los", "phase", "track", "3d", "pga"} & set(methods) and rep.focus_centre_m is not None:
+    if {"los", "phase", "points", "track", "3d", "pga"} & set(methods) and rep.focus_centre_m is not None:
         rep.los_path_m = _los_path(ds, rep.focus_centre_m, move, first)
     rep.position_correction_m = move
     rep.stop_index = stop
