@@ -78,3 +78,15 @@ def test_points_is_a_method_name_and_others_are_refused():
     fs = family_scene(6, rms_m=3e-3)
     with pytest.raises(ValueError, match="methods"):
         autofocus(fs.dataset, fs.grid, methods=("direct", "pointz"))
+
+
+def test_the_cli_help_names_every_method():
+    import argparse
+
+    from clsas.cli.autofocus import add_autofocus_options
+    from clsas.focus import METHODS
+
+    ap = argparse.ArgumentParser()
+    add_autofocus_options(ap)
+    text = next(a.help for a in ap._actions if "--methods" in a.option_strings)
+    assert all(m in text for m in METHODS)

@@ -12,9 +12,9 @@ from .common import add_device_options, check_grids_fit, grid_arg
 def add_autofocus_options(sp) -> None:
     """The autofocus options shared by ``autofocus`` and ``reconstruct --autofocus``."""
     sp.add_argument("--methods", default="direct",
-                    help="steps, comma-separated, from direct, temperature, delay, phase, los, 3d, pga "
-                    "(default: direct; the focus steps phase,temperature made a third of the held-out test "
-                    "scenes worse, see docs/guide/autofocus.md)")
+                    help="steps, comma-separated, from direct, temperature, delay, phase, points, track, los, 3d, "
+                    "pga (default: direct; the benchmark's set is direct,points,track; the focus steps "
+                    "phase,temperature made a third of the held-out test scenes worse, see docs/guide/autofocus.md)")
     sp.add_argument("--metric", default="sharpness", choices=("sharpness", "entropy"), help="focus metric")
     sp.add_argument("--n-basis", type=int, default=None, help="smooth functions for the line-of-sight motion")
     sp.add_argument("--temperature-range", type=float, default=5.0, metavar="C",

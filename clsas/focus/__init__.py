@@ -17,7 +17,14 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    (:func:`.steps._held_out_phases`): each interleaved half's phases, predicted onto the other,
    must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
    time, left and right) must not agree less (:mod:`.motion_steps`, ``check_margin``);
-4. ``"track"`` (issue 26, second session): one line-of-sight path per stop from the phase
+4. ``"points"`` (issue 26, fifth session): the stops' phases that the image's strong points
+   share, the left singular vector of their per-stop contributions (rank one, no point taken as
+   the reference), unwrapped in time and fitted in the hand's band, the points picked again
+   after each pass (:mod:`.points`). *Determined* where the points are still coherent after it
+   (isolated points, not the speckle of a surface); applied only where the disjoint
+   sub-apertures' images agree better by :data:`.motion_steps.POINTS_GAIN`; else the other
+   motion steps named run (``"track"`` in the bench);
+5. ``"track"`` (issue 26, second session): one line-of-sight path per stop from the phase
    differences of neighbouring stops' images (in time and on the next row), integrated over
    the graph of neighbours (no per-stop phase is unwrapped on its own), refined in a smooth
    basis of stop time (the hand's 0.2-5 Hz band) plus the tilt, constant and tilt then set to
@@ -25,10 +32,10 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    same path within ``track_tolerance_m``; applied only where the check on positions passes
    (:func:`.track_step.where_check`: the brightest points of disjoint sub-apertures must not
    lie farther apart after it, and the image's brightest point moves only where they agree);
-5. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
+6. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
    gradients (``kernels/autofocus.cl`` and its NumPy twin), phase-gradient autofocus on strong
    points (:mod:`.pga`); nothing held out, so the sub-apertures must agree better;
-6. ``"temperature"``: the sharpest air temperature of each half of the stops (the motion
+7. ``"temperature"``: the sharpest air temperature of each half of the stops (the motion
    applied), within the thermometer's ± ``temperature_range_c``; applied only where their
    uncertainty is within ``temperature_tolerance_c`` and neither is at the search's edge.
 
