@@ -64,7 +64,7 @@ def test_points_corrects_hand_motion_on_a_point_scene():
     assert 20 * np.log10(after / clean) > -1.0
 
 
-def test_points_is_not_determined_on_a_surface_and_applies_nothing():
+def test_points_is_not_determined_on_a_surface_and_applies_nothing():  # and say so: see below
     # family seed 4: a sphere cap of 161 scatterers (speckle, no isolated points), no direct sound
     fs = family_scene(4, rms_m=3e-3)
     out, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "points"))
@@ -75,9 +75,50 @@ def test_points_is_not_determined_on_a_surface_and_applies_nothing():
 
 
 def test_points_is_a_method_name_and_others_are_refused():
+    from clsas.focus import METHODS
+
+    assert "points" in METHODS
     fs = family_scene(6, rms_m=3e-3)
     with pytest.raises(ValueError, match="methods"):
         autofocus(fs.dataset, fs.grid, methods=("direct", "pointz"))
+
+
+def test_smooth_unwrapped_follows_time_order_and_skips_dead_stops():
+    from clsas.focus.points import _smooth_unwrapped
+    from clsas.focus.track import _smooth_basis
+
+    rng = np.random.default_rng(4)
+    n = 240
+    t = np.arange(n) * 0.02
+    xy = np.c_[np.tile(np.arange(16.0), 15), np.repeat(np.arange(15.0), 16)] * 0.03
+    phi = 6 * np.sin(2 * np.pi * 0.7 * t) + 3 * np.cos(2 * np.pi * 2.1 * t)  # wraps many times, smooth
+    z = np.exp(1j * phi)
+    z[[40, 41, 120]] = 1e-4 * np.exp(2j * np.pi * rng.uniform(size=3))  # dead stops: random phase, no weight
+    perm = rng.permutation(n)  # stops not in time order: the time axis decides
+    basis = _smooth_basis(t[perm], xy[perm], 6.0)
+    got = _smooth_unwrapped(z[perm], t[perm], basis)
+    err = got - phi[perm] - np.mean(got - phi[perm])
+    assert np.sqrt(np.mean(err**2)) < 0.05
+
+
+def test_gauge_free_on_a_line_scan_removes_only_its_one_tilt():
+    from clsas.focus.track import gauge_free
+
+    x = np.linspace(0, 0.5, 20)
+    xy = np.c_[x, np.zeros(20)]
+    p = 1e-3 + 2e-3 * x
+    assert np.abs(gauge_free(p, xy)).max() < 1e-12
+    bump = np.zeros(20)
+    bump[2] = 1e-3  # a single stop's error is not a tilt: mostly kept
+    assert gauge_free(bump, xy)[2] > 0.8e-3
+
+
+def test_points_alone_on_a_surface_says_so_in_the_motion_parameter():
+    fs = family_scene(4, rms_m=3e-3)
+    _, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "points"))
+    m = rep.parameters["motion"]
+    assert m.how.startswith("points:") and not m.applied
+    assert any("no other motion step named" in n for n in rep.notes)
 
 
 def test_the_cli_help_names_every_method():

@@ -30,10 +30,11 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
     t = time.perf_counter()
     c = fo.c_stated
     shift = fo.t0_at(c) - ds.t0_s
+    others = set(methods) & {"phase", "track", "los", "3d", "pga"}
     if "points" in methods:
-        found = points_step(fo, shift, c, stop, t_stop, xy, margin)
-        if found is not None:
-            return found, True
+        found = points_step(fo, shift, c, stop, t_stop, xy, margin, others)
+        if found is not None or not others:
+            return (found, True) if found is not None else (np.zeros((ds.n_meas, 3)), False)
     p_stop = np.zeros(len(t_stop))
     centre = None
     if "phase" in methods:
@@ -105,10 +106,10 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
 POINTS_GAIN = 0.1
 
 
-def points_step(fo, shift, c, stop, t_stop, xy, margin) -> np.ndarray | None:
+def points_step(fo, shift, c, stop, t_stop, xy, margin, others=frozenset()) -> np.ndarray | None:
     """``"points"`` (:mod:`.points`): the carriage's displacement (n_meas, 3), m, where the estimate
     is determined and the sub-apertures agree better after it by :data:`POINTS_GAIN`; else None
-    (the other motion steps named then run), with a note saying why."""
+    (the other motion steps named, ``others``, then run), with a note saying why."""
     from .points import points_paths
     from .track_step import resolution_cell_m
 
@@ -134,9 +135,15 @@ def points_step(fo, shift, c, stop, t_stop, xy, margin) -> np.ndarray | None:
     rep.stages.append({"step": "points", **{k: v for k, v in info.items() if k != "update_rms_m"},
                        "passed": passed, "time_s": time.perf_counter() - t})
     if not passed:
-        rep.notes.append(f"points: not applied ({info.get('why', 'not determined')}); the other motion steps "
-                         "named run instead")
+        then = f"{', '.join(sorted(others))} run instead" if others else "no other motion step named: motion left at 0"
+        rep.notes.append(f"points: not applied ({info.get('why', 'not determined')}); {then}")
+        if not others:
+            rep.parameters["motion"] = ParameterEstimate(
+                "motion", "m RMS (one way)", info.get("rms_m", float("nan")), float("nan"), info["determined"],
+                False, f"points: {info.get('why', 'not determined')}; not applied")
         return None
+    if others:
+        rep.notes.append(f"points: applied; {', '.join(sorted(others))} not run (points passed its check)")
     rep.focus_centre_m = centre
     rep.check["motion_passed"] = True
     rep.parameters["motion"] = ParameterEstimate(

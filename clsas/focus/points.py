@@ -35,7 +35,8 @@ import numpy as np
 from .pga import _coherence, _per_stop, point_samples
 from .track import DEFAULT_CUTOFF_HZ, _smooth_basis, gauge_free
 
-__all__ = ["DYNAMIC_RANGE_DB", "MIN_COHERENCE", "MIN_POINTS", "pick_points", "common_phases", "points_paths"]
+__all__ = ["DYNAMIC_RANGE_DB", "MIN_COHERENCE", "MIN_POINTS", "MIN_STOPS", "pick_points", "common_phases",
+           "points_paths"]
 
 log = logging.getLogger("clsas.autofocus")
 
@@ -43,6 +44,8 @@ log = logging.getLogger("clsas.autofocus")
 MIN_COHERENCE = 0.15
 #: Fewest points the estimate needs (two already tell a shared phase from each one's own: family seed 22 has two).
 MIN_POINTS = 2
+#: Fewest stops: a path smooth in the hand's band has to be fewer functions than there are stops.
+MIN_STOPS = 8
 #: A point whose contributions correlate less than this with the common pattern is dropped.
 MIN_SHARE = 0.3
 
@@ -88,16 +91,25 @@ def common_phases(a_stop: np.ndarray) -> tuple[np.ndarray, int]:
     if 2 <= keep.sum() < len(keep):
         m = m[:, keep]
         _, _, vh = np.linalg.svd(m, full_matrices=False)
-    return m @ vh[0].conj(), int(m.shape[1])
+    return m @ vh[0].conj(), int(keep.sum())
 
 
 def _smooth_unwrapped(z: np.ndarray, t: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """The phases of ``z`` unwrapped in time order and fitted in ``basis`` (weights ``|z|^2``, capped
-    at 4 times their median), rad."""
-    order = np.argsort(t, kind="stable")
-    ph = np.empty(len(z))
-    ph[order] = np.unwrap(np.angle(z[order]))
+    at 4 times their median), rad. Stops under a tenth of the median weight take no part in the
+    unwrapping (a near-zero gain has a random phase, and a slip there would shift every later
+    stop by a turn): each is unwrapped against its neighbours' phase, interpolated in time."""
     w = np.abs(z) ** 2
+    order = np.argsort(t, kind="stable")
+    good = order[w[order] >= 0.1 * np.median(w)]
+    ph = np.empty(len(z))
+    if len(good) < 2:
+        good = order
+    ph[good] = np.unwrap(np.angle(z[good]))
+    rest = np.setdiff1d(order, good)
+    if len(rest):
+        near = np.interp(t[rest], t[good], ph[good])
+        ph[rest] = near + np.angle(z[rest] * np.exp(-1j * near))
     sw = np.sqrt(np.minimum(w, 4 * np.median(w)))
     coef, *_ = np.linalg.lstsq(basis * sw[:, None], ph * sw, rcond=None)
     return basis @ coef
@@ -112,12 +124,15 @@ def points_paths(engine, shift: np.ndarray, c: np.ndarray, stop: np.ndarray, t_s
     started = time.perf_counter()
     ds = engine.ds
     n_stops = len(t_stop)
+    info: dict = {"update_rms_m": [], "iterations": 0, "points": 0, "coherence": 0.0, "determined": False}
+    if n_stops < MIN_STOPS:
+        info["why"] = f"{n_stops} stops (at least {MIN_STOPS} needed for a smooth path to be told from its noise)"
+        return np.zeros(n_stops), info
     c = np.broadcast_to(np.asarray(c, float), (ds.n_meas,))
     first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
     to_path = c[first] / (2 * np.pi * engine.prof.fc_hz)
     basis = _smooth_basis(np.asarray(t_stop, float), xy, cutoff_hz)
     p = np.zeros(n_stops)
-    info: dict = {"update_rms_m": [], "iterations": 0, "points": 0, "coherence": 0.0, "determined": False}
     pts = np.zeros((0, 3))
     for _ in range(n_iter):
         sh = shift - p[stop] / c
@@ -127,22 +142,26 @@ def points_paths(engine, shift: np.ndarray, c: np.ndarray, stop: np.ndarray, t_s
             return np.zeros(n_stops), info
         a, _ = point_samples(engine, sh, c, ds.tx_positions, ds.rx_positions, pts)
         z, info["points"] = common_phases(_per_stop(a, stop, n_stops))
-        step = -_smooth_unwrapped(z, t_stop, basis) * to_path
-        p = gauge_free(p + step, xy)
-        rms = float(np.sqrt(np.mean(step**2)) / 2)
+        new = gauge_free(p - _smooth_unwrapped(z, t_stop, basis) * to_path, xy)
+        rms = float(np.sqrt(np.mean((new - p) ** 2)) / 2)  # the change, gauge removed (one way)
+        p = new
         info["update_rms_m"].append(rms)
         info["iterations"] += 1
         if rms < tol_m:
             break
     sh = shift - p[stop] / c  # the points of the corrected image, and how coherent they now are
     pts = pick_points(engine.grid, engine.image(sh, c), max_points=max_points, min_separation_m=min_separation_m)
-    a, _ = point_samples(engine, sh, c, ds.tx_positions, ds.rx_positions, pts)
-    info["coherence"] = float(np.median(_coherence(_per_stop(a, stop, n_stops))))
-    info["determined"] = bool(info["coherence"] >= MIN_COHERENCE and info["points"] >= MIN_POINTS)
-    if not info["determined"]:
+    if len(pts) >= MIN_POINTS:
+        a, _ = point_samples(engine, sh, c, ds.tx_positions, ds.rx_positions, pts)
+        info["coherence"] = float(np.median(_coherence(_per_stop(a, stop, n_stops))))
+    info["determined"] = bool(info["coherence"] >= MIN_COHERENCE and info["points"] >= MIN_POINTS
+                              and len(pts) >= MIN_POINTS)
+    if len(pts) < MIN_POINTS or info["points"] < MIN_POINTS:
+        info["why"] = (f"{min(len(pts), info['points'])} point(s) share the stops' phases (at least {MIN_POINTS} "
+                       "needed)")
+    elif not info["determined"]:
         info["why"] = (f"the points' median coherence after the correction is {info['coherence']:.2f} (under "
-                       f"{MIN_COHERENCE:g}: not isolated points, an extended surface or speckle)"
-                       if info["coherence"] < MIN_COHERENCE else f"{info['points']} points kept")
+                       f"{MIN_COHERENCE:g}: not isolated points, an extended surface or speckle)")
     info["rms_m"] = float(np.sqrt(np.mean(p**2)) / 2)
     info["time_s"] = time.perf_counter() - started
     log.info("autofocus points: %d points, %d passes, %.2f mm RMS (one way), coherence %.2f", info["points"],

@@ -103,15 +103,18 @@ def integrate_phases(n: int, edges: np.ndarray, angle: np.ndarray, coherence: np
 
 
 def gauge_free(p: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """``p`` (n_stops,) less its least-squares constant and tilt in the carriage's x and y."""
-    q, _ = np.linalg.qr(np.c_[np.ones(len(p)), xy - xy.mean(axis=0)])
+    """``p`` (n_stops,) less its least-squares constant and tilt in the carriage's x and y (only
+    the tilts the stops span: a line scan has one)."""
+    q, r = np.linalg.qr(np.c_[np.ones(len(p)), xy - xy.mean(axis=0)])
+    d = np.abs(np.diag(r))
+    q = q[:, d > 1e-9 * max(d.max(initial=0.0), 1e-300)]
     return p - q @ (q.T @ p)
 
 
 def _smooth_basis(t: np.ndarray, xy: np.ndarray, cutoff_hz: float) -> np.ndarray:
     """Orthonormal columns: cosines of stop time up to ``cutoff_hz``, and the carriage's x and y."""
     n = len(t)
-    dt = float(np.median(np.diff(t))) if n > 1 else 1.0
+    dt = float(np.median(np.diff(np.sort(t)))) if n > 1 else 1.0
     span = float(t.max() - t.min()) + dt
     k = min(int(np.ceil(2 * cutoff_hz * span)) + 1, n)
     b = np.c_[xy - xy.mean(axis=0), np.cos(np.pi * ((t - t.min() + 0.5 * dt) / span)[:, None] * np.arange(k))]
