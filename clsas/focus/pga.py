@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PGA_MIN_COHERENCE", "StrongPoints", "point_samples", "strong_points", "pga_refine"]
+__all__ = ["PGA_MIN_COHERENCE", "StrongPoints", "local_maxima", "point_samples", "strong_points", "pga_refine"]
 
 log = logging.getLogger(__name__)
 
@@ -114,32 +114,40 @@ def _refine(engine, shift, c, tx, rx, pts, step, n=5) -> np.ndarray:
     return cand.reshape(len(pts), len(cube), 3)[np.arange(len(pts)), mag.argmax(axis=1)]
 
 
+def local_maxima(grid, values: np.ndarray, *, max_points: int, min_separation_m: float,
+                 dynamic_range_db: float) -> np.ndarray:
+    """(K, 3) positions, m: the brightest local maxima of ``|values|`` on ``grid`` (3 x 3 x 3
+    neighbourhood) within ``dynamic_range_db`` of the brightest, each at least
+    ``min_separation_m`` from every brighter one kept, at most ``max_points``."""
+    from scipy.ndimage import maximum_filter
+
+    mag = np.abs(np.asarray(values)).reshape(grid.shape)
+    peak = float(mag.max())
+    if not peak > 0:
+        return np.zeros((0, 3))
+    local = (mag == maximum_filter(mag, size=3, mode="nearest")) & (mag >= peak * 10 ** (-dynamic_range_db / 20))
+    flat = np.flatnonzero(local.ravel())
+    flat = flat[np.argsort(mag.ravel()[flat])[::-1]]
+    pts = grid.points()[flat]
+    chosen: list[int] = []
+    for i in range(len(flat)):  # brightest first, at least min_separation_m from every one kept
+        if all(np.linalg.norm(pts[i] - pts[k]) >= min_separation_m for k in chosen):
+            chosen.append(i)
+            if len(chosen) >= max_points:
+                break
+    return pts[chosen]
+
+
 def strong_points(engine, values, shift, c, tx, rx, stop, *, max_points=32, dynamic_range_db=20.0,
                   min_separation_m=0.02) -> StrongPoints:
     """The image's brightest local maxima, each on its own peak (module docstring, step 1), and
     the coherence of each one's per-stop contributions."""
-    from scipy.ndimage import maximum_filter
-
     grid = engine.grid
-    mag = np.abs(np.asarray(values)).reshape(grid.shape)
-    peak = float(mag.max())
-    empty = StrongPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0))
-    if peak <= 0:
-        return empty
-    local = (mag == maximum_filter(mag, size=3, mode="nearest")) & (mag >= peak * 10 ** (-dynamic_range_db / 20))
-    flat = np.flatnonzero(local.ravel())
-    flat = flat[np.argsort(mag.ravel()[flat])[::-1]]
-    pts_all = grid.points()
-    chosen: list[int] = []
-    for f in flat:  # brightest first, at least min_separation_m from every one kept
-        if all(np.linalg.norm(pts_all[f] - pts_all[k]) >= min_separation_m for k in chosen):
-            chosen.append(int(f))
-            if len(chosen) >= max_points:
-                break
-    if not chosen:
-        return empty
+    pts = local_maxima(grid, values, max_points=max_points, min_separation_m=min_separation_m,
+                       dynamic_range_db=dynamic_range_db)
+    if not len(pts):
+        return StrongPoints(np.zeros((0, 3)), np.zeros(0), np.zeros(0))
     n_stops = int(stop.max()) + 1
-    pts = pts_all[chosen]
     axes = (grid.x_m, grid.y_m, grid.z_m)
     step = np.array([s if len(ax) > 1 else 0.0 for s, ax in zip(grid.spacing(), axes, strict=True)])
     pts = _refine(engine, shift, c, tx, rx, pts, step / 4)

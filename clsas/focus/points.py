@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from .pga import _coherence, _per_stop, point_samples
+from .pga import _coherence, _per_stop, local_maxima, point_samples
 from .track import DEFAULT_CUTOFF_HZ, _smooth_basis, gauge_free
 
 __all__ = ["DYNAMIC_RANGE_DB", "MIN_COHERENCE", "MIN_POINTS", "MIN_STOPS", "pick_points", "common_phases",
@@ -58,26 +58,11 @@ DYNAMIC_RANGE_DB = 14.0
 
 def pick_points(grid, values: np.ndarray, *, max_points: int = 12, min_separation_m: float = 0.02,
                 dynamic_range_db: float = DYNAMIC_RANGE_DB) -> np.ndarray:
-    """(K, 3) positions, m: the brightest local maxima of ``|values|`` on ``grid`` (3 x 3 x 3
-    neighbourhood) within ``dynamic_range_db`` of the brightest, each at least
-    ``min_separation_m`` from every brighter one kept, at most ``max_points``."""
-    from scipy.ndimage import maximum_filter
-
-    mag = np.abs(np.asarray(values)).reshape(grid.shape)
-    peak = float(mag.max())
-    if not peak > 0:
-        return np.zeros((0, 3))
-    local = (mag == maximum_filter(mag, size=3, mode="nearest")) & (mag >= peak * 10 ** (-dynamic_range_db / 20))
-    flat = np.flatnonzero(local.ravel())
-    flat = flat[np.argsort(mag.ravel()[flat])[::-1]]
-    pts = grid.points()[flat]
-    chosen: list[int] = []
-    for i in range(len(flat)):
-        if all(np.linalg.norm(pts[i] - pts[k]) >= min_separation_m for k in chosen):
-            chosen.append(i)
-            if len(chosen) >= max_points:
-                break
-    return pts[chosen]
+    """(K, 3) positions, m: the brightest local maxima of ``|values|`` within ``dynamic_range_db``
+    (:func:`.pga.local_maxima`), left where they are (not moved to their peaks: in a defocused
+    image that moves them, and the estimate, with the blur)."""
+    return local_maxima(grid, values, max_points=max_points, min_separation_m=min_separation_m,
+                        dynamic_range_db=dynamic_range_db)
 
 
 def common_phases(a_stop: np.ndarray) -> tuple[np.ndarray, int]:
