@@ -38,3 +38,33 @@ def test_roofline_ceilings_of_the_bp_kernel():
     assert cb["memory_pairs_per_s"] == pytest.approx(1e9)
     assert cb["ridge_flops_per_byte"] == pytest.approx(cb["peak_flops"] / 16e9)
     assert "memory_pairs_per_s" not in tp.compute_bound(info)
+
+
+def test_lanes_per_unit_of_cpus_and_gpus():
+    """The arithmetic ceiling counts a GPU's lanes per compute unit where its vendor reports them, and
+    claims none where OpenCL does not say (a GPU's preferred vector width is 1: not its lanes)."""
+    pytest.importorskip("pyopencl")
+    import pyopencl as cl
+
+    from clsas.bench import throughput as tp
+
+    class Dev:
+        def __init__(self, kind, **attrs):
+            self.type = kind
+            self.preferred_vector_width_float = 1
+            self.__dict__.update(attrs)
+
+    cpu = Dev(cl.device_type.CPU, preferred_vector_width_float=8)
+    assert tp.lanes_per_unit(cpu)[0] == 8
+    nv = Dev(cl.device_type.GPU, compute_capability_major_nv=9, compute_capability_minor_nv=0)
+    assert tp.lanes_per_unit(nv) == (128, "FP32 lanes per SM of compute capability 9.0")
+    assert tp.lanes_per_unit(Dev(cl.device_type.GPU, compute_capability_major_nv=8,
+                                 compute_capability_minor_nv=0))[0] == 64
+    amd = Dev(cl.device_type.GPU, simd_per_compute_unit_amd=4, simd_width_amd=16, simd_instruction_width_amd=1)
+    assert tp.lanes_per_unit(amd)[0] == 64
+    lanes, why = tp.lanes_per_unit(Dev(cl.device_type.GPU))
+    assert lanes is None and "not reported" in why
+    info = {"compute_units": 132, "clock_mhz": 1980, "vector_width_float": 1}
+    assert tp.compute_bound({**info, "lanes_per_unit": None}) is None
+    h200 = tp.compute_bound({**info, "lanes_per_unit": 128, "lanes_from": "x"})
+    assert h200["peak_flops"] == pytest.approx(132 * 1.98e9 * 128 * 2)

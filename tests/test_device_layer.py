@@ -18,6 +18,9 @@ BROKEN = "__kernel void backproject(__global float *x) { x[0] = not_declared; }\
 RENAMED = "__kernel void something_else(__global float *x) { x[0] = 1.0f; }\n"
 REAL_PROBE = variants._run_probe
 
+# the tests folder first, then what the caller had (an install by --target, say)
+_TESTS_PATH = os.pathsep.join([os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")])
+
 
 @pytest.fixture
 def scene():
@@ -88,7 +91,7 @@ def test_clsas_backend_numpy_from_the_shell(tmp_path):
         grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (0.0, 0.0), (0.55, 0.65), 0.025)
         print(clsas.compress(ds).backend, clsas.reconstruct(ds, grid).backend)
     """)
-    env = dict(os.environ, CLSAS_BACKEND="numpy", PYTHONPATH=os.path.dirname(__file__))
+    env = dict(os.environ, CLSAS_BACKEND="numpy", PYTHONPATH=_TESTS_PATH)
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
     assert res.returncode == 0, res.stderr
     assert res.stdout.split() == ["numpy", "numpy"]
@@ -264,7 +267,7 @@ def test_clean_exit_after_every_build_outcome(tmp_path):
         assert clsas.reconstruct(ds, grid, backend="auto").backend == "opencl"
         print("done")
     """)
-    env = dict(os.environ, CLSAS_CACHE_DIR=str(tmp_path), PYTHONPATH=os.path.dirname(__file__))
+    env = dict(os.environ, CLSAS_CACHE_DIR=str(tmp_path), PYTHONPATH=_TESTS_PATH)
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert res.stdout.strip().endswith("done")

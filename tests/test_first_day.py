@@ -239,7 +239,7 @@ def test_fig4_errors_in_the_readme_are_what_the_example_gives(tmp_path):
 
     root = Path(__file__).resolve().parents[1]
     res = subprocess.run([sys.executable, str(root / "examples" / "fig4_1d_recovery.py"), "--out", str(tmp_path)],
-                         capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(root)})
+                         capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": _path(root)})
     assert res.returncode == 0, res.stderr
 
     def errors(md: str) -> dict[str, float]:
@@ -401,3 +401,8 @@ def test_an_interrupted_scan_exits_3(tmp_path, monkeypatch, capsys):
     conf.write_text(rig.SAMPLE_RIG_TOML)
     assert main(["acquire", str(conf), str(tmp_path / "x.h5"), "-q"]) == 3
     assert "2 stops are saved" in capsys.readouterr().err
+
+
+def _path(root) -> str:
+    """``root`` first on the import path, then what the caller had."""
+    return os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])

@@ -27,6 +27,7 @@ import numpy as np
 import clsas
 
 from ..formation import cost, error_to_signal_db, form
+from .stats import seconds
 
 __all__ = [
     "CROSSOVER_QUICK", "CROSSOVER_FULL", "crossover_case", "profiles", "cone", "auto_row", "crossover", "calibrate",
@@ -192,7 +193,7 @@ def _cell(r: dict) -> str:
     cone = r.get("error_cone_db")
     tail = "" if err is None else f", {r['speedup']:.1f}x, {err:.0f} dB"
     tail += "" if cone is None or err is None else f" ({cone:.0f} cone)"
-    return f"{r['time_s']:.2f} s{tail}"
+    return f"{seconds(r['time_s'])}{tail}"
 
 
 def markdown(res: dict) -> list[str]:
@@ -210,7 +211,7 @@ def markdown(res: dict) -> list[str]:
         cone = "n/a" if row["cone_fraction"] is None else f"{100 * row['cone_fraction']:.0f} %"
         md.append(f"| {row['n']} | {row['measurements']} | {' x '.join(map(str, row['grid_shape']))} | {cone} | "
                   f"{_cell(by['bp'])} | {_cell(by['omega-k'])} | {_cell(by['ffbp'])} | {a['chose']}: "
-                  f"{a['time_s']:.2f} s | {a['over_best']:.2f} ({a['best']}) | {row['load_before'][0]:.1f} |")
+                  f"{seconds(a['time_s'])} | {a['over_best']:.2f} ({a['best']}) | {row['load_before'][0]:.1f} |")
     if res.get("calibration"):
         md += ["", "Calibration of auto's cost model (measured / built-in prediction, median over N): "
                + ", ".join(f"{k} {x:.2f}" for k, x in res["calibration"].items())

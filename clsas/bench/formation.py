@@ -38,7 +38,7 @@ from ..formation import FORMATIONS, error_to_signal_db, form
 from .crossover import _timed, auto_row
 from .crossover import cone as _cone
 from .crossover import profiles as _profiles
-from .stats import fit_exponent, jsonable
+from .stats import fit_exponent, jsonable, seconds
 
 __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", "markdown", "write"]
 
@@ -278,7 +278,7 @@ def markdown(res: dict) -> list[str]:
         cone = "no lattice" if c["cone_fraction"] is None else f"{100 * c['cone_fraction']:.0f} %"
         for r in c["rows"]:
             if r["formation"] == "auto":
-                md.append(f"| {c['case']} | auto -> {r['chose']} | {r['time_s']:.2f} s | "
+                md.append(f"| {c['case']} | auto -> {r['chose']} | {seconds(r['time_s'])} | "
                           f"{r['over_best']:.2f}x the best ({r['best']}) | {_db(r['error_cone_db'])} | "
                           f"{_db(r['error_all_db'])} | {cone} | |")
                 continue
@@ -286,7 +286,7 @@ def markdown(res: dict) -> list[str]:
                 md.append(f"| {c['case']} | {r['formation']} | refused: {r['refused'][:90]}... | | | | {cone} | |")
                 continue
             sp = r.get("speedup")
-            md.append(f"| {c['case']} | {r['formation']} | {r['time_s']:.2f} s | "
+            md.append(f"| {c['case']} | {r['formation']} | {seconds(r['time_s'])} | "
                       f"{'' if sp is None else f'{sp:.0f}x'} | {_db(r['error_cone_db'])} | {_db(r['error_all_db'])} "
                       f"| {cone} | {r['backend']} |")
     md += [""]
@@ -301,7 +301,7 @@ def markdown(res: dict) -> list[str]:
     if res.get("scaling"):
         md += ["", "| formation | N (N x N stops, 2N x 2N x N voxels) | times | cost ~ N^ |", "|---|---|---|---|"]
         for f, s in res["scaling"].items():
-            md.append(f"| {f} | {s['sides']} | {', '.join(f'{t:.2f}' for t in s['times_s'])} s | "
+            md.append(f"| {f} | {s['sides']} | {', '.join(seconds(t) for t in s['times_s'])} | "
                       f"{s['exponent']:.2f} |")
     return md + [""]
 

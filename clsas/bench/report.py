@@ -102,7 +102,9 @@ def _md_backprojection(res: dict) -> list[str]:
         best = max((r["opencl_kernel"]["rate_per_s"] for r in res["backprojection"] if "opencl_kernel" in r),
                    default=0.0)
         md += ["", f"Compute bound of the device: {cb['peak_flops'] / 1e9:.1f} GFLOP/s (compute units x clock x "
-                   f"float vector width x 2 for FMA) / about {cb['flops_per_pair']} flops per pair (the sub-sample "
+                   f"{cb.get('lanes_per_unit', '?')} float lanes per unit "
+                   f"({cb.get('lanes_from', 'float vector width')}) x 2 for FMA) / about "
+                   f"{cb['flops_per_pair']} flops per pair (the sub-sample "
                    f"sine and cosine polynomials counted in full) = {cb['pairs_per_s']:.3g} pairs/s; the kernel "
                    f"reaches {100 * best / cb['pairs_per_s']:.0f} % of it."]
         if cb.get("memory_pairs_per_s"):
@@ -112,6 +114,8 @@ def _md_backprojection(res: dict) -> list[str]:
                        f"memory; ridge at {cb['ridge_flops_per_byte']:.1f} flop/B, the kernel's "
                        f"{cb['flops_per_pair'] / cb['bytes_per_pair']:.1f} flop/B); measured {best:.3g} pairs/s = "
                        f"{100 * best / min(cb['pairs_per_s'], cb['memory_pairs_per_s']):.0f} % of the lower ceiling."]
+    elif isinstance(res.get("device"), dict) and res["device"].get("lanes_per_unit", 0) is None:
+        md += ["", f"No arithmetic ceiling of the device is given: {res['device'].get('lanes_from')}."]
     md += ["", "The NumPy twin and the Numba peer (a float64 `prange` loop over voxels, as one would write it) "
                "run the number of measurements shown in brackets; their cost is linear in measurements and the "
                "rates are per pair.", ""]

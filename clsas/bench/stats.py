@@ -28,6 +28,11 @@ def timed(fn: Callable[[], object], repeats: int, warmup: bool = True) -> list[f
     return out
 
 
+def seconds(t: float) -> str:
+    """A run time for a report: milliseconds under 0.1 s (a GPU's times), else seconds."""
+    return f"{t * 1e3:.3g} ms" if t < 0.1 else f"{t:.2f} s"
+
+
 def fit_exponent(sizes, times) -> float:
     """Least-squares slope of log(time) against log(size): cost ~ size^exponent."""
     x = np.log(np.asarray(sizes, float))

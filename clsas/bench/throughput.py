@@ -115,16 +115,55 @@ def memory_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 3) -> float | Non
     return 2 * nbytes / best if best > 0 else None
 
 
+# FP32 lanes per streaming multiprocessor of NVIDIA GPUs by compute capability (CUDA's programming
+# guide, "arithmetic instructions"): the one GPU figure OpenCL does not report itself
+NV_LANES = {(5, None): 128, (6, 0): 64, (6, None): 128, (7, None): 64, (8, 0): 64, (8, None): 128, (9, None): 128,
+            (10, None): 128, (12, None): 128}
+
+
+def lanes_per_unit(device) -> tuple[int | None, str]:
+    """(float lanes per compute unit, where the figure comes from) of an OpenCL device.
+
+    A CPU: the preferred float vector width (one core's SIMD). An NVIDIA GPU: the lanes of its
+    compute capability; an AMD GPU: SIMDs per unit x SIMD width x instruction width (the vendors'
+    attribute extensions). Any other GPU: (None, why), since OpenCL does not say.
+    """
+    from .. import cl as ccl
+
+    if ccl.is_cpu(device):
+        return max(1, int(device.preferred_vector_width_float)), "preferred float vector width"
+    try:
+        major, minor = int(device.compute_capability_major_nv), int(device.compute_capability_minor_nv)
+        lanes = NV_LANES.get((major, minor)) or NV_LANES.get((major, None))
+        if lanes:
+            return lanes, f"FP32 lanes per SM of compute capability {major}.{minor}"
+    except Exception:  # noqa: BLE001 - the attribute is an NVIDIA extension; absent elsewhere
+        pass
+    try:
+        lanes = (int(device.simd_per_compute_unit_amd) * int(device.simd_width_amd)
+                 * int(device.simd_instruction_width_amd))
+        if lanes > 0:
+            return lanes, "SIMDs per unit x SIMD width x instruction width (cl_amd_device_attribute_query)"
+    except Exception:  # noqa: BLE001 - an AMD extension; absent elsewhere
+        pass
+    return None, "this GPU's lanes per compute unit are not reported through OpenCL"
+
+
 def compute_bound(device_info: dict, bandwidth_bps: float | None = None) -> dict | None:
     """The bp kernel's roofline: peak pairs/s from the device's arithmetic (compute units x clock x
-    float vector width x 2 for FMA, over :data:`FLOPS_PER_PAIR`) and from its memory bandwidth
-    (over :data:`BYTES_PER_PAIR_GATHER`, every gather from memory), where the bandwidth is given."""
+    float lanes per unit x 2 for FMA, over :data:`FLOPS_PER_PAIR`) and from its memory bandwidth
+    (over :data:`BYTES_PER_PAIR_GATHER`, every gather from memory), where the bandwidth is given.
+    ``lanes_per_unit`` (see :func:`lanes_per_unit`) falls back to ``vector_width_float``; None where
+    neither is known (a GPU whose lanes OpenCL does not report): no arithmetic ceiling is claimed."""
     try:
-        peak = (device_info["compute_units"] * device_info["clock_mhz"] * 1e6
-                * max(1, device_info["vector_width_float"]) * 2)
+        lanes = device_info.get("lanes_per_unit", device_info["vector_width_float"])
+        if lanes is None:
+            return None
+        peak = device_info["compute_units"] * device_info["clock_mhz"] * 1e6 * max(1, int(lanes)) * 2
     except (KeyError, TypeError):
         return None
-    out = {"peak_flops": peak, "flops_per_pair": FLOPS_PER_PAIR, "pairs_per_s": peak / FLOPS_PER_PAIR}
+    out = {"peak_flops": peak, "flops_per_pair": FLOPS_PER_PAIR, "pairs_per_s": peak / FLOPS_PER_PAIR,
+           "lanes_per_unit": max(1, int(lanes)), "lanes_from": device_info.get("lanes_from", "float vector width")}
     if bandwidth_bps:
         out.update(bandwidth_bps=bandwidth_bps, bytes_per_pair=BYTES_PER_PAIR_GATHER,
                    memory_pairs_per_s=bandwidth_bps / BYTES_PER_PAIR_GATHER,
@@ -140,10 +179,12 @@ def opencl_device_info() -> dict | None:
     except ccl.OpenCLUnavailable:
         return None
     d = q.device
+    lanes, lanes_from = lanes_per_unit(d)
     return {"name": ccl.device_info(q), "platform": d.platform.name, "driver": d.driver_version,
             "opencl": d.version, "type": ccl.device_kind(d),
             "compute_units": d.max_compute_units, "clock_mhz": d.max_clock_frequency,
-            "vector_width_float": d.preferred_vector_width_float, "global_mem_mib": d.global_mem_size // 2**20}
+            "vector_width_float": d.preferred_vector_width_float, "global_mem_mib": d.global_mem_size // 2**20,
+            "lanes_per_unit": lanes, "lanes_from": lanes_from}
 
 
 def bench_backprojection(name, grid, n_meas, *, repeats, twin_meas, numba_meas, rng, opencl=True):

@@ -7,6 +7,7 @@ def cmd_bench(args) -> int:
     import time
 
     from clsas.bench import run, run_formation
+    from clsas.bench.stats import seconds
 
     t_start = time.perf_counter()
 
@@ -42,18 +43,19 @@ def cmd_bench(args) -> int:
         for c in res["cases"]:
             for r in c["rows"]:
                 if r["formation"] == "auto":
-                    print(f"{c['case']}: auto: took {r['chose']}, {r['time_s']:.2f} s, {r['over_best']:.2f}x the best "
+                    print(f"{c['case']}: auto: took {r['chose']}, {seconds(r['time_s'])}, "
+                          f"{r['over_best']:.2f}x the best "
                           f"({r['best']})")
                     continue
                 what = (f"refused ({r['refused'].split(':')[0]})" if "refused" in r else
-                        f"{r['time_s']:.2f} s" + (f", {r['speedup']:.0f}x bp, error {r['error_all_db']:.1f} dB over "
+                        f"{seconds(r['time_s'])}" + (f", {r['speedup']:.0f}x bp, error {r['error_all_db']:.1f} dB over "
                                                   "the grid" if "speedup" in r else "")
                         + (f", {r['error_cone_db']:.1f} dB in the cone" if r.get("error_cone_db") is not None
                            else ""))
                 print(f"{c['case']}: {r['formation']}: {what}")
         for row in res.get("crossover", {}).get("rows", []):
             print(f"crossover N={row['n']}: " + ", ".join(
-                f"{r['formation']} {r['time_s']:.2f} s" + (f" ({r['chose']}, {r['over_best']:.2f}x the best)"
+                f"{r['formation']} {seconds(r['time_s'])}" + (f" ({r['chose']}, {r['over_best']:.2f}x the best)"
                                                          if r["formation"] == "auto" else "") for r in row["rows"]))
         for path in res["paths"].values():
             print(f"wrote {path}")
@@ -83,6 +85,7 @@ def cmd_bench(args) -> int:
 def _bench_scale(args, status) -> int:
     """``clsas bench --scale``: peak RSS, tiles/s, strong scaling (see :mod:`clsas.bench.scale`)."""
     from clsas.bench.scale import run_scale
+    from clsas.bench.stats import seconds
 
     res = run_scale(full=args.full, out_dir=args.out, parts=tuple(args.scale_parts), status=status)
     for r in res.get("rss", []):
@@ -90,7 +93,8 @@ def _bench_scale(args, status) -> int:
               f"{r['max_memory_bytes'] / 1e9:.2g} GB), {r['tiles_per_s']:.3g} tiles/s, sampled tiles vs in-memory "
               f"{r['max_rel_diff_vs_in_memory']:.2g}")
     for r in res.get("scaling", {}).get("clusters", []):
-        print(f"LocalCluster {r['workers']} x 1 thread: {r['time_s']:.2f} s, {r['speedup_vs_1_worker']:.2f}x 1 worker "
+        print(f"LocalCluster {r['workers']} x 1 thread: {seconds(r['time_s'])}, "
+              f"{r['speedup_vs_1_worker']:.2f}x 1 worker "
               f"(CPU share {r['cpu_share']:.2f}, load {r['load_before'][0]} -> {r['load_after'][0]})")
     for path in res["paths"].values():
         print(f"wrote {path}")

@@ -18,7 +18,8 @@ Time. Each formation's time is a sum of counted work times seconds per unit:
 
 The built-in seconds per unit (:data:`BUILTIN`) were fitted on a 2-core AMD EPYC VM (PoCL CPU
 device, 2026-11-25, refitted on the quiet host 2026-11-27) and are scaled to other devices by
-their compute units (kernels) and host cores (host FFTs). ``clsas bench`` measures the formations
+their compute units (kernels; a GPU's four times a CPU's); ω-k's FFTs run on one host thread
+(``workers=None``), so its work is not scaled. ``clsas bench`` measures the formations
 on the device and stores one factor per formation (measured over predicted, the median over its
 cases) beside the kernel-variant verdicts (:func:`calibration_path`); :func:`choose` applies it.
 The model need only rank the formations: within a factor of two is enough where they differ by
@@ -196,10 +197,14 @@ def store_calibration(factors: dict[str, float], selection=None, detail: Any = N
 def _speed(selection, formation: str) -> float:
     """How much faster than the reference device this selection runs ``formation``'s work."""
     host = (os.cpu_count() or REF_UNITS) / REF_UNITS
+    if formation == "omega-k":
+        # its FFTs run on one host thread (workers=None, the default) whatever the cores or the device
+        # (the Stolt step is a small share): on a 16-core host with a GPU it took 3-5x the time a
+        # speed of cores/2 predicted (bench/results/2026-11-28-formation-gpu-h200.md)
+        opencl = selection is not None and getattr(selection, "kind", "numpy") == "opencl"
+        return 1.0 if opencl else 1.0 / NUMPY_SLOWDOWN[formation]
     if selection is None or getattr(selection, "kind", "numpy") != "opencl":
         return host / NUMPY_SLOWDOWN[formation]
-    if formation == "omega-k":
-        return host  # FFTs on the host; the Stolt step is a small share
     dev = selection.queue.device
     units = int(getattr(dev, "max_compute_units", REF_UNITS) or REF_UNITS)
     from ..cl import is_cpu
