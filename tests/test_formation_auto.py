@@ -187,3 +187,34 @@ def test_alias_fraction_counts_the_share_of_frequencies_above_each_pairs_limit()
     bad = (k2 * np.abs(du / r)[..., None] > lim_u) | (k2 * np.abs(dv / r)[..., None] > lim_v)
     want = (bad.mean(axis=-1) / r**2).sum(axis=-1) / (1 / r**2).sum(axis=-1)
     assert 0 < want.max() and np.allclose(got, want, rtol=0, atol=1e-12)
+
+
+def _fake_selection(kind: str, units: int):
+    """A selection whose device is a GPU or a CPU of ``units`` compute units (only what the cost model reads)."""
+    from types import SimpleNamespace
+
+    cl = pytest.importorskip("pyopencl")
+    dev = SimpleNamespace(type=getattr(cl.device_type, kind), max_compute_units=units)
+    return SimpleNamespace(kind="opencl", queue=SimpleNamespace(device=dev))
+
+
+def test_device_kinds_in_the_cost_model(dense, cache, monkeypatch):
+    """omega-k's FFTs run on one host thread: many host cores do not make it cheaper; bp's fixed part
+    on a GPU is 1.5 ms, so a scan a GPU forms in milliseconds is not sized for omega-k (sizing alone
+    took longer than bp there)."""
+    ds, grid, prof = dense
+    sizes = plan_sizes(prof, grid)
+    cpu2, gpu = _fake_selection("CPU", 2), _fake_selection("GPU", 132)
+    work = cost.work_omega_k(sizes)
+    monkeypatch.setattr("os.cpu_count", lambda: 16)
+    t16 = cost._seconds("omega-k", work, cpu2, {})
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    assert cost._seconds("omega-k", work, cpu2, {}) == pytest.approx(t16)
+    assert cost._seconds("bp", {"fixed": 1, "pairs": 0}, gpu, {}) == pytest.approx(cost.GPU_FIXED["bp"])
+    assert cost._seconds("bp", {"fixed": 1, "pairs": 0}, cpu2, {}) == pytest.approx(cost.BUILTIN["bp"]["fixed"])
+    ds, grid = _planar(12, 0.0028, 0.015)  # a scan PoCL's fixed part would have had sized for omega-k
+    prof = clsas.compress(ds, backend="numpy")
+    ests = {e.formation: e for e in cost.estimate(prof, grid, gpu)}
+    assert ests["bp"].time_s < ests["omega-k"].time_s and "not sized" in ests["omega-k"].note
+    monkeypatch.setitem(cost.GPU_FIXED, "bp", cost.BUILTIN["bp"]["fixed"])
+    assert "not sized" not in {e.formation: e for e in cost.estimate(prof, grid, gpu)}["omega-k"].note

@@ -89,6 +89,10 @@ BUILTIN: dict[str, dict[str, float]] = {
     "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9},
     "ffbp": {"fixed": 5e-3, "leaf": 1.1e-9, "merge": 1.4e-9, "grid": 1.4e-9},
 }
+# bp's fixed part on a GPU: 1.5 ms (1.45-1.9 ms for the whole of bp's smallest cases on an H200
+# through NVIDIA's OpenCL, bench/results/2026-11-28-formation-gpu-h200.md), not PoCL's 5 ms: with
+# PoCL's, auto sized ω-k for scans bp forms in 2-5 ms, and the sizing alone doubled auto's time
+GPU_FIXED = {"bp": 1.5e-3}
 # the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
 # for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
 # before, 2026-11-28); with
@@ -212,11 +216,20 @@ def _speed(selection, formation: str) -> float:
     return units / REF_UNITS if is_cpu(dev) else 4.0 * units / REF_UNITS
 
 
+def _on_gpu(selection) -> bool:
+    if selection is None or getattr(selection, "kind", "numpy") != "opencl":
+        return False
+    from ..cl import is_cpu
+
+    return not is_cpu(selection.queue.device)
+
+
 def _seconds(formation: str, work: dict, selection, factors: dict) -> float:
     # the fixed part (set-up, launches, Python) does not scale with the device's speed
     coef = BUILTIN[formation]
+    fixed = GPU_FIXED.get(formation, coef["fixed"]) if _on_gpu(selection) else coef["fixed"]
     t = sum(coef[k] * float(n) for k, n in work.items() if k not in ("plan", "fixed"))
-    t = coef["fixed"] * float(work.get("fixed", 0)) + t / _speed(selection, formation) + work.get("plan", 0.0)
+    t = fixed * float(work.get("fixed", 0)) + t / _speed(selection, formation) + work.get("plan", 0.0)
     return t * factors.get(formation, 1.0)
 
 
