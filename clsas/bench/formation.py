@@ -287,12 +287,12 @@ def markdown(res: dict) -> list[str]:
                 continue
             sp = r.get("speedup")
             md.append(f"| {c['case']} | {r['formation']} | {seconds(r['time_s'])} | "
-                      f"{'' if sp is None else f'{sp:.0f}x'} | {_db(r['error_cone_db'])} | {_db(r['error_all_db'])} "
+                      f"{'' if sp is None else f'{sp:.3g}x'} | {_db(r['error_cone_db'])} | {_db(r['error_all_db'])} "
                       f"| {cone} | {r['backend']} |")
     md += [""]
     for c in res["cases"]:
         md.append(f"- {c['case']}: {c['what']}; {c['measurements']} measurements x {c['voxels']} voxels = "
-                  f"{c['pairs']:.3g} pairs; compression {c['compress_s']:.2f} s; load average "
+                  f"{c['pairs']:.3g} pairs; compression {seconds(c['compress_s'])}; load average "
                   f"{c['load_before'][0]:.2f} before.")
     if res.get("crossover"):
         from .crossover import markdown as crossover_md

@@ -48,7 +48,7 @@ def cmd_bench(args) -> int:
                           f"({r['best']})")
                     continue
                 what = (f"refused ({r['refused'].split(':')[0]})" if "refused" in r else
-                        f"{seconds(r['time_s'])}" + (f", {r['speedup']:.0f}x bp, error {r['error_all_db']:.1f} dB over "
+                        f"{seconds(r['time_s'])}" + (f", {r['speedup']:.3g}x bp, error {r['error_all_db']:.1f} dB over "
                                                   "the grid" if "speedup" in r else "")
                         + (f", {r['error_cone_db']:.1f} dB in the cone" if r.get("error_cone_db") is not None
                            else ""))
