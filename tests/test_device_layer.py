@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -339,3 +340,42 @@ def test_a_plan_declares_its_kernel_and_registers_itself():
         cl.KERNELS.pop("toy_kernel", None)
     with pytest.raises(ValueError, match="unknown kernel 'toy_kernel'"):
         cl.check(None, "toy_kernel", 4)
+
+
+def test_a_gpu_driver_no_icd_file_registers_is_found_with_its_fix(tmp_path, monkeypatch):
+    """A container that mounts NVIDIA's libraries but not /etc/OpenCL/vendors/nvidia.icd (the
+    project's first GPU machine): the library is found and the line that registers it is given;
+    once registered (by full path or base name), nothing is reported."""
+    from clsas.cl import icd
+
+    libs, vendors = tmp_path / "lib", tmp_path / "vendors"
+    libs.mkdir()
+    vendors.mkdir()
+    (libs / "libnvidia-opencl.so.1").write_bytes(b"")
+    (vendors / "pocl.icd").write_text("libpocl.so.2\n")
+    found = icd.unregistered_drivers(search_dirs=(str(libs),), dirs=[vendors])
+    assert [u.vendor for u in found] == ["NVIDIA"]
+    assert found[0].library == str(libs / "libnvidia-opencl.so.1")
+    assert found[0].fix == f"mkdir -p {vendors} && echo {libs / 'libnvidia-opencl.so.1'} > {vendors / 'nvidia.icd'}"
+    (vendors / "nvidia.icd").write_text(f"{libs / 'libnvidia-opencl.so.1'}\n")
+    assert icd.unregistered_drivers(search_dirs=(str(libs),), dirs=[vendors]) == []
+    (vendors / "nvidia.icd").write_text("libnvidia-opencl.so.1\n")
+    assert icd.unregistered_drivers(search_dirs=(str(libs),), dirs=[vendors]) == []
+    # where the loader looks: $OCL_ICD_VENDORS (a folder or a file in one), else /etc/OpenCL/vendors
+    monkeypatch.setenv("OCL_ICD_VENDORS", str(vendors / "nvidia.icd"))
+    assert icd.vendor_dirs() == [vendors]
+    monkeypatch.delenv("OCL_ICD_VENDORS")
+    assert icd.vendor_dirs() == [Path("/etc/OpenCL/vendors")]
+
+
+def test_clsas_devices_prints_the_fix_for_an_unregistered_driver(tmp_path, monkeypatch, capsys):
+    from clsas.cl import icd
+    from clsas.cli import main
+
+    (tmp_path / "libnvidia-opencl.so.1").write_bytes(b"")
+    monkeypatch.setattr(icd, "SEARCH_DIRS", (str(tmp_path),))
+    monkeypatch.setenv("OCL_ICD_VENDORS", str(tmp_path / "vendors"))  # a folder with no .icd file
+    (tmp_path / "vendors").mkdir()
+    assert main(["devices", "--opencl-only"]) == 0
+    out = capsys.readouterr().out
+    assert "NVIDIA's OpenCL driver is installed" in out and "nvidia.icd" in out

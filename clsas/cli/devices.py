@@ -24,6 +24,11 @@ def cmd_devices(args) -> int:
               f"preferred float width {r.preferred_vec}{sim}")
     if rows:
         print("(* = used by backend='auto'; choose with --device P:D or PYOPENCL_CTX=P:D)")
+    from clsas.cl.icd import unregistered_drivers
+
+    for u in unregistered_drivers():
+        print(f"{u.vendor}'s OpenCL driver is installed ({u.library}) but no ICD file registers it, so its GPU "
+              f"is not listed (common in containers). Register it (as root): {u.fix}")
     if args.variants and rows:
         _print_variants(cl, [r for r in rows if r.selected] if args.device is None else
                         [r for r in rows if r.index == args.device])
