@@ -66,5 +66,20 @@ def test_lanes_per_unit_of_cpus_and_gpus():
     assert lanes is None and "not reported" in why
     info = {"compute_units": 132, "clock_mhz": 1980, "vector_width_float": 1}
     assert tp.compute_bound({**info, "lanes_per_unit": None}) is None
+    mem_only = tp.compute_bound({**info, "lanes_per_unit": None, "lanes_from": "not reported"}, bandwidth_bps=4e12)
+    assert mem_only["pairs_per_s"] is None and mem_only["memory_pairs_per_s"] == pytest.approx(4e12 / 16)
+    assert tp.lanes_per_unit(Dev(cl.device_type.GPU, compute_capability_major_nv=3,
+                                 compute_capability_minor_nv=5))[0] == 192
+    lanes, why = tp.lanes_per_unit(Dev(cl.device_type.GPU, compute_capability_major_nv=4,
+                                       compute_capability_minor_nv=0))
+    assert lanes is None and "4.0" in why
+    # the report: the memory ceiling alone, and why there is no arithmetic one
+    from clsas.bench import report
+
+    row = {"workload": "w", "pairs": 1e6, "opencl_kernel": {"rate_per_s": 1e11}}
+    md = "\n".join(report._md_backprojection({"backprojection": [row], "compute_bound": mem_only,
+                                               "device": {"lanes_per_unit": None, "lanes_from": "not reported"}}))
+    assert "No arithmetic ceiling of the device is given: not reported." in md
+    assert "Roofline of the bp kernel: memory ceiling 2.5e+11 pairs/s" in md
     h200 = tp.compute_bound({**info, "lanes_per_unit": 128, "lanes_from": "x"})
     assert h200["peak_flops"] == pytest.approx(132 * 1.98e9 * 128 * 2)

@@ -20,7 +20,7 @@ RENAMED = "__kernel void something_else(__global float *x) { x[0] = 1.0f; }\n"
 REAL_PROBE = variants._run_probe
 
 # the tests folder first, then what the caller had (an install by --target, say)
-_TESTS_PATH = os.pathsep.join([os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")])
+_TESTS_PATH = os.pathsep.join(p for p in [os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")] if p)
 
 
 @pytest.fixture
@@ -357,6 +357,9 @@ def test_a_gpu_driver_no_icd_file_registers_is_found_with_its_fix(tmp_path, monk
     assert [u.vendor for u in found] == ["NVIDIA"]
     assert found[0].library == str(libs / "libnvidia-opencl.so.1")
     assert found[0].fix == f"mkdir -p {vendors} && echo {libs / 'libnvidia-opencl.so.1'} > {vendors / 'nvidia.icd'}"
+    monkeypatch.setenv("OCL_ICD_FILENAMES", str(libs / "libnvidia-opencl.so.1"))  # named to the loader directly
+    assert icd.unregistered_drivers(search_dirs=(str(libs),), dirs=[vendors]) == []
+    monkeypatch.delenv("OCL_ICD_FILENAMES")
     (vendors / "nvidia.icd").write_text(f"{libs / 'libnvidia-opencl.so.1'}\n")
     assert icd.unregistered_drivers(search_dirs=(str(libs),), dirs=[vendors]) == []
     (vendors / "nvidia.icd").write_text("libnvidia-opencl.so.1\n")
@@ -364,6 +367,10 @@ def test_a_gpu_driver_no_icd_file_registers_is_found_with_its_fix(tmp_path, monk
     # where the loader looks: $OCL_ICD_VENDORS (a folder or a file in one), else /etc/OpenCL/vendors
     monkeypatch.setenv("OCL_ICD_VENDORS", str(vendors / "nvidia.icd"))
     assert icd.vendor_dirs() == [vendors]
+    monkeypatch.setenv("OCL_ICD_VENDORS", str(tmp_path / "not-yet"))  # a folder that does not exist yet
+    assert icd.vendor_dirs() == [tmp_path / "not-yet"]
+    (vendors / "bad.icd").write_bytes(b"\xff\xfe\x00")  # a malformed file is passed over
+    assert icd.registered_libraries([vendors]) >= {"libnvidia-opencl.so.1"}
     monkeypatch.delenv("OCL_ICD_VENDORS")
     assert icd.vendor_dirs() == [Path("/etc/OpenCL/vendors")]
 

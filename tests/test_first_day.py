@@ -405,4 +405,4 @@ def test_an_interrupted_scan_exits_3(tmp_path, monkeypatch, capsys):
 
 def _path(root) -> str:
     """``root`` first on the import path, then what the caller had."""
-    return os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])
+    return os.pathsep.join(p for p in [str(root), os.environ.get("PYTHONPATH", "")] if p)

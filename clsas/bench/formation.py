@@ -38,7 +38,7 @@ from ..formation import FORMATIONS, error_to_signal_db, form
 from .crossover import _timed, auto_row
 from .crossover import cone as _cone
 from .crossover import profiles as _profiles
-from .stats import fit_exponent, jsonable, seconds
+from .stats import fit_exponent, jsonable, seconds, times
 
 __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", "markdown", "write"]
 
@@ -287,7 +287,7 @@ def markdown(res: dict) -> list[str]:
                 continue
             sp = r.get("speedup")
             md.append(f"| {c['case']} | {r['formation']} | {seconds(r['time_s'])} | "
-                      f"{'' if sp is None else f'{sp:.3g}x'} | {_db(r['error_cone_db'])} | {_db(r['error_all_db'])} "
+                      f"{'' if sp is None else times(sp)} | {_db(r['error_cone_db'])} | {_db(r['error_all_db'])} "
                       f"| {cone} | {r['backend']} |")
     md += [""]
     for c in res["cases"]:

@@ -98,24 +98,28 @@ def _md_backprojection(res: dict) -> list[str]:
     elif missing:
         md += ["", f"C/OpenMP peer left out: {missing}."]
     cb = res.get("compute_bound")
-    if cb:
-        best = max((r["opencl_kernel"]["rate_per_s"] for r in res["backprojection"] if "opencl_kernel" in r),
-                   default=0.0)
+    best = max((r["opencl_kernel"]["rate_per_s"] for r in res["backprojection"] if "opencl_kernel" in r),
+               default=0.0)
+    if cb and cb.get("pairs_per_s"):
         md += ["", f"Compute bound of the device: {cb['peak_flops'] / 1e9:.1f} GFLOP/s (compute units x clock x "
                    f"{cb.get('lanes_per_unit', '?')} float lanes per unit "
                    f"({cb.get('lanes_from', 'float vector width')}) x 2 for FMA) / about "
                    f"{cb['flops_per_pair']} flops per pair (the sub-sample "
                    f"sine and cosine polynomials counted in full) = {cb['pairs_per_s']:.3g} pairs/s; the kernel "
                    f"reaches {100 * best / cb['pairs_per_s']:.0f} % of it."]
-        if cb.get("memory_pairs_per_s"):
-            md += ["", f"Roofline of the bp kernel: arithmetic ceiling {cb['pairs_per_s']:.3g} pairs/s; memory "
-                       f"ceiling {cb['memory_pairs_per_s']:.3g} pairs/s ({cb['bandwidth_bps'] / 1e9:.1f} GB/s measured "
-                       f"by a buffer copy / {cb['bytes_per_pair']} B per pair if every profile gather came from "
-                       f"memory; ridge at {cb['ridge_flops_per_byte']:.1f} flop/B, the kernel's "
-                       f"{cb['flops_per_pair'] / cb['bytes_per_pair']:.1f} flop/B); measured {best:.3g} pairs/s = "
-                       f"{100 * best / min(cb['pairs_per_s'], cb['memory_pairs_per_s']):.0f} % of the lower ceiling."]
-    elif isinstance(res.get("device"), dict) and res["device"].get("lanes_per_unit", 0) is None:
-        md += ["", f"No arithmetic ceiling of the device is given: {res['device'].get('lanes_from')}."]
+    elif cb is not None or (isinstance(res.get("device"), dict) and res["device"].get("lanes_per_unit", 0) is None):
+        why = (cb or {}).get("lanes_from") or res["device"].get("lanes_from")
+        md += ["", f"No arithmetic ceiling of the device is given: {why}."]
+    if cb and cb.get("memory_pairs_per_s"):
+        arith = f"arithmetic ceiling {cb['pairs_per_s']:.3g} pairs/s; " if cb.get("pairs_per_s") else ""
+        ridge = (f"ridge at {cb['ridge_flops_per_byte']:.1f} flop/B, " if cb.get("ridge_flops_per_byte") else "")
+        lower = min(x for x in (cb.get("pairs_per_s"), cb["memory_pairs_per_s"]) if x)
+        md += ["", f"Roofline of the bp kernel: {arith}memory "
+                   f"ceiling {cb['memory_pairs_per_s']:.3g} pairs/s ({cb['bandwidth_bps'] / 1e9:.1f} GB/s measured "
+                   f"by a buffer copy / {cb['bytes_per_pair']} B per pair if every profile gather came from "
+                   f"memory; {ridge}the kernel's "
+                   f"{cb['flops_per_pair'] / cb['bytes_per_pair']:.1f} flop/B); measured {best:.3g} pairs/s = "
+                   f"{100 * best / lower:.0f} % of the lower ceiling."]
     md += ["", "The NumPy twin and the Numba peer (a float64 `prange` loop over voxels, as one would write it) "
                "run the number of measurements shown in brackets; their cost is linear in measurements and the "
                "rates are per pair.", ""]

@@ -117,8 +117,8 @@ def memory_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 3) -> float | Non
 
 # FP32 lanes per streaming multiprocessor of NVIDIA GPUs by compute capability (CUDA's programming
 # guide, "arithmetic instructions"): the one GPU figure OpenCL does not report itself
-NV_LANES = {(5, None): 128, (6, 0): 64, (6, None): 128, (7, None): 64, (8, 0): 64, (8, None): 128, (9, None): 128,
-            (10, None): 128, (12, None): 128}
+NV_LANES = {(3, None): 192, (5, None): 128, (6, 0): 64, (6, None): 128, (7, None): 64, (8, 0): 64,
+            (8, None): 128, (9, None): 128, (10, None): 128, (11, None): 128, (12, None): 128}
 
 
 def lanes_per_unit(device) -> tuple[int | None, str]:
@@ -137,6 +137,7 @@ def lanes_per_unit(device) -> tuple[int | None, str]:
         lanes = NV_LANES.get((major, minor)) or NV_LANES.get((major, None))
         if lanes:
             return lanes, f"FP32 lanes per SM of compute capability {major}.{minor}"
+        return None, f"the FP32 lanes per SM of compute capability {major}.{minor} are not in clsas's table"
     except Exception:  # noqa: BLE001 - the attribute is an NVIDIA extension; absent elsewhere
         pass
     try:
@@ -153,22 +154,27 @@ def compute_bound(device_info: dict, bandwidth_bps: float | None = None) -> dict
     """The bp kernel's roofline: peak pairs/s from the device's arithmetic (compute units x clock x
     float lanes per unit x 2 for FMA, over :data:`FLOPS_PER_PAIR`) and from its memory bandwidth
     (over :data:`BYTES_PER_PAIR_GATHER`, every gather from memory), where the bandwidth is given.
-    ``lanes_per_unit`` (see :func:`lanes_per_unit`) falls back to ``vector_width_float``; None where
-    neither is known (a GPU whose lanes OpenCL does not report): no arithmetic ceiling is claimed."""
+
+    ``lanes_per_unit`` (see :func:`lanes_per_unit`; dual issue and packed FP32 not counted) falls
+    back to ``vector_width_float``. Where the lanes are not known (None: a GPU whose lanes OpenCL
+    does not report) no arithmetic ceiling is claimed (``pairs_per_s`` None), and the memory
+    ceiling alone is given; None where neither can be."""
+    lanes = device_info.get("lanes_per_unit") if "lanes_per_unit" in device_info else \
+        device_info.get("vector_width_float")
+    out: dict = {"flops_per_pair": FLOPS_PER_PAIR, "peak_flops": None, "pairs_per_s": None,
+                 "lanes_from": device_info.get("lanes_from", "float vector width")}
     try:
-        lanes = device_info.get("lanes_per_unit", device_info["vector_width_float"])
-        if lanes is None:
-            return None
-        peak = device_info["compute_units"] * device_info["clock_mhz"] * 1e6 * max(1, int(lanes)) * 2
+        if lanes is not None:
+            peak = device_info["compute_units"] * device_info["clock_mhz"] * 1e6 * max(1, int(lanes)) * 2
+            out.update(peak_flops=peak, pairs_per_s=peak / FLOPS_PER_PAIR, lanes_per_unit=max(1, int(lanes)))
     except (KeyError, TypeError):
-        return None
-    out = {"peak_flops": peak, "flops_per_pair": FLOPS_PER_PAIR, "pairs_per_s": peak / FLOPS_PER_PAIR,
-           "lanes_per_unit": max(1, int(lanes)), "lanes_from": device_info.get("lanes_from", "float vector width")}
+        pass
     if bandwidth_bps:
         out.update(bandwidth_bps=bandwidth_bps, bytes_per_pair=BYTES_PER_PAIR_GATHER,
-                   memory_pairs_per_s=bandwidth_bps / BYTES_PER_PAIR_GATHER,
-                   ridge_flops_per_byte=peak / bandwidth_bps)
-    return out
+                   memory_pairs_per_s=bandwidth_bps / BYTES_PER_PAIR_GATHER)
+        if out["peak_flops"]:
+            out["ridge_flops_per_byte"] = out["peak_flops"] / bandwidth_bps
+    return out if out["pairs_per_s"] or out.get("memory_pairs_per_s") else None
 
 
 def opencl_device_info() -> dict | None:

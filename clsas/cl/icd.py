@@ -11,6 +11,7 @@ line that registers each.
 from __future__ import annotations
 
 import os
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,18 +38,20 @@ class Unregistered:
 
 
 def vendor_dirs() -> list[Path]:
-    """Where the ICD loader looks: ``$OCL_ICD_VENDORS`` (a folder, or one .icd file's folder), else
-    ``/etc/OpenCL/vendors``."""
+    """Where the ICD loader looks: ``$OCL_ICD_VENDORS`` (a folder; for a value naming an ``.icd``
+    file, that file's folder), else ``/etc/OpenCL/vendors``."""
     env = os.environ.get("OCL_ICD_VENDORS", "").strip()
     if env:
         p = Path(env)
-        return [p if p.is_dir() else p.parent]
+        return [p.parent if p.suffix == ".icd" else p]
     return [Path("/etc/OpenCL/vendors")]
 
 
 def registered_libraries(dirs: list[Path] | None = None) -> set[str]:
     """The library names (base names) the ``.icd`` files in ``dirs`` register."""
     names = set()
+    for env in ("OCL_ICD_FILENAMES",):  # drivers named directly to the loader count as registered
+        names.update(Path(x).name for x in os.environ.get(env, "").split(":") if x.strip())
     for d in dirs if dirs is not None else vendor_dirs():
         try:
             files = sorted(d.glob("*.icd"))
@@ -57,7 +60,7 @@ def registered_libraries(dirs: list[Path] | None = None) -> set[str]:
         for f in files:
             try:
                 line = f.read_text().strip()
-            except OSError:
+            except (OSError, UnicodeDecodeError):
                 continue
             if line:
                 names.add(Path(line).name)
@@ -70,7 +73,7 @@ def unregistered_drivers(search_dirs=None, dirs: list[Path] | None = None) -> li
     would register each."""
     search_dirs = SEARCH_DIRS if search_dirs is None else search_dirs
     known = registered_libraries(dirs)
-    target = (dirs if dirs is not None else vendor_dirs())[0]
+    target = (dirs or vendor_dirs())[0]
     out = []
     for vendor, libs in DRIVERS.items():
         if any(lib in known for lib in libs):
@@ -78,5 +81,7 @@ def unregistered_drivers(search_dirs=None, dirs: list[Path] | None = None) -> li
         found = next((Path(d) / lib for lib in libs for d in search_dirs if (Path(d) / lib).is_file()), None)
         if found is not None:
             icd = target / f"{vendor.split()[0].lower()}.icd"
-            out.append(Unregistered(vendor, str(found), f"mkdir -p {target} && echo {found} > {icd}"))
+            q = shlex.quote
+            out.append(Unregistered(vendor, str(found), f"mkdir -p {q(str(target))} && echo {q(str(found))} > "
+                                                        f"{q(str(icd))}"))
     return out

@@ -7,7 +7,7 @@ def cmd_bench(args) -> int:
     import time
 
     from clsas.bench import run, run_formation
-    from clsas.bench.stats import seconds
+    from clsas.bench.stats import seconds, times
 
     t_start = time.perf_counter()
 
@@ -48,8 +48,8 @@ def cmd_bench(args) -> int:
                           f"({r['best']})")
                     continue
                 what = (f"refused ({r['refused'].split(':')[0]})" if "refused" in r else
-                        f"{seconds(r['time_s'])}" + (f", {r['speedup']:.3g}x bp, error {r['error_all_db']:.1f} dB over "
-                                                  "the grid" if "speedup" in r else "")
+                        f"{seconds(r['time_s'])}" + (f", {times(r['speedup'])} bp, error "
+                                                  f"{r['error_all_db']:.1f} dB over the grid" if "speedup" in r else "")
                         + (f", {r['error_cone_db']:.1f} dB in the cone" if r.get("error_cone_db") is not None
                            else ""))
                 print(f"{c['case']}: {r['formation']}: {what}")

@@ -26,7 +26,10 @@ def cmd_devices(args) -> int:
         print("(* = used by backend='auto'; choose with --device P:D or PYOPENCL_CTX=P:D)")
     from clsas.cl.icd import unregistered_drivers
 
+    listed = " ".join(f"{r.platform} {r.device}" for r in rows if r.kind != "CPU").lower()
     for u in unregistered_drivers():
+        if u.vendor.split()[0].lower() in listed:  # registered in a way icd.py does not model
+            continue
         print(f"{u.vendor}'s OpenCL driver is installed ({u.library}) but no ICD file registers it, so its GPU "
               f"is not listed (common in containers). Register it (as root): {u.fix}")
     if args.variants and rows:

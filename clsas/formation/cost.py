@@ -18,8 +18,9 @@ Time. Each formation's time is a sum of counted work times seconds per unit:
 
 The built-in seconds per unit (:data:`BUILTIN`) were fitted on a 2-core AMD EPYC VM (PoCL CPU
 device, 2026-11-25, refitted on the quiet host 2026-11-27) and are scaled to other devices by
-their compute units (kernels; a GPU's four times a CPU's); ω-k's FFTs run on one host thread
-(``workers=None``), so its work is not scaled. ``clsas bench`` measures the formations
+their compute units (kernels; a GPU's four times a CPU's); ω-k's host work by the host's cores
+over 2 to the power :data:`OMEGA_K_CORE_EXPONENT` (0.2: its FFTs gain little from many cores at
+these sizes). ``clsas bench`` measures the formations
 on the device and stores one factor per formation (measured over predicted, the median over its
 cases) beside the kernel-variant verdicts (:func:`calibration_path`); :func:`choose` applies it.
 The model need only rank the formations: within a factor of two is enough where they differ by
@@ -100,6 +101,9 @@ GPU_FIXED = {"bp": 1.5e-3}
 FFBP_PLAN_S_PER_MEAS = 2e-5
 PLAN_IF_UNDER = 0.7
 REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
+# ω-k's host work speeds up as (cores / REF_UNITS) ** this: 1.25-1.8x on a 16-core host against the
+# 2-core reference (8 ** 0.1-0.28), measured with a GPU doing bp on 2026-11-28
+OMEGA_K_CORE_EXPONENT = 0.2
 NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses
 
 
@@ -202,11 +206,12 @@ def _speed(selection, formation: str) -> float:
     """How much faster than the reference device this selection runs ``formation``'s work."""
     host = (os.cpu_count() or REF_UNITS) / REF_UNITS
     if formation == "omega-k":
-        # its FFTs run on one host thread (workers=None, the default) whatever the cores or the device
-        # (the Stolt step is a small share): on a 16-core host with a GPU it took 3-5x the time a
-        # speed of cores/2 predicted (bench/results/2026-11-28-formation-gpu-h200.md)
+        # its FFTs use every host core (workers=os.cpu_count()) but at these sizes gain little from
+        # them: on a 16-core host (8x the reference) ω-k ran 1.25-1.8x faster than on the reference,
+        # not 8x (bench/results/2026-11-28-formation-gpu-h200.md, runs 1-2); hence host ** 0.2
+        speed = host**OMEGA_K_CORE_EXPONENT
         opencl = selection is not None and getattr(selection, "kind", "numpy") == "opencl"
-        return 1.0 if opencl else 1.0 / NUMPY_SLOWDOWN[formation]
+        return speed if opencl else speed / NUMPY_SLOWDOWN[formation]
     if selection is None or getattr(selection, "kind", "numpy") != "opencl":
         return host / NUMPY_SLOWDOWN[formation]
     dev = selection.queue.device
