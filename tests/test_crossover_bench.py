@@ -83,3 +83,19 @@ def test_lanes_per_unit_of_cpus_and_gpus():
     assert "Roofline of the bp kernel: memory ceiling 2.5e+11 pairs/s" in md
     h200 = tp.compute_bound({**info, "lanes_per_unit": 128, "lanes_from": "x"})
     assert h200["peak_flops"] == pytest.approx(132 * 1.98e9 * 128 * 2)
+
+
+def test_results_name_the_commit_they_ran():
+    """A stored result names its code: the checkout's commit (``+dirty`` where tracked files
+    differ), or None outside a git checkout."""
+    import re
+    import shutil
+
+    from clsas.bench import _versions
+    from clsas.bench.stats import source_commit
+
+    got = source_commit()
+    if shutil.which("git") is None or got is None:
+        pytest.skip("not a git checkout, or no git")
+    assert re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", got)
+    assert _versions()["clsas_commit"] == got

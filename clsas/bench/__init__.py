@@ -77,8 +77,10 @@ def _versions() -> dict:
 
     import clsas
 
-    out = {"clsas": clsas.__version__, "python": sys.version.split()[0], "numpy": np.__version__,
-           "scipy": scipy.__version__}
+    from .stats import source_commit
+
+    out = {"clsas": clsas.__version__, "clsas_commit": source_commit(), "python": sys.version.split()[0],
+           "numpy": np.__version__, "scipy": scipy.__version__}
     for mod in ("pyopencl", "numba", "dask", "distributed", "cvxpy", "nlopt"):
         try:
             m = __import__(mod)

@@ -33,6 +33,25 @@ def seconds(t: float) -> str:
     return f"{t * 1e3:.3g} ms" if t < 0.1 else f"{t:.2f} s"
 
 
+def source_commit() -> str | None:
+    """The git commit clsas runs from (short hash, ``+dirty`` where tracked files differ from it),
+    so that a stored result names its code; None outside a git checkout or without git."""
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    try:
+        head = subprocess.run(["git", "-C", str(root), "rev-parse", "--short", "HEAD"], capture_output=True,
+                              text=True, timeout=5)
+        if head.returncode != 0 or not head.stdout.strip():
+            return None
+        dirty = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return head.stdout.strip() + ("+dirty" if dirty else "")
+
+
 def times(x: float) -> str:
     """A speed-up for a report: three digits (0.31x, 15.1x, 174x, 1234x)."""
     return f"{x:.3g}x" if x < 1000 else f"{x:.0f}x"
