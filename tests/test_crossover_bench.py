@@ -99,3 +99,29 @@ def test_results_name_the_commit_they_ran():
         pytest.skip("not a git checkout, or no git")
     assert re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", got)
     assert _versions()["clsas_commit"] == got
+
+
+def test_bp_throughput_script_writes_its_table(tmp_path):
+    """``bench/bp_throughput.py`` (the bp part alone, for a GPU): a tiny run writes JSON and Markdown
+    naming the device and the commit; without an OpenCL device it says so and returns 1."""
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "bp_throughput.py"
+    spec = importlib.util.spec_from_file_location("bp_throughput", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    with pytest.raises(SystemExit):
+        mod.main(["--sides", "1"])
+    rc = mod.main(["--sides", "4", "--measurements", "3", "--repeats", "1", "--out", str(tmp_path)])
+    from clsas.bench import throughput as tp
+
+    if tp.opencl_device_info() is None:
+        assert rc == 1
+        return
+    assert rc == 0
+    res = json.loads(next(tmp_path.glob("*-bp-*.json")).read_text())
+    assert res["rows"][0]["voxels"] == 64 and "opencl_kernel" in res["rows"][0]
+    md = next(tmp_path.glob("*-bp-*.md")).read_text()
+    assert "| 4^3 voxels x 3 measurements |" in md and "Script: `bench/bp_throughput.py`" in md
