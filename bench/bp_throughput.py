@@ -33,7 +33,6 @@ def main(argv: list[str] | None = None) -> int:
 
     import numpy as np
 
-    import clsas
     from clsas.bench import _versions
     from clsas.bench import throughput as tp
 
@@ -47,8 +46,8 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(0)
     rows = []
     for n in args.sides:
-        grid = clsas.VoxelGrid.from_bounds((-0.32, 0.32), (-0.32, 0.32), (1.0, 1.64), 0.64 / (n - 1))
-        row = tp.bench_backprojection(f"{n}^3 voxels x {args.measurements} measurements", grid, args.measurements,
+        row = tp.bench_backprojection(f"{n}^3 voxels x {args.measurements} measurements", tp.cube_grid(n),
+                                      args.measurements,
                                       repeats=args.repeats, twin_meas=1, numba_meas=4, rng=rng)
         rows.append(row)
         rates = {k: row[k]["rate_per_s"] for k in ("opencl_kernel", "opencl_wall", "c_openmp_peer", "numba_peer",

@@ -158,8 +158,6 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
 
 def _throughput_part(res: dict, cfg: dict, rng, opencl: bool, device: str, say) -> None:
     """The throughput benchmarks of :func:`run` (backprojection, compression, scaling, plans), into ``res``."""
-    import clsas
-
     from . import throughput
 
     say(f"backprojection throughput on {device}")
@@ -170,7 +168,7 @@ def _throughput_part(res: dict, cfg: dict, rng, opencl: bool, device: str, say) 
 
             grid = parse_config(demo_configs(0.01)["front"]).grid
         else:
-            grid = clsas.VoxelGrid.from_bounds((-0.32, 0.32), (-0.32, 0.32), (1.0, 1.64), 0.64 / (side - 1))
+            grid = throughput.cube_grid(side)
         res["backprojection"].append(throughput.bench_backprojection(
             name, grid, n_meas, repeats=cfg["repeats"], twin_meas=twin_meas, numba_meas=numba_meas, rng=rng,
             opencl=opencl))

@@ -107,9 +107,8 @@ def _md_backprojection(res: dict) -> list[str]:
                    f"{cb['flops_per_pair']} flops per pair (the sub-sample "
                    f"sine and cosine polynomials counted in full) = {cb['pairs_per_s']:.3g} pairs/s; the kernel "
                    f"reaches {100 * best / cb['pairs_per_s']:.0f} % of it."]
-    elif cb is not None or (isinstance(res.get("device"), dict) and res["device"].get("lanes_per_unit", 0) is None):
-        why = (cb or {}).get("lanes_from") or res["device"].get("lanes_from")
-        md += ["", f"No arithmetic ceiling of the device is given: {why}."]
+    elif (dev := res.get("device")) and isinstance(dev, dict) and dev.get("lanes_per_unit", 0) is None:
+        md += ["", f"No arithmetic ceiling of the device is given: {dev.get('lanes_from')}."]
     if cb and cb.get("memory_pairs_per_s"):
         arith = f"arithmetic ceiling {cb['pairs_per_s']:.3g} pairs/s; " if cb.get("pairs_per_s") else ""
         ridge = (f"ridge at {cb['ridge_flops_per_byte']:.1f} flop/B, " if cb.get("ridge_flops_per_byte") else "")

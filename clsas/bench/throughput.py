@@ -193,6 +193,11 @@ def opencl_device_info() -> dict | None:
             "lanes_per_unit": lanes, "lanes_from": lanes_from}
 
 
+def cube_grid(side: int):
+    """The bench's bp grid: ``side`` voxels a side over a 0.64 m cube from 1 m in range."""
+    return clsas.VoxelGrid.from_bounds((-0.32, 0.32), (-0.32, 0.32), (1.0, 1.64), 0.64 / (side - 1))
+
+
 def bench_backprojection(name, grid, n_meas, *, repeats, twin_meas, numba_meas, rng, opencl=True):
     """OpenCL kernel and wall time, NumPy twin and Numba peer on one workload (rates per pair)."""
     wl = backprojection_workload(grid, n_meas, rng)

@@ -49,9 +49,8 @@ def vendor_dirs() -> list[Path]:
 
 def registered_libraries(dirs: list[Path] | None = None) -> set[str]:
     """The library names (base names) the ``.icd`` files in ``dirs`` register."""
-    names = set()
-    for env in ("OCL_ICD_FILENAMES",):  # drivers named directly to the loader count as registered
-        names.update(Path(x).name for x in os.environ.get(env, "").split(":") if x.strip())
+    # drivers named to the loader directly count as registered
+    names = {Path(x).name for x in os.environ.get("OCL_ICD_FILENAMES", "").split(":") if x.strip()}
     for d in dirs if dirs is not None else vendor_dirs():
         try:
             files = sorted(d.glob("*.icd"))

@@ -202,31 +202,34 @@ def store_calibration(factors: dict[str, float], selection=None, detail: Any = N
 
 
 # -- counted work -----------------------------------------------------------------------------
+def _device(selection):
+    """The selection's OpenCL device, or None where it runs the NumPy twins."""
+    if selection is None or getattr(selection, "kind", "numpy") != "opencl":
+        return None
+    return selection.queue.device
+
+
+def _on_gpu(selection) -> bool:
+    from ..cl import is_cpu
+
+    dev = _device(selection)
+    return dev is not None and not is_cpu(dev)
+
+
 def _speed(selection, formation: str) -> float:
     """How much faster than the reference device this selection runs ``formation``'s work."""
     host = (os.cpu_count() or REF_UNITS) / REF_UNITS
+    dev = _device(selection)
     if formation == "omega-k":
         # its FFTs use every host core (workers=os.cpu_count()) but at these sizes gain little from
         # them: on a 16-core host (8x the reference) ω-k ran 1.25-1.8x faster than on the reference,
         # not 8x (bench/results/2026-11-28-formation-gpu-h200.md, runs 1-2); hence host ** 0.2
         speed = host**OMEGA_K_CORE_EXPONENT
-        opencl = selection is not None and getattr(selection, "kind", "numpy") == "opencl"
-        return speed if opencl else speed / NUMPY_SLOWDOWN[formation]
-    if selection is None or getattr(selection, "kind", "numpy") != "opencl":
+        return speed if dev is not None else speed / NUMPY_SLOWDOWN[formation]
+    if dev is None:
         return host / NUMPY_SLOWDOWN[formation]
-    dev = selection.queue.device
     units = int(getattr(dev, "max_compute_units", REF_UNITS) or REF_UNITS)
-    from ..cl import is_cpu
-
-    return units / REF_UNITS if is_cpu(dev) else 4.0 * units / REF_UNITS
-
-
-def _on_gpu(selection) -> bool:
-    if selection is None or getattr(selection, "kind", "numpy") != "opencl":
-        return False
-    from ..cl import is_cpu
-
-    return not is_cpu(selection.queue.device)
+    return 4.0 * units / REF_UNITS if _on_gpu(selection) else units / REF_UNITS
 
 
 def _seconds(formation: str, work: dict, selection, factors: dict) -> float:
