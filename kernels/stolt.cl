@@ -132,3 +132,117 @@ __kernel void stolt_spread(
         }
     }
 }
+
+
+/* The Stolt sum evaluated directly at the output depths (no spreading, no FFT):
+ *
+ *   out[col, l] = sum_p fac[p, l] sum_j c0_j alpha_j^p exp(i kz_j l' dz),   l' = l - n_z / 2
+ *
+ * with c0_j, alpha_j as in stolt_spread (c0 carries exp(i kz zc + i alpha / zref), so the phase
+ * is kz z at depth z = zc + l' dz). It is what the spread, the inverse FFT and the de-apodisation
+ * approximate, exactly: for few frequency samples and depths (n_f n_z small against the cells'
+ * FFT) it is the cheaper of the two. fac[p, l] are the bistatic expansion's weights (i u_z)^p / p!
+ * times whatever per-depth factor the caller folds in. NumPy twin: clsas/formation/stolt.py:direct.
+ *
+ * Work-item: VEC consecutive columns (its lanes), all depths. The inputs come lanes contiguous
+ * (the host pads the columns to whole items with zeros), so every load is one vector; the sums
+ * build up in the item's own slice of acc (n_z re/im vector pairs) and are copied to out at the end. Per sample the
+ * strength and the step exp(i kz dz) are formed once; the depths follow by complex rotations,
+ * restarted from an exact sincos every ZR depths (float32 rotation error: about 1e-7 a step). */
+#define ZR 32
+
+__kernel void stolt_depths(
+    __global const floatV *spec_r,   /* (n_f, items) data spectrum, real parts, VEC columns each   */
+    __global const floatV *spec_i,   /* (n_f, items) ... imaginary parts (weights applied)       */
+    __global const float *k,         /* (n_f,) two-way wavenumber 4 pi f / c, rad/m (any sign)  */
+    __global const floatV *ku,       /* (items,) column spatial frequencies, rad/m (padding: 0)  */
+    __global const floatV *kv,       /* (items,) ...                                            */
+    const int n_cols,                /* columns (the last item's lanes past it are padding)     */
+    const int n_f,                   /* frequency samples per column                            */
+    const float4 geo,                /* (dz / 2 pi [m / rad], zc / 2 pi [m / rad], 1 / zref [1/m],
+                                        1 / (2 pi zref) [1/(m rad)])                            */
+    const float4 win,                /* (bu, bv) baseline, m; s1; 1 / (s2 - s1)                 */
+    const float s2,                  /* look-angle sine where the window reaches zero           */
+    const int n_z,                   /* output depths                                           */
+    const int n_terms,               /* powers of alpha                                         */
+    __global const float2 *fac,      /* (n_terms, n_z) per-depth weight of each power           */
+    __global floatV *acc,            /* (items, n_z, 2) scratch                                 */
+    __global float2 *out)            /* (n_cols, n_z) output                                    */
+{
+    const int item = get_global_id(0), n_items = get_global_size(0);
+    const int c_first = item * VEC;
+    __global floatV *a = acc + (size_t)item * n_z * 2;
+    const float b2 = win.x * win.x + win.y * win.y;
+    const float h = (float)(n_z / 2);
+    const floatV kx = ku[item], ky = kv[item];
+    for (int z = 0; z < 2 * n_z; ++z)
+        a[z] = (floatV)(0.0f);
+    const floatV kp2 = kx * kx + ky * ky;
+    const floatV kp = sqrt(kp2);
+    const floatV proj = win.x * kx + win.y * ky;
+    const floatV proj2 = proj * proj;
+    for (int j = 0; j < n_f; ++j) {
+        const float kk = k[j];
+        const float inv_kk2 = 1.0f / (kk * kk);
+        const floatV kz2 = kk * kk - kp2;
+        const floatV s = kp * fabs(1.0f / kk);
+        const intV ok = (kz2 > 0.0f) & (s < s2);
+        const floatV kz_abs = sqrt(kz2 > 0.0f ? kz2 : (floatV)(1.0f));
+        const floatV kz = kk < 0.0f ? -kz_abs : kz_abs;
+        const floatV ramp = (s - win.z) * win.w;
+        floatV wc;
+        sincos_2pi(0.5f * (ramp > 1.0f ? (floatV)(1.0f) : ramp), &wc);   /* cos(pi ramp) */
+        const floatV w = ramp <= 0.0f ? (floatV)(1.0f) : 0.5f * (1.0f + wc);
+        /* samples not kept carry zeros (k = 0 would give infinities) */
+        const floatV alpha = ok ? 0.125f * kz * (b2 - proj2 * inv_kk2) : (floatV)(0.0f);
+        floatV c1 = kz * geo.y + alpha * geo.w;   /* phase at zc, cycles */
+        c1 -= RINT(c1);
+        floatV st = kz * geo.x;                   /* the step exp(i kz dz), cycles */
+        st -= RINT(st);
+        floatV st_c;
+        const floatV st_s = sincos_2pi(st, &st_c);
+        const floatV amp = w * (6.28318530718f * kk) / (kz_abs * kz_abs);
+        const floatV q = geo.z / kz;
+        const floatV dr = spec_r[(size_t)j * n_items + item], di = spec_i[(size_t)j * n_items + item];
+        /* d amp (1 + i q): the strength without its phase */
+        const floatV ur = ok ? amp * (dr - q * di) : (floatV)(0.0f);
+        const floatV ui = ok ? amp * (di + q * dr) : (floatV)(0.0f);
+        for (int z0 = 0; z0 < n_z; z0 += ZR) {
+            /* exact phase at depth z0: c1 + kz (z0 - h) dz / 2 pi, reduced in two parts */
+            floatV c2 = kz * (((float)z0 - h) * geo.x);
+            c2 -= RINT(c2);
+            floatV cyc = c1 + c2;
+            cyc -= RINT(cyc);
+            floatV ph_c;
+            const floatV ph_s = sincos_2pi(cyc, &ph_c);
+            floatV vr = ur * ph_c - ui * ph_s, vi = ur * ph_s + ui * ph_c;
+            const int z1 = z0 + ZR < n_z ? z0 + ZR : n_z;
+            for (int z = z0; z < z1; ++z) {
+                /* g = sum_p fac[p, z] alpha^p (Horner) */
+                float2 f = fac[(n_terms - 1) * n_z + z];
+                floatV gr = (floatV)(f.x), gi = (floatV)(f.y);
+                for (int p = n_terms - 2; p >= 0; --p) {
+                    f = fac[p * n_z + z];
+                    gr = gr * alpha + f.x;
+                    gi = gi * alpha + f.y;
+                }
+                a[2 * z] += vr * gr - vi * gi;
+                a[2 * z + 1] += vr * gi + vi * gr;
+                const floatV nr = vr * st_c - vi * st_s;
+                vi = vr * st_s + vi * st_c;
+                vr = nr;
+            }
+        }
+    }
+    /* the sums back lane by lane; the lane loop unrolled (constant lane indices: Oclgrind's
+     * uninitialised-value check loses track of a union's lane read at a variable index) */
+    for (int z = 0; z < n_z; ++z) {
+        lanes_f r, i;
+        r.v = a[2 * z];
+        i.v = a[2 * z + 1];
+        #pragma unroll
+        for (int l = 0; l < VEC; ++l)
+            if (c_first + l < n_cols)
+                out[(size_t)(c_first + l) * n_z + z] = (float2)(r.s[l], i.s[l]);
+    }
+}

@@ -1,6 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [stolt] [ffbp] [vec=N ...]. Checks each
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [stolt] [stolt_depths] [ffbp]
+[vec=N ...]. Checks each
 result against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
@@ -16,7 +17,7 @@ from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 from clsas.focus.opencl import FocusGradientPlan
 from clsas.formation.bp_opencl import BackprojectPlan
 from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
-from clsas.formation.opencl import StoltPlan
+from clsas.formation.opencl import StoltDepthsPlan, StoltPlan
 
 FS = 96e3
 
@@ -73,6 +74,12 @@ def check_stolt(queue, rng, vec):
     assert StoltPlan.selftest(queue, vec) < 2e-4, "stolt_spread"
 
 
+def check_stolt_depths(queue, rng, vec):
+    # the direct sum's selftest: the same columns at 40 depths (two runs of rotations, the second
+    # partial), three terms, a ragged last work-item
+    assert StoltDepthsPlan.selftest(queue, vec) < 2e-4, "stolt_depths"
+
+
 def check_ffbp(queue, rng, vec):
     # the plans' selftests: leaves of a depth-2 tree over 20 jittered bistatic pairs (samples in
     # and out of the profile windows, padding and directions outside the unit disc), a merge of
@@ -102,6 +109,8 @@ def main(kernels: set[str]) -> int:
             check_gradient(queue, rng, vec)
         if "stolt" in kernels:
             check_stolt(queue, rng, vec)
+        if "stolt_depths" in kernels:
+            check_stolt_depths(queue, rng, vec)
         if "ffbp" in kernels:
             check_ffbp(queue, rng, vec)
     print("oclgrind run ok")
@@ -109,4 +118,4 @@ def main(kernels: set[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient", "stolt", "ffbp"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient", "stolt", "stolt_depths", "ffbp"}))

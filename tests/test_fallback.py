@@ -26,7 +26,7 @@ pytestmark = [pytest.mark.opencl, needs_opencl]
 
 MARK = "clsas_fallback_test_undeclared"  # the identifier the compiler's log must name
 ALL_KERNELS = ("matched_filter", "fmcw_dechirp", "matched_fft", "backproject", "focus_gradient", "stolt_spread",
-               "ffbp_leaf", "ffbp_merge", "project")
+               "stolt_depths", "ffbp_leaf", "ffbp_merge", "project")
 
 
 def broken_source(kernel: str, only_with: str | None = None) -> tuple[str, str]:
@@ -127,7 +127,8 @@ CASES = {
     "matched_fft": (None, _compress(algorithm="fft")),
     "backproject": (None, _backproject),
     "focus_gradient": (None, _gradient),
-    "stolt_spread": (None, _formation("omega-k")),
+    "stolt_spread": (None, _formation("omega-k", depths="spread")),
+    "stolt_depths": (None, _formation("omega-k", depths="direct")),
     "ffbp_leaf": (None, _formation("ffbp", depth=1)),
     "ffbp_merge": ("TAPS", _formation("ffbp", depth=1, order=1)),  # the leaf kernel still builds
     "project": (None, _project),
@@ -176,7 +177,7 @@ def test_opencl_raises_with_the_compiler_log(scene, caplog, kernel, request_):
 
 def test_the_real_sources_build_again(scene):
     """Nothing built from an injected source outlives its block."""
-    for kernel in ("stolt_spread", "ffbp_merge"):
+    for kernel in ("stolt_spread", "stolt_depths", "ffbp_merge"):
         _, call = CASES[kernel]
         assert call(scene, "opencl")[1] == "opencl"
 
@@ -214,8 +215,8 @@ def test_plan_falls_back_once_per_request(caplog):
 
 
 # every registered formation, with each kernel it builds
-FORMATION_KERNELS = [("bp", "backproject"), ("omega-k", "stolt_spread"), ("ffbp", "ffbp_leaf"),
-                     ("ffbp", "ffbp_merge")]
+FORMATION_KERNELS = [("bp", "backproject"), ("omega-k", "stolt_spread"), ("omega-k", "stolt_depths"),
+                     ("ffbp", "ffbp_leaf"), ("ffbp", "ffbp_merge")]
 
 
 def test_every_registered_formation_is_covered():

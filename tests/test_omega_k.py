@@ -4,7 +4,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from conftest import BACKENDS, TOL, needs_opencl, width_or_skip
+from conftest import BACKENDS, OPENCL_MISSING, TOL, needs_opencl, width_or_skip
 
 import clsas
 from clsas.formation import error_to_signal_db, form
@@ -420,3 +420,93 @@ def test_columns_in_several_chunks_give_the_same_image_and_report_progress():
     done = [d for d, _ in seen]
     assert len(seen) > 2 and done == sorted(done) and done[-1] == seen[-1][1]
     assert max(b - a for a, b in zip([0, *done[:-1]], done, strict=True)) <= 7
+
+
+# -- the direct sum at the depths (stolt_depths) ----------------------------------------------
+def _depth_factors(p, n_z, seed=7):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(p.n_terms, n_z)) + 1j * rng.normal(size=(p.n_terms, n_z))
+
+
+@pytest.mark.parametrize("n_z", [1, 7, 40], ids=lambda n: f"nz{n}")
+def test_direct_sum_equals_the_spread_path(n_z):
+    # the twin of stolt_depths against spread + FFT + de-apodisation + terms (which approximate the
+    # same sum; a wide kernel makes that approximation tight)
+    from clsas.formation.opencl import StoltPlan
+    from clsas.formation.stolt import direct, terms_to_depths
+
+    spec, k, ku, kv, p = StoltPlan.selftest_inputs()
+    p = dataclasses.replace(p, n_cells=max(2 * n_z, 24), width=10)
+    fac = _depth_factors(p, n_z)
+    want = terms_to_depths(spread(spec, k, ku, kv, p), n_z, p, fac)
+    got = direct(spec, k, ku, kv, p, n_z, fac)
+    assert np.abs(got - want).max() < 1e-7 * np.abs(want).max()
+    with pytest.raises(ValueError, match="factors"):
+        direct(spec, k, ku, kv, p, n_z + 1, fac)
+
+
+def test_direct_sum_of_one_plane_wave_analytic():
+    # one column at normal incidence (ku = kv = 0: kz = k), one frequency, no baseline: the sum is
+    # d 2 pi / k (1 + i / (k zref)) exp(i k z) at each depth z = zc + (l - n_z // 2) dz
+    from clsas import cl
+    from clsas.formation.opencl import StoltDepthsPlan
+    from clsas.formation.stolt import StoltParams, direct
+
+    kk, d, n_z = 900.0, 0.3 - 0.2j, 45
+    p = StoltParams(dz_m=0.005, zc_m=0.8, zref_m=0.75, baseline_uv=(0.0, 0.0), n_cells=96, width=4, n_terms=1,
+                    s1=0.5, s2=0.6)
+    z = p.zc_m + (np.arange(n_z) - n_z // 2) * p.dz_m
+    want = d * 2 * np.pi / kk * (1 + 1j / (kk * p.zref_m)) * np.exp(1j * kk * z)
+    args = (np.array([[d]]), np.array([kk]), np.zeros(1), np.zeros(1), p, n_z, np.ones((1, n_z)))
+    np.testing.assert_allclose(direct(*args)[0], want, rtol=1e-12)
+    if OPENCL_MISSING is None:
+        got = StoltDepthsPlan(queue=cl.get_queue())(*args)[0]
+        assert np.abs(got - want).max() < 2e-5 * np.abs(want).max()
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+def test_stolt_depths_kernel_equals_its_twin_at_every_width(vec):
+    # VEC columns per work-item with a ragged last one (37 columns), evanescent and windowed
+    # samples, negative frequencies, three terms; 40 depths (two runs of rotations, the second
+    # partial) and 5 (one short run); a second, larger call reuses the plan
+    from clsas import cl
+    from clsas.formation.opencl import StoltDepthsPlan
+    from clsas.formation.stolt import direct
+
+    width_or_skip("stolt_depths", vec)
+    spec, k, ku, kv, p = StoltDepthsPlan.selftest_inputs()
+    plan = StoltDepthsPlan(queue=cl.get_queue(), vec=vec)
+    for n_z in (40, 5):
+        fac = _depth_factors(p, n_z)
+        want = direct(spec, k, ku, kv, p, n_z, fac)
+        assert np.any(want != 0) and np.any(np.all(want == 0, axis=1))  # kept and dropped columns
+        got = plan(spec, k, ku, kv, p, n_z, fac)
+        assert got.dtype == np.complex64
+        assert np.abs(got - want).max() / np.abs(want).max() < TOL["stolt"]
+    got2 = plan(np.tile(spec, (3, 1)), k, np.tile(ku, 3), np.tile(kv, 3), p, 5, fac)
+    assert np.abs(got2[: len(ku)] - want).max() / np.abs(want).max() < TOL["stolt"]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_omega_k_direct_and_spread_depths_agree(backend):
+    # the two ways to the depths give one image (to the spread's own error, about 1e-3), "auto"
+    # names the one it took, and the option is checked by name
+    prof, grid = _depths_case()
+    imgs = {d: form(prof, grid, "omega-k", backend=backend, depths=d) for d in ("direct", "spread", "auto")}
+    peak = np.abs(imgs["direct"].values).max()
+    assert np.abs(imgs["direct"].values - imgs["spread"].values).max() < 5e-3 * peak
+    took = imgs["auto"].provenance["omega_k"]["depths"]
+    assert took == ("direct" if backend == "opencl" else "spread")
+    assert imgs["direct"].provenance["omega_k"]["depths"] == "direct"
+    with pytest.raises(ValueError, match="depths"):
+        form(prof, grid, "omega-k", backend=backend, depths="fft")
+
+
+def _depths_case():
+    ap = clsas.raster_aperture(12, 12, 0.0616, 0.0616)
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, 96e3, taper=0.1)
+    ds = clsas.simulate(clsas.Scene(np.array([[0.005, -0.004, 0.64], [-0.01, 0.006, 0.68]])), ap, w, 96e3,
+                        snr_db=40, seed=1, chirp={"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": 2e-3})
+    grid = clsas.VoxelGrid(np.linspace(-0.02, 0.02, 9), np.linspace(-0.02, 0.02, 9), np.linspace(0.6, 0.72, 25))
+    return clsas.compress(ds, backend="numpy"), grid

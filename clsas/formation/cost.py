@@ -71,8 +71,8 @@ OMEGA_K_BASE_DB = -42.0
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
 # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
-# bp and FFBP (a factor stored by an older format no longer applies)
-FORMAT = 4
+# bp and FFBP; 5: omega-k's direct sum at the depths (a factor stored by an older format no longer applies)
+FORMAT = 5
 
 # seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
 # (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
@@ -87,7 +87,8 @@ FORMAT = 4
 # bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json, after its faster leaves and planning)
 BUILTIN: dict[str, dict[str, float]] = {
     "bp": {"fixed": 5e-3, "pairs": 1.6e-9},
-    "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9},
+    "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9,
+                "direct": 2.1e-10},
     "ffbp": {"fixed": 5e-3, "leaf": 1.1e-9, "merge": 1.4e-9, "grid": 1.4e-9},
 }
 # bp's fixed part on a GPU: 1.5 ms (1.45-1.9 ms for the whole of bp's smallest cases on an H200
@@ -246,18 +247,24 @@ def work_bp(profiles: Profiles, grid: VoxelGrid) -> dict:
     return {"fixed": 1, "pairs": float(profiles.n_meas) * grid.size}
 
 
-def work_omega_k(sizes: dict) -> dict:
-    """Counted work of ω-k from :func:`clsas.formation.omega_k.plan_sizes`."""
+def work_omega_k(sizes: dict, opencl: bool = True) -> dict:
+    """Counted work of ω-k from :func:`clsas.formation.omega_k.plan_sizes` (the Stolt step's path as
+    ω-k takes it on OpenCL, or on the NumPy twins where ``opencl`` is False)."""
+    from .omega_k import depth_path, direct_work
+
     n_fft, n_f, nz = sizes["n_fft"], sizes["n_f"], sizes["nz"]
     pu, pv, _ = sizes["axes"]
     w = {"fixed": 1, "delay": sizes["n_meas"] * n_fft * math.log2(max(n_fft, 2)), "lattice": 0.0, "stolt": 0.0,
-         "depths": 0.0, "out": 0.0}
+         "depths": 0.0, "direct": 0.0, "out": 0.0}
     for g in sizes["groups"]:
         mu, mv, up, cols, cells = g["mu"], g["mv"], g["up"], g["columns"], g["n_cells"]
         terms, width = g.get("terms", 3), g.get("width", 6)
         w["lattice"] += mu * mv * n_f * math.log2(max(mu * mv, 2))
-        w["stolt"] += cols * n_f * terms * width
-        w["depths"] += cols * cells * math.log2(max(cells, 2)) * terms
+        if depth_path(sizes.get("depths", "auto"), n_f, nz, width, terms, opencl) == "direct":
+            w["direct"] += cols * direct_work(n_f, nz, terms)
+        else:
+            w["stolt"] += cols * n_f * terms * width
+            w["depths"] += cols * cells * math.log2(max(cells, 2)) * terms
         lu, lv = up * mu + len(pu), up * mv + len(pv)
         w["out"] += up * mv * nz * lu * math.log2(lu) + len(pu) * nz * lv * math.log2(lv)
     return w
@@ -323,7 +330,8 @@ def _omega_k_estimate(profiles, grid, selection, factors) -> Estimate:
     err = 10 * math.log10(10 ** (OMEGA_K_BASE_DB / 10) + lost**2)
     note = (f"method {OMEGA_K_BASE_DB:.0f} dB; {100 * float(frac.mean()):.1f} % of stop-voxel-frequency samples "
             f"aliased on the lattice (RMS over the grid {100 * lost:.1f} %), which omega-k leaves out")
-    return Estimate("omega-k", _seconds("omega-k", work_omega_k(sizes), selection, factors), err, note=note)
+    work = work_omega_k(sizes, _device(selection) is not None)
+    return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, note=note)
 
 
 def _ffbp_candidates(n_meas: int) -> list[int]:
@@ -464,7 +472,8 @@ def predict_time(formation: str, profiles: Profiles, grid: VoxelGrid, selection=
     if formation == "omega-k":
         from .omega_k import plan_sizes
 
-        return _seconds("omega-k", work_omega_k(plan_sizes(profiles, grid, **options)), selection, factors)
+        work = work_omega_k(plan_sizes(profiles, grid, **options), _device(selection) is not None)
+        return _seconds("omega-k", work, selection, factors)
     if formation == "ffbp":
         from .ffbp import plan_tree
 

@@ -38,11 +38,16 @@ wavenumber domain. The steps, and what each costs in accuracy:
    takes the U that covers every voxel-stop angle.
 4. **Stolt mapping** ``kz = sqrt(k^2 - ku^2 - kv^2)`` with the exact amplitude of the kernel's
    plane-wave expansion, the bistatic correction and a look-angle window, then the sum over
-   frequency onto the grid's depths as a type-1 non-uniform FFT (see
-   :mod:`clsas.formation.stolt`: interpolation by spreading with an exponential-of-semicircle
-   kernel of ``kernel_width`` cells on a 2x oversampled ``kz`` axis, error ~1e-3 at the default 4
-   cells, far under the method's own; on OpenCL
-   this step runs as ``kernels/stolt.cl``).
+   frequency onto the grid's depths, one of two ways (option ``depths``): ``"direct"``, the sum
+   evaluated at each depth (exact; work ``n_f n_z`` per column), or ``"spread"``, a type-1
+   non-uniform FFT (see :mod:`clsas.formation.stolt`: interpolation by spreading with an
+   exponential-of-semicircle kernel of ``kernel_width`` cells on a 2x oversampled ``kz`` axis,
+   error ~1e-3 at the default 4 cells, far under the method's own; work about
+   ``n_f W + M log M``). ``"auto"`` (default) takes the one a fitted timing model
+   (:data:`DIRECT_COST`, :data:`SPREAD_COST`) predicts faster on OpenCL, and the spread on the
+   NumPy twins (their direct sum is the slower); on a scan of 32 x 32 stops onto 30 x 30 x 41
+   voxels the direct sum took ω-k from 22 to 16 ms. On OpenCL this step runs as
+   ``kernels/stolt.cl`` (``stolt_depths``, ``stolt_spread``).
 5. **The bistatic offset** is compensated: the path differs from twice the midpoint range by
    ``d^2 (1 - cos^2 psi) / (4 R)`` (0.22 rad at 30 kHz for the default 4 cm baseline at 1 m);
    as ``alpha / z`` per plane-wave component it is expanded about a reference depth in powers
@@ -84,7 +89,7 @@ from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import stolt
-from .opencl import StoltPlan
+from .opencl import StoltDepthsPlan, StoltPlan
 from .planar import NotPlanarUniform, planar_aperture
 from .registry import FORMATIONS
 
@@ -95,8 +100,16 @@ log = logging.getLogger(__name__)
 OPTIONS = {
     "pad_time": 1.5, "pad": None, "window": None, "taper": 0.1, "upsample": 1, "bistatic": True,
     "phase_tol": 1e-2, "band_tol": 1e-2, "kernel_width": 4, "tol_m": None, "workers": None, "chunk": 8192,
-    "max_sine": None, "beam": None, "beam_floor_db": -12.0,
+    "max_sine": None, "beam": None, "beam_floor_db": -12.0, "depths": "auto",
 }
+DEPTHS = ("auto", "direct", "spread")
+# relative time per column of the two ways to the depths (n_f samples, n_z depths, t terms, W
+# cells): direct 2.0 n_f n_z (1 + 0.2 (t - 1)) + 49 n_f, spread 18.2 n_f t W + 121 n_z t (the
+# spread kernel, the cells' inverse FFT and the sum of terms); a non-negative least-squares fit
+# to both timed on 72 column sets (2048 and 8192 columns, n_f 20-300, n_z 20-256, 1-3 terms)
+# on the 2-core AMD EPYC VM with PoCL, 2026-11-28: "auto" then loses at most 1.37x (near ties)
+DIRECT_COST = (2.0, 49.0)
+SPREAD_COST = (18.2, 121.0)
 
 
 def _options(options: dict) -> dict:
@@ -132,6 +145,7 @@ def _options(options: dict) -> dict:
     if o["workers"] is not None:
         o["workers"] = v.positive_int("workers", o["workers"])
     o["chunk"] = v.positive_int("chunk", o["chunk"])
+    v.choice("depths", o["depths"], DEPTHS)
     if o["beam"] is not None:
         v.choice("beam", o["beam"], BEAM_MODES)
     o["beam_floor_db"] = v.finite("beam_floor_db", o["beam_floor_db"])
@@ -241,10 +255,39 @@ def _max_sine(g, pu, pv, depth_min) -> float:
     return lat / math.hypot(lat, depth_min)
 
 
-def _stolt_runner(backend, device):
-    """The spreading step: the OpenCL plan when the backend is OpenCL (``None``: the twin), and
-    the selection it runs on (NumPy after a fallback)."""
-    return _cl.select(backend, device).plan(lambda q: StoltPlan(queue=q))
+def _stolt_runner(backend, device, path: str = "spread"):
+    """The Stolt step (``path`` "spread" or "direct"): the OpenCL plan when the backend is OpenCL
+    (``None``: the twin), and the selection it runs on (NumPy after a fallback, logged)."""
+    cls = StoltDepthsPlan if path == "direct" else StoltPlan
+    return _cl.select(backend, device).plan(lambda q: cls(queue=q))
+
+
+def depth_path(choice: str, n_f: int, n_z: int, width: int, terms: int, opencl: bool = True) -> str:
+    """How the Stolt sum reaches the depths: ``"direct"`` (the sum at each depth) or ``"spread"``
+    (the non-uniform FFT); ``"auto"`` takes the one :data:`DIRECT_COST` and :data:`SPREAD_COST`
+    predict faster on OpenCL, and the spread on the NumPy twins (``opencl`` False)."""
+    if choice != "auto":
+        return choice
+    if not opencl:
+        return "spread"  # NumPy's direct sum is the slower twin (0.50 s against 0.12 s at 32 x 32 stops)
+    return "direct" if direct_work(n_f, n_z, terms) <= spread_work(n_f, n_z, width, terms) else "spread"
+
+
+def direct_work(n_f: int, n_z: int, terms: int) -> float:
+    """Relative time per column of the direct sum (:data:`DIRECT_COST`)."""
+    return DIRECT_COST[0] * n_f * n_z * (1 + 0.2 * (terms - 1)) + DIRECT_COST[1] * n_f
+
+
+def spread_work(n_f: int, n_z: int, width: int, terms: int) -> float:
+    """Relative time per column of the spread, the cells' FFT and the terms' sum (:data:`SPREAD_COST`)."""
+    return SPREAD_COST[0] * n_f * terms * width + SPREAD_COST[1] * n_z * terms
+
+
+def _n_cells(n_z: int, width: int) -> int:
+    """Cells of the folded kz axis (2x oversampled, at least two kernel widths)."""
+    import scipy.fft
+
+    return scipy.fft.next_fast_len(max(2 * n_z, 2 * width))
 
 
 # -- the formation ---------------------------------------------------------------------------
@@ -278,7 +321,8 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
         1e-2), ``band_tol`` (1e-2), ``max_sine`` (the steepest look angle's sine to keep,
         default from the geometry), ``kernel_width`` (4), ``tol_m`` (lattice and plane
         tolerance, m; default a hundredth of the wavelength at 1.5 times the carrier), ``workers`` (FFT
-        threads), ``chunk`` (columns per Stolt launch).
+        threads), ``chunk`` (columns per Stolt launch), ``depths`` ("auto", "direct" or "spread":
+        how the Stolt sum reaches the depths, step 4).
 
     Returns
     -------
@@ -310,13 +354,20 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     k = 4 * np.pi * f / c_ref
     flip = depth[0] > depth[-1]
     depth_inc = depth[::-1] if flip else depth
-    runner, sel = _stolt_runner(backend, device)
+    u_max = 0.5 * (1.0 / depth_inc[0] - 1.0 / depth_inc[-1])
+    terms = max(_group_terms(g, k, u_max, o) for g in ap.groups)
+    sel = _cl.select(backend, device)
+    path = depth_path(o["depths"], len(f), len(depth_inc), o["kernel_width"], terms, sel.opencl)
+    runner, sel = _stolt_runner(sel, None, path)
+    if runner is None:  # the twins (after a fallback too)
+        path = depth_path(o["depths"], len(f), len(depth_inc), o["kernel_width"], terms, False)
     t_setup = time.perf_counter() - t_start
     values = np.zeros((len(pu), len(pv), len(pw)), np.complex64)
-    info = {"groups": len(ap.groups), "n_f": len(f), "band_hz": (float(f.min()), float(f.max())), "lattices": []}
+    info = {"groups": len(ap.groups), "n_f": len(f), "band_hz": (float(f.min()), float(f.max())), "depths": path,
+            "lattices": []}
     t_stolt = 0.0
     for g in ap.groups:
-        img, ginfo, dt_stolt = _form_group(g, spec[g.index], k, pu, pv, depth_inc, o, workers, runner,
+        img, ginfo, dt_stolt = _form_group(g, spec[g.index], k, pu, pv, depth_inc, o, workers, (path, runner),
                                            4 * np.pi * f_top / c_ref, progress)
         values += img[:, :, ::-1] if flip else img
         info["lattices"].append(ginfo)
@@ -453,13 +504,14 @@ def _layout(g, k, pu, pv, depth, o, k_top) -> dict:
     # keep only columns with weight, and with any frequency inside the look-angle window
     kp_ok = np.hypot(ku_all[:, None], kv_all[None, :]) < s2 * np.abs(k).max()
     cols = np.argwhere((wu[:, None] * wv[None, :] > 0) & kp_ok)
-    n_cells = scipy.fft.next_fast_len(max(2 * len(depth), 2 * o["kernel_width"]))
+    n_cells = _n_cells(len(depth), o["kernel_width"])
     return {"mu": mu, "mv": mv, "up": up, "s1": s1, "s2": s2, "ku": ku_all, "kv": kv_all, "wu": wu, "wv": wv,
             "cols": cols, "n_cells": n_cells}
 
 
-def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
-    """Image one lattice group on the (u, v, depth) grid (depth increasing)."""
+def _form_group(g, spec, k, pu, pv, depth, o, workers, stolt_step, k_top, progress):
+    """Image one lattice group on the (u, v, depth) grid (depth increasing); ``stolt_step`` is
+    (path, OpenCL plan or None for the twin)."""
     import scipy.fft
 
     nu, nv = g.shape
@@ -494,12 +546,8 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
         block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_]).astype(np.float32)[:, None]
         block *= _plane_wave_beam(o["angular"], ku_all[iu_], kv_all[iv_], k)  # issue 33: 1 without beams
         t = time.perf_counter()
-        if runner is not None:
-            cells = runner(block, k, ku_all[iu_], kv_all[iv_], params)
-        else:
-            cells = stolt.spread(block, k, ku_all[iu_], kv_all[iv_], params)
+        T[iu_, iv_] = _stolt_columns(stolt_step, block, k, ku_all[iu_], kv_all[iv_], params, factors, workers)
         t_stolt += time.perf_counter() - t
-        T[iu_, iv_] = stolt.terms_to_depths(cells, nz, params, factors, workers, overwrite=True)  # (cols, nz)
         if progress is not None:
             progress(min(len(cols), c0 + step), len(cols))
     del dspec
@@ -510,6 +558,18 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, runner, k_top, progress):
     info = {"shape": (nu, nv), "spacing_m": (du, dv), "padded": (mu, mv), "upsample": up, "columns": len(cols),
             "terms": n_terms, "z_ref_m": zref, "look_sine": (s1, s2), "cells": n_cells}
     return img, info, t_stolt
+
+
+def _stolt_columns(stolt_step, block, k, ku, kv, params, factors, workers) -> np.ndarray:
+    """(cols, nz) the Stolt sum of ``block``'s columns at the depths, by the step's path."""
+    path, runner = stolt_step
+    nz = factors.shape[1]
+    if path == "direct":
+        out = runner(block, k, ku, kv, params, nz, factors) if runner is not None else \
+            stolt.direct(block, k, ku, kv, params, nz, factors)
+        return out
+    cells = runner(block, k, ku, kv, params) if runner is not None else stolt.spread(block, k, ku, kv, params)
+    return stolt.terms_to_depths(cells, nz, params, factors, workers, overwrite=True)
 
 
 def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **options) -> dict:
@@ -527,7 +587,8 @@ def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **option
         -20 dB band), ``c_mps``, ``aperture`` (:class:`~clsas.formation.planar.PlanarAperture`),
         ``axes`` (grid axes in aperture order, depths from the plane) and ``groups``: per lattice
         ``mu``, ``mv``, ``up``, ``columns``, ``n_cells``, ``terms`` (powers of the bistatic
-        expansion), ``width`` (the spreading kernel's cells).
+        expansion), ``width`` (the spreading kernel's cells); ``depths`` (the option: how the
+        Stolt sum reaches the depths, see :func:`depth_path`).
     """
     import scipy.fft
 
@@ -559,4 +620,4 @@ def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **option
     n_fft = scipy.fft.next_fast_len(int(math.ceil(o["pad_time"] * n_lags)))
     return {"n_meas": n_meas, "n_lags": n_lags, "n_fft": n_fft,
             "n_f": len(f), "nz": len(depth), "f_band_hz": (float(f.min()), float(f.max())), "f_top_hz": f_top,
-            "c_mps": c_ref, "aperture": ap, "axes": (pu, pv, depth), "groups": groups}
+            "c_mps": c_ref, "aperture": ap, "axes": (pu, pv, depth), "groups": groups, "depths": o["depths"]}

@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["StoltParams", "spread", "deapodization", "columns_to_depths", "terms_to_depths", "es_beta"]
+__all__ = ["StoltParams", "spread", "direct", "deapodization", "columns_to_depths", "terms_to_depths", "es_beta"]
 
 
 def es_beta(width: int) -> float:
@@ -137,6 +137,50 @@ def spread(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: S
             v = (val * alpha**term).ravel()
             out[term] += np.bincount(idx, v.real, n_cols * M) + 1j * np.bincount(idx, v.imag, n_cols * M)
     return out.reshape(p.n_terms, n_cols, M)
+
+
+def direct(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: StoltParams, n_z: int,
+           factors: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """The Stolt sum evaluated directly at the depths (the NumPy twin of ``stolt_depths`` in
+    kernels/stolt.cl): what :func:`spread` then :func:`terms_to_depths` approximate, exactly.
+
+    ``out[c, l] = sum_p factors[p, l] sum_j c0[c, j] alpha[c, j]^p exp(i kz[c, j] (l - n_z // 2) dz)``
+    (``c0`` carries the phase at ``zc``). Its work is ``n_cols n_f n_z``, the spread's
+    ``n_cols (n_f W n_terms + M log M)``: for few samples and depths it is the cheaper.
+
+    Parameters
+    ----------
+    spec, k, ku, kv, p
+        As for :func:`spread` (``n_cells`` and ``width`` unused).
+    n_z : int
+        Output depths (``zc + (l - n_z // 2) dz``).
+    factors : (n_terms, n_z) complex
+        Weight of each power of alpha per depth.
+
+    Returns
+    -------
+    (n_cols, n_z) complex128.
+    """
+    n_z = int(n_z)
+    factors = np.asarray(factors)
+    if factors.shape != (p.n_terms, n_z):
+        raise ValueError(f"factors must have shape ({p.n_terms}, {n_z}) (n_terms, n_z), got {factors.shape}")
+    spec = np.asarray(spec, np.complex128)
+    k = np.asarray(k, float)
+    ell = (np.arange(n_z) - n_z // 2) * p.dz_m
+    out = np.zeros((spec.shape[0], n_z), np.complex128)
+    for c0_ in range(0, spec.shape[0], chunk):
+        sl = slice(c0_, c0_ + chunk)
+        c0, alpha, _, valid = _strengths(spec[sl], k, np.asarray(ku)[sl], np.asarray(kv)[sl], p)
+        c0 = np.where(valid, c0, 0.0)
+        alpha = np.where(valid, alpha, 0.0)
+        kz = np.sign(k)[None, :] * np.sqrt(np.where(valid, k[None, :] ** 2 - (ku[sl] ** 2 + kv[sl] ** 2)[:, None], 1.0))
+        e = np.exp(1j * kz[:, :, None] * ell[None, None, :])  # (cols, n_f, n_z)
+        g = np.zeros(alpha.shape + (n_z,), np.complex128)
+        for q in range(p.n_terms - 1, -1, -1):  # sum_p factors[p] alpha^p, Horner
+            g = g * alpha[:, :, None] + factors[q][None, None, :]
+        out[sl] = np.einsum("cf,cfz->cz", c0, e * g)
+    return out
 
 
 def deapodization(n_z: int, p: StoltParams) -> np.ndarray:
