@@ -262,6 +262,19 @@ def _stolt_runner(backend, device, path: str = "spread"):
     return _cl.select(backend, device).plan(lambda q: cls(queue=q))
 
 
+def _stolt_step(o: dict, backend, device, ap, k: np.ndarray, depth: np.ndarray):
+    """(path, OpenCL plan or None, selection) of the Stolt step: the way to the depths chosen for
+    the device it runs on (the twins' after a fallback)."""
+    u_max = 0.5 * (1.0 / depth[0] - 1.0 / depth[-1])
+    terms = max(_group_terms(g, k, u_max, o) for g in ap.groups)
+    sel = _cl.select(backend, device)
+    path = depth_path(o["depths"], len(k), len(depth), o["kernel_width"], terms, sel.opencl)
+    runner, sel = _stolt_runner(sel, None, path)
+    if runner is None:
+        path = depth_path(o["depths"], len(k), len(depth), o["kernel_width"], terms, False)
+    return path, runner, sel
+
+
 def depth_path(choice: str, n_f: int, n_z: int, width: int, terms: int, opencl: bool = True) -> str:
     """How the Stolt sum reaches the depths: ``"direct"`` (the sum at each depth) or ``"spread"``
     (the non-uniform FFT); ``"auto"`` takes the one :data:`DIRECT_COST` and :data:`SPREAD_COST`
@@ -354,26 +367,18 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     k = 4 * np.pi * f / c_ref
     flip = depth[0] > depth[-1]
     depth_inc = depth[::-1] if flip else depth
-    u_max = 0.5 * (1.0 / depth_inc[0] - 1.0 / depth_inc[-1])
-    terms = max(_group_terms(g, k, u_max, o) for g in ap.groups)
-    sel = _cl.select(backend, device)
-    path = depth_path(o["depths"], len(f), len(depth_inc), o["kernel_width"], terms, sel.opencl)
-    runner, sel = _stolt_runner(sel, None, path)
-    if runner is None:  # the twins (after a fallback too)
-        path = depth_path(o["depths"], len(f), len(depth_inc), o["kernel_width"], terms, False)
+    path, runner, sel = _stolt_step(o, backend, device, ap, k, depth_inc)
     t_setup = time.perf_counter() - t_start
     values = np.zeros((len(pu), len(pv), len(pw)), np.complex64)
-    info = {"groups": len(ap.groups), "n_f": len(f), "band_hz": (float(f.min()), float(f.max())), "depths": path,
-            "lattices": []}
-    t_stolt = 0.0
+    info = {"groups": len(ap.groups), "n_f": len(f), "band_hz": (float(f.min()), float(f.max())), "lattices": []}
+    info["depths"], t_stolt = path, 0.0
     for g in ap.groups:
         img, ginfo, dt_stolt = _form_group(g, spec[g.index], k, pu, pv, depth_inc, o, workers, (path, runner),
                                            4 * np.pi * f_top / c_ref, progress)
         values += img[:, :, ::-1] if flip else img
         info["lattices"].append(ginfo)
         t_stolt += dt_stolt
-    inv = np.argsort(ap.perm)
-    values = np.transpose(values, inv)
+    values = np.transpose(values, np.argsort(ap.perm))
     if o["upsample"] == 1:
         info["cone_fraction"] = _warn_outside_cone(ap, grid, f_top, c_ref, o["angular"])
     total = time.perf_counter() - t_start
