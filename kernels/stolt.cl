@@ -35,6 +35,28 @@ inline floatV exp_neg(const floatV y)
 
 
 
+/* One frequency sample k of VEC columns (|k_perp|^2 = kp2, |k_perp| = kp, (b . k_perp)^2 = proj2):
+ * the lanes the sample reaches (-1: kz real and the look angle under s2), kz (k's sign), the
+ * bistatic alpha and the strength's amplitude w 2 pi k / kz^2 (w: the look-angle window). Lanes
+ * not reached get a finite kz (1); alpha is infinite where k = 0, which no caller keeps. */
+inline intV stolt_sample(const float kk, const floatV kp2, const floatV kp, const floatV proj2, const float b2,
+                         const float4 win, const float s2, floatV *kz, floatV *alpha, floatV *amp)
+{
+    const floatV kz2 = kk * kk - kp2;
+    const floatV s = kp * fabs(1.0f / kk);
+    const floatV kz_abs = sqrt(kz2 > 0.0f ? kz2 : (floatV)(1.0f));
+    *kz = kk < 0.0f ? -kz_abs : kz_abs;   /* negative frequencies: kz < 0 */
+    const floatV ramp = (s - win.z) * win.w;
+    floatV wc;
+    sincos_2pi(0.5f * (ramp > 1.0f ? (floatV)(1.0f) : ramp), &wc);   /* cos(pi ramp) */
+    const floatV w = ramp <= 0.0f ? (floatV)(1.0f) : 0.5f * (1.0f + wc);
+    *alpha = 0.125f * *kz * (b2 - proj2 * (1.0f / (kk * kk)));
+    *amp = w * (6.28318530718f * kk) / (kz_abs * kz_abs);
+    return (kz2 > 0.0f) & (s < s2);
+}
+
+
+
 __kernel void stolt_spread(
     __global const float2 *spec,     /* (n_cols, n_f) data spectrum, weights applied            */
     __global const float *k,         /* (n_f,) two-way wavenumber 4 pi f / c, rad/m (any sign)  */
@@ -75,23 +97,13 @@ __kernel void stolt_spread(
     const floatV proj2 = proj * proj;
     for (int j = 0; j < n_f; ++j) {
         const float kk = k[j];
-        const float inv_kk2 = 1.0f / (kk * kk);
-        const floatV kz2 = kk * kk - kp2;
-        const floatV s = kp * fabs(1.0f / kk);
+        floatV kz, alpha, amp;
         lanes_i ok;
-        ok.v = live.v & (kz2 > 0.0f) & (s < s2);
-        const floatV kz_abs = sqrt(kz2 > 0.0f ? kz2 : (floatV)(1.0f));
-        const floatV kz = kk < 0.0f ? -kz_abs : kz_abs;   /* negative frequencies: kz < 0 */
-        const floatV ramp = (s - win.z) * win.w;
-        floatV wc;
-        sincos_2pi(0.5f * (ramp > 1.0f ? (floatV)(1.0f) : ramp), &wc);   /* cos(pi ramp) */
-        const floatV w = ramp <= 0.0f ? (floatV)(1.0f) : 0.5f * (1.0f + wc);
-        const floatV alpha = 0.125f * kz * (b2 - proj2 * inv_kk2);
+        ok.v = live.v & stolt_sample(kk, kp2, kp, proj2, b2, win, s2, &kz, &alpha, &amp);
         floatV cyc = kz * geo.y + alpha * geo.w;
         cyc -= RINT(cyc);
         floatV ph_c;
         const floatV ph_s = sincos_2pi(cyc, &ph_c);
-        const floatV amp = w * (6.28318530718f * kk) / (kz_abs * kz_abs);
         const floatV q = geo.z / kz;                      /* the 1 / (kz zref) term */
         lanes_f dr, di;
         for (int l = 0; l < VEC; ++l) {
@@ -183,25 +195,16 @@ __kernel void stolt_depths(
     const floatV proj2 = proj * proj;
     for (int j = 0; j < n_f; ++j) {
         const float kk = k[j];
-        const float inv_kk2 = 1.0f / (kk * kk);
-        const floatV kz2 = kk * kk - kp2;
-        const floatV s = kp * fabs(1.0f / kk);
-        const intV ok = (kz2 > 0.0f) & (s < s2);
-        const floatV kz_abs = sqrt(kz2 > 0.0f ? kz2 : (floatV)(1.0f));
-        const floatV kz = kk < 0.0f ? -kz_abs : kz_abs;
-        const floatV ramp = (s - win.z) * win.w;
-        floatV wc;
-        sincos_2pi(0.5f * (ramp > 1.0f ? (floatV)(1.0f) : ramp), &wc);   /* cos(pi ramp) */
-        const floatV w = ramp <= 0.0f ? (floatV)(1.0f) : 0.5f * (1.0f + wc);
+        floatV kz, alpha_all, amp;
+        const intV ok = stolt_sample(kk, kp2, kp, proj2, b2, win, s2, &kz, &alpha_all, &amp);
         /* samples not kept carry zeros (k = 0 would give infinities) */
-        const floatV alpha = ok ? 0.125f * kz * (b2 - proj2 * inv_kk2) : (floatV)(0.0f);
+        const floatV alpha = ok ? alpha_all : (floatV)(0.0f);
         floatV c1 = kz * geo.y + alpha * geo.w;   /* phase at zc, cycles */
         c1 -= RINT(c1);
         floatV st = kz * geo.x;                   /* the step exp(i kz dz), cycles */
         st -= RINT(st);
         floatV st_c;
         const floatV st_s = sincos_2pi(st, &st_c);
-        const floatV amp = w * (6.28318530718f * kk) / (kz_abs * kz_abs);
         const floatV q = geo.z / kz;
         const floatV dr = spec_r[(size_t)j * n_items + item], di = spec_i[(size_t)j * n_items + item];
         /* d amp (1 + i q): the strength without its phase */

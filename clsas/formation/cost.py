@@ -250,7 +250,7 @@ def work_bp(profiles: Profiles, grid: VoxelGrid) -> dict:
 def work_omega_k(sizes: dict, opencl: bool = True) -> dict:
     """Counted work of ω-k from :func:`clsas.formation.omega_k.plan_sizes` (the Stolt step's path as
     ω-k takes it on OpenCL, or on the NumPy twins where ``opencl`` is False)."""
-    from .omega_k import depth_path, direct_work
+    from .stolt import depth_path, direct_work
 
     n_fft, n_f, nz = sizes["n_fft"], sizes["n_f"], sizes["nz"]
     pu, pv, _ = sizes["axes"]

@@ -44,7 +44,7 @@ wavenumber domain. The steps, and what each costs in accuracy:
    exponential-of-semicircle kernel of ``kernel_width`` cells on a 2x oversampled ``kz`` axis,
    error ~1e-3 at the default 4 cells, far under the method's own; work about
    ``n_f W + M log M``). ``"auto"`` (default) takes the one a fitted timing model
-   (:data:`DIRECT_COST`, :data:`SPREAD_COST`) predicts faster on OpenCL, and the spread on the
+   (:func:`clsas.formation.stolt.depth_path`) predicts faster on OpenCL, and the spread on the
    NumPy twins (their direct sum is the slower); on a scan of 32 x 32 stops onto 30 x 30 x 41
    voxels the direct sum took ω-k from 22 to 16 ms. On OpenCL this step runs as
    ``kernels/stolt.cl`` (``stolt_depths``, ``stolt_spread``).
@@ -103,13 +103,6 @@ OPTIONS = {
     "max_sine": None, "beam": None, "beam_floor_db": -12.0, "depths": "auto",
 }
 DEPTHS = ("auto", "direct", "spread")
-# relative time per column of the two ways to the depths (n_f samples, n_z depths, t terms, W
-# cells): direct 2.0 n_f n_z (1 + 0.2 (t - 1)) + 49 n_f, spread 18.2 n_f t W + 121 n_z t (the
-# spread kernel, the cells' inverse FFT and the sum of terms); a non-negative least-squares fit
-# to both timed on 72 column sets (2048 and 8192 columns, n_f 20-300, n_z 20-256, 1-3 terms)
-# on the 2-core AMD EPYC VM with PoCL, 2026-11-28: "auto" then loses at most 1.37x (near ties)
-DIRECT_COST = (2.0, 49.0)
-SPREAD_COST = (18.2, 121.0)
 
 
 def _options(options: dict) -> dict:
@@ -255,45 +248,18 @@ def _max_sine(g, pu, pv, depth_min) -> float:
     return lat / math.hypot(lat, depth_min)
 
 
-def _stolt_runner(backend, device, path: str = "spread"):
-    """The Stolt step (``path`` "spread" or "direct"): the OpenCL plan when the backend is OpenCL
-    (``None``: the twin), and the selection it runs on (NumPy after a fallback, logged)."""
-    cls = StoltDepthsPlan if path == "direct" else StoltPlan
-    return _cl.select(backend, device).plan(lambda q: cls(queue=q))
-
-
 def _stolt_step(o: dict, backend, device, ap, k: np.ndarray, depth: np.ndarray):
     """(path, OpenCL plan or None, selection) of the Stolt step: the way to the depths chosen for
     the device it runs on (the twins' after a fallback)."""
     u_max = 0.5 * (1.0 / depth[0] - 1.0 / depth[-1])
     terms = max(_group_terms(g, k, u_max, o) for g in ap.groups)
     sel = _cl.select(backend, device)
-    path = depth_path(o["depths"], len(k), len(depth), o["kernel_width"], terms, sel.opencl)
-    runner, sel = _stolt_runner(sel, None, path)
+    path = stolt.depth_path(o["depths"], len(k), len(depth), o["kernel_width"], terms, sel.opencl)
+    cls = StoltDepthsPlan if path == "direct" else StoltPlan
+    runner, sel = sel.plan(lambda q: cls(queue=q))  # None: the twin (NumPy after a fallback, logged)
     if runner is None:
-        path = depth_path(o["depths"], len(k), len(depth), o["kernel_width"], terms, False)
+        path = stolt.depth_path(o["depths"], len(k), len(depth), o["kernel_width"], terms, False)
     return path, runner, sel
-
-
-def depth_path(choice: str, n_f: int, n_z: int, width: int, terms: int, opencl: bool = True) -> str:
-    """How the Stolt sum reaches the depths: ``"direct"`` (the sum at each depth) or ``"spread"``
-    (the non-uniform FFT); ``"auto"`` takes the one :data:`DIRECT_COST` and :data:`SPREAD_COST`
-    predict faster on OpenCL, and the spread on the NumPy twins (``opencl`` False)."""
-    if choice != "auto":
-        return choice
-    if not opencl:
-        return "spread"  # NumPy's direct sum is the slower twin (0.50 s against 0.12 s at 32 x 32 stops)
-    return "direct" if direct_work(n_f, n_z, terms) <= spread_work(n_f, n_z, width, terms) else "spread"
-
-
-def direct_work(n_f: int, n_z: int, terms: int) -> float:
-    """Relative time per column of the direct sum (:data:`DIRECT_COST`)."""
-    return DIRECT_COST[0] * n_f * n_z * (1 + 0.2 * (terms - 1)) + DIRECT_COST[1] * n_f
-
-
-def spread_work(n_f: int, n_z: int, width: int, terms: int) -> float:
-    """Relative time per column of the spread, the cells' FFT and the terms' sum (:data:`SPREAD_COST`)."""
-    return SPREAD_COST[0] * n_f * terms * width + SPREAD_COST[1] * n_z * terms
 
 
 def _n_cells(n_z: int, width: int) -> int:
@@ -570,10 +536,8 @@ def _stolt_columns(stolt_step, block, k, ku, kv, params, factors, workers) -> np
     path, runner = stolt_step
     nz = factors.shape[1]
     if path == "direct":
-        out = runner(block, k, ku, kv, params, nz, factors) if runner is not None else \
-            stolt.direct(block, k, ku, kv, params, nz, factors)
-        return out
-    cells = runner(block, k, ku, kv, params) if runner is not None else stolt.spread(block, k, ku, kv, params)
+        return (runner or stolt.direct)(block, k, ku, kv, params, nz, factors)
+    cells = (runner or stolt.spread)(block, k, ku, kv, params)
     return stolt.terms_to_depths(cells, nz, params, factors, workers, overwrite=True)
 
 
@@ -593,7 +557,7 @@ def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **option
         ``axes`` (grid axes in aperture order, depths from the plane) and ``groups``: per lattice
         ``mu``, ``mv``, ``up``, ``columns``, ``n_cells``, ``terms`` (powers of the bistatic
         expansion), ``width`` (the spreading kernel's cells); ``depths`` (the option: how the
-        Stolt sum reaches the depths, see :func:`depth_path`).
+        Stolt sum reaches the depths, see :func:`clsas.formation.stolt.depth_path`).
     """
     import scipy.fft
 
