@@ -119,15 +119,15 @@ def _errors(img, ref, mask) -> dict:
             "error_cone_db": error_to_signal_db(img, ref, mask) if mask is not None and mask.any() else None}
 
 
-def auto_row(prof, grid, ref, mask, rows: list[dict]) -> dict:
+def auto_row(prof, grid, ref, mask, rows: list[dict], target_db: float = TARGET_DB) -> dict:
     """``formation="auto"`` timed (choosing included) against ``rows`` (the formations' own rows:
-    ``formation``, ``time_s``, ``error_all_db``; bp's error None)."""
+    ``formation``, ``time_s``, ``error_all_db``; bp's error None) at the error target ``target_db``."""
     def run():
-        choice = cost.choose(prof, grid, clsas.cl.select(None))
+        choice = cost.choose(prof, grid, clsas.cl.select(None), max_error_db=target_db)
         return choice, form(prof, grid, choice.formation, **choice.options)
 
     took, (choice, img) = _timed(run)
-    ok = [r for r in rows if "time_s" in r and (r.get("error_all_db") is None or r["error_all_db"] <= TARGET_DB)]
+    ok = [r for r in rows if "time_s" in r and (r.get("error_all_db") is None or r["error_all_db"] <= target_db)]
     best = min(ok, key=lambda r: r["time_s"])
     bp = next(r for r in rows if r["formation"] == "bp")
     return {"formation": "auto", "chose": choice.formation, "options": choice.options, "reason": choice.reason,

@@ -31,6 +31,8 @@ def cmd_bench(args) -> int:
             print(f"wrote {path}")
         return 0
 
+    if args.formation_family is not None:
+        return _bench_formation_family(args, status)
     if args.superres_image:
         return _bench_superres_image(args, status)
     if args.scale == "tiles":
@@ -128,6 +130,23 @@ def _scale_arg(text: str) -> float | str:
         raise argparse.ArgumentTypeError(f"expected a number (the dense case's size), got {text!r}") from None
 
 
+
+def _bench_formation_family(args, status) -> int:
+    """``--formation-family``: formation="auto" on the seeded request family, its summary printed."""
+    from clsas.bench.formation_family import run_and_write
+
+    res = run_and_write(args.formation_family, n_seeds=args.n_seeds, out_dir=args.out, plots=not args.no_plots,
+                        status=status)
+    s = res["summary"]
+    if s.get("n"):
+        print(f"formation family ({args.formation_family}): {s['n']} requests, auto within {s['within_factor']:g}x "
+              f"the best in {s['within']:.0%} (median {s['median_over_best']:.2f}x, worst "
+              f"{s['worst_over_best']:.2f}x), over its error target in {s['over_target']:.0%}, took "
+              + ", ".join(f"{k} {n}" for k, n in s["chose"].items()))
+    for path in res["paths"].values():
+        print(f"wrote {path}")
+    return 0 if s.get("n") else 1
+
 def add_parser(sub) -> None:
     b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time "
                        "(the quick set: 3 to 6 minutes on a 2-core CPU)")
@@ -153,9 +172,14 @@ def add_parser(sub) -> None:
     b.add_argument("--autofocus", nargs="?", const="tuning", choices=("tuning", "held-out"), default=None,
                    help="run only the autofocus benchmark on the seeded scene family: its tuning seeds (default) or "
                    "the held-out ones (for reports, never for tuning)")
+    b.add_argument("--formation-family", nargs="?", const="tuning", choices=("tuning", "held-out"), default=None,
+                   help="run only formation='auto' on a seeded family of requests (planar, jittered and ring "
+                   "apertures, points and planes, audio bands): its tuning seeds (default) or the held-out ones "
+                   "(for reports, never for tuning); 1-3 minutes on a 2-core CPU")
     b.add_argument("--rms-mm", type=float, nargs="+", default=[3.0],
                    help="with --autofocus: RMS of the hand motion, mm (default 3)")
-    b.add_argument("--n-seeds", type=int, default=None, help="with --autofocus: the first N seeds of the set only")
+    b.add_argument("--n-seeds", type=int, default=None,
+                   help="with --autofocus or --formation-family: the first N seeds of the set only")
     b.add_argument("--superres-image", action="store_true",
                    help="run only the model-based reconstruction benchmark: bp, cbp-polar, psf, ls, l1, l1-psf, tv, "
                    "l1-tv and offgrid on simulated point pairs (--n-seeds trials, default 10, 50 with --full) and, "

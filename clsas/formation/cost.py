@@ -71,8 +71,9 @@ OMEGA_K_BASE_DB = -42.0
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
 # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
-# bp and FFBP; 5: omega-k's direct sum at the depths (a factor stored by an older format no longer applies)
-FORMAT = 5
+# bp and FFBP; 5: omega-k's direct sum at the depths; 6: bp's fixed part split into a per-measurement
+# term (a factor stored by an older format no longer applies)
+FORMAT = 6
 
 # seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
 # (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
@@ -84,23 +85,34 @@ FORMAT = 5
 # x 0.81 (2e-9 before) on 2026-11-28 after the split-carrier kernel, its measured over predicted on
 # the crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier.json; FFBP's
 # variable terms x 0.55 (its median measured over predicted on the crossover scans of
-# bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json, after its faster leaves and planning)
+# bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json, after its faster leaves and planning);
+# bp refitted again on 2026-11-28 (eighth session) by non-negative least squares in relative error on 69
+# requests of the formation family's fit seeds 500-579 (clsas.bench.formation_family, up to 3e8 pairs):
+# its 5 ms fixed part over-predicted bp up to 5x on scans it forms in 1-3 ms (auto then took ω-k
+# there, twice bp's time); now 0.63 ms, 5.6 us per measurement (its records and profiles, host side)
+# and 1.83e-9 per pair (measured / predicted 0.66-1.78 on those requests, was 0.21-1.78)
 BUILTIN: dict[str, dict[str, float]] = {
-    "bp": {"fixed": 5e-3, "pairs": 1.6e-9},
+    "bp": {"fixed": 6.3e-4, "meas": 5.6e-6, "pairs": 1.83e-9},
     "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9,
                 "direct": 2.1e-10},
     "ffbp": {"fixed": 5e-3, "leaf": 1.1e-9, "merge": 1.4e-9, "grid": 1.4e-9},
 }
 # bp's fixed part on a GPU: 1.5 ms (1.45-1.9 ms for the whole of bp's smallest cases on an H200
-# through NVIDIA's OpenCL, bench/results/2026-11-28-formation-gpu-h200.md), not PoCL's 5 ms: with
-# PoCL's, auto sized ω-k for scans bp forms in 2-5 ms, and the sizing alone doubled auto's time
+# through NVIDIA's OpenCL, bench/results/2026-11-28-formation-gpu-h200.md), not the 5 ms PoCL's model
+# had then: with that, auto sized ω-k for scans bp forms in 2-5 ms, and the sizing alone doubled auto's time
 GPU_FIXED = {"bp": 1.5e-3}
 # the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
 # for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
-# before, 2026-11-28); with
+# before, 2026-11-28; 27-46 ms for 1155-1634 measurements on the formation family's fit seeds); with
 # 1.5 times the last step's time it bounds FFBP's time from below before a tree is planned
-FFBP_PLAN_S_PER_MEAS = 2e-5
+FFBP_PLAN_S_PER_MEAS = 2.8e-5
 PLAN_IF_UNDER = 0.7
+# sizing ω-k (its lattice, band and aliased share, host side) takes about this fixed part and this per
+# measurement, s: 1.1-4.7 ms on the 32 planar requests of the formation family's fit seeds 500-579
+# (measured / predicted 0.6-1.9); it counts in ω-k's lower bound, since it is lost where bp is chosen
+# (on scans bp forms in 2-6 ms it had doubled auto's time)
+OMEGA_K_SIZING_S = (1.5e-3, 8e-7)
+HOST_TERMS = ("fixed", "meas", "plan")  # work the host does, whatever the device
 REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
 # ω-k's host work speeds up as (cores / REF_UNITS) ** this: 1.25-1.8x on a 16-core host against the
 # 2-core reference (8 ** 0.1-0.28), measured with a GPU doing bp on 2026-11-28
@@ -234,17 +246,19 @@ def _speed(selection, formation: str) -> float:
 
 
 def _seconds(formation: str, work: dict, selection, factors: dict) -> float:
-    # the fixed part (set-up, launches, Python) does not scale with the device's speed
+    # the fixed part (set-up, launches, Python) and the host's per-measurement work do not scale with
+    # the device's speed
     coef = BUILTIN[formation]
     fixed = GPU_FIXED.get(formation, coef["fixed"]) if _on_gpu(selection) else coef["fixed"]
-    t = sum(coef[k] * float(n) for k, n in work.items() if k not in ("plan", "fixed"))
-    t = fixed * float(work.get("fixed", 0)) + t / _speed(selection, formation) + work.get("plan", 0.0)
+    t = sum(coef[k] * float(n) for k, n in work.items() if k not in HOST_TERMS)
+    host = fixed * float(work.get("fixed", 0)) + coef.get("meas", 0.0) * float(work.get("meas", 0))
+    t = host + t / _speed(selection, formation) + work.get("plan", 0.0)
     return t * factors.get(formation, 1.0)
 
 
 def work_bp(profiles: Profiles, grid: VoxelGrid) -> dict:
     """Counted work of exact backprojection."""
-    return {"fixed": 1, "pairs": float(profiles.n_meas) * grid.size}
+    return {"fixed": 1, "meas": float(profiles.n_meas), "pairs": float(profiles.n_meas) * grid.size}
 
 
 def work_omega_k(sizes: dict, opencl: bool = True) -> dict:
@@ -391,13 +405,13 @@ def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_d
     if "omega-k" in formations:
         n_fft = 1.5 * profiles.n_lags
         floor = _seconds("omega-k", {"fixed": 1, "delay": profiles.n_meas * n_fft * math.log2(max(n_fft, 2))},
-                         selection, factors)
+                         selection, factors) + OMEGA_K_SIZING_S[0] + OMEGA_K_SIZING_S[1] * profiles.n_meas
         best = min((e.time_s for e in out if e.feasible), default=math.inf)
         if floor < PLAN_IF_UNDER * best:  # sizing it costs time too, lost where it is not chosen
             out.append(_omega_k_estimate(profiles, grid, selection, factors))
         else:  # sizing it would cost more than the whole of the fastest
-            out.append(Estimate("omega-k", floor, math.nan, note=f"not sized: its fixed cost alone is about "
-                                f"{floor:.3g} s"))
+            out.append(Estimate("omega-k", floor, math.nan,
+                                note=f"not sized: its sizing and fixed cost alone are about {floor:.3g} s"))
     if "ffbp" in formations:
         best = min((e.time_s for e in out if e.feasible and e.error_db <= target), default=math.inf)
         out.extend(_ffbp_estimates(profiles, grid, selection, factors, target, best))
