@@ -50,12 +50,14 @@ def test_a_request_times_every_formation_and_auto(monkeypatch):
 
 def test_summary_counts_auto_over_its_target():
     def row(seed, over, err):
-        return {"seed": seed, "auto": {"chose": "ffbp", "best": "bp", "over_best": over, "error_all_db": err,
-                                       "over_target": err > -30}}
+        return {"seed": seed, "rows": [{"formation": "bp", "time_s": 0.02 * seed}],
+                "auto": {"chose": "ffbp", "best": "bp", "over_best": over, "error_all_db": err,
+                         "over_target": err > -30}}
     s = ff.summarise([row(1, 1.1, -35.0), row(2, 1.5, -28.0), row(3, 0.9, -40.0), row(4, 1.3, -31.0)])
     assert s["within"] == pytest.approx(0.5) and s["over_target"] == pytest.approx(0.25)
     assert s["worst_over_best"] == pytest.approx(1.5) and s["worst_seed"] == 2
     assert s["chose"] == {"ffbp": 4} and s["best"]["bp"] == 4
+    assert s["n_large"] == 2 and s["within_large"] == pytest.approx(0.5)  # seeds 3 and 4: bp 60 and 80 ms
 
 
 def test_the_cli_writes_the_family_report(tmp_path):

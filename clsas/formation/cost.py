@@ -30,7 +30,8 @@ is under ``PLAN_IF_UNDER`` (0.7) times the best time so far.
 
 Error. ``bp`` is the reference (exact). ``omega-k`` is refused for apertures that are not
 planar-uniform (:class:`~clsas.formation.planar.NotPlanarUniform`); otherwise its error is its
-method's (:data:`OMEGA_K_BASE_DB`, measured -44 to -48 dB inside the well-sampled cone) plus the
+method's (:data:`OMEGA_K_BASE_DB`, measured -44 to -48 dB inside the well-sampled cone; worse on lattices
+of fewer than 16 stops a side, :data:`OMEGA_K_DB_PER_STOP`) plus the
 backprojection contributions it leaves out: those of stop-voxel pairs whose angle the lattice
 samples aliased (the grating lobes, see :mod:`clsas.formation.planar`), counted per voxel over
 the stops (weighted by their spreading loss) and the band (:func:`alias_fraction`) and taken as
@@ -68,6 +69,13 @@ log = logging.getLogger(__name__)
 DEFAULT_MAX_ERROR_DB = -30.0
 MARGIN_DB = 3.0  # a formation is chosen only where its predicted error is this far under the target
 OMEGA_K_BASE_DB = -42.0
+# ... on lattices of at least OMEGA_K_FULL_SIDE stops a side (the crossover scans, 16-128); on fewer the
+# method's own error grows: on the planar requests of the formation family's fit seeds 500-599 that the
+# lattice samples unaliased, 8-10 stops a side measured -27.8 to -40.5 dB (8 of 8 worse than -42, 5 of 8
+# worse than -33), 13-48 a side -32.0 to -49.6 dB. The base is taken this much worse per stop short of
+# OMEGA_K_FULL_SIDE on the shorter side (-26.6 dB at 9 a side, -33.2 at 12): above every one measured
+OMEGA_K_FULL_SIDE = 16
+OMEGA_K_DB_PER_STOP = 2.2
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
 # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
@@ -341,8 +349,11 @@ def _omega_k_estimate(profiles, grid, selection, factors) -> Estimate:
         return Estimate("omega-k", math.inf, math.inf, note=str(exc).split(";")[0])
     frac = alias_fraction(sizes)
     lost = float(np.sqrt(np.mean(frac**2)))
-    err = 10 * math.log10(10 ** (OMEGA_K_BASE_DB / 10) + lost**2)
-    note = (f"method {OMEGA_K_BASE_DB:.0f} dB; {100 * float(frac.mean()):.1f} % of stop-voxel-frequency samples "
+    side = min((n for g in sizes["aperture"].groups for n in g.shape if n > 1), default=OMEGA_K_FULL_SIDE)
+    base = OMEGA_K_BASE_DB + OMEGA_K_DB_PER_STOP * max(0, OMEGA_K_FULL_SIDE - side)
+    err = 10 * math.log10(10 ** (base / 10) + lost**2)
+    note = (f"method {base:.0f} dB ({side} stops on the lattice's shorter side); {100 * float(frac.mean()):.1f} % "
+            "of stop-voxel-frequency samples "
             f"aliased on the lattice (RMS over the grid {100 * lost:.1f} %), which omega-k leaves out")
     work = work_omega_k(sizes, _device(selection) is not None)
     return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, note=note)
