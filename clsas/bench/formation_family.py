@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import logging
 import os
-import time
 
 import numpy as np
 
@@ -39,7 +38,7 @@ import clsas
 
 from .. import validate as v
 from ..formation import cost, form
-from .crossover import _errors
+from .crossover import _errors, _interleaved
 from .crossover import profiles as _profiles
 
 __all__ = ["TUNING_SEEDS", "HELD_OUT_SEEDS", "MAX_PAIRS", "WITHIN", "draw", "family_request", "run_request",
@@ -130,32 +129,6 @@ def family_request(seed: int, max_pairs: float = MAX_PAIRS):
     ds = clsas.simulate(d["scene"], d["aperture"], d["waveform"], FS, snr_db=d["snr_db"], seed=int(seed),
                         chirp=d["chirp"])
     return ds, d["grid"], d["params"]
-
-
-ROUNDS = (3, 25)  # fewest and most timing rounds (each times every formation and auto once, in turn)
-ROUNDS_FOR_S = 2.0  # ... rounds go on until this much time has been spent (or one call takes this long)
-
-
-def _interleaved(fns: dict) -> dict:
-    """The fastest time of each of ``fns`` (name: callable), timed in turn, round after round.
-
-    On a shared 2-core host a 10 ms call varies by 1.5x and more from one moment to the next, in
-    bursts that outlast several calls: taking each one's fastest of calls made in turn with the
-    others gives them all the same moments (unlike timing one after the other)."""
-    from .crossover import _forget_tree
-
-    best = dict.fromkeys(fns, float("inf"))
-    spent, rounds = 0.0, 0
-    while True:
-        for name, fn in fns.items():
-            _forget_tree()  # FFBP's tree is planned inside each call, and auto's choosing
-            t = time.perf_counter()
-            fn()
-            took = time.perf_counter() - t
-            best[name], spent = min(best[name], took), spent + took
-        rounds += 1
-        if rounds >= ROUNDS[1] or (rounds >= ROUNDS[0] and spent >= ROUNDS_FOR_S) or max(best.values()) >= ROUNDS_FOR_S:
-            return best
 
 
 def run_request(seed: int, *, target_db: float = cost.DEFAULT_MAX_ERROR_DB, max_pairs: float = MAX_PAIRS,
