@@ -239,3 +239,22 @@ def test_omega_k_on_few_stops_a_side_is_predicted_worse_and_left_to_bp():
     prof = clsas.compress(ds, backend="numpy")  # bp made slow enough that omega-k is sized
     ests = {e.formation: e for e in cost.estimate(prof, grid, None, factors={"bp": 1e3})}
     assert ests["omega-k"].error_db > cost.DEFAULT_MAX_ERROR_DB - cost.MARGIN_DB
+
+
+def test_alias_fraction_skips_the_sum_where_no_pair_can_alias(dense, monkeypatch):
+    """Where even the steepest voxel-stop pair is sampled unaliased at the band's top, the share is
+    zero without the sum (a millisecond of auto's choosing on small scans); the sum agrees, here and
+    on a coarse lattice where it is not zero."""
+    from clsas.formation.omega_k import plan_sizes
+
+    ds, grid, prof = dense
+    coarse_ds, coarse_grid = _planar(12, 0.02, 0.04)
+    zero = []
+    for sizes in (plan_sizes(prof, grid), plan_sizes(clsas.compress(coarse_ds, backend="numpy"), coarse_grid)):
+        quick = cost.alias_fraction(sizes)
+        zero.append(not quick.any())
+        monkeypatch.setattr(cost, "_never_aliased", lambda *a: False)
+        full = cost.alias_fraction(sizes)
+        monkeypatch.undo()
+        assert np.allclose(quick, full)
+    assert zero == [True, False]  # the dense lattice (lambda/4) never aliases; the coarse (20 mm) does

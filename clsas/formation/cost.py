@@ -302,6 +302,17 @@ def work_ffbp(tree, grid: VoxelGrid, taps: int, plan_s: float) -> dict:
 
 
 # -- errors -----------------------------------------------------------------------------------
+def _never_aliased(g, pu, pv, depth_min: float, k2_max: float) -> bool:
+    """Whether no voxel-stop pair of the lattice group ``g`` is steep enough to be sampled aliased at the
+    two-way wavenumber ``k2_max`` (the steepest ``|sin theta|`` per axis: at the nearest depth, the
+    other axis' offset 0)."""
+    (u0, u1), (v0, v1) = g.extent_uv
+    du = max(abs(pu[-1] - u0), abs(u1 - pu[0]))
+    dv = max(abs(pv[-1] - v0), abs(v1 - pv[0]))
+    su, sv = du / math.hypot(du, depth_min), dv / math.hypot(dv, depth_min)
+    return bool(k2_max * su * g.spacing_uv[0] <= np.pi and k2_max * sv * g.spacing_uv[1] <= np.pi)
+
+
 def alias_fraction(sizes: dict, n_vox: int = 7, n_stops: int = 144, n_freq: int = 8) -> np.ndarray:
     """Per voxel (a coarse sub-grid, up to ``n_vox`` per axis), the share of (stop, frequency)
     pairs the lattice samples aliased: ``2 k |sin theta_a| > pi / d_a`` on a lattice axis ``a``,
@@ -318,6 +329,8 @@ def alias_fraction(sizes: dict, n_vox: int = 7, n_stops: int = 144, n_freq: int 
     U, V, W = np.meshgrid(sub(pu), sub(pv), sub(depth), indexing="ij")
     f = np.linspace(max(sizes["f_band_hz"][0], 1.0), sizes["f_top_hz"], n_freq)
     k2 = 2 * 2 * np.pi * f / sizes["c_mps"]  # two-way wavenumber, (n_freq,)
+    if all(_never_aliased(g, pu, pv, float(np.min(depth)), float(k2[-1])) for g in sizes["aperture"].groups):
+        return np.zeros(U.shape)
     aliased = np.zeros(U.shape)
     total = 0
     for g in sizes["aperture"].groups:
