@@ -258,3 +258,21 @@ def test_alias_fraction_skips_the_sum_where_no_pair_can_alias(dense, monkeypatch
         monkeypatch.undo()
         assert np.allclose(quick, full)
     assert zero == [True, False]  # the dense lattice (lambda/4) never aliases; the coarse (20 mm) does
+
+
+def test_auto_weighs_omega_k_with_its_aliased_angles_formed():
+    """Where the lattice samples the band's top aliased and plain omega-k misses the target, auto also
+    sizes omega-k with upsample="auto" (it forms the aliased angles on a finer lattice), with an error
+    of its own; what it chooses runs as chosen and meets the target."""
+    ds, grid = _planar(20, 0.012, 0.05, spacing=0.004)
+    prof = clsas.compress(ds, backend="numpy")
+    ests = cost.estimate(prof, grid, None, factors={"bp": 1e3})
+    oks = [e for e in ests if e.formation == "omega-k"]
+    assert [e.options for e in oks] == [{}, {"upsample": "auto"}]
+    plain, up = oks
+    assert plain.error_db > cost.DEFAULT_MAX_ERROR_DB - cost.MARGIN_DB > up.error_db
+    assert "lattice 2x as fine" in up.note or "lattice 3x as fine" in up.note
+    assert up.time_s > plain.time_s
+    img = form(prof, grid, "omega-k", backend="numpy", **up.options)
+    ref = form(prof, grid, "bp", backend="numpy")
+    assert error_to_signal_db(img.values, ref.values) <= cost.DEFAULT_MAX_ERROR_DB

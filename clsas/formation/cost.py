@@ -76,6 +76,11 @@ OMEGA_K_BASE_DB = -42.0
 # OMEGA_K_FULL_SIDE on the shorter side (-26.6 dB at 9 a side, -33.2 at 12): above every one measured
 OMEGA_K_FULL_SIDE = 16
 OMEGA_K_DB_PER_STOP = 2.2
+# ω-k with the aliased angles formed (``upsample="auto"``, a lattice ``up`` times as fine): on the 15
+# aliased planar requests of the family's fit seeds 500-599 it measured -31.7 to -49.8 dB where the
+# plain ω-k measured -1.9 to -34 (at up = 2: -42.6 to -46.2; 3: -36.2 to -49.8; 4: -42.5, -47.0; 5:
+# -31.7, -34.6), and was faster than bp on 8 of them. Its base is taken this much worse per step of up
+OMEGA_K_UP_DB = 3.0
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
 # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
@@ -111,9 +116,10 @@ BUILTIN: dict[str, dict[str, float]] = {
 GPU_FIXED = {"bp": 1.5e-3}
 # the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
 # for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
-# before, 2026-11-28; 27-46 ms for 1155-1634 measurements on the formation family's fit seeds); with
+# before, 2026-11-28; 27-46 ms, 1.7-2.8e-5 s each, for 1155-1634 measurements on the formation family's
+# fit seeds: the bound takes the low end); with
 # 1.5 times the last step's time it bounds FFBP's time from below before a tree is planned
-FFBP_PLAN_S_PER_MEAS = 2.8e-5
+FFBP_PLAN_S_PER_MEAS = 1.7e-5
 PLAN_IF_UNDER = 0.7
 # sizing ω-k (its lattice, band and aliased share, host side) takes about this fixed part and this per
 # measurement, s: 1.1-4.7 ms on the 32 planar requests of the formation family's fit seeds 500-579
@@ -353,23 +359,46 @@ def alias_fraction(sizes: dict, n_vox: int = 7, n_stops: int = 144, n_freq: int 
     return aliased / total
 
 
-def _omega_k_estimate(profiles, grid, selection, factors) -> Estimate:
+def _omega_k_estimate(profiles, grid, selection, factors, options: dict | None = None) -> Estimate:
+    """ω-k's predicted time and error; ``options`` ``{"upsample": "auto"}`` costs it forming the aliased
+    angles too (:data:`OMEGA_K_UP_DB`), else the lattice's aliased share is what it leaves out."""
+    return _omega_k_sized(profiles, grid, selection, factors, options)[0]
+
+
+def _omega_k_sized(profiles, grid, selection, factors, options: dict | None = None) -> tuple[Estimate, float]:
+    """:func:`_omega_k_estimate` and the aliased share it counted (RMS over the grid; 0 when upsampled)."""
     from .omega_k import plan_sizes
 
+    options = dict(options or {})
     try:
-        sizes = plan_sizes(profiles, grid)
+        sizes = plan_sizes(profiles, grid, **options)
     except ValueError as exc:  # NotPlanarUniform is one
-        return Estimate("omega-k", math.inf, math.inf, note=str(exc).split(";")[0])
-    frac = alias_fraction(sizes)
-    lost = float(np.sqrt(np.mean(frac**2)))
+        return Estimate("omega-k", math.inf, math.inf, options, note=str(exc).split(";")[0]), 0.0
     side = min((n for g in sizes["aperture"].groups for n in g.shape if n > 1), default=OMEGA_K_FULL_SIDE)
     base = OMEGA_K_BASE_DB + OMEGA_K_DB_PER_STOP * max(0, OMEGA_K_FULL_SIDE - side)
+    work = work_omega_k(sizes, _device(selection) is not None)
+    if options.get("upsample") == "auto":
+        up = max(g["up"] for g in sizes["groups"])
+        err = base + OMEGA_K_UP_DB * (up - 1)
+        note = (f"method {base:.0f} dB ({side} stops on the lattice's shorter side), the aliased angles formed on a "
+                f"lattice {up}x as fine ({OMEGA_K_UP_DB:g} dB a step)")
+        return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, options, note=note), 0.0
+    frac = alias_fraction(sizes)
+    lost = float(np.sqrt(np.mean(frac**2)))
     err = 10 * math.log10(10 ** (base / 10) + lost**2)
     note = (f"method {base:.0f} dB ({side} stops on the lattice's shorter side); {100 * float(frac.mean()):.1f} % "
             "of stop-voxel-frequency samples "
             f"aliased on the lattice (RMS over the grid {100 * lost:.1f} %), which omega-k leaves out")
-    work = work_omega_k(sizes, _device(selection) is not None)
-    return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, note=note)
+    return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, note=note), lost
+
+
+def _omega_k_estimates(profiles, grid, selection, factors, target_db: float, best_s: float) -> list[Estimate]:
+    """ω-k as it comes, and where that leaves out aliased angles and misses ``target_db``, with them
+    formed (``upsample="auto"``) if that could still beat ``best_s``."""
+    plain, lost = _omega_k_sized(profiles, grid, selection, factors)
+    if not plain.feasible or plain.error_db <= target_db or lost == 0 or plain.time_s >= best_s:
+        return [plain]
+    return [plain, _omega_k_estimate(profiles, grid, selection, factors, {"upsample": "auto"})]
 
 
 def _ffbp_candidates(n_meas: int) -> list[int]:
@@ -432,7 +461,7 @@ def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_d
                          selection, factors) + OMEGA_K_SIZING_S[0] + OMEGA_K_SIZING_S[1] * profiles.n_meas
         best = min((e.time_s for e in out if e.feasible), default=math.inf)
         if floor < PLAN_IF_UNDER * best:  # sizing it costs time too, lost where it is not chosen
-            out.append(_omega_k_estimate(profiles, grid, selection, factors))
+            out.extend(_omega_k_estimates(profiles, grid, selection, factors, target, best))
         else:  # sizing it would cost more than the whole of the fastest
             out.append(Estimate("omega-k", floor, math.nan,
                                 note=f"not sized: its sizing and fixed cost alone are about {floor:.3g} s"))
