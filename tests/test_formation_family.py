@@ -23,8 +23,9 @@ def test_requests_are_drawn_from_their_seed_and_bounded():
 
 
 def test_tuning_and_held_out_seeds_are_disjoint():
-    assert not set(ff.TUNING_SEEDS) & set(ff.HELD_OUT_SEEDS)
-    assert len(ff.HELD_OUT_SEEDS) >= 30
+    sets = [set(x) for x in ff.SEED_SETS.values()] + [set(range(500, 600))]  # the models' fit seeds
+    assert sum(map(len, sets)) == len(set().union(*sets))
+    assert len(ff.HELD_OUT_SEEDS) >= 30 and len(ff.HELD_OUT_2_SEEDS) >= 30
 
 
 @pytest.mark.parametrize("bad", [-1, 1.5, True, "3"])
