@@ -276,3 +276,14 @@ def test_auto_weighs_omega_k_with_its_aliased_angles_formed():
     img = form(prof, grid, "omega-k", backend="numpy", **up.options)
     ref = form(prof, grid, "bp", backend="numpy")
     assert error_to_signal_db(img.values, ref.values) <= cost.DEFAULT_MAX_ERROR_DB
+
+
+def test_omega_k_upsampled_is_not_weighed_past_its_steepest_angle(monkeypatch):
+    """Past a sine of OMEGA_K_UP_MAX_SINE the upsampled omega-k measured over its predicted error (the
+    128 x 128-stop crossover scan: -27 dB predicted -36), so auto does not weigh it there, and says so."""
+    ds, grid = _planar(20, 0.012, 0.05, spacing=0.004)
+    prof = clsas.compress(ds, backend="numpy")
+    monkeypatch.setattr(cost, "OMEGA_K_UP_MAX_SINE", 0.05)
+    oks = [e for e in cost.estimate(prof, grid, None, factors={"bp": 1e3}) if e.formation == "omega-k"]
+    assert oks[1].options == {"upsample": "auto"} and not oks[1].feasible
+    assert "past a sine of 0.05" in oks[1].note

@@ -81,6 +81,10 @@ OMEGA_K_DB_PER_STOP = 2.2
 # plain ω-k measured -1.9 to -34 (at up = 2: -42.6 to -46.2; 3: -36.2 to -49.8; 4: -42.5, -47.0; 5:
 # -31.7, -34.6), and was faster than bp on 8 of them. Its base is taken this much worse per step of up
 OMEGA_K_UP_DB = 3.0
+# ... weighed only where no voxel-stop angle is steeper than this sine: its padding counts the angles'
+# spread up to a sine of 0.9 and its look-angle window ends near it. Steeper, it measured -27.0 dB on the
+# 128 x 128-stop crossover scan (sine 0.82; predicted -36) and -31.7, -34.6 dB on the fit requests at 0.80-0.81
+OMEGA_K_UP_MAX_SINE = 0.75
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
 # 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
@@ -365,15 +369,18 @@ def _omega_k_estimate(profiles, grid, selection, factors, options: dict | None =
     return _omega_k_sized(profiles, grid, selection, factors, options)[0]
 
 
-def _omega_k_sized(profiles, grid, selection, factors, options: dict | None = None) -> tuple[Estimate, float]:
-    """:func:`_omega_k_estimate` and the aliased share it counted (RMS over the grid; 0 when upsampled)."""
-    from .omega_k import plan_sizes
+def _omega_k_sized(profiles, grid, selection, factors, options: dict | None = None) -> tuple[Estimate, float, float]:
+    """:func:`_omega_k_estimate`, the aliased share it counted (RMS over the grid; 0 when upsampled) and
+    the sine of the steepest voxel-stop angle."""
+    from .omega_k import _max_sine, plan_sizes
 
     options = dict(options or {})
     try:
         sizes = plan_sizes(profiles, grid, **options)
     except ValueError as exc:  # NotPlanarUniform is one
-        return Estimate("omega-k", math.inf, math.inf, options, note=str(exc).split(";")[0]), 0.0
+        return Estimate("omega-k", math.inf, math.inf, options, note=str(exc).split(";")[0]), 0.0, 1.0
+    pu, pv, depth = sizes["axes"]
+    sine = max(_max_sine(g, pu, pv, float(np.min(depth))) for g in sizes["aperture"].groups)
     side = min((n for g in sizes["aperture"].groups for n in g.shape if n > 1), default=OMEGA_K_FULL_SIDE)
     base = OMEGA_K_BASE_DB + OMEGA_K_DB_PER_STOP * max(0, OMEGA_K_FULL_SIDE - side)
     work = work_omega_k(sizes, _device(selection) is not None)
@@ -382,22 +389,26 @@ def _omega_k_sized(profiles, grid, selection, factors, options: dict | None = No
         err = base + OMEGA_K_UP_DB * (up - 1)
         note = (f"method {base:.0f} dB ({side} stops on the lattice's shorter side), the aliased angles formed on a "
                 f"lattice {up}x as fine ({OMEGA_K_UP_DB:g} dB a step)")
-        return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, options, note=note), 0.0
+        return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, options, note=note), 0.0, sine
     frac = alias_fraction(sizes)
     lost = float(np.sqrt(np.mean(frac**2)))
     err = 10 * math.log10(10 ** (base / 10) + lost**2)
     note = (f"method {base:.0f} dB ({side} stops on the lattice's shorter side); {100 * float(frac.mean()):.1f} % "
             "of stop-voxel-frequency samples "
             f"aliased on the lattice (RMS over the grid {100 * lost:.1f} %), which omega-k leaves out")
-    return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, note=note), lost
+    return Estimate("omega-k", _seconds("omega-k", work, selection, factors), err, note=note), lost, sine
 
 
 def _omega_k_estimates(profiles, grid, selection, factors, target_db: float, best_s: float) -> list[Estimate]:
     """ω-k as it comes, and where that leaves out aliased angles and misses ``target_db``, with them
     formed (``upsample="auto"``) if that could still beat ``best_s``."""
-    plain, lost = _omega_k_sized(profiles, grid, selection, factors)
+    plain, lost, sine = _omega_k_sized(profiles, grid, selection, factors)
     if not plain.feasible or plain.error_db <= target_db or lost == 0 or plain.time_s >= best_s:
         return [plain]
+    if sine > OMEGA_K_UP_MAX_SINE:
+        return [plain, Estimate("omega-k", math.inf, math.inf, {"upsample": "auto"},
+                                f"not weighed with upsample='auto': voxel-stop angles reach past a sine of "
+                                f"{OMEGA_K_UP_MAX_SINE:g}")]
     return [plain, _omega_k_estimate(profiles, grid, selection, factors, {"upsample": "auto"})]
 
 
