@@ -121,10 +121,17 @@ GPU_FIXED = {"bp": 1.5e-3}
 # the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
 # for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
 # before, 2026-11-28; 27-46 ms, 1.7-2.8e-5 s each, for 1155-1634 measurements on the formation family's
-# fit seeds: the bound takes the low end); with
-# 1.5 times the last step's time it bounds FFBP's time from below before a tree is planned
-FFBP_PLAN_S_PER_MEAS = 1.7e-5
+# fit seeds; the bound takes less); with part of the last step's time it bounds FFBP's time from
+# below before a tree is planned (FFBP_FLOOR_GRID)
+FFBP_PLAN_S_PER_MEAS = 1.2e-5
 PLAN_IF_UNDER = 0.7
+# FFBP's lower bound: this fixed part, s, this share of its last step's modelled time, and its planning
+# (FFBP_PLAN_S_PER_MEAS). It had counted 1.5 times the model's whole last step, its 5 ms fixed part
+# included, and planning at 1.7e-5 s a measurement: more than FFBP's whole time on 21 of the 63 planar
+# and off-lattice fit requests of the formation family (seeds 500-599, up to 1.66x), so auto took bp
+# where FFBP was up to 2.2x faster. These constants are under FFBP's time on all 63 (at most 0.98x)
+FFBP_FLOOR_FIXED_S = 1e-3
+FFBP_FLOOR_GRID = 0.75
 # sizing ω-k (its lattice, band and aliased share, host side) takes about this fixed part and this per
 # measurement, s: 1.1-4.7 ms on the 32 planar requests of the formation family's fit seeds 500-579
 # (measured / predicted 0.6-1.9); it counts in ω-k's lower bound, since it is lost where bp is chosen
@@ -430,7 +437,8 @@ def _ffbp_estimates(profiles, grid, selection, factors, target_db: float, best_s
     """
     from .ffbp import plan_tree
 
-    floor = (1.5 * _seconds("ffbp", {"fixed": 1, "grid": float(grid.size) * 4 * 4**3}, selection, factors)
+    floor = (FFBP_FLOOR_FIXED_S + FFBP_FLOOR_GRID * _seconds("ffbp", {"grid": float(grid.size) * 4 * 4**3},
+                                                              selection, factors)
              + FFBP_PLAN_S_PER_MEAS * profiles.n_meas)
     if floor >= PLAN_IF_UNDER * best_s:
         return [Estimate("ffbp", floor, math.nan, note=f"not planned: its planning and last step alone take about "
