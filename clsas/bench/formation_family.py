@@ -17,15 +17,16 @@ requests at random from a seed (:func:`family_request`) and scores the choice on
 
 For each request, in one run on one device: every formation at its defaults and ``auto`` (its
 choosing included), timed in turn round after round and each one's fastest kept
-(:func:`_interleaved`), and their error against bp over the grid. *Best* is the fastest formation whose measured error
-meets the target (bp always does). :func:`summarise` gives the share of requests where auto is
-within 20 % of the best's time, the share where auto's measured error is over its target, the
-median and worst time over the best, and which formations it took.
+(:func:`clsas.bench.crossover._interleaved`), and their error against bp over the grid. *Best* is
+the fastest formation whose measured error meets the target (bp always does). :func:`summarise`
+gives the share of requests where auto took the best, the share where it is within 20 % of the
+best's time (overall, and where the best takes 50 ms or more), the share where its measured error
+is over its target, the median and worst time over the best, and which formations it took.
 
 The seeds are split once: :data:`TUNING_SEEDS` (and the fit seeds 500-599 the cost and error
 models were refitted on) may be looked at while changing the choice; :data:`HELD_OUT_SEEDS`,
-:data:`HELD_OUT_2_SEEDS`, :data:`HELD_OUT_3_SEEDS` and :data:`HELD_OUT_4_SEEDS` are for reports only (``clsas bench
---formation-family held-out``), each run once on the code it judged.
+:data:`HELD_OUT_2_SEEDS`, :data:`HELD_OUT_3_SEEDS` and :data:`HELD_OUT_4_SEEDS` are for reports
+only (``clsas bench --formation-family held-out``), each run once on the code it judged.
 Benchmarks measure; nothing here asserts.
 """
 
