@@ -130,7 +130,6 @@ def _scale_arg(text: str) -> float | str:
         raise argparse.ArgumentTypeError(f"expected a number (the dense case's size), got {text!r}") from None
 
 
-
 def _bench_formation_family(args, status) -> int:
     """``--formation-family``: formation="auto" on the seeded request family, its summary printed."""
     from clsas.bench.formation_family import run_and_write
@@ -147,6 +146,7 @@ def _bench_formation_family(args, status) -> int:
     for path in res["paths"].values():
         print(f"wrote {path}")
     return 0 if s.get("n") else 1
+
 
 def add_parser(sub) -> None:
     b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time "

@@ -323,9 +323,9 @@ def _never_aliased(g, pu, pv, depth_min: float, k2_max: float) -> bool:
     """Whether no voxel-stop pair of the lattice group ``g`` is steep enough to be sampled aliased at the
     two-way wavenumber ``k2_max`` (the steepest ``|sin theta|`` per axis: at the nearest depth, the
     other axis' offset 0)."""
-    (u0, u1), (v0, v1) = g.extent_uv
-    du = max(abs(pu[-1] - u0), abs(u1 - pu[0]))
-    dv = max(abs(pv[-1] - v0), abs(v1 - pv[0]))
+    from .omega_k import _farthest_offsets
+
+    du, dv = _farthest_offsets(g, pu, pv)
     su, sv = du / math.hypot(du, depth_min), dv / math.hypot(dv, depth_min)
     return bool(k2_max * su * g.spacing_uv[0] <= np.pi and k2_max * sv * g.spacing_uv[1] <= np.pi)
 

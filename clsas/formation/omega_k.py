@@ -239,12 +239,16 @@ def _edge_window(kq: np.ndarray, edge: float, taper: float, window: str | None) 
     return 0.5 * (1 + np.cos(np.pi * ramp))
 
 
+def _farthest_offsets(g, pu, pv) -> tuple[float, float]:
+    """The largest in-plane offsets ``(du, dv)``, m, between a voxel (axes ``pu``, ``pv``) and a stop
+    of the lattice group ``g``."""
+    (u0, u1), (v0, v1) = g.extent_uv
+    return max(abs(pu[-1] - u0), abs(u1 - pu[0])), max(abs(pv[-1] - v0), abs(v1 - pv[0]))
+
+
 def _max_sine(g, pu, pv, depth_min) -> float:
     """Sine of the steepest voxel-stop angle from the plane's normal."""
-    (u0, u1), (v0, v1) = g.extent_uv
-    du = max(abs(pu[-1] - u0), abs(u1 - pu[0]))
-    dv = max(abs(pv[-1] - v0), abs(v1 - pv[0]))
-    lat = math.hypot(du, dv)
+    lat = math.hypot(*_farthest_offsets(g, pu, pv))
     return lat / math.hypot(lat, depth_min)
 
 
