@@ -73,3 +73,23 @@ def test_radius_option(scan):
     assert ds.provenance[0]["radius_m"] == 0.85
     with pytest.raises(ValueError, match="radius_m"):
         clsas.io.import_airsas(folder, radius_m=-1.0)
+
+
+def test_compare_bench_places_peaks_between_pixels():
+    """``bench/airsas_compare.py`` judges peaks between the owners' 1.5 mm pixels: a Gaussian's
+    log is a parabola, so its 3 x 3 fit returns the true sub-pixel centre, where the pixel
+    maximum is up to half a pixel off in each axis."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "airsas_compare.py"
+    spec = importlib.util.spec_from_file_location("airsas_compare", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    i, j = np.meshgrid(np.arange(20.0), np.arange(20.0), indexing="ij")
+    ci, cj = 9.37, 10.6
+    mag = np.exp(-((i - ci) ** 2 / 8.0 + (j - cj) ** 2 / 5.0))
+    pi, pj = np.unravel_index(np.argmax(mag), mag.shape)
+    assert (pi, pj) == (9, 11)
+    got = mod._quadratic_peak(mag, pi, pj)
+    np.testing.assert_allclose(got, (ci, cj), atol=1e-9)
