@@ -132,7 +132,14 @@ def _image(dataset, prof: Profiles, grid: VoxelGrid, method: str, formation: str
     if _is_model(method):
         return _model_based(method, dataset, prof, grid, selection, progress, inverse, tiled), method
     formation, fopts, choice = _formation(formation, fopts, prof, grid, method, tiled, selection, max_error_db)
-    image = _recorded(_form(prof, grid, formation, fopts, selection, progress, force, tiled), choice)
+    if choice is not None and tiled is None:  # auto's steps in turn, each measured where it was to be
+        from .formation.check import form_choice
+
+        image, record = form_choice(prof, grid, choice, backend=selection, progress=progress, force=force)
+        image, formation = replace(image, provenance={**image.provenance, "formation_auto": record}), \
+            record["formation"]
+    else:
+        image = _recorded(_form(prof, grid, formation, fopts, selection, progress, force, tiled), choice)
     return image, ("backproject" if formation == "bp" else formation)
 
 

@@ -27,6 +27,7 @@ import numpy as np
 import clsas
 
 from ..formation import cost, error_to_signal_db, form
+from ..formation.check import form_choice
 from .stats import seconds
 
 __all__ = [
@@ -150,7 +151,8 @@ def auto_row(prof, grid, ref, mask, rows: list[dict], target_db: float = TARGET_
     its time over the best's is taken with the two timed in turn (:func:`_interleaved`)."""
     def run():
         choice = cost.choose(prof, grid, clsas.cl.select(None), max_error_db=target_db)
-        return choice, form(prof, grid, choice.formation, **choice.options)
+        img, record = form_choice(prof, grid, choice)
+        return record, img
 
     choice, img = run()
     ok = [r for r in rows if "time_s" in r and (r.get("error_all_db") is None or r["error_all_db"] <= target_db)]
@@ -158,11 +160,13 @@ def auto_row(prof, grid, ref, mask, rows: list[dict], target_db: float = TARGET_
     bp = next(r for r in rows if r["formation"] == "bp")
     # auto and the best timed in turn (the same moments of the host's load for both)
     took = _interleaved({"auto": run, "best": lambda: form(prof, grid, best["formation"])})
-    return {"formation": "auto", "chose": choice.formation, "options": choice.options, "reason": choice.reason,
-            "model": choice.model, "time_s": took["auto"], "backend": img.backend, "best": best["formation"],
+    return {"formation": "auto", "chose": choice["formation"], "options": choice["options"], "reason": choice["reason"],
+            "checks": choice["checks"],
+            "model": choice["model"], "time_s": took["auto"], "backend": img.backend, "best": best["formation"],
             "best_in_turn_s": took["best"], "over_best": took["auto"] / took["best"],
             "speedup": bp["time_s"] / took["auto"],
-            **({"error_all_db": None, "error_cone_db": None} if choice.formation == "bp" else _errors(img, ref, mask))}
+            **({"error_all_db": None, "error_cone_db": None} if choice["formation"] == "bp"
+               else _errors(img, ref, mask))}
 
 
 def _one(n: int, say) -> dict:

@@ -41,6 +41,7 @@ import clsas
 
 from .. import validate as v
 from ..formation import cost, form
+from ..formation.check import form_choice
 from .crossover import _errors, _interleaved
 from .crossover import profiles as _profiles
 
@@ -56,12 +57,14 @@ HELD_OUT_SEEDS = tuple(range(1000, 1030))
 #: first before auto weighed ω-k with its aliased angles formed, the second after, the third after that
 #: candidate was limited to angles under a sine of 0.75 (the crossover's 128 x 128 scan went over its
 #: target with it), the fourth after FFBP's lower bound was made one (it had passed over FFBP where it
-#: was faster).
+#: was faster), the fifth after auto began to measure a formation's error on a sub-lattice where its
+#: prediction was near the target (clsas.formation.check).
 HELD_OUT_2_SEEDS = tuple(range(2000, 2030))
 HELD_OUT_3_SEEDS = tuple(range(3000, 3030))
 HELD_OUT_4_SEEDS = tuple(range(4000, 4030))
+HELD_OUT_5_SEEDS = tuple(range(5000, 5030))
 SEED_SETS = {"tuning": TUNING_SEEDS, "held-out": HELD_OUT_SEEDS, "held-out-2": HELD_OUT_2_SEEDS,
-             "held-out-3": HELD_OUT_3_SEEDS, "held-out-4": HELD_OUT_4_SEEDS}
+             "held-out-3": HELD_OUT_3_SEEDS, "held-out-4": HELD_OUT_4_SEEDS, "held-out-5": HELD_OUT_5_SEEDS}
 #: Most voxel-measurement pairs a request may have (bp's time: about 2-3 s on a 2-core CPU).
 MAX_PAIRS = 1.5e9
 #: auto counts as right where its time is at most this times the best's.
@@ -165,12 +168,10 @@ def run_request(seed: int, *, target_db: float = cost.DEFAULT_MAX_ERROR_DB, max_
             row["rows"].append({"formation": f, "refused": str(exc)})
             continue
         fns[f] = lambda f=f: form(prof, grid, f)
-    choice = cost.choose(prof, grid, sel, max_error_db=target_db)
-    images["auto"] = form(prof, grid, choice.formation, **choice.options)
+    images["auto"], choice = form_choice(prof, grid, cost.choose(prof, grid, sel, max_error_db=target_db))
 
     def auto():
-        c = cost.choose(prof, grid, sel, max_error_db=target_db)
-        return form(prof, grid, c.formation, **c.options)
+        return form_choice(prof, grid, cost.choose(prof, grid, sel, max_error_db=target_db))[0]
 
     took = _interleaved({**fns, "auto": auto})
     ref = images["bp"]
@@ -180,12 +181,13 @@ def run_request(seed: int, *, target_db: float = cost.DEFAULT_MAX_ERROR_DB, max_
         row["rows"].append(r)
     ok = [r for r in row["rows"] if "time_s" in r and (r["error_all_db"] is None or r["error_all_db"] <= target_db)]
     best = min(ok, key=lambda r: r["time_s"])
-    err = None if choice.formation == "bp" else _errors(images["auto"], ref, None)["error_all_db"]
-    a = {"formation": "auto", "chose": choice.formation, "options": choice.options, "reason": choice.reason,
+    err = None if choice["formation"] == "bp" else _errors(images["auto"], ref, None)["error_all_db"]
+    a = {"formation": "auto", "chose": choice["formation"], "options": choice["options"], "reason": choice["reason"],
+         "checks": choice["checks"],
          "time_s": took["auto"], "error_all_db": err, "best": best["formation"],
          "over_best": took["auto"] / best["time_s"]}
     row["rows"].append(a)
-    row["auto"] = {k: a[k] for k in ("chose", "best", "over_best", "error_all_db", "reason")}
+    row["auto"] = {k: a[k] for k in ("chose", "best", "over_best", "error_all_db", "reason", "checks")}
     row["auto"]["over_target"] = err is not None and err > target_db
     row["load_after"] = os.getloadavg()
     return row
@@ -223,6 +225,8 @@ def summarise(rows: list[dict]) -> dict:
             "median_over_best": float(np.median(over)), "worst_over_best": float(over.max()),
             "worst_seed": int(ok[int(np.argmax(over))]["seed"]),
             "chose": {f: chose.count(f) for f in sorted(set(chose))},
+            "measured": int(sum(bool(r["auto"].get("checks")) for r in ok)),
+            "gave_way": int(sum(any(not c["kept"] for c in r["auto"].get("checks", [])) for r in ok)),
             "best": {f: [r["auto"]["best"] for r in ok].count(f) for f in FORMS}}
 
 
@@ -231,6 +235,11 @@ def _cell(r: dict) -> str:
         return "refused"
     err = r.get("error_all_db")
     return f"{r['time_s'] * 1e3:.0f} ms" + ("" if err is None else f", {err:.0f} dB")
+
+
+def _checked(a: dict) -> str:
+    """The formations auto measured and let go, as ``omega-k (-27 dB) -> ``."""
+    return "".join(f"{c['formation']} ({c['error_db']:.0f} dB) -> " for c in a.get("checks", []) if not c["kept"])
 
 
 def markdown(rows: list[dict], summary: dict, target_db: float) -> str:
@@ -244,7 +253,9 @@ def markdown(rows: list[dict], summary: dict, target_db: float) -> str:
           f"- auto's measured error over its target: **{s['over_target']:.0%}**;",
           f"- auto took the best formation in {s['chose_best']:.0%}; took "
           + ", ".join(f"{k} {n}" for k, n in s["chose"].items()) + "; the best was "
-          + ", ".join(f"{k} {n}" for k, n in s["best"].items() if n) + ".", "",
+          + ", ".join(f"{k} {n}" for k, n in s["best"].items() if n) + ";",
+          f"- auto measured a formation's error on a sub-lattice in {s.get('measured', 0)} requests; in "
+          f"{s.get('gave_way', 0)} of them one missed the target and gave way to the next.", "",
           "| seed | request | voxels | pairs | bp | omega-k | ffbp | auto | auto / best |",
           "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
@@ -255,7 +266,7 @@ def markdown(rows: list[dict], summary: dict, target_db: float) -> str:
         a = by["auto"]
         md.append(f"| {r['seed']} | {r['what']}, {r['target']} at {r['range_m']:.2f} m, "
                   f"{r['band_hz'][0] / 1e3:.0f}-{r['band_hz'][1] / 1e3:.0f} kHz | {r['voxels']} | {r['pairs']:.2g} | "
-                  f"{_cell(by['bp'])} | {_cell(by['omega-k'])} | {_cell(by['ffbp'])} | {a['chose']}: "
+                  f"{_cell(by['bp'])} | {_cell(by['omega-k'])} | {_cell(by['ffbp'])} | {_checked(a)}{a['chose']}: "
                   f"{_cell(a)} | {a['over_best']:.2f} ({a['best']}) |")
     return "\n".join(md) + "\n"
 

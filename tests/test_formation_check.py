@@ -1,0 +1,142 @@
+"""``formation="auto"`` measures a fast formation's error where its prediction is not enough
+(clsas/formation/check.py): exact bp on a sub-lattice of the grid, and the steps auto takes in turn.
+
+No test here asserts a time: which steps are measured is steered through the estimates given.
+"""
+
+import logging
+import math
+
+import numpy as np
+import pytest
+
+import clsas
+from clsas.formation import check, cost, error_to_signal_db, form
+
+FS = 96e3
+
+
+@pytest.fixture(scope="module")
+def scan():
+    """A small planar scan, its profiles and a grid of 20 x 20 x 24 voxels (stride 1 at the default
+    CHECK_VOXELS; the tests that need a sparser sub-lattice lower it)."""
+    ap = clsas.raster_aperture(10, 10, 0.05, 0.05)
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    pts = np.array([[0.005, -0.004, 0.5], [-0.01, 0.006, 0.53]])
+    ds = clsas.simulate(clsas.Scene(pts), ap, w, FS, snr_db=40, seed=3,
+                        chirp={"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": 2e-3})
+    grid = clsas.VoxelGrid.from_bounds((-0.03, 0.03), (-0.03, 0.03), (0.46, 0.58), 0.005)
+    prof = clsas.compress(ds, backend="numpy")
+    ref = np.asarray(form(prof, grid, "bp", backend="numpy").values)
+    return ds, grid, prof, ref
+
+
+def test_sublattice_is_regular_and_reproducible(monkeypatch):
+    monkeypatch.setattr(check, "CHECK_VOXELS", 64)
+    grid = clsas.VoxelGrid(np.arange(40) * 0.01, np.arange(30) * 0.01, 1 + np.arange(20) * 0.01)
+    sub, sl, s = check.sublattice(grid)
+    assert s == check.stride_for(grid.shape) == 7  # floor((24000 / 64) ** (1 / 3))
+    np.testing.assert_array_equal(sub.x_m, grid.x_m[sl[0]])
+    np.testing.assert_array_equal(sub.z_m, grid.z_m[sl[2]])
+    assert check.sublattice(grid)[1] == sl  # the same request, the same voxels
+    monkeypatch.setattr(check, "CHECK_VOXELS", 10**9)
+    assert check.stride_for(grid.shape) == 1
+    monkeypatch.setattr(check, "CHECK_VOXELS", 1)
+    assert check.stride_for(grid.shape) == check.MAX_STRIDE
+
+
+def test_measured_error_of_uniform_noise_is_exact(scan, monkeypatch):
+    """Analytic: an error of the same size on every voxel is measured exactly from any sub-lattice
+    (the sub-lattice's error energy scaled by the share of the grid it covers, over the image's)."""
+    _, grid, prof, ref = scan
+    monkeypatch.setattr(check, "CHECK_VOXELS", 500)
+    rng = np.random.default_rng(0)
+    delta = 0.03 * np.abs(ref).max()
+    values = ref + delta * np.exp(2j * np.pi * rng.random(ref.shape))
+    want = 10 * math.log10(ref.size * delta**2 / np.sum(np.abs(values) ** 2))
+    got = check.measure_error(prof, grid, values, backend="numpy")
+    assert got.stride > 1 and got.voxels < grid.size
+    assert got.error_db == pytest.approx(want, abs=1e-6)
+    assert got.upper_db >= got.error_db - 1e-9
+    exact = check.measure_error(prof, grid, ref, backend="numpy")
+    assert exact.error_db < -250  # bp against itself: nothing
+
+
+def test_measured_error_follows_the_whole_grids(scan):
+    """At stride 1 (this grid) the measurement is the whole grid's error, against the profiles'
+    bp (float64 twin): a formation's image is measured as error_to_signal_db measures it, but over
+    the formed image's energy (within 0.3 dB at -30 dB)."""
+    _, grid, prof, ref = scan
+    img = np.asarray(form(prof, grid, "ffbp", backend="numpy", oversample=1.5, range_oversample=1.5).values)
+    got = check.measure_error(prof, grid, img, backend="numpy")
+    assert got.stride == 1
+    assert got.error_db == pytest.approx(error_to_signal_db(img, ref), abs=0.3)
+
+
+def test_measure_error_checks_its_inputs(scan):
+    _, grid, prof, ref = scan
+    with pytest.raises(ValueError, match="values"):
+        check.measure_error(prof, grid, ref[:, :, :-1], backend="numpy")
+    bad = ref.copy()
+    bad[0, 0, 0] = np.nan
+    with pytest.raises(ValueError, match="values"):
+        check.measure_error(prof, grid, bad, backend="numpy")
+    with pytest.raises(TypeError, match="profiles"):
+        check.measure_error(ref, grid, ref, backend="numpy")
+    with pytest.raises(TypeError, match="grid"):
+        check.sublattice((1, 2, 3))
+
+
+def _choice(steps, target):
+    ests = tuple(e for e, _ in steps)
+    return cost.Choice(steps[0][0].formation, dict(steps[0][0].options), "test", target, "test", ests, tuple(steps))
+
+
+def test_a_step_that_misses_the_target_gives_way(scan, caplog):
+    """FFBP at a coarse sampling, measured, misses a -200 dB target: auto forms bp instead, says so
+    at WARNING, and records the measurement; at -1 dB it keeps FFBP."""
+    _, grid, prof, ref = scan
+    opts = {"oversample": 1.5, "range_oversample": 1.5}
+    steps = [(cost.Estimate("ffbp", 1.0, -40.0, opts), True), (cost.Estimate("bp", 2.0, -math.inf), False)]
+    with caplog.at_level(logging.WARNING, logger="clsas.formation.check"):
+        img, rec = check.form_choice(prof, grid, _choice(steps, -200.0), backend="numpy")
+    assert rec["formation"] == "bp" and np.allclose(img.values, ref)
+    assert [c["kept"] for c in rec["checks"]] == [False] and rec["checks"][0]["formation"] == "ffbp"
+    assert "forming bp instead" in caplog.text
+    img, rec = check.form_choice(prof, grid, _choice(steps, -1.0), backend="numpy")
+    assert rec["formation"] == "ffbp" and rec["options"] == opts and rec["checks"][0]["kept"]
+    assert rec["checks"][0]["upper_db"] <= -1.0
+
+
+def test_steps_measure_a_near_prediction_only_where_it_pays():
+    """A formation predicted just over the target's margin is tried first (measured) only where it
+    and its check take under CHECK_IF_UNDER of the best safe one; a safe fast formation is measured
+    where its check costs at most CHECK_SHARE of it; the steps end at the first unmeasured one."""
+    bp = cost.Estimate("bp", 10.0, -math.inf)
+    near = cost.Estimate("omega-k", 1.0, -31.0)
+    safe = cost.Estimate("omega-k", 6.0, -39.0, {"upsample": "auto"})
+    far = cost.Estimate("ffbp", 0.5, -20.0)
+    steps = cost._steps([bp, near, safe, far], -30.0, check_s=0.5)
+    assert [(e.formation, e.options, m) for e, m in steps] == [
+        ("omega-k", {}, True), ("omega-k", {"upsample": "auto"}, True), ("bp", {}, False)]
+    steps = cost._steps([bp, near, safe, far], -30.0, check_s=2.5)  # 1 + 2.5 > 0.5 x 6; 2.5 > 0.1 x 6
+    assert [(e.formation, m) for e, m in steps] == [("omega-k", False)]
+    steps = cost._steps([bp, far], -30.0, check_s=0.1)
+    assert [(e.formation, m) for e, m in steps] == [("bp", False)]
+
+
+def test_reconstruct_records_what_was_measured(scan, monkeypatch):
+    """Through clsas.reconstruct: auto's record in the image's provenance lists its steps and
+    checks; where the first step is measured and kept, that formation is the image's."""
+    ds, grid, prof, _ = scan
+    real = cost._steps
+
+    def measure_first(ests, target, check_s):  # whatever the model says, measure a fast formation first
+        fast = next(e for e in ests if e.formation != "bp" and e.feasible)
+        return ((fast, True),) + real(ests, target, check_s)
+
+    monkeypatch.setattr(cost, "_steps", measure_first)
+    img = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-1.0)
+    rec = img.provenance["formation_auto"]
+    assert rec["steps"][0]["measured"] and rec["checks"] and rec["checks"][0]["kept"]
+    assert img.provenance["formation"] == rec["formation"] == rec["checks"][0]["formation"]
