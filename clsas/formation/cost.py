@@ -540,7 +540,8 @@ def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db:
     factors = load_calibration(selection)
     model = "calibrated on this device by clsas bench" if factors else "built-in (not calibrated on this device)"
     ests = estimate(profiles, grid, selection, max_error_db=target, factors=factors, formations=formations)
-    steps = _steps(ests, target, check_seconds(profiles, grid, selection, factors))
+    fast = any(e.feasible and e.formation != "bp" and e.error_db <= target + CHECK_ABOVE_DB for e in ests)
+    steps = _steps(ests, target, check_seconds(profiles, grid, selection, factors) if fast else math.inf)
     first, measured = steps[0]
     bp = next(e for e in ests if e.formation == "bp")
     others = "; ".join(f"{e.formation}{_opts(e.options)}: {_describe(e, target)}" for e in ests if e is not first)
@@ -561,10 +562,12 @@ def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db:
 def check_seconds(profiles: Profiles, grid: VoxelGrid, selection, factors: dict) -> float:
     """Predicted time of measuring a formed image's error (:func:`clsas.formation.check.measure_error`:
     bp on the grid's sub-lattice)."""
-    from .check import sublattice
+    from .check import stride_for
 
-    sub = sublattice(grid)[0]
-    return _seconds("bp", work_bp(profiles, sub), selection, factors)
+    s = stride_for(grid.shape)
+    n_sub = math.prod(-(-n // s) for n in grid.shape)  # at most this many voxels, whatever the offsets
+    return _seconds("bp", {"fixed": 1, "meas": float(profiles.n_meas), "pairs": float(profiles.n_meas) * n_sub},
+                    selection, factors)
 
 
 def _steps(ests: list[Estimate], target: float, check_s: float) -> tuple[tuple[Estimate, bool], ...]:
