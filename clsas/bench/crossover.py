@@ -116,7 +116,10 @@ def _timed(fn):
 
 
 ROUNDS = (3, 25)  # fewest and most timing rounds (each times every formation and auto once, in turn)
-ROUNDS_FOR_S = 2.0  # ... rounds go on until this much time has been spent (or one call takes this long)
+ROUNDS_FOR_S = 2.0  # ... rounds go on until this much time has been spent
+# ... or one call takes this long (one round then). It was ROUNDS_FOR_S: on the dense case's 2-3 s
+# formations one round each, and ω-k alone took 1.5-2.9 s from one call to the next there
+LONG_CALL_S = 20.0
 
 
 def _interleaved(fns: dict) -> dict:
@@ -135,8 +138,8 @@ def _interleaved(fns: dict) -> dict:
             took = time.perf_counter() - t
             best[name], spent = min(best[name], took), spent + took
         rounds += 1
-        if rounds >= ROUNDS[1] or max(best.values()) >= ROUNDS_FOR_S or (rounds >= ROUNDS[0]
-                                                                          and spent >= ROUNDS_FOR_S):
+        if rounds >= ROUNDS[1] or max(best.values()) >= LONG_CALL_S or (rounds >= ROUNDS[0]
+                                                                         and spent >= ROUNDS_FOR_S):
             return best
 
 
