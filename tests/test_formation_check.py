@@ -140,3 +140,34 @@ def test_reconstruct_records_what_was_measured(scan, monkeypatch):
     rec = img.provenance["formation_auto"]
     assert rec["steps"][0]["measured"] and rec["checks"] and rec["checks"][0]["kept"]
     assert img.provenance["formation"] == rec["formation"] == rec["checks"][0]["formation"]
+
+
+def test_command_line_prints_the_measurement(tmp_path, capsys, monkeypatch):
+    """`clsas reconstruct` prints each step auto measured, and the image file keeps the record."""
+    from clsas.cli import main
+
+    scene = tmp_path / "scene.toml"
+    scene.write_text('[chirp]\nf_start_hz = 20000.0\nf_stop_hz = 30000.0\nduration_s = 0.002\nfs_hz = 96000.0\n'
+                     '[aperture]\nnx = 10\nny = 10\nwidth_m = 0.05\nheight_m = 0.05\n'
+                     '[[points]]\nposition_m = [0.005, -0.004, 0.5]\n'
+                     '[grid]\nx_m = [-0.03, 0.03]\ny_m = [-0.03, 0.03]\nz_m = [0.46, 0.58]\nspacing_m = 0.005\n')
+    data = tmp_path / "scan.h5"
+    assert main(["simulate", str(scene), str(data), "-q", "--backend", "numpy"]) == 0
+    real = cost._steps
+
+    def measure_first(ests, target, check_s):
+        fast = next(e for e in ests if e.formation != "bp" and e.feasible)
+        return ((fast, True),) + real(ests, target, check_s)
+
+    monkeypatch.setattr(cost, "_steps", measure_first)
+    assert main(["reconstruct", str(data), "-q", "--backend", "numpy", "--max-error-db", "-1"]) == 0
+    out = capsys.readouterr().out
+    assert f"voxels (a stride of 1): {rec_db(tmp_path)}" in out and ": kept" in out
+    rec = clsas.Image.load(tmp_path / "scan-image.h5").provenance["formation_auto"]
+    assert rec["checks"][0]["kept"] and rec["steps"][0]["measured"]
+
+
+def rec_db(folder) -> str:
+    """The first check's error as `clsas reconstruct` prints it, from the image file's record."""
+    rec = clsas.Image.load(folder / "scan-image.h5").provenance["formation_auto"]
+    return f"{rec['checks'][0]['error_db']:.1f} dB"
