@@ -93,3 +93,5 @@ def test_compare_bench_places_peaks_between_pixels():
     assert (pi, pj) == (9, 11)
     got = mod._quadratic_peak(mag, pi, pj)
     np.testing.assert_allclose(got, (ci, cj), atol=1e-9)
+    assert mod._quadratic_peak(mag, 0, pj)[0] == 0  # on the edge: the pixel along that axis
+    assert mod._quadratic_peak(np.ones((5, 5)), 2, 2) == (2, 2)  # flat: no parabola

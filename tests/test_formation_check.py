@@ -171,3 +171,38 @@ def rec_db(folder) -> str:
     """The first check's error as `clsas reconstruct` prints it, from the image file's record."""
     rec = clsas.Image.load(folder / "scan-image.h5").provenance["formation_auto"]
     return f"{rec['checks'][0]['error_db']:.1f} dB"
+
+
+def test_a_flat_grid_is_thinned_along_its_two_axes(monkeypatch):
+    """A plane (one voxel deep) is thinned along x and y only: about CHECK_VOXELS voxels, not
+    CHECK_VOXELS ** (2/3)."""
+    monkeypatch.setattr(check, "CHECK_VOXELS", 4096)
+    assert check.stride_for((201, 201, 1)) == 3  # floor(sqrt(40401 / 4096))
+    assert check.stride_for((1, 1, 50000)) == 12  # a line: floor(50000 / 4096)
+    grid = clsas.VoxelGrid(np.arange(201) * 0.01, np.arange(201) * 0.01, np.array([1.0]))
+    sub, _, _ = check.sublattice(grid)
+    assert 4096 <= sub.size <= 4624
+
+
+def test_a_step_with_nan_gives_way(scan, monkeypatch):
+    """A measured formation whose image comes out with NaN misses any target: auto forms the next
+    step and records why, rather than failing."""
+    import clsas.formation as formation
+
+    _, grid, prof, ref = scan
+    real = formation.form
+
+    def broken(profiles, grid, name, **kw):
+        img = real(profiles, grid, name, **kw)
+        if name != "ffbp":
+            return img
+        values = np.array(img.values)
+        values[0, 0, 0] = np.nan
+        return img.__class__(**{**img.__dict__, "values": values})
+
+    monkeypatch.setattr(formation, "form", broken)
+    steps = [(cost.Estimate("ffbp", 1.0, -40.0, {"oversample": 1.5, "range_oversample": 1.5}), True),
+             (cost.Estimate("bp", 2.0, -math.inf), False)]
+    img, rec = check.form_choice(prof, grid, _choice(steps, -1.0), backend="numpy")
+    assert rec["formation"] == "bp" and np.allclose(img.values, ref)
+    assert rec["checks"][0]["error_db"] == "inf" and not rec["checks"][0]["kept"]

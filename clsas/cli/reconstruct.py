@@ -51,9 +51,9 @@ def cmd_reconstruct(args) -> int:
     if auto:
         print(f"formation: {auto['formation']} (auto, error target {auto['max_error_db']:g} dB: {auto['reason']})")
         for c in auto.get("checks", []):
+            err, up = (f"{float(c[k]):.1f}" for k in ("error_db", "upper_db"))  # "inf" is stored as a string
             print(f"  measured {c['formation']} against bp on {c['voxels']} voxels (a stride of {c['stride']}): "
-                  f"{c['error_db']:.1f} dB "
-                  f"(upper bound {c['upper_db']:.1f} dB): " + ("kept" if c["kept"] else "over the target, not kept"))
+                  f"{err} dB (upper bound {up} dB): " + ("kept" if c["kept"] else "over the target, not kept"))
     from clsas.compression import center_frequency
     from clsas.formation.lobes import grating_lobe_notes
 

@@ -59,15 +59,20 @@ class Check:
     time_s: float
 
     def as_dict(self) -> dict:
-        return {"error_db": self.error_db, "upper_db": self.upper_db, "voxels": self.voxels, "stride": self.stride,
-                "time_s": self.time_s}
+        """JSON-friendly form (infinities as strings, as :meth:`clsas.formation.cost.Choice.as_dict`)."""
+        def num(x: float):
+            return x if math.isfinite(x) else ("inf" if x > 0 else "-inf")
+
+        return {"error_db": num(self.error_db), "upper_db": num(self.upper_db), "voxels": self.voxels,
+                "stride": self.stride, "time_s": self.time_s}
 
 
 def stride_for(shape: tuple[int, int, int]) -> int:
     """The sub-lattice's stride for a grid of ``shape``: about :data:`CHECK_VOXELS` voxels, at most
-    :data:`MAX_STRIDE`."""
+    :data:`MAX_STRIDE` (over the axes longer than one voxel: a plane's stride thins two axes)."""
     n = int(np.prod(shape))
-    return int(min(MAX_STRIDE, max(1, math.floor((n / CHECK_VOXELS) ** (1 / 3)))))
+    dims = max(1, sum(k > 1 for k in shape))
+    return int(min(MAX_STRIDE, max(1, math.floor((n / CHECK_VOXELS) ** (1 / dims)))))
 
 
 def sublattice(grid: VoxelGrid) -> tuple[VoxelGrid, tuple[slice, slice, slice], int]:
@@ -109,13 +114,15 @@ def measure_error(profiles: Profiles, grid: VoxelGrid, values: np.ndarray, *, ba
     sub, sl, stride = sublattice(grid)
     ref = np.asarray(form(profiles, sub, "bp", backend=backend).values).ravel()
     err = np.abs(values[sl].ravel() - ref) ** 2
-    total = float(np.sum(np.abs(values) ** 2))
+    flat = values.ravel()
+    total = float(np.vdot(flat, flat).real)  # no temporary the size of the grid
     scale = values.size / err.size
     if total == 0.0:
         db = 0.0 if float(err.sum()) > 0 else -math.inf
         return Check(db, db, err.size, stride, time.perf_counter() - t)
     rng = np.random.default_rng(0)
-    draws = err[rng.integers(0, err.size, (BOOTSTRAP, err.size))].sum(axis=1)
+    draws = np.concatenate([err[rng.integers(0, err.size, (min(10, BOOTSTRAP - i), err.size))].sum(axis=1)
+                            for i in range(0, BOOTSTRAP, 10)])  # in chunks: a flat grid's sub-lattice can be large
     with np.errstate(divide="ignore"):
         est = 10 * math.log10(max(scale * float(err.sum()) / total, 1e-300))
         upper = 10 * math.log10(max(scale * float(np.quantile(draws, UPPER_QUANTILE)) / total, 1e-300))
@@ -143,15 +150,21 @@ def form_choice(profiles: Profiles, grid: VoxelGrid, choice, *, backend=None,
     record["checks"] = []
     for i, (est, measured) in enumerate(steps):
         name, opts = (choice.formation, dict(choice.options)) if est is None else (est.formation, dict(est.options))
+        image = None  # the image a step let go is not kept while the next one forms
         image = form(profiles, grid, name, backend=backend, progress=progress, force=force, **opts)
         last = i == len(steps) - 1
         if measured and not last:
-            chk = measure_error(profiles, grid, np.asarray(image.values), backend=backend)
+            values = np.asarray(image.values)
+            if np.all(np.isfinite(values)):
+                chk = measure_error(profiles, grid, values, backend=backend)
+            else:  # a formation that came out with NaN or Inf misses any target
+                chk = Check(math.inf, math.inf, 0, 0, 0.0)
+            values = None
             kept = chk.upper_db <= choice.max_error_db
             record["checks"].append({"formation": name, "options": opts, **chk.as_dict(), "kept": kept})
             if not kept:
                 nxt = steps[i + 1][0]
-                log.warning("formation auto: %s measured %.1f dB against bp on a sub-lattice (every %d-th voxel; "
+                log.warning("formation auto: %s measured %.1f dB against bp on a sub-lattice (a stride of %d; "
                             "upper bound %.1f dB), over the %g dB target: forming %s instead", name, chk.error_db,
                             chk.stride, chk.upper_db, choice.max_error_db, nxt.formation)
                 continue

@@ -504,8 +504,10 @@ def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_d
         best = min((e.time_s for e in out if e.feasible and e.error_db <= target), default=math.inf)
         near = [e.time_s for e in out if e.feasible and e.formation != "bp"
                 and target < e.error_db <= target + MARGIN_DB + CHECK_ABOVE_DB]
-        if near:  # one to be formed and measured (_steps) may make planning a tree a loss too
-            best = min(best, min(near) + check_seconds(profiles, grid, selection, factors))
+        if near:  # one _steps would form and measure first may make planning a tree a loss too
+            tried = min(near) + check_seconds(profiles, grid, selection, factors)
+            if tried < CHECK_IF_UNDER * best:
+                best = tried
         out.extend(_ffbp_estimates(profiles, grid, selection, factors, target, best))
     return out
 
