@@ -206,3 +206,32 @@ def test_a_step_with_nan_gives_way(scan, monkeypatch):
     img, rec = check.form_choice(prof, grid, _choice(steps, -1.0), backend="numpy")
     assert rec["formation"] == "bp" and np.allclose(img.values, ref)
     assert rec["checks"][0]["error_db"] == "inf" and not rec["checks"][0]["kept"]
+
+
+def test_an_unpredicted_formation_is_taken_only_measured():
+    """Plain ω-k with aliased voxel-stop pairs is never taken on its prediction: where measuring it
+    pays it is formed and measured first, otherwise the safe formation is taken."""
+    bp = cost.Estimate("bp", 10.0, -math.inf)
+    wk = cost.Estimate("omega-k", 1.0, -42.0, unpredicted=True)
+    steps = cost._steps([bp, wk], -30.0, check_s=0.5)
+    assert [(e.formation, m) for e, m in steps] == [("omega-k", True), ("bp", False)]
+    steps = cost._steps([bp, wk], -30.0, check_s=6.0)  # 1 + 6 > 0.5 x 10: not worth measuring
+    assert [(e.formation, m) for e, m in steps] == [("bp", False)]
+    over = cost.Estimate("omega-k", 1.0, -20.0, unpredicted=True)  # predicted over the target: not tried
+    assert [(e.formation, m) for e, m in cost._steps([bp, over], -30.0, check_s=0.5)] == [("bp", False)]
+
+
+def test_omega_k_on_an_aliased_lattice_is_unpredicted():
+    """The estimate marks plain ω-k unpredicted exactly where some voxel-stop pair aliases."""
+    from clsas.formation.omega_k import plan_sizes
+
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    chirp = {"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": 2e-3}
+    pts = np.array([[0.0, 0.0, 0.5]])
+    grid = clsas.VoxelGrid.from_bounds((-0.03, 0.03), (-0.03, 0.03), (0.46, 0.54), 0.006)
+    for pitch, aliased in ((0.0028, False), (0.012, True)):  # lambda/4 and 1 wavelength at 30 kHz
+        ap = clsas.raster_aperture(16, 16, 15 * pitch, 15 * pitch)
+        ds = clsas.simulate(clsas.Scene(pts), ap, w, FS, snr_db=40, chirp=chirp, seed=1)
+        prof = clsas.compress(ds, backend="numpy")
+        est = cost._omega_k_estimate(prof, grid, None, {})
+        assert est.unpredicted is aliased is cost.lattice_aliases(plan_sizes(prof, grid))
