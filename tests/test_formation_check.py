@@ -209,14 +209,18 @@ def test_a_step_with_nan_gives_way(scan, monkeypatch):
 
 
 def test_an_unpredicted_formation_is_taken_only_measured():
-    """Plain ω-k with aliased voxel-stop pairs is never taken on its prediction: where measuring it
-    pays it is formed and measured first, otherwise the safe formation is taken."""
+    """Plain ω-k with aliased voxel-stop pairs is not taken on its prediction where its check costs
+    at most as much as it (CHECK_UNPREDICTED_SHARE): it is formed and measured first where that pays,
+    else the safe formation is taken; where the check would cost more, the prediction is trusted."""
     bp = cost.Estimate("bp", 10.0, -math.inf)
     wk = cost.Estimate("omega-k", 1.0, -42.0, unpredicted=True)
     steps = cost._steps([bp, wk], -30.0, check_s=0.5)
     assert [(e.formation, m) for e, m in steps] == [("omega-k", True), ("bp", False)]
-    steps = cost._steps([bp, wk], -30.0, check_s=6.0)  # 1 + 6 > 0.5 x 10: not worth measuring
+    wk4 = cost.Estimate("omega-k", 4.0, -42.0, unpredicted=True)
+    steps = cost._steps([bp, wk4], -30.0, check_s=3.0)  # 4 + 3 > 0.5 x 10: not worth measuring
     assert [(e.formation, m) for e, m in steps] == [("bp", False)]
+    steps = cost._steps([bp, wk], -30.0, check_s=6.0)  # the check costs 6x ω-k: its prediction is trusted
+    assert [(e.formation, m) for e, m in steps] == [("omega-k", False)]
     over = cost.Estimate("omega-k", 1.0, -20.0, unpredicted=True)  # predicted over the target: not tried
     assert [(e.formation, m) for e, m in cost._steps([bp, over], -30.0, check_s=0.5)] == [("bp", False)]
 

@@ -175,7 +175,7 @@ def add_parser(sub) -> None:
                    "the held-out ones (for reports, never for tuning)")
     b.add_argument("--formation-family", nargs="?", const="tuning", default=None,
                    choices=("tuning", "held-out", "held-out-2", "held-out-3", "held-out-4", "held-out-5",
-                            "held-out-6", "held-out-7"),
+                            "held-out-6", "held-out-7", "held-out-8"),
                    help="run only formation='auto' on a seeded family of requests (planar, jittered and ring "
                    "apertures, points and planes, audio bands): its tuning seeds (default) or either held-out set "
                    "(for reports, never for tuning); 1-3 minutes on a 2-core CPU")

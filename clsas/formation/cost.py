@@ -154,7 +154,10 @@ CHECK_ABOVE_DB = 2.0
 # Plain ω-k where any voxel-stop pair is sampled aliased (lattice_aliases) is never taken unmeasured
 # (Estimate.unpredicted): on the 42 planar fit requests 500-599 every such request but two small
 # lattices measured 1-10 dB worse than predicted (three whose aliased share rounds to 0 measured -32 to
-# -37 dB against -42), while on the crossover scans the same model over-predicts by up to 3 dB
+# -37 dB against -42), while on the crossover scans the same model over-predicts by up to 3 dB. Where its
+# check would cost more than this share of it (the 96 x 96-stop crossover scan: 0.29 s on 0.10 s, 2.5x
+# auto's time), the prediction and the margin are trusted as before
+CHECK_UNPREDICTED_SHARE = 1.0
 CHECK_IF_UNDER = 0.5
 CHECK_SHARE = 0.1
 
@@ -518,10 +521,11 @@ def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_d
             out.append(Estimate("omega-k", floor, math.nan,
                                 note=f"not sized: its sizing and fixed cost alone are about {floor:.3g} s"))
     if "ffbp" in formations:
-        best = min((e.time_s for e in out if _safe(e, target + MARGIN_DB)), default=math.inf)
-        near = [e.time_s for e in out if _near(e, target + MARGIN_DB)]
+        check_s = check_seconds(profiles, grid, selection, factors)
+        best = min((e.time_s for e in out if _safe(e, target + MARGIN_DB, check_s)), default=math.inf)
+        near = [e.time_s for e in out if _near(e, target + MARGIN_DB, check_s)]
         if near:  # one _steps would form and measure first may make planning a tree a loss too
-            tried = min(near) + check_seconds(profiles, grid, selection, factors)
+            tried = min(near) + check_s
             if tried < CHECK_IF_UNDER * best:
                 best = tried
         out.extend(_ffbp_estimates(profiles, grid, selection, factors, target, best))
@@ -567,7 +571,7 @@ def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db:
         reason = f"bp (exact, predicted {bp.time_s:.3g} s) is the fastest that meets {target:g} dB; {others}"
     else:
         speedup = bp.time_s / first.time_s
-        if first.unpredicted:
+        if first.unpredicted and measured:
             meets = "by a model not trusted here (some voxel-stop pairs aliased), to be measured"
         elif first.error_db > target - MARGIN_DB:
             meets = f"within {target:g} dB + {CHECK_ABOVE_DB:g} dB, to be measured"
@@ -592,25 +596,32 @@ def check_seconds(profiles: Profiles, grid: VoxelGrid, selection, factors: dict)
                     selection, factors)
 
 
-def _safe(e: Estimate, target: float) -> bool:
-    """Predicted to meet ``target`` with the margin, and the prediction trusted."""
-    return e.feasible and not e.unpredicted and e.error_db <= target - MARGIN_DB  # NaN (not planned) is not
+def _measurable(e: Estimate, check_s: float) -> bool:
+    """An unpredicted formation whose check costs at most :data:`CHECK_UNPREDICTED_SHARE` of it."""
+    return e.unpredicted and check_s <= CHECK_UNPREDICTED_SHARE * e.time_s
 
 
-def _near(e: Estimate, target: float) -> bool:
+def _safe(e: Estimate, target: float, check_s: float) -> bool:
+    """Predicted to meet ``target`` with the margin, by a trusted model or one whose check would cost
+    more than the formation itself (then the prediction and the margin are all there is)."""
+    ok = e.feasible and e.error_db <= target - MARGIN_DB  # NaN (not planned) is not
+    return ok and not _measurable(e, check_s)
+
+
+def _near(e: Estimate, target: float, check_s: float) -> bool:
     """A fast formation auto may form and measure: predicted within the margin of ``target`` (or up to
     :data:`CHECK_ABOVE_DB` over it), or predicted to meet it by a model it does not trust."""
     if not e.feasible or e.formation == "bp" or e.error_db > target + CHECK_ABOVE_DB:
         return False
-    return e.unpredicted or e.error_db > target - MARGIN_DB
+    return _measurable(e, check_s) or e.error_db > target - MARGIN_DB
 
 
 def _steps(ests: list[Estimate], target: float, check_s: float) -> tuple[tuple[Estimate, bool], ...]:
     """What auto forms in turn, and which it measures (:data:`CHECK_ABOVE_DB`, :data:`CHECK_IF_UNDER`,
     :data:`CHECK_SHARE`): ends at the first one kept unmeasured, or at bp."""
-    ok = sorted((e for e in ests if _safe(e, target)), key=lambda e: e.time_s)
+    ok = sorted((e for e in ests if _safe(e, target, check_s)), key=lambda e: e.time_s)
     steps: list[tuple[Estimate, bool]] = []
-    near = sorted((e for e in ests if _near(e, target)), key=lambda e: e.time_s)
+    near = sorted((e for e in ests if _near(e, target, check_s)), key=lambda e: e.time_s)
     if near and near[0].time_s + check_s < CHECK_IF_UNDER * ok[0].time_s:
         steps.append((near[0], True))
     for e in ok:  # bp is among them, exact
