@@ -115,7 +115,9 @@ def _timed(fn):
     return best, out
 
 
-ROUNDS = (3, 25)  # fewest and most timing rounds (each times every formation and auto once, in turn)
+# fewest and most timing rounds (each times every formation and auto once, in turn); 5 at the least since
+# the dense case's ω-k took 1.4-2.9 s from one call to the next, and 3 rounds gave auto 1.04-2.0x it
+ROUNDS = (5, 25)
 ROUNDS_FOR_S = 2.0  # ... rounds go on until this much time has been spent
 # ... or one call takes this long (one round then). It was ROUNDS_FOR_S: on the dense case's 2-3 s
 # formations one round each, and ω-k alone took 1.5-2.9 s from one call to the next there
