@@ -3,7 +3,9 @@
 For a request (profiles, grid, device), each formation gets a predicted run time and a
 predicted error against exact backprojection (complex error-to-signal over the grid, dB, as
 :func:`clsas.formation.error_to_signal_db` measures it); :func:`choose` takes the fastest
-whose predicted error is at most ``max_error_db - MARGIN_DB``, and says why.
+whose predicted error is at most ``max_error_db - MARGIN_DB``, and says why. The seconds per unit
+of work, their scaling to a device and their calibration are in :mod:`clsas.formation.timing`; which
+predictions auto trusts, and what it forms and measures in turn, in :mod:`clsas.formation.trust`.
 
 Time. Each formation's time is a sum of counted work times seconds per unit:
 
@@ -45,30 +47,39 @@ the fastest that meets the target.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import os
 import time
-from dataclasses import asdict, dataclass, field
-from pathlib import Path
-from typing import Any
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from ..geometry import VoxelGrid
 from ..profiles import Profiles
+from .timing import (
+    BUILTIN,
+    GPU_FIXED,
+    OMEGA_K_CORE_EXPONENT,
+    _device,
+    _seconds,
+    calibration_path,
+    load_calibration,
+    store_calibration,
+    work_bp,
+    work_ffbp,
+    work_omega_k,
+)
+from .trust import CHECK_ABOVE_DB, CHECK_IF_UNDER, MARGIN_DB, Estimate, _near, _safe, _steps, check_seconds
 
 __all__ = [
-    "BUILTIN", "DEFAULT_MAX_ERROR_DB", "MARGIN_DB", "Choice", "Estimate", "alias_fraction", "calibration_path",
-    "check_max_error_db", "check_seconds", "choose", "estimate", "load_calibration", "predict_time",
-    "store_calibration",
+    "BUILTIN", "DEFAULT_MAX_ERROR_DB", "GPU_FIXED", "MARGIN_DB", "OMEGA_K_CORE_EXPONENT", "Choice", "Estimate",
+    "alias_fraction", "calibration_path", "check_max_error_db", "check_seconds", "choose", "estimate",
+    "load_calibration", "predict_time", "store_calibration",
 ]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_MAX_ERROR_DB = -30.0
-MARGIN_DB = 3.0  # a formation is chosen only where its predicted error is this far under the target
 OMEGA_K_BASE_DB = -42.0
 # ... on lattices of at least OMEGA_K_FULL_SIDE stops a side (the crossover scans, 16-128); on fewer the
 # method's own error grows: on the planar requests of the formation family's fit seeds 500-599 that the
@@ -88,37 +99,6 @@ OMEGA_K_UP_DB = 3.0
 OMEGA_K_UP_MAX_SINE = 0.75
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
-# 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
-# bp and FFBP; 5: omega-k's direct sum at the depths; 6: bp's fixed part split into a per-measurement
-# term (a factor stored by an older format no longer applies)
-FORMAT = 6
-
-# seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
-# (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
-# kernel: the 2026-11-25 fit had been taken at load 12-14 and over-predicted ω-k 5x, bp 2.5x;
-# omega-k's Stolt and depth terms divided by the 3 bistatic terms (and the Stolt term by the 6-cell
-# kernel) of the cases they were fitted on when its work began to count them; then omega-k's fixed
-# part (1.5 ms, was 5 ms) and its variable part (x 1.15) refitted on the crossover scans of
-# bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128 stops a side; bp's pairs term
-# x 0.81 (2e-9 before) on 2026-11-28 after the split-carrier kernel, its measured over predicted on
-# the crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier.json; FFBP's
-# variable terms x 0.55 (its median measured over predicted on the crossover scans of
-# bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json, after its faster leaves and planning);
-# bp refitted again on 2026-11-28 (eighth session) by non-negative least squares in relative error on 69
-# requests of the formation family's fit seeds 500-579 (clsas.bench.formation_family, up to 3e8 pairs):
-# its 5 ms fixed part over-predicted bp up to 5x on scans it forms in 1-3 ms (auto then took ω-k
-# there, twice bp's time); now 0.63 ms, 5.6 us per measurement (its records and profiles, host side)
-# and 1.83e-9 per pair (measured / predicted 0.66-1.78 on those requests, was 0.21-1.78)
-BUILTIN: dict[str, dict[str, float]] = {
-    "bp": {"fixed": 6.3e-4, "meas": 5.6e-6, "pairs": 1.83e-9},
-    "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9,
-                "direct": 2.1e-10},
-    "ffbp": {"fixed": 5e-3, "leaf": 1.1e-9, "merge": 1.4e-9, "grid": 1.4e-9},
-}
-# bp's fixed part on a GPU: 1.5 ms (1.45-1.9 ms for the whole of bp's smallest cases on an H200
-# through NVIDIA's OpenCL, bench/results/2026-11-28-formation-gpu-h200.md), not the 5 ms PoCL's model
-# had then: with that, auto sized ω-k for scans bp forms in 2-5 ms, and the sizing alone doubled auto's time
-GPU_FIXED = {"bp": 1.5e-3}
 # the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
 # for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
 # before, 2026-11-28; 27-46 ms, 1.7-2.8e-5 s each, for 1155-1634 measurements on the formation family's
@@ -138,45 +118,6 @@ FFBP_FLOOR_GRID = 0.75
 # (measured / predicted 0.6-1.9); it counts in ω-k's lower bound, since it is lost where bp is chosen
 # (on scans bp forms in 2-6 ms it had doubled auto's time)
 OMEGA_K_SIZING_S = (1.5e-3, 8e-7)
-HOST_TERMS = ("fixed", "meas", "plan")  # work the host does, whatever the device
-REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
-# ω-k's host work speeds up as (cores / REF_UNITS) ** this: 1.25-1.8x on a 16-core host against the
-# 2-core reference (8 ** 0.1-0.28), measured with a GPU doing bp on 2026-11-28
-OMEGA_K_CORE_EXPONENT = 0.2
-NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses
-# Measuring instead of predicting (clsas.formation.check: exact bp on a sub-lattice, within 0.6 dB of the
-# whole grid's error on the 31 fit requests 500-530, where ω-k's prediction was off by -7 to +10 dB).
-# A formation predicted between the target less MARGIN_DB and the target plus CHECK_ABOVE_DB is formed
-# and measured where it and its check together take under CHECK_IF_UNDER of the best predicted to meet
-# the target with the margin; that one is measured too where its check costs at most CHECK_SHARE of it.
-# A formation whose measured error (its bootstrap upper bound) misses the target gives way to the next.
-CHECK_ABOVE_DB = 2.0
-# Plain ω-k where any voxel-stop pair is sampled aliased (lattice_aliases) is never taken unmeasured
-# (Estimate.unpredicted): on the 42 planar fit requests 500-599 every such request but two small
-# lattices measured 1-10 dB worse than predicted (three whose aliased share rounds to 0 measured -32 to
-# -37 dB against -42), while on the crossover scans the same model over-predicts by up to 3 dB. Where its
-# check would cost more than this share of it (the 96 x 96-stop crossover scan: 0.29 s on 0.10 s, 2.5x
-# auto's time), the prediction and the margin are trusted as before
-CHECK_UNPREDICTED_SHARE = 1.0
-CHECK_IF_UNDER = 0.5
-CHECK_SHARE = 0.1
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """One formation's prediction for a request."""
-
-    formation: str
-    time_s: float  # predicted run time, s (inf where it cannot run)
-    error_db: float  # predicted error against bp, dB (-inf: exact)
-    options: dict = field(default_factory=dict)  # formation options it would run with
-    note: str = ""  # why it cannot run, or what the error estimate rests on
-    # the prediction is not trusted: taken only once its error is measured (clsas.formation.check)
-    unpredicted: bool = False
-
-    @property
-    def feasible(self) -> bool:
-        return math.isfinite(self.time_s)
 
 
 @dataclass(frozen=True)
@@ -220,130 +161,6 @@ def check_max_error_db(max_error_db) -> float:
     return val
 
 
-# -- calibration ------------------------------------------------------------------------------
-def _device_key(selection) -> tuple[str, dict]:
-    import hashlib
-    import platform
-
-    if selection is not None and getattr(selection, "kind", "numpy") == "opencl":
-        from ..cl.variants import device_identity
-
-        ident = device_identity(selection.queue.device)
-    else:
-        ident = {"numpy": platform.processor() or platform.machine(), "cores": os.cpu_count()}
-    ident = {**ident, "format": FORMAT}
-    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()[:32], ident
-
-
-def calibration_path(selection=None) -> Path:
-    """Where the calibration of ``selection``'s device is kept: ``formation_cost/<key>.json`` beside
-    the kernel-variant verdicts (:func:`clsas.cl.variants.cache_dir`)."""
-    from ..cl.variants import cache_dir
-
-    return cache_dir().parent / "formation_cost" / f"{_device_key(selection)[0]}.json"
-
-
-def load_calibration(selection=None) -> dict:
-    """The stored factors of ``selection``'s device (formation -> measured / predicted), or {}."""
-    try:
-        data = json.loads(calibration_path(selection).read_text())
-        return {k: float(x) for k, x in data["factors"].items() if float(x) > 0}
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return {}
-
-
-def store_calibration(factors: dict[str, float], selection=None, detail: Any = None) -> Path:
-    """Keep ``factors`` (formation -> measured / built-in predicted time) for ``selection``'s device."""
-    path = calibration_path(selection)
-    ident = _device_key(selection)[1]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps({**ident, "factors": {k: float(x) for k, x in factors.items()}, "detail": detail,
-                               "when": time.strftime("%Y-%m-%dT%H:%M:%S")}, indent=1, default=str))
-    os.replace(tmp, path)
-    return path
-
-
-# -- counted work -----------------------------------------------------------------------------
-def _device(selection):
-    """The selection's OpenCL device, or None where it runs the NumPy twins."""
-    if selection is None or getattr(selection, "kind", "numpy") != "opencl":
-        return None
-    return selection.queue.device
-
-
-def _on_gpu(selection) -> bool:
-    from ..cl import is_cpu
-
-    dev = _device(selection)
-    return dev is not None and not is_cpu(dev)
-
-
-def _speed(selection, formation: str) -> float:
-    """How much faster than the reference device this selection runs ``formation``'s work."""
-    host = (os.cpu_count() or REF_UNITS) / REF_UNITS
-    dev = _device(selection)
-    if formation == "omega-k":
-        # its FFTs use every host core (workers=os.cpu_count()) but at these sizes gain little from
-        # them: on a 16-core host (8x the reference) ω-k ran 1.25-1.8x faster than on the reference,
-        # not 8x (bench/results/2026-11-28-formation-gpu-h200.md, runs 1-2); hence host ** 0.2
-        speed = host**OMEGA_K_CORE_EXPONENT
-        return speed if dev is not None else speed / NUMPY_SLOWDOWN[formation]
-    if dev is None:
-        return host / NUMPY_SLOWDOWN[formation]
-    units = int(getattr(dev, "max_compute_units", REF_UNITS) or REF_UNITS)
-    return 4.0 * units / REF_UNITS if _on_gpu(selection) else units / REF_UNITS
-
-
-def _seconds(formation: str, work: dict, selection, factors: dict) -> float:
-    # the fixed part (set-up, launches, Python) and the host's per-measurement work do not scale with
-    # the device's speed
-    coef = BUILTIN[formation]
-    fixed = GPU_FIXED.get(formation, coef["fixed"]) if _on_gpu(selection) else coef["fixed"]
-    t = sum(coef[k] * float(n) for k, n in work.items() if k not in HOST_TERMS)
-    host = fixed * float(work.get("fixed", 0)) + coef.get("meas", 0.0) * float(work.get("meas", 0))
-    t = host + t / _speed(selection, formation) + work.get("plan", 0.0)
-    return t * factors.get(formation, 1.0)
-
-
-def work_bp(profiles: Profiles, grid: VoxelGrid) -> dict:
-    """Counted work of exact backprojection."""
-    return {"fixed": 1, "meas": float(profiles.n_meas), "pairs": float(profiles.n_meas) * grid.size}
-
-
-def work_omega_k(sizes: dict, opencl: bool = True) -> dict:
-    """Counted work of ω-k from :func:`clsas.formation.omega_k.plan_sizes` (the Stolt step's path as
-    ω-k takes it on OpenCL, or on the NumPy twins where ``opencl`` is False)."""
-    from .stolt import depth_path, direct_work
-
-    n_fft, n_f, nz = sizes["n_fft"], sizes["n_f"], sizes["nz"]
-    pu, pv, _ = sizes["axes"]
-    w = {"fixed": 1, "delay": sizes["n_meas"] * n_fft * math.log2(max(n_fft, 2)), "lattice": 0.0, "stolt": 0.0,
-         "depths": 0.0, "direct": 0.0, "out": 0.0}
-    for g in sizes["groups"]:
-        mu, mv, up, cols, cells = g["mu"], g["mv"], g["up"], g["columns"], g["n_cells"]
-        terms, width = g.get("terms", 3), g.get("width", 6)
-        w["lattice"] += mu * mv * n_f * math.log2(max(mu * mv, 2))
-        if depth_path(sizes.get("depths", "auto"), n_f, nz, width, terms, opencl) == "direct":
-            w["direct"] += cols * direct_work(n_f, nz, terms)
-        else:
-            w["stolt"] += cols * n_f * terms * width
-            w["depths"] += cols * cells * math.log2(max(cells, 2)) * terms
-        lu, lv = up * mu + len(pu), up * mv + len(pv)
-        w["out"] += up * mv * nz * lu * math.log2(lu) + len(pu) * nz * lv * math.log2(lv)
-    return w
-
-
-def work_ffbp(tree, grid: VoxelGrid, taps: int, plan_s: float) -> dict:
-    """Counted work of FFBP for a planned tree (:func:`clsas.formation.ffbp.plan_tree`)."""
-    leaves = tree.levels[-1]
-    per_leaf = len(tree.order) / max(leaves.n_nodes, 1)
-    merge = sum(lev.samples for lev in tree.levels[:-1]) * tree.factor * taps**3
-    return {"fixed": 1, "plan": plan_s, "leaf": leaves.samples * per_leaf, "merge": merge,
-            "grid": float(grid.size) * tree.factor * taps**3}
-
-
-# -- errors -----------------------------------------------------------------------------------
 def _never_aliased(g, pu, pv, depth_min: float, k2_max: float) -> bool:
     """Whether no voxel-stop pair of the lattice group ``g`` is steep enough to be sampled aliased at the
     two-way wavenumber ``k2_max`` (the steepest ``|sin theta|`` per axis: at the nearest depth, the
@@ -583,53 +400,6 @@ def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db:
                   f"faster than bp) at {first.error_db:.0f} dB {meets}{then}; {others}")
     log.info("formation auto: %s [cost model %s]", reason, model)
     return Choice(first.formation, dict(first.options), reason, target, model, tuple(ests), steps)
-
-
-def check_seconds(profiles: Profiles, grid: VoxelGrid, selection, factors: dict) -> float:
-    """Predicted time of measuring a formed image's error (:func:`clsas.formation.check.measure_error`:
-    bp on the grid's sub-lattice)."""
-    from .check import stride_for
-
-    s = stride_for(grid.shape)
-    n_sub = math.prod(-(-n // s) for n in grid.shape)  # at most this many voxels, whatever the offsets
-    return _seconds("bp", {"fixed": 1, "meas": float(profiles.n_meas), "pairs": float(profiles.n_meas) * n_sub},
-                    selection, factors)
-
-
-def _measurable(e: Estimate, check_s: float) -> bool:
-    """An unpredicted formation whose check costs at most :data:`CHECK_UNPREDICTED_SHARE` of it."""
-    return e.unpredicted and check_s <= CHECK_UNPREDICTED_SHARE * e.time_s
-
-
-def _safe(e: Estimate, target: float, check_s: float) -> bool:
-    """Predicted to meet ``target`` with the margin, by a trusted model or one whose check would cost
-    more than the formation itself (then the prediction and the margin are all there is)."""
-    ok = e.feasible and e.error_db <= target - MARGIN_DB  # NaN (not planned) is not
-    return ok and not _measurable(e, check_s)
-
-
-def _near(e: Estimate, target: float, check_s: float) -> bool:
-    """A fast formation auto may form and measure: predicted within the margin of ``target`` (or up to
-    :data:`CHECK_ABOVE_DB` over it), or predicted to meet it by a model it does not trust."""
-    if not e.feasible or e.formation == "bp" or e.error_db > target + CHECK_ABOVE_DB:
-        return False
-    return _measurable(e, check_s) or e.error_db > target - MARGIN_DB
-
-
-def _steps(ests: list[Estimate], target: float, check_s: float) -> tuple[tuple[Estimate, bool], ...]:
-    """What auto forms in turn, and which it measures (:data:`CHECK_ABOVE_DB`, :data:`CHECK_IF_UNDER`,
-    :data:`CHECK_SHARE`): ends at the first one kept unmeasured, or at bp."""
-    ok = sorted((e for e in ests if _safe(e, target, check_s)), key=lambda e: e.time_s)
-    steps: list[tuple[Estimate, bool]] = []
-    near = sorted((e for e in ests if _near(e, target, check_s)), key=lambda e: e.time_s)
-    if near and near[0].time_s + check_s < CHECK_IF_UNDER * ok[0].time_s:
-        steps.append((near[0], True))
-    for e in ok:  # bp is among them, exact
-        measured = e.formation != "bp" and check_s <= CHECK_SHARE * e.time_s
-        steps.append((e, measured))
-        if not measured:
-            break
-    return tuple(steps)
 
 
 def _opts(options: dict) -> str:
