@@ -248,8 +248,6 @@ def subpixel_peaks(ds: clsas.Dataset, ours_xy: np.ndarray, ref_xy: np.ndarray, b
     around each at 0.25 mm and its local maxima there within -10 dB of its image's peak (the
     same floor as :func:`metrics`) are the candidates. A peak with none in its window is a
     miss (distance inf)."""
-    from scipy.ndimage import maximum_filter
-
     x, disc_yx = owners_axes()
     step = x[1] - x[0]
     b = np.abs(np.where(disc_yx.T, ref_xy, 0))
@@ -261,7 +259,7 @@ def subpixel_peaks(ds: clsas.Dataset, ours_xy: np.ndarray, ref_xy: np.ndarray, b
         f = np.arange(-half_m, half_m + step_m / 2, step_m)
         grid = clsas.VoxelGrid(x[i] + f, x[j] + f, np.array([0.0]))
         mag = np.abs(np.asarray(clsas.reconstruct(ds, grid, backend=backend).values)[:, :, 0])
-        lm = np.argwhere((mag == maximum_filter(mag, size=3)) & (mag >= floor))
+        lm = local_maxima(mag, floor)
         lm = lm[(lm > 0).all(axis=1) & (lm < f.size - 1).all(axis=1)]
         d = np.hypot(x[i] + f[lm[:, 0]] - rx, x[j] + f[lm[:, 1]] - ry)
         dist.append(float(d.min()) if d.size else float("inf"))
