@@ -115,6 +115,11 @@ def test_operator_passes_the_dot_product_test(rng, backend, with_pulse):
     lhs, rhs = np.vdot(y, A.matvec(x)), np.vdot(A.rmatvec(y), x)
     tol = 1e-12 if backend == "numpy" else 1e-5  # float64 twin; float32 kernels
     assert abs(lhs - rhs) <= tol * abs(lhs)
+    # A.H is the adjoint as an operator (scipy's composition, e.g. in a masked model, goes through it)
+    AH = A.H
+    assert AH.shape == (A.shape[1], A.shape[0]) and AH.dtype == np.complex128
+    np.testing.assert_allclose(AH @ y, A.rmatvec(y), rtol=0, atol=1e-12 * np.abs(A.rmatvec(y)).max())
+    np.testing.assert_allclose(AH.H @ x, A.matvec(x), rtol=0, atol=1e-12 * np.abs(A.matvec(x)).max())
     # A^H without a pulse is the backprojection
     if not with_pulse:
         img = clsas.backproject(replace(prof, data=y.reshape(7, 50)), grid, backend=backend)

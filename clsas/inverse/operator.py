@@ -214,8 +214,8 @@ class ImagingOperator(LinearOperator):
         return self.backproject(q)
 
     def _adjoint(self) -> LinearOperator:
-        return LinearOperator(np.complex128, (self.shape[1], self.shape[0]), matvec=self._rmatvec,
-                              rmatvec=self._matvec)
+        return LinearOperator((self.shape[1], self.shape[0]), matvec=self._rmatvec, rmatvec=self._matvec,
+                              dtype=np.complex128)
 
     def norm(self, n_iter: int = 20, seed: int = 0) -> float:
         """Largest singular value by power iteration on ``A^H A`` (an estimate from below; solvers
