@@ -7,9 +7,10 @@ scatterers, or a sphere cap of about 160), a 20-30 kHz chirp of 1-5 ms at 96 kHz
 (odd ones) the scan also has a 10-50 us group delay, a 0.5-3 C air temperature error and the
 direct speaker-to-microphone sound; in the other half none of these.
 
-The seeds are split once, and for good: :data:`TUNING_SEEDS` are the ones autofocus may be
-developed and tuned on; :data:`HELD_OUT_SEEDS` (disjoint, 30 scenes) are for the final report
-only (``clsas bench --autofocus --held-out``).
+The seeds are split once, and for good: :data:`TUNING_SEEDS` (and :data:`TUNING_2_SEEDS`) are
+the ones autofocus may be developed and tuned on; :data:`HELD_OUT_SEEDS` and
+:data:`HELD_OUT_2_SEEDS` (disjoint, 30 scenes each) are for reports only
+(``clsas bench --autofocus held-out`` / ``held-out-2``). :data:`SEED_SETS` names them.
 """
 
 from __future__ import annotations
@@ -25,10 +26,18 @@ from .scan_errors import HandMotion
 from .signals import lfm_chirp
 from .simulation import simulate
 
-__all__ = ["FamilyScene", "family_scene", "TUNING_SEEDS", "HELD_OUT_SEEDS", "KINDS", "FS_HZ"]
+__all__ = ["FamilyScene", "family_scene", "TUNING_SEEDS", "HELD_OUT_SEEDS", "TUNING_2_SEEDS", "HELD_OUT_2_SEEDS",
+           "SEED_SETS", "KINDS", "FS_HZ"]
 
 TUNING_SEEDS = tuple(range(0, 12))
 HELD_OUT_SEEDS = tuple(range(1000, 1030))
+#: A second tuning set (the eleventh session looked at it while changing "track"'s check).
+TUNING_2_SEEDS = tuple(range(2000, 2030))
+#: A second held-out set, for reports on what changed after :data:`HELD_OUT_SEEDS` had been
+#: reported several times; never for tuning.
+HELD_OUT_2_SEEDS = tuple(range(3000, 3030))
+SEED_SETS = {"tuning": TUNING_SEEDS, "tuning-2": TUNING_2_SEEDS, "held-out": HELD_OUT_SEEDS,
+             "held-out-2": HELD_OUT_2_SEEDS}
 KINDS = ("points", "plane", "sphere")
 FS_HZ = 96e3
 MAX_VOXELS = 120_000

@@ -6,7 +6,16 @@ import pytest
 
 import clsas
 from clsas.focus import autofocus, score
-from clsas.focus.track import gauge_free, integrate_phases, neighbour_edges, pair_phases, track_phases
+from clsas.focus.motion_steps import SAMPLING_COHERENCE, _sampling_note
+from clsas.focus.track import (
+    gauge_free,
+    integrate_phases,
+    nearest_coherence,
+    neighbour_edges,
+    pair_phases,
+    region_agreement,
+    track_phases,
+)
 from clsas.scan_errors import HandMotion
 
 FS = 96e3
@@ -49,6 +58,47 @@ def test_pair_phases_read_the_phase_difference():
     assert coh == pytest.approx([1.0, 1.0])
 
 
+def test_nearest_coherence_reads_only_the_closest_stops():
+    # a 4 x 3 raster, 1 cm along x and 3 cm along y: the x neighbours are the closest pairs
+    xy = np.c_[np.tile(np.arange(4.0), 3) * 0.01, np.repeat(np.arange(3.0), 4) * 0.03]
+    edges = neighbour_edges(xy, lags=(1,), k_spatial=4)
+    length = np.linalg.norm(xy[edges[:, 0]] - xy[edges[:, 1]], axis=1)
+    coh = np.where(length < 0.015, 0.9, 0.1)  # alike along x, unlike farther
+    assert nearest_coherence(xy, edges, coh) == pytest.approx(0.9)
+    assert nearest_coherence(xy, edges, np.where(length < 0.015, 0.3, 0.95)) == pytest.approx(0.3)
+    assert np.isnan(nearest_coherence(xy, np.zeros((0, 2), int), np.zeros(0)))
+    note = _sampling_note({"coherence_nearest": 0.3})
+    assert "0.30" in note and "speckle" in note
+    assert _sampling_note({"coherence_nearest": 0.95}) == "" and _sampling_note({}) == ""
+
+
+def test_two_sides_of_a_target_give_one_path_where_the_phases_carry_it():
+    # a 12 x 10 raster; each stop's image is the same speckle on each side of the target (a
+    # different speckle per side, drifting slowly from stop to stop) times the stop's motion
+    # phase: both sides, tracked apart with every stop, give the motion back
+    rng = np.random.default_rng(4)
+    nx, ny, n_vox = 12, 10, 200
+    xy = np.c_[np.tile(np.arange(nx) * 0.01, ny), np.repeat(np.arange(ny) * 0.01, nx)]
+    t = np.arange(nx * ny) * 0.02
+    truth = 1.5 * np.sin(2 * np.pi * 0.7 * t) + 0.8 * np.sin(2 * np.pi * 2.1 * t + 1)
+    points = np.c_[rng.uniform(-0.05, 0.05, (n_vox, 2)), np.full(n_vox, 1.0)]
+    base = rng.normal(size=n_vox) + 1j * rng.normal(size=n_vox)
+    drift = rng.normal(size=n_vox) + 1j * rng.normal(size=n_vox)
+    a = (base + 0.05 * (xy[:, :1] + xy[:, 1:]) / 0.01 * drift / 10) * np.exp(-1j * truth)[:, None]
+    phi_a, phi_b = region_agreement(a, points, t, xy, cutoff_hz=None)
+    for phi in (phi_a, phi_b):
+        assert np.sqrt(np.mean(gauge_free(phi - truth, xy) ** 2)) < 0.1
+    # the sides are split at the intensity's median across the bright region's longest
+    # horizontal axis: with the voxels spread along y, y < 0 and y > 0; here only the y < 0
+    # side carries the motion (the other a random phase per stop), and only its path is right
+    line = np.c_[np.zeros(n_vox), np.linspace(-0.05, 0.05, n_vox), np.ones(n_vox)]
+    noise = np.exp(1j * rng.uniform(-np.pi, np.pi, nx * ny))[:, None]
+    b = np.where(line[:, 1] < 0, np.exp(-1j * truth)[:, None], noise) * np.ones(n_vox)
+    pa, pb = region_agreement(b, line, t, xy, cutoff_hz=None)
+    assert np.sqrt(np.mean(gauge_free(pa - truth, xy) ** 2)) < 1e-6
+    assert np.sqrt(np.mean(gauge_free(pb - truth, xy) ** 2)) > 0.5
+
+
 def test_gauge_is_removed():
     xy = np.random.default_rng(2).uniform(size=(30, 2))
     p = 1e-3 + 2e-3 * xy[:, 0] - 1e-3 * xy[:, 1]
@@ -74,6 +124,8 @@ def test_track_phases_on_stop_images_of_a_moved_scan():
                        - path(ds.tx_positions, ds.rx_positions))[first], xy)
     est = gauge_free(phi * float(np.mean(ds.c_per_meas)) / (2 * np.pi * engine.prof.fc_hz), xy)
     assert info["coherence_median"] > 0.5
+    # a compact target far away: the closest stops are finer than its speckle (no sampling note)
+    assert info["coherence_nearest"] > SAMPLING_COHERENCE and not _sampling_note(info)
     assert np.sqrt(np.mean((est - true) ** 2)) < 0.3 * np.sqrt(np.mean(true**2))
 
 
@@ -137,3 +189,5 @@ def test_speckle_at_close_range_is_not_determined_and_the_input_comes_back():
     assert m.uncertainty > 0.5 * 2.5e-3  # half the halves' difference, over half the tolerance
     assert out is ds and not rep.improved
     assert any("not determined" in n for n in rep.notes) and any("input is returned" in n for n in rep.notes)
+    # and it says why: the closest stops' images are too unlike (issue 26, eleventh session)
+    assert any("closest stops' images agree" in n for n in rep.notes)

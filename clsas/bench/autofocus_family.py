@@ -205,9 +205,9 @@ def plot_family(results: dict, path) -> None:
 
 def run_and_write(seed_set: str = "tuning", rms_mm=(3.0,), *, n_seeds: int | None = None, out_dir=None,
                   plots: bool = True, backend=None, status=None) -> dict:
-    """The family at each RMS (mm) on ``seed_set`` (``"tuning"`` or ``"held-out"``, see
-    :mod:`clsas.scene_family`; the first ``n_seeds`` only), summarised, and written to
-    ``out_dir`` as ``<date>-autofocus-family-<set>.{json,md,png}``.
+    """The family at each RMS (mm) on ``seed_set`` (a name in :data:`clsas.scene_family.SEED_SETS`:
+    ``"tuning"``, ``"tuning-2"``, ``"held-out"``, ``"held-out-2"``; the first ``n_seeds`` only),
+    summarised, and written to ``out_dir`` as ``<date>-autofocus-family-<set>.{json,md,png}``.
 
     Returns ``{"results": {label: {"summary", "rows"}}, "paths": {...}}``.
     """
@@ -217,11 +217,11 @@ def run_and_write(seed_set: str = "tuning", rms_mm=(3.0,), *, n_seeds: int | Non
     import platform
     from pathlib import Path
 
-    from clsas.scene_family import HELD_OUT_SEEDS, TUNING_SEEDS
+    from clsas.scene_family import SEED_SETS
 
-    if seed_set not in ("tuning", "held-out"):
-        raise ValueError(f"seed_set must be 'tuning' or 'held-out', got {seed_set!r}")
-    seeds = list(TUNING_SEEDS if seed_set == "tuning" else HELD_OUT_SEEDS)[:n_seeds]
+    if seed_set not in SEED_SETS:
+        raise ValueError(f"seed_set must be one of {', '.join(SEED_SETS)}, got {seed_set!r}")
+    seeds = list(SEED_SETS[seed_set])[:n_seeds]
     results = {}
     for mm in rms_mm:
         rows = run_family(seeds, float(mm) * 1e-3, backend=backend, status=status)

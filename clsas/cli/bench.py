@@ -170,9 +170,10 @@ def add_parser(sub) -> None:
                    help="with --scale: which parts (default all)")
     b.add_argument("--cases", nargs="+", choices=("demo", "dense", "circular", "beams", "crossover"), default=None,
                    help="with --formation: which cases (default all)")
-    b.add_argument("--autofocus", nargs="?", const="tuning", choices=("tuning", "held-out"), default=None,
-                   help="run only the autofocus benchmark on the seeded scene family: its tuning seeds (default) or "
-                   "the held-out ones (for reports, never for tuning)")
+    b.add_argument("--autofocus", nargs="?", const="tuning", choices=("tuning", "tuning-2", "held-out", "held-out-2"),
+                   default=None, help="run only the autofocus benchmark on the seeded scene family: its tuning seeds "
+                   "(default; tuning-2: 2000-2029) or a held-out set (1000-1029; held-out-2: 3000-3029; for reports, "
+                   "never for tuning)")
     b.add_argument("--formation-family", nargs="?", const="tuning", default=None,
                    choices=("tuning", "held-out", "held-out-2", "held-out-3", "held-out-4", "held-out-5",
                             "held-out-6", "held-out-7", "held-out-8"),

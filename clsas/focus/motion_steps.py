@@ -105,6 +105,12 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
 #: made worse by 0.08).
 POINTS_GAIN = 0.1
 
+#: Below this :func:`.track.nearest_coherence` the closest stops' images differ by more than
+#: the motion does (the stops are too far apart for the target's speckle) and the report says
+#: so. On the family's tuning seeds (issue 26, eleventh session) "track" reached 1 dB only at
+#: 0.92 and failed at 0.21-0.69; a note, it changes no estimate.
+SAMPLING_COHERENCE = 0.8
+
 
 def points_step(fo, shift, c, stop, t_stop, xy, margin, others=frozenset()) -> np.ndarray | None:
     """``"points"`` (:mod:`.points`): the carriage's displacement (n_meas, 3), m, where the estimate
@@ -155,9 +161,9 @@ def points_step(fo, shift, c, stop, t_stop, xy, margin, others=frozenset()) -> n
 
 
 def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarray, bool]:
-    """``"track"`` alone: applied where determined (the even and odd stops agree) and where the
-    check on positions (:func:`.track_step.where_check`) passes."""
-    from .track_step import where_check
+    """``"track"`` alone: applied where determined (the even and odd stops agree, or the target's
+    two sides do) and where the check on positions (:func:`.track_step.where_check`) passes."""
+    from .track_step import REGION_TOLERANCE_M, where_check
 
     rep = fo.rep
     where = where_check(fo, shift, c, move) if track["determined"] else {"passed": False}
@@ -166,25 +172,44 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
     rep.check.update({f"motion_{n}_after": a for n, a in zip(fo.split_names, after, strict=True)})
     rep.check.update({f"where_{k}": v for k, v in where.items()})
     rep.check["motion_passed"] = passed
+    nearest = track.get("coherence_nearest", float("nan"))
     how = (f"track: neighbouring stops' phase differences, integrated (median coherence "
-           f"{track.get('coherence_median', 0):.2f}); even and odd stops tracked apart differ by "
-           f"{track.get('halves_rms_m', float('nan')) * 1e3:.2f} mm RMS (one way; determined at "
-           f"<= {fo.track_tolerance_m * 1e3:.2f} mm)")
+           f"{track.get('coherence_median', 0):.2f}, closest stops {nearest:.2f}); even and odd stops tracked "
+           f"apart differ by {track.get('halves_rms_m', float('nan')) * 1e3:.2f} mm RMS (one way; determined at "
+           f"<= {fo.track_tolerance_m * 1e3:.2f} mm), the target's two sides by "
+           f"{track.get('regions_rms_m', float('nan')) * 1e3:.2f} mm (at <= {REGION_TOLERANCE_M * 1e3:.2f} mm)")
+    sampling = _sampling_note(track)
+    if sampling:
+        rep.notes.append(sampling)
     if track["determined"]:
         how += ("; positions: " + ", ".join(f"{k} {v:.3g}" for k, v in where.items() if k != "passed")
                 + ("" if where["passed"] else " (the correction moves the image's features apart: not applied)"))
     # each half's path is off by about the halves' difference / sqrt(2); the whole, with twice
-    # the stops, by about half the difference
+    # the data, by about half the difference (the closer of the two splits)
+    apart = float(np.fmin(track.get("halves_rms_m", np.nan), track.get("regions_rms_m", np.nan)))
     rep.parameters["motion"] = ParameterEstimate("motion", "m RMS (one way)", track.get("rms_m", float("nan")),
-                                                 0.5 * track.get("halves_rms_m", float("nan")), track["determined"],
-                                                 False, how)
+                                                 0.5 * apart, track["determined"], False, how)
     rep.stages.append({"step": "motion", "methods": "track", "passed": passed, "where": where})
     if not passed:
-        rep.notes.append("motion: " + ("not determined by this scan (the even and odd stops disagree)"
+        rep.notes.append("motion: " + ("not determined by this scan (neither the even and odd stops nor the "
+                                       "target's two sides agree on it)"
                                        if not track["determined"] else "the check on positions failed")
                          + "; not applied")
         return np.zeros((fo.ds.n_meas, 3)), False
     return move, True
+
+
+def _sampling_note(track: dict) -> str:
+    """A note where the closest stops' images are too unlike for their phases to carry the
+    motion (:data:`SAMPLING_COHERENCE`), else ``""``."""
+    coh = track.get("coherence_nearest", float("nan"))
+    if not np.isfinite(coh) or coh >= SAMPLING_COHERENCE:
+        return ""
+    return (f"motion: the closest stops' images agree at a coherence of only {coh:.2f} (< {SAMPLING_COHERENCE:g}): "
+            "the stops are farther apart than about a third of the target's speckle length lambda R / 2D, so "
+            "neighbouring stops differ by more than the motion does and the motion is not reliably determined "
+            "by this scan; stops closer together (or a smaller target region) would let it be "
+            "(docs/guide/autofocus.md, 'When the motion can be found')")
 
 
 def _local_engine(fo, shift, c):

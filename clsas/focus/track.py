@@ -27,7 +27,7 @@ import logging
 import numpy as np
 
 __all__ = ["DEFAULT_CUTOFF_HZ", "neighbour_edges", "pair_phases", "integrate_phases", "smooth_refine",
-           "track_phases", "half_agreement", "gauge_free"]
+           "track_phases", "nearest_coherence", "half_agreement", "region_agreement", "gauge_free"]
 
 log = logging.getLogger(__name__)
 
@@ -102,6 +102,35 @@ def integrate_phases(n: int, edges: np.ndarray, angle: np.ndarray, coherence: np
     return phi
 
 
+def region_agreement(a: np.ndarray, points: np.ndarray, t: np.ndarray, xy: np.ndarray,
+                     **options) -> tuple[np.ndarray, np.ndarray]:
+    """The phases of all the stops tracked twice: on the voxels either side of the bright
+    region's longest horizontal axis (the weighted median across it, weights the uncorrected
+    image's intensity ``|sum_s a_s|^2``). ``points`` (n_vox, 3), m, are the columns' voxels.
+
+    The two sides hold different scatterers, so their speckle (and their noise) differ while
+    the motion is the same: where the stops sample the target finely enough for the neighbours'
+    phases to carry the motion, both sides give one path. Unlike :func:`half_agreement` it keeps
+    every stop, so the stops' pitch (and the neighbours' coherence) is that of the scan.
+    Returns ``(phi_a, phi_b)`` (n_stops,) rad.
+    """
+    a = np.asarray(a)
+    w = np.abs(a.sum(axis=0, dtype=np.complex128)) ** 2
+    h = np.asarray(points, float)[:, :2]
+    h = h - np.average(h, axis=0, weights=w + 1e-300)
+    axis = np.linalg.eigh((h * w[:, None]).T @ h)[1][:, -1]
+    across = h @ axis
+    order = np.argsort(across)
+    cw = np.cumsum(w[order])
+    cut = across[order][min(int(np.searchsorted(cw, 0.5 * cw[-1])), len(order) - 1)]
+    sides = (across <= cut, across > cut)
+    if min(int(side.sum()) for side in sides) < 2:
+        sides = (np.arange(len(across)) % 2 == 0, np.arange(len(across)) % 2 == 1)
+    phi_a, _ = track_phases(a[:, sides[0]], t, xy, **options)
+    phi_b, _ = track_phases(a[:, sides[1]], t, xy, **options)
+    return phi_a, phi_b
+
+
 def gauge_free(p: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """``p`` (n_stops,) less its least-squares constant and tilt in the carriage's x and y (only
     the tilts the stops span: a line scan has one)."""
@@ -150,8 +179,8 @@ def track_phases(a: np.ndarray, t: np.ndarray, xy: np.ndarray, *, cutoff_hz: flo
                  lags: tuple[int, ...] = (1, 2, 3), k_spatial: int = 6) -> tuple[np.ndarray, dict]:
     """Per-stop phases (rad; stops in time order ``t``, s) from neighbouring stops' images.
 
-    Returns ``(phi, info)``: ``info`` has ``coherence_median`` of the edges and ``edges``.
-    ``cutoff_hz`` None: no smooth refinement.
+    Returns ``(phi, info)``: ``info`` has ``coherence_median`` of the edges, ``coherence_nearest``
+    (:func:`nearest_coherence`) and ``edges``. ``cutoff_hz`` None: no smooth refinement.
     """
     a = np.asarray(a)
     edges = neighbour_edges(xy, lags, k_spatial)
@@ -159,7 +188,27 @@ def track_phases(a: np.ndarray, t: np.ndarray, xy: np.ndarray, *, cutoff_hz: flo
     phi = integrate_phases(a.shape[0], edges, angle, coh)
     if cutoff_hz is not None:
         phi = smooth_refine(a, t, xy, phi, cutoff_hz=cutoff_hz)
-    return phi, {"coherence_median": float(np.median(coh)) if len(coh) else 0.0, "edges": int(len(edges))}
+    return phi, {"coherence_median": float(np.median(coh)) if len(coh) else 0.0,
+                 "coherence_nearest": nearest_coherence(xy, edges, coh), "edges": int(len(edges))}
+
+
+def nearest_coherence(xy: np.ndarray, edges: np.ndarray, coherence: np.ndarray) -> float:
+    """Median coherence of the edges no longer than 1.1 times the stops' pitch (the median
+    distance from a stop to its nearest neighbour, in the carriage's plane): how alike the
+    images of the closest stops are, before any correction (motion changes their phase, not
+    their coherence). Near 1 where the stops sample the target finer than its speckle (about
+    ``lambda R / 2D`` for a target ``D`` across at range ``R``); near 0 where they do not, and
+    there neighbouring stops' phases say nothing about the motion. NaN without edges."""
+    xy = np.asarray(xy, float)
+    edges = np.asarray(edges, int).reshape(-1, 2)
+    if len(edges) == 0:
+        return float("nan")
+    length = np.linalg.norm(xy[edges[:, 0]] - xy[edges[:, 1]], axis=1)
+    d = np.full(len(xy), np.inf)
+    np.minimum.at(d, edges[:, 0], length)
+    np.minimum.at(d, edges[:, 1], length)
+    pitch = float(np.median(d[np.isfinite(d)]))
+    return float(np.median(np.asarray(coherence)[length <= 1.1 * pitch]))
 
 
 def half_agreement(a: np.ndarray, t: np.ndarray, xy: np.ndarray, **options) -> tuple[np.ndarray, np.ndarray]:
