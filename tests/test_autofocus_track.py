@@ -191,3 +191,50 @@ def test_speckle_at_close_range_is_not_determined_and_the_input_comes_back():
     assert any("not determined" in n for n in rep.notes) and any("input is returned" in n for n in rep.notes)
     # and it says why: the closest stops' images are too unlike (issue 26, eleventh session)
     assert any("closest stops' images agree" in n for n in rep.notes)
+
+
+def _peak_db(out, fs):
+    clean = np.abs(clsas.reconstruct(fs.clean, fs.grid).values).max()
+    return 20 * np.log10(np.abs(clsas.reconstruct(out, fs.grid).values).max() / clean)
+
+
+def test_a_surface_whose_halves_decorrelate_is_determined_by_its_two_sides():
+    # family seed 2002 (tuning-2): a plane at 1.77 m, 17 x 28 stops 30 x 9 mm apart, 3 mm of hand
+    # motion. The even and odd stops (60 mm apart along the rows) track different paths; the
+    # target's two sides, tracked with every stop, agree (issue 26, eleventh session)
+    from clsas.scene_family import family_scene
+
+    fs = family_scene(2002, rms_m=3e-3)
+    out, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "track"))
+    stage = next(s for s in rep.stages if s["step"] == "track")
+    assert stage["halves_rms_m"] > 2.5e-3 and stage["regions_rms_m"] < 0.5e-3
+    m = rep.parameters["motion"]
+    assert m.determined and m.applied and rep.improved and "two sides" in m.how
+    s = score(rep, fs.dataset)
+    assert s["los_residual_rms_m"] < 0.5 * s["los_error_rms_m"]
+    assert _peak_db(out, fs) > -1.0
+
+
+def test_track_replaces_points_on_a_surface_the_points_only_sample():
+    # family seed 2001 (tuning-2): a sphere cap; "points" passes its check on speckle peaks and
+    # leaves the peak 2.7 dB down; "track" passes its own and the sub-apertures agree better after it
+    from clsas.scene_family import family_scene
+
+    fs = family_scene(2001, rms_m=3e-3)
+    out, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "points", "track"))
+    assert rep.check["points_passed"] and rep.improved
+    assert any(n.startswith("track: applied instead of points") for n in rep.notes)
+    assert rep.parameters["motion"].how.startswith("track:")
+    assert _peak_db(out, fs) > -1.0
+
+
+def test_points_stays_on_isolated_points_when_track_runs_too():
+    from clsas.scene_family import family_scene
+
+    fs = family_scene(6, rms_m=3e-3)  # 12 points: "points" is the better of the two
+    out, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "points", "track"))
+    assert rep.improved and "strong points" in rep.parameters["motion"].how
+    assert any(n.startswith("track: run too, not used") for n in rep.notes)
+    assert not any(n.startswith("motion: not determined") for n in rep.notes)  # track's own notes are withdrawn
+    s = score(rep, fs.dataset)
+    assert s["los_residual_rms_m"] < 0.3e-3

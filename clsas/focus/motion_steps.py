@@ -33,6 +33,8 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
     others = set(methods) & {"phase", "track", "los", "3d", "pga"}
     if "points" in methods:
         found = points_step(fo, shift, c, stop, t_stop, xy, margin, others)
+        if found is not None and "track" in others:
+            return _points_or_track(fo, found, shift, c, stop, t_stop, xy, max_bytes), True
         if found is not None or not others:
             return (found, True) if found is not None else (np.zeros((ds.n_meas, 3)), False)
     p_stop = np.zeros(len(t_stop))
@@ -148,8 +150,8 @@ def points_step(fo, shift, c, stop, t_stop, xy, margin, others=frozenset()) -> n
                 "motion", "m RMS (one way)", info.get("rms_m", float("nan")), float("nan"), info["determined"],
                 False, f"points: {info.get('why', 'not determined')}; not applied")
         return None
-    if others:
-        rep.notes.append(f"points: applied; {', '.join(sorted(others))} not run (points passed its check)")
+    if others - {"track"}:
+        rep.notes.append(f"points: applied; {', '.join(sorted(others - {'track'}))} not run (points passed its check)")
     rep.focus_centre_m = centre
     rep.check["motion_passed"] = True
     rep.parameters["motion"] = ParameterEstimate(
@@ -158,6 +160,38 @@ def points_step(fo, shift, c, stop, t_stop, xy, margin, others=frozenset()) -> n
         f"smooth in the hand's band; their median coherence after it {info['coherence']:.2f}; sub-aperture "
         f"images agree (magnitude correlation): {pairs}")
     return move
+
+
+def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> np.ndarray:
+    """After ``"points"`` passed: ``"track"`` too, and its correction instead where it passes its
+    own decision (:func:`_track_decision`) and the disjoint sub-apertures agree better after it
+    than after the points' (the mean over the pairs). On a surface that the strong points only
+    sample (speckle peaks that pass for points) the neighbours' phases hold more of the motion:
+    on the family's tuning sets (issue 26, eleventh session) this took 3 scenes from -2.7, -2.6
+    and -1.2 dB to within 0.2 dB and changed none for the worse."""
+    from .track_step import track_step
+
+    rep, engine = fo.rep, fo.engine
+    kept = (rep.parameters.get("motion"), len(rep.notes), rep.focus_centre_m, dict(rep.check))
+    points_after = float(np.mean([rep.check[f"points_{n}_after"] for n in fo.split_names]))
+    p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.track_tolerance_m)
+    centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
+    move = (-0.5 * p_stop[stop])[:, None] * los_directions(fo.ds, centre)
+    before, after = fo.split_agreement(shift, c, None), fo.split_agreement(shift, c, move)
+    move, passed = _track_decision(fo, shift, c, move, track, before, after)
+    track_after = float(np.mean(after))
+    if passed and track_after > points_after:
+        rep.focus_centre_m = centre
+        rep.notes.append(f"track: applied instead of points (the sub-apertures agree at {track_after:.3f} after it, "
+                         f"{points_after:.3f} after the points')")
+        return move
+    rep.parameters["motion"], rep.focus_centre_m = kept[0], kept[2]
+    del rep.notes[kept[1]:]
+    rep.check.clear()
+    rep.check.update(kept[3])
+    rep.notes.append("track: run too, not used (" + (f"the sub-apertures agree at {track_after:.3f} after it, "
+                     f"{points_after:.3f} after the points')" if passed else "it did not pass its own decision") + ")")
+    return points_move
 
 
 def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarray, bool]:
