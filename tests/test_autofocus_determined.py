@@ -8,7 +8,7 @@ import clsas
 from clsas.focus import DEFAULT_METHODS, FOCUS_METHODS, autofocus
 from clsas.focus.split import agreement, magnitude_correlation
 from clsas.scan_errors import HandMotion
-from clsas.scene_family import HELD_OUT_SEEDS, KINDS, TUNING_SEEDS, family_scene
+from clsas.scene_family import HELD_OUT_SEEDS, KINDS, SEED_SETS, TUNING_SEEDS, family_scene
 
 FS = 96e3
 POINTS = np.array([[0.02, -0.01, 0.6], [-0.05, 0.03, 0.65], [0.06, 0.04, 0.62], [-0.03, -0.05, 0.58]])
@@ -108,6 +108,9 @@ def test_split_helpers():
 
 def test_scene_family_is_seeded_and_disjoint():
     assert not set(TUNING_SEEDS) & set(HELD_OUT_SEEDS) and len(HELD_OUT_SEEDS) >= 30
+    sets = [set(v) for v in SEED_SETS.values()]
+    assert sum(map(len, sets)) == len(set().union(*sets))  # every set disjoint from the others
+    assert len(SEED_SETS["held-out-2"]) >= 30 and set(SEED_SETS) == {"tuning", "tuning-2", "held-out", "held-out-2"}
     a, b = family_scene(5, rms_m=0.001), family_scene(5, rms_m=0.001)
     assert np.array_equal(a.dataset.signals, b.dataset.signals) and a.params == b.params
     p = a.params

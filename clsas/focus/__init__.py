@@ -23,13 +23,17 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    after each pass (:mod:`.points`). *Determined* where the points are still coherent after it
    (isolated points, not the speckle of a surface); applied only where the disjoint
    sub-apertures' images agree better by :data:`.motion_steps.POINTS_GAIN`; else the other
-   motion steps named run (``"track"`` in the bench);
+   motion steps named run (``"track"`` in the bench). Where ``"track"`` is named it runs after
+   ``"points"`` passes too, and its correction replaces the points' where it passes its own
+   decision and the sub-apertures agree better after it (eleventh session: on a surface the
+   strong points are speckle peaks);
 5. ``"track"`` (issue 26, second session): one line-of-sight path per stop from the phase
    differences of neighbouring stops' images (in time and on the next row), integrated over
    the graph of neighbours (no per-stop phase is unwrapped on its own), refined in a smooth
    basis of stop time (the hand's 0.2-5 Hz band) plus the tilt, constant and tilt then set to
    zero (:mod:`.track`). *Determined* where the even and the odd stops, tracked apart, give the
-   same path within ``track_tolerance_m``; applied only where the check on positions passes
+   same path within ``track_tolerance_m``, or the target's two sides, tracked apart with every
+   stop, within :data:`.track_step.REGION_TOLERANCE_M`; applied only where the check on positions passes
    (:func:`.track_step.where_check`: the brightest points of disjoint sub-apertures must not
    lie farther apart after it, and the image's brightest point moves only where they agree);
 6. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic

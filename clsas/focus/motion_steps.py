@@ -190,7 +190,7 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
     rep.check.clear()
     rep.check.update(kept[3])
     rep.notes.append("track: run too, not used (" + (f"the sub-apertures agree at {track_after:.3f} after it, "
-                     f"{points_after:.3f} after the points')" if passed else "it did not pass its own decision") + ")")
+                     f"{points_after:.3f} after the points'" if passed else "it did not pass its own decision") + ")")
     return points_move
 
 
