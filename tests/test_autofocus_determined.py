@@ -157,6 +157,12 @@ def test_bench_autofocus_set_is_checked():
         run_and_write("all")
     with pytest.raises(SystemExit):
         main(["bench", "--autofocus", "all"])
+    # the command line offers every seed set the library names, and no other
+    from clsas.cli import build_parser
+
+    bench = build_parser()._subparsers._group_actions[0].choices["bench"]
+    offered = next(a for a in bench._actions if "--autofocus" in a.option_strings).choices
+    assert set(offered) == set(SEED_SETS)
 
 
 def test_the_per_stop_ceiling_undoes_the_hand_motion_of_a_family_scene():

@@ -68,7 +68,9 @@ def test_nearest_coherence_reads_only_the_closest_stops():
     assert nearest_coherence(xy, edges, np.where(length < 0.015, 0.3, 0.95)) == pytest.approx(0.3)
     assert np.isnan(nearest_coherence(xy, np.zeros((0, 2), int), np.zeros(0)))
     note = _sampling_note({"coherence_nearest": 0.3})
-    assert "0.30" in note and "speckle" in note
+    assert "0.30" in note and "speckle" in note and "not reliably determined" in note
+    passed = _sampling_note({"coherence_nearest": 0.3}, determined=True)
+    assert "passed the tests above" in passed and "not reliably determined" not in passed
     assert _sampling_note({"coherence_nearest": 0.95}) == "" and _sampling_note({}) == ""
 
 
@@ -88,15 +90,26 @@ def test_two_sides_of_a_target_give_one_path_where_the_phases_carry_it():
     phi_a, phi_b = region_agreement(a, points, t, xy, cutoff_hz=None)
     for phi in (phi_a, phi_b):
         assert np.sqrt(np.mean(gauge_free(phi - truth, xy) ** 2)) < 0.1
-    # the sides are split at the intensity's median across the bright region's longest
-    # horizontal axis: with the voxels spread along y, y < 0 and y > 0; here only the y < 0
-    # side carries the motion (the other a random phase per stop), and only its path is right
+    # the cut is at the intensity-weighted median along the bright region's longest horizontal
+    # axis (here y): the y < 0 voxels carry the motion and are the brighter (their stops add up),
+    # so the first side holds only y < 0 voxels and tracks it; the second mixes in the voxels
+    # whose phase is random at every stop, and does not
     line = np.c_[np.zeros(n_vox), np.linspace(-0.05, 0.05, n_vox), np.ones(n_vox)]
     noise = np.exp(1j * rng.uniform(-np.pi, np.pi, nx * ny))[:, None]
     b = np.where(line[:, 1] < 0, np.exp(-1j * truth)[:, None], noise) * np.ones(n_vox)
     pa, pb = region_agreement(b, line, t, xy, cutoff_hz=None)
     assert np.sqrt(np.mean(gauge_free(pa - truth, xy) ** 2)) < 1e-6
     assert np.sqrt(np.mean(gauge_free(pb - truth, xy) ** 2)) > 0.5
+
+
+def test_a_side_with_too_few_voxels_gives_no_second_look():
+    # one voxel cannot be cut in two: both paths NaN, and the caller's test (<= tolerance) fails
+    rng = np.random.default_rng(5)
+    xy = np.c_[np.arange(10.0) * 0.01, np.zeros(10)]
+    a = np.exp(1j * rng.uniform(-np.pi, np.pi, (10, 1)))
+    pa, pb = region_agreement(a, np.array([[0.0, 0.0, 1.0]]), np.arange(10) * 0.02, xy, cutoff_hz=None)
+    assert np.all(np.isnan(pa)) and np.all(np.isnan(pb))
+    assert not np.sqrt(np.mean((pa - pb) ** 2)) <= 0.5e-3
 
 
 def test_gauge_is_removed():
@@ -186,7 +199,7 @@ def test_speckle_at_close_range_is_not_determined_and_the_input_comes_back():
     out, rep = autofocus(ds, grid, methods=("direct", "track"))
     m = rep.parameters["motion"]
     assert not m.determined and not m.applied
-    assert m.uncertainty > 0.5 * 2.5e-3  # half the halves' difference, over half the tolerance
+    assert m.uncertainty > 0.5 * 2.5e-3  # half the closer split's difference, over half the tolerance
     assert out is ds and not rep.improved
     assert any("not determined" in n for n in rep.notes) and any("input is returned" in n for n in rep.notes)
     # and it says why: the closest stops' images are too unlike (issue 26, eleventh session)
@@ -209,7 +222,8 @@ def test_a_surface_whose_halves_decorrelate_is_determined_by_its_two_sides():
     stage = next(s for s in rep.stages if s["step"] == "track")
     assert stage["halves_rms_m"] > 2.5e-3 and stage["regions_rms_m"] < 0.5e-3
     m = rep.parameters["motion"]
-    assert m.determined and m.applied and rep.improved and "two sides" in m.how
+    assert m.determined and m.applied and rep.improved
+    assert m.uncertainty == pytest.approx(0.5 * stage["regions_rms_m"])  # the closer split's half difference
     s = score(rep, fs.dataset)
     assert s["los_residual_rms_m"] < 0.5 * s["los_error_rms_m"]
     assert _peak_db(out, fs) > -1.0
@@ -236,5 +250,8 @@ def test_points_stays_on_isolated_points_when_track_runs_too():
     assert rep.improved and "strong points" in rep.parameters["motion"].how
     assert any(n.startswith("track: run too, not used") for n in rep.notes)
     assert not any(n.startswith("motion: not determined") for n in rep.notes)  # track's own notes are withdrawn
+    # its stage stays, marked unused; the motion decision it made and its checks are withdrawn
+    assert [st.get("used") for st in rep.stages if st.get("step") == "track"] == [False]
+    assert not any(st.get("step") == "motion" for st in rep.stages) and "where_passed" not in rep.check
     s = score(rep, fs.dataset)
     assert s["los_residual_rms_m"] < 0.3e-3

@@ -172,7 +172,7 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
     from .track_step import track_step
 
     rep, engine = fo.rep, fo.engine
-    kept = (rep.parameters.get("motion"), len(rep.notes), rep.focus_centre_m, dict(rep.check))
+    kept = (rep.parameters.get("motion"), len(rep.notes), rep.focus_centre_m, dict(rep.check), len(rep.stages))
     points_after = float(np.mean([rep.check[f"points_{n}_after"] for n in fo.split_names]))
     p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.track_tolerance_m)
     centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
@@ -189,6 +189,8 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
     del rep.notes[kept[1]:]
     rep.check.clear()
     rep.check.update(kept[3])
+    # its stage stays, marked unused; the motion decision it added goes
+    rep.stages[kept[4]:] = [dict(st, used=False) for st in rep.stages[kept[4]:] if st.get("step") == "track"]
     rep.notes.append("track: run too, not used (" + (f"the sub-apertures agree at {track_after:.3f} after it, "
                      f"{points_after:.3f} after the points'" if passed else "it did not pass its own decision") + ")")
     return points_move
@@ -212,7 +214,7 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
            f"apart differ by {track.get('halves_rms_m', float('nan')) * 1e3:.2f} mm RMS (one way; determined at "
            f"<= {fo.track_tolerance_m * 1e3:.2f} mm), the target's two sides by "
            f"{track.get('regions_rms_m', float('nan')) * 1e3:.2f} mm (at <= {REGION_TOLERANCE_M * 1e3:.2f} mm)")
-    sampling = _sampling_note(track)
+    sampling = _sampling_note(track, bool(track["determined"]))
     if sampling:
         rep.notes.append(sampling)
     if track["determined"]:
@@ -233,17 +235,23 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
     return move, True
 
 
-def _sampling_note(track: dict) -> str:
+def _sampling_note(track: dict, determined: bool = False) -> str:
     """A note where the closest stops' images are too unlike for their phases to carry the
-    motion (:data:`SAMPLING_COHERENCE`), else ``""``."""
+    motion reliably (:data:`SAMPLING_COHERENCE`), else ``""``; ``determined``: the motion
+    passed its own test all the same."""
     coh = track.get("coherence_nearest", float("nan"))
     if not np.isfinite(coh) or coh >= SAMPLING_COHERENCE:
         return ""
-    return (f"motion: the closest stops' images agree at a coherence of only {coh:.2f} (< {SAMPLING_COHERENCE:g}): "
-            "the stops are farther apart than about a third of the target's speckle length lambda R / 2D, so "
-            "neighbouring stops differ by more than the motion does and the motion is not reliably determined "
-            "by this scan; stops closer together (or a smaller target region) would let it be "
-            "(docs/guide/autofocus.md, 'When the motion can be found')")
+    head = (f"motion: the closest stops' images agree at a coherence of only {coh:.2f} (< {SAMPLING_COHERENCE:g}): "
+            "the stops are far apart for the target's speckle (about lambda R / 2D for a target D across at range "
+            "R), so neighbouring stops differ by more than the motion does")
+    if determined:
+        return (head + "; scans like this were mostly not determined in the scene family, this one passed the "
+                "tests above (docs/guide/autofocus.md, 'When the motion can be found')")
+    return (head + " and the motion is not reliably determined by this scan; stops closer together (on the "
+            "scene family's surfaces \"track\" succeeded only where the finer pitch was under about 0.36 "
+            "lambda R / 2D) or a smaller target region would help (docs/guide/autofocus.md, 'When the motion can "
+            "be found')")
 
 
 def _local_engine(fo, shift, c):

@@ -104,28 +104,31 @@ def integrate_phases(n: int, edges: np.ndarray, angle: np.ndarray, coherence: np
 
 def region_agreement(a: np.ndarray, points: np.ndarray, t: np.ndarray, xy: np.ndarray,
                      **options) -> tuple[np.ndarray, np.ndarray]:
-    """The phases of all the stops tracked twice: on the voxels either side of the bright
-    region's longest horizontal axis (the weighted median across it, weights the uncorrected
-    image's intensity ``|sum_s a_s|^2``). ``points`` (n_vox, 3), m, are the columns' voxels.
+    """The phases of all the stops tracked twice: on the voxels either side of a cut across the
+    bright region, at the intensity-weighted median along its longest horizontal axis (weights
+    the uncorrected image's intensity ``|sum_s a_s|^2``). ``points`` (n_vox, 3), m, are the
+    columns' voxels.
 
     The two sides hold different scatterers, so their speckle (and their noise) differ while
     the motion is the same: where the stops sample the target finely enough for the neighbours'
     phases to carry the motion, both sides give one path. Unlike :func:`half_agreement` it keeps
     every stop, so the stops' pitch (and the neighbours' coherence) is that of the scan.
-    Returns ``(phi_a, phi_b)`` (n_stops,) rad.
+    Returns ``(phi_a, phi_b)`` (n_stops,) rad; both NaN where a side would hold fewer than 2
+    voxels (no second look: the caller's test then fails).
     """
     a = np.asarray(a)
     w = np.abs(a.sum(axis=0, dtype=np.complex128)) ** 2
     h = np.asarray(points, float)[:, :2]
     h = h - np.average(h, axis=0, weights=w + 1e-300)
     axis = np.linalg.eigh((h * w[:, None]).T @ h)[1][:, -1]
-    across = h @ axis
-    order = np.argsort(across)
+    along = h @ axis
+    order = np.argsort(along)
     cw = np.cumsum(w[order])
-    cut = across[order][min(int(np.searchsorted(cw, 0.5 * cw[-1])), len(order) - 1)]
-    sides = (across <= cut, across > cut)
+    cut = along[order][min(int(np.searchsorted(cw, 0.5 * cw[-1])), len(order) - 1)]
+    sides = (along <= cut, along > cut)
     if min(int(side.sum()) for side in sides) < 2:
-        sides = (np.arange(len(across)) % 2 == 0, np.arange(len(across)) % 2 == 1)
+        nan = np.full(a.shape[0], np.nan)
+        return nan, nan.copy()
     phi_a, _ = track_phases(a[:, sides[0]], t, xy, **options)
     phi_b, _ = track_phases(a[:, sides[1]], t, xy, **options)
     return phi_a, phi_b
