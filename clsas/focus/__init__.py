@@ -127,9 +127,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         Most strong points ``"pga"`` uses (the brightest that qualify).
     temperature_tolerance_c, delay_tolerance_s, track_tolerance_m : float
         Applied only where the uncertainty (from the two halves of the stops) is at most this;
-        ``"track"``: where the even and odd stops' paths agree within it (RMS, one way, m), or
-        where the target's two sides agree within :data:`.track_step.REGION_TOLERANCE_M` (a
-        fixed 0.5 mm, not this option).
+        ``"track"``: the even and odd stops' paths within it (RMS, one way, m), or the target's sides' within 0.5 mm.
     check_margin : float
         Sub-aperture images' agreement (0 to 1) must not fall by more (``"phase"``), or must
         rise by at least this (``"3d"``, ``"los"``, ``"pga"``).
