@@ -177,7 +177,9 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
     p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.track_tolerance_m)
     centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
     move = (-0.5 * p_stop[stop])[:, None] * los_directions(fo.ds, centre)
-    before, after = fo.split_agreement(shift, c, None), fo.split_agreement(shift, c, move)
+    # the uncorrected sub-apertures' agreement is what "points" measured (same shift and speed)
+    before = [rep.check[f"points_{n}_before"] for n in fo.split_names]
+    after = fo.split_agreement(shift, c, move)
     move, passed = _track_decision(fo, shift, c, move, track, before, after)
     track_after = float(np.mean(after))
     if passed and track_after > points_after:
