@@ -314,7 +314,8 @@ def pair_weights(luts: tuple[np.ndarray, np.ndarray], tx_m: np.ndarray, rx_m: np
     Parameters
     ----------
     luts : (tx table, rx table), each (n,) from :func:`lookup_table`
-    tx_m, rx_m, tx_dir, rx_dir : (3,) positions, m, and unit boresights of the measurement
+    tx_m, rx_m, tx_dir, rx_dir : (3,) positions, m, and unit boresights of the measurement, or
+        (n_vox, 3): each point's own measurement (FFBP's leaves)
     points_m : (n_vox, 3) m
 
     Returns
@@ -323,8 +324,8 @@ def pair_weights(luts: tuple[np.ndarray, np.ndarray], tx_m: np.ndarray, rx_m: np
     """
     dt = points_m - tx_m
     dr = points_m - rx_m
-    ct = (dt @ tx_dir) / np.maximum(np.linalg.norm(dt, axis=1), 1e-30)
-    cr = (dr @ rx_dir) / np.maximum(np.linalg.norm(dr, axis=1), 1e-30)
+    ct = np.sum(dt * tx_dir, axis=-1) / np.maximum(np.linalg.norm(dt, axis=1), 1e-30)
+    cr = np.sum(dr * rx_dir, axis=-1) / np.maximum(np.linalg.norm(dr, axis=1), 1e-30)
     w = _lut_eval(luts[0], ct) * _lut_eval(luts[1], cr)
     return w if gate is None else (w >= gate).astype(float)
 

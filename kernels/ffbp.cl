@@ -15,7 +15,9 @@
  * node and its measurements; the loop is backproject.cl's). ffbp_merge: scalar code, one
  * work-item per sample (each lane would need its own TAPS^3 stencil); PoCL vectorises across
  * the work-group. Needs common.cl (RINT, sincos_2pi, sincos_2pi_1, sincos_small, vsqrt,
- * lerp_pairs).
+ * lerp_pairs) and beam.cl (BEAM_ARGS, BEAM_WEIGHT: with -DBEAM the leaves weight each pair by
+ * its two-way beam at the sample's own position, as backproject.cl does at a voxel's; the
+ * merges then interpolate beam-weighted sub-images).
  * TAPS (2, 4 or 6) is set with -DTAPS=n. */
 #ifndef TAPS
 #define TAPS 4
@@ -100,7 +102,9 @@ __kernel void ffbp_leaf(
     __global const int *ints,        /* (n_nodes, NI)                                           */
     __global const int *block_node,  /* (size / BLOCK,) node of each block                      */
     const float kref,                /* reference cycles per metre of path, f0 / c_ref          */
-    __global float2 *out)            /* (size,) leaf sub-images                                 */
+    __global float2 *out             /* (size,) leaf sub-images                                 */
+    BEAM_ARGS)                       /* beam.cl: the beam's buffers with -DBEAM (measurements in
+                                        tree order), else nothing                               */
 {
     /* VEC consecutive samples per work-item, its vector lanes: they share a BLOCK (BLOCK is a
      * multiple of VEC), so one node and one run of measurements, looped over as bp loops. */
@@ -133,7 +137,8 @@ __kernel void ffbp_leaf(
         floatV re, im, f;
         lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im, &f);
         floatV c;
-        const floatV sn = sincos_small(phi * (f - 0.5f), &c);   /* the carrier as backproject.cl */
+        floatV sn = sincos_small(phi * (f - 0.5f), &c);   /* the carrier as backproject.cl */
+        BEAM_WEIGHT(c, sn, dtx, dty, dtz, drx, dry, drz, m);   /* the pair's beam at the sample */
         acc_re += re * c - im * sn;
         acc_im += re * sn + im * c;
     }

@@ -1,12 +1,13 @@
-"""Run the backprojection kernel's beam variant (-DBEAM, kernels/beam.cl) on Oclgrind, weighted and
-limited, at the VEC given on the command line (used by test_beam_formation.py in a subprocess;
-Oclgrind's diagnostics go to stderr)."""
+"""Run the backprojection and FFBP leaf kernels' beam variants (-DBEAM, kernels/beam.cl) on
+Oclgrind, weighted and limited, at the VEC given on the command line (used by
+test_beam_formation.py in a subprocess; Oclgrind's diagnostics go to stderr)."""
 
 import sys
 
 import pyopencl as cl
 
 from clsas.formation.bp_opencl import beam_selftest
+from clsas.formation.ffbp_opencl import leaf_beam_selftest
 
 
 def main(vec: int) -> int:
@@ -19,6 +20,8 @@ def main(vec: int) -> int:
     for mode in ("weighted", "limited"):
         err = beam_selftest(queue, vec, mode)
         assert err < 2e-4, f"beam {mode}: {err:.3g} of the peak"
+        err = leaf_beam_selftest(queue, vec, mode)
+        assert err < 2e-4, f"ffbp_leaf beam {mode}: {err:.3g} of the peak"
     print("oclgrind run ok")
     return 0
 

@@ -170,20 +170,38 @@ def test_twin_without_beam_is_unchanged(rng):
     np.testing.assert_array_equal(a, b)
 
 
-def test_ffbp_refuses_beams_it_cannot_apply(caplog):
+def test_ffbp_applies_the_beams_as_bp_does(caplog):
+    """FFBP's leaves weight each pair by its beam at the sub-image's samples: with beams it
+    defaults to "limited" as bp does, and each mode matches bp's image of the same mode."""
     fs, wave, ap = _water(4)
     beams = Beams(Piston(6e-3), Piston(6e-3), (0, 0, 1), (0, 0, 1), ap.n_meas)
-    ds = clsas.simulate(clsas.Scene(np.array([[0, 0, 0.02]])), ap, wave, fs, c_mps=1480.0, beams=beams)
-    grid = clsas.VoxelGrid.from_bounds((-1e-3, 1e-3), (-1e-3, 1e-3), (0.019, 0.021), 0.5e-3)
-    for opts in ({}, {"beam": "limited"}, {"beam": "weighted"}):
-        with pytest.raises(ValueError, match="ffbp cannot apply transducer beams"):
-            clsas.reconstruct(ds, grid, formation="ffbp", formation_options=opts, backend="numpy")
+    pts = np.array([[0, 0, 0.02], [1.5e-3, -1e-3, 0.021]])
+    ds = clsas.simulate(clsas.Scene(pts), ap, wave, fs, c_mps=1480.0, beams=beams)
+    prof = clsas.compress(ds, backend="numpy")
+    grid = clsas.VoxelGrid.from_bounds((-3e-3, 3e-3), (-3e-3, 3e-3), (0.018, 0.023), 0.25e-3)
+    errors, images = {}, {}
+    for mode in (None, "limited", "weighted", "none"):
+        with caplog.at_level("WARNING", logger="clsas.formation.ffbp"):
+            img = clsas.formation.form(prof, grid, "ffbp", beam=mode, depth=1, oversample=8.0, backend="numpy")
+        ref = clsas.formation.form(prof, grid, "bp", beam=mode, backend="numpy")
+        assert img.provenance["ffbp"]["beam"] == (mode or "limited")
+        errors[mode], images[mode] = clsas.formation.error_to_signal_db(img, ref), img
+    # a gate's edges are not band-limited: "limited" errs most (-14 dB here), "weighted" converges
+    assert errors["weighted"] < -35 and errors["none"] < -35 and errors["limited"] < -12, errors
+    assert errors[None] == errors["limited"]
+    assert any("omnidirectional" in r.message for r in caplog.records)  # beam="none" with beams warns
+    assert not any("angular steps" in r.message for r in caplog.records)
+    assert clsas.formation.error_to_signal_db(images["none"], images["limited"]) > -20  # the beams count
+    caplog.clear()
     with caplog.at_level("WARNING", logger="clsas.formation.ffbp"):
-        img = clsas.reconstruct(ds, grid, formation="ffbp", formation_options={"beam": "none", "depth": 1},
-                                backend="numpy")
-    ref = clsas.reconstruct(ds, grid, formation="bp", formation_options={"beam": "none"}, backend="numpy")
-    assert any("omnidirectional" in r.message for r in caplog.records)
-    assert clsas.formation.error_to_signal_db(img, ref) < -20
+        coarse = clsas.formation.form(prof, grid, "ffbp", beam="weighted", depth=1, backend="numpy")
+    assert any("angular steps" in r.message and "oversample=" in r.message for r in caplog.records)
+    ref = clsas.formation.form(prof, grid, "bp", beam="weighted", backend="numpy")
+    assert clsas.formation.error_to_signal_db(coarse, ref) > -20  # what the warning is for
+    with pytest.raises(ValueError, match="beam"):
+        clsas.formation.form(prof, grid, "ffbp", beam="narrow", backend="numpy")
+    with pytest.raises(ValueError, match="beam_floor_db"):
+        clsas.formation.form(prof, grid, "ffbp", beam_floor_db=float("nan"), backend="numpy")
 
 
 @pytest.fixture(scope="module")
@@ -222,8 +240,8 @@ def test_formation_table_has_the_directional_case():
 
     res = bf.run_beams_case(4)
     rows = {r["formation"]: r for r in res["rows"]}
-    assert list(rows)[:6] == ["bp", "bp beam=none", "bp beam=weighted", "omega-k", "omega-k beam=weighted",
-                              "ffbp beam=none"]
+    assert list(rows)[:8] == ["bp", "bp beam=none", "bp beam=weighted", "omega-k", "omega-k beam=weighted",
+                              "ffbp beam=none", "ffbp", "ffbp beam=weighted"]
     assert rows["bp"]["error_all_db"] is None  # the reference: bp's default with beams ("limited")
     assert all(r.get("time_s", 0) > 0 or "refused" in r for r in res["rows"])
     assert rows["auto"]["chose"] == "bp"  # directional beams take bp

@@ -154,6 +154,18 @@ def test_leaf_kernel_equals_its_twin_at_every_width(raster_case, vec):
 
 
 @needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+@pytest.mark.parametrize("mode", ["weighted", "limited"])
+def test_leaf_kernel_with_a_beam_equals_its_twin_at_every_width(vec, mode):
+    # -DBEAM: each pair weighted (or gated) by a tilted piston and a cone at the leaf's samples
+    from clsas import cl
+    from clsas.formation.ffbp_opencl import leaf_beam_selftest
+
+    width_or_skip("ffbp_leaf", vec)
+    assert leaf_beam_selftest(cl.get_queue(), vec, mode) < TOL_FFBP
+
+
+@needs_opencl
 def test_opencl_pipeline_equals_the_numpy_path(raster_case):
     _, prof, grid, _ = raster_case
     a = form(prof, grid, "ffbp", backend="numpy", depth=3)

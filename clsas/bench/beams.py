@@ -67,7 +67,7 @@ def make_case(n: int = 16, pitch: float = 1.5e-3, facet: float = 1e-3):
 
 ROWS = (("bp", {"beam": "none"}), ("bp", {"beam": "limited"}), ("bp", {"beam": "weighted"}),
         ("omega-k", {"beam": "none"}), ("omega-k", {"beam": "limited"}), ("omega-k", {"beam": "weighted"}),
-        ("ffbp", {"beam": "none"}), ("ffbp", {}))
+        ("ffbp", {"beam": "none"}), ("ffbp", {"beam": "limited"}), ("ffbp", {"beam": "weighted"}))
 
 
 def _surface_share(values: np.ndarray, grid) -> float:

@@ -120,13 +120,14 @@ def carrier_records(data: np.ndarray, n_lags: int, tau0_s, dtau_s: float, fc_hz:
     return pairs, dtau_s, 2 * np.pi * fc_hz * dtau_s
 
 
-def selftest_beam_weights(rng, mode: str):
+def selftest_beam_weights(rng, mode: str, n_meas: int = 3):
     """The beams the beam selftests use: a piston speaker tilted per measurement (drawn from
-    ``rng``) and a cone microphone, for the selftest scene's 3 measurements at 25 kHz."""
+    ``rng``) and a cone microphone, for ``n_meas`` measurements (the bp selftest scene's 3) at
+    25 kHz."""
     from ..beam import Beams, Piston, beam_weights
 
-    tilt = np.c_[rng.uniform(-0.3, 0.3, (3, 2)), np.ones(3)]
-    beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), 3)
+    tilt = np.c_[rng.uniform(-0.3, 0.3, (n_meas, 2)), np.ones(n_meas)]
+    beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), n_meas)
     return beam_weights(beams, mode, 25e3, 343.0, -12.0)
 
 

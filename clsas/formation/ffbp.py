@@ -148,22 +148,44 @@ def _plan(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
     return tree
 
 
-def _refuse_beams(profiles: Profiles, beam: str | None) -> None:
-    """FFBP forms every pair as omnidirectional (issue 33): profiles that carry directional beams
-    are refused unless ``beam="none"`` says to image them so (then with a warning); ``"limited"``
-    and ``"weighted"`` are refused, naming ``formation="bp"`` and ``"omega-k"``."""
-    from ..beam import BEAM_MODES
+def _beam_weights(profiles: Profiles, beam: str | None, floor_db: float):
+    """The leaves' pair weights for ``beam`` (as bp resolves it: ``"limited"`` by default where
+    the profiles carry a directional beam), or None; the mode resolved."""
+    from ..beam import BEAM_MODES, beam_weights
 
-    if beam is not None:
-        v.choice("beam", beam, BEAM_MODES)
+    floor_db = v.finite("beam_floor_db", floor_db)
+    mode = None if beam is None else v.choice("beam", beam, BEAM_MODES)
     directional = profiles.beams is not None and not profiles.beams.is_omni
-    if beam in ("limited", "weighted") or (directional and beam is None):
-        raise ValueError("ffbp cannot apply transducer beams yet (the profiles carry directional beams); use "
-                         "formation='bp' with formation_options={'beam': 'limited'}, formation='omega-k', or "
-                         "formation_options={'beam': 'none'} to image them as omnidirectional")
-    if directional:
+    if mode is None:
+        mode = "limited" if directional else "none"
+        if directional:
+            log.info("ffbp: the profiles carry directional beams: beam='limited' (pairs above %g dB)", floor_db)
+    elif mode == "none" and directional:
         log.warning("ffbp: beam='none': imaging directional transducers as omnidirectional (grating lobes "
                     "of stops whose beams never saw a voxel are kept)")
+    _, _, _, fc, _, _, c = profiles.arrays()
+    return beam_weights(profiles.beams, mode, fc, c, floor_db), mode
+
+
+def _check_beam_sampling(tree: Tree, weights, oversample: float) -> None:
+    """Warn where the leaves' angular step is coarse for the beam: a weighted sub-image must
+    resolve the two-way pattern for the merges to interpolate it. On the tests' 4 x 4-stop water
+    case, with the -6 dB half-angle over 0.6 / 1.2 / 2.5 steps of direction cosine, "weighted"
+    erred by -11 / -26 / -41 dB against bp's; "limited" by -7 / -12 / -14 dB (a gate's edges are
+    not band-limited: no sampling makes them exact)."""
+    if weights is None:
+        return
+    two_way = weights.luts[0] * weights.luts[1]
+    u = np.linspace(0.0, 1.0, len(two_way))
+    below = np.flatnonzero(two_way < 0.5 * two_way[0])
+    if not below.size:
+        return
+    half = float(np.sin(2 * np.arcsin(u[below[0]])))  # the -6 dB half-angle as a direction cosine
+    step = float(np.max(tree.levels[-1].geom[:, 22:24]))
+    if step > half / 1.5:
+        log.warning("ffbp: the beams' -6 dB half-angle spans %.1f angular steps of the leaf sub-images (1.5 or "
+                    "more keep a weighted image within about -25 dB of bp's); oversample=%.3g would give 1.5",
+                    half / step, oversample * 1.5 * step / half)
 
 
 def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -> None:
@@ -189,27 +211,13 @@ def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -
         log.warning("ffbp: %s; going on (force=True)", text)
 
 
-def _no_beams(func):
-    """``beam=`` for :func:`form`: FFBP applies no transducer beams (see :func:`_refuse_beams`)."""
-    import functools
-
-    @functools.wraps(func)
-    def wrapper(profiles: Profiles, grid: VoxelGrid, *, beam: str | None = None, **kwargs) -> Image:
-        if isinstance(profiles, Profiles):
-            _refuse_beams(profiles, beam)
-            profiles = replace(profiles, beams=None)  # every pair omnidirectional, depth 0 (bp) included
-        return func(profiles, grid, **kwargs)
-
-    return wrapper
-
-
 @FORMATIONS.register("ffbp")
-@_no_beams
 def form(
     profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
     progress: Callable[[int, int], None] | None = None, force: bool = False, depth: int | None = None,
     factor: int = 4, oversample: float = 2.0, range_oversample: float = 2.0, order: int = 3,
     interpolator: str = "lsq", band_hz: tuple[float, float] | None = None, band_tail: float = 1e-4,
+    beam: str | None = None, beam_floor_db: float = -12.0,
 ) -> Image:
     """Image ``profiles`` on ``grid`` by fast factorized backprojection.
 
@@ -251,6 +259,8 @@ def form(
         spectrum, all but ``band_tail`` of the energy.
     band_tail : float
         Energy fraction left outside the estimated band (default 1e-4).
+    beam, beam_floor_db
+        As :func:`clsas.backproject`, applied at the leaves' samples (see the beams guide).
 
     Returns
     -------
@@ -260,53 +270,70 @@ def form(
         ``image.provenance["ffbp"]`` the options used (depth resolved, band estimated) and the
         samples per level, ``image.timings_s`` the time of each step.
     """
-    if not isinstance(profiles, Profiles):
-        raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
-    if not isinstance(grid, VoxelGrid):
-        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    _check_types(profiles, grid)
     data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
+    weights, opts["beam"] = _beam_weights(profiles, beam, beam_floor_db)
     if opts["depth"] == 0:
-        from .bp import Backprojector
-
-        image = Backprojector(grid, backend=backend, device=device, force=force)(profiles, progress=progress)
-        return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
+        return _exact(profiles, grid, backend, device, force, progress, opts["beam"], beam_floor_db)
     sel = _cl.select(backend, device)
     check_grid(grid, sel.kind, sel.cl_device, force=force)
     t_start = time.perf_counter()
     tree = _tree(data, dtau, fc, tx, rx, c, grid, opts)
     timings = {"ffbp_plan": time.perf_counter() - t_start}
     _check_memory(tree, grid, sel.kind, sel.cl_device, force)
+    _check_beam_sampling(tree, weights, opts["oversample"])
     for line in tree.describe().splitlines():
         log.info("ffbp: %s", line)
-    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings)
+    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings, weights)
     timings["ffbp"] = time.perf_counter() - t_start
-    provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"}
+    provenance = {"ffbp": {k: opts[k] for k in (*OPTIONS, "beam") if k != "band_hz"}
                   | {"band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
     return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
                  provenance=provenance)
 
 
-def _run(tree: Tree, grid: VoxelGrid, arrays: tuple, opts: dict, sel: _cl.Selection, progress, timings: dict):
+def _check_types(profiles, grid) -> None:
+    if not isinstance(profiles, Profiles):
+        raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+
+
+def _exact(profiles, grid, backend, device, force, progress, beam: str, beam_floor_db: float) -> Image:
+    """Depth 0: exact backprojection, with the same beam."""
+    from .bp import Backprojector
+
+    bp = Backprojector(grid, backend=backend, device=device, force=force, beam=beam, beam_floor_db=beam_floor_db)
+    image = bp(profiles, progress=progress)
+    return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
+
+
+def _run(tree: Tree, grid: VoxelGrid, arrays: tuple, opts: dict, sel: _cl.Selection, progress, timings: dict,
+         weights=None):
     """The tree's levels on the device (or the twin where the kernels will not build): (values, selection)."""
     data, tau0, dtau, fc, tx, rx, c = arrays
     o = tree.order
     args = (data[o], tau0[o], dtau, fc, tx[o], rx[o], c[o])
+    if weights is not None:  # the boresights in tree order, as the profiles
+        weights = replace(weights, tx_dir=np.asarray(weights.tx_dir)[o], rx_dir=np.asarray(weights.rx_dir)[o])
     taps = opts["order"] + 1
     tables = (twin.weight_table(taps, opts["range_oversample"], opts["interpolator"]),
               twin.weight_table(taps, opts["oversample"], opts["interpolator"]))
-    pipe, sel = sel.plan(lambda q: FfbpPipeline(tree, grid, data.shape[1], tables, queue=q))
+    lut = 0 if weights is None else weights.luts.shape[1]
+    pipe, sel = sel.plan(lambda q: FfbpPipeline(tree, grid, data.shape[1], tables, queue=q, beam_lut=lut,
+                                                n_meas=len(data)))
     if pipe is None:
-        return _run_numpy(tree, grid, args, tables, progress, timings), sel
-    values = pipe(*args, progress=progress)
+        return _run_numpy(tree, grid, args, tables, progress, timings, weights), sel
+    values = pipe(*args, progress=progress, beam=weights)
     timings.update(pipe.timings_s)
     return values, sel
 
 
-def _run_numpy(tree: Tree, grid: VoxelGrid, args, tables, progress, timings: dict) -> np.ndarray:
+def _run_numpy(tree: Tree, grid: VoxelGrid, args, tables, progress, timings: dict, weights=None) -> np.ndarray:
     total = tree.depth + 1
     t = time.perf_counter()
-    values = twin.form_leaves(*args, tree.levels[-1], tree.kref)
+    values = twin.form_leaves(*args, tree.levels[-1], tree.kref, weights)
     timings["ffbp_leaves"] = time.perf_counter() - t
     done = 1
     if progress is not None:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..beam import BeamWeights, pair_weights
 from .ffbp_tree import BLOCK, Level
 
 __all__ = ["RES", "INTERPOLATORS", "lagrange", "least_squares", "weight_table", "table_weights", "sample_points",
@@ -108,7 +109,8 @@ def _ref(p: np.ndarray, g: np.ndarray) -> np.ndarray:
     return np.linalg.norm(p - g[:, 12:15], axis=1) + np.linalg.norm(p - g[:, 15:18], axis=1)
 
 
-def form_leaves(data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: float) -> np.ndarray:
+def form_leaves(data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: float,
+                beam: BeamWeights | None = None) -> np.ndarray:
     """Leaf sub-images, (level.size,) complex128.
 
     Parameters
@@ -117,6 +119,8 @@ def form_leaves(data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: 
     tau0_s : (n_meas,) delay of sample 0, s; dtau_s: delay step, s; fc_hz: carrier, Hz
     tx, rx : (n_meas, 3) m; c_mps : (n_meas,) m/s (all in tree order)
     level : the leaves; kref : reference cycles per metre of path
+    beam : each pair weighted by its two-way beam at the sample (boresights in tree order;
+        :func:`clsas.beam.pair_weights`), as bp weights it at a voxel
     """
     n_lags = data.shape[1]
     out = np.zeros(level.size, np.complex128)
@@ -137,6 +141,8 @@ def form_leaves(data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: 
             i0 = np.clip(np.floor(idx), 0, n_lags - 2).astype(np.int64)
             w = idx - i0
             val = (1 - w) * data[m, i0] + w * data[m, i0 + 1]
+            if beam is not None:
+                val = val * pair_weights(beam.luts, tx[m], rx[m], beam.tx_dir[m], beam.rx_dir[m], p, beam.gate)
             acc += np.where(inside, val * np.exp(2j * np.pi * (fc_hz * tau - kref * ref)), 0)
         out[a:b] = acc
     return out

@@ -16,10 +16,10 @@ import numpy as np
 from ..cl import Plan
 from ..geometry import VoxelGrid
 from . import ffbp_numpy as twin
-from .bp_opencl import carrier_records
+from .bp_opencl import BeamPlan, carrier_records, selftest_beam_weights
 from .ffbp_tree import BLOCK, Level, Tree
 
-__all__ = ["FfbpLeafPlan", "FfbpMergePlan", "FfbpPipeline"]
+__all__ = ["FfbpLeafPlan", "FfbpMergePlan", "FfbpPipeline", "leaf_beam_selftest"]
 
 
 class _LevelTables:
@@ -52,24 +52,38 @@ def _complex(host: np.ndarray) -> np.ndarray:
     return host.view(np.complex64).reshape(-1)
 
 
-class FfbpLeafPlan(Plan):
-    """The ``ffbp_leaf`` kernel: leaf sub-images by exact backprojection of their measurements."""
+class FfbpLeafPlan(BeamPlan):
+    """The ``ffbp_leaf`` kernel: leaf sub-images by exact backprojection of their measurements.
+
+    With ``beam_lut`` > 0 it is built with kernels/beam.cl's ``-DBEAM`` for ``n_meas``
+    measurements: each pair is weighted by its two-way beam at the sample's position (calls
+    then take ``beam``, a :class:`clsas.beam.BeamWeights` in tree order).
+    """
 
     KERNEL = "ffbp_leaf"
-    SOURCES = ("common.cl", "ffbp.cl")
+    SOURCES = ("common.cl", "beam.cl", "ffbp.cl")
 
-    def launch_level(self, prof, tables: _LevelTables, kref: float, d_out):
+    def __init__(self, queue=None, vec=None, beam_lut: int = 0, n_meas: int = 0):
+        self.beam_lut, self.n_meas = int(beam_lut), int(n_meas)
+        if self.beam_lut and self.n_meas < 1:
+            raise ValueError(f"n_meas must be >= 1 for a plan with a beam, got {n_meas!r}")
+        super().__init__(queue, vec)
+        self.alloc_beam(self.n_meas)
+
+    def launch_level(self, prof, tables: _LevelTables, kref: float, d_out, beam_args: tuple = ()):
         # VEC samples per work-item (BLOCK, the level's padding unit, is a multiple of every VEC)
         return self.launch((tables.size // self.vec,), *prof, tables.geom, tables.ints, tables.blocks,
-                           np.float32(kref), d_out, local_size=(BLOCK // self.vec,))
+                           np.float32(kref), d_out, *beam_args, local_size=(BLOCK // self.vec,))
 
-    def __call__(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: float) -> np.ndarray:
+    def __call__(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: float,
+                 beam=None) -> np.ndarray:
         """Same arguments as :func:`clsas.formation.ffbp_numpy.form_leaves`; (level.size,) complex64."""
+        beam_args = self.beam_args(beam)
         self.begin()
         prof = _profiles(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps)
         tables = _LevelTables(self, level)
         d_out = self.alloc(8 * level.size)
-        self.launch_level(prof, tables, kref, d_out)
+        self.launch_level(prof, tables, kref, d_out, beam_args)
         return _complex(self.read(d_out, (level.size, 2), np.float32))
 
     @classmethod
@@ -90,7 +104,7 @@ class FfbpMergePlan(Plan):
     image on a Cartesian grid from the top sub-images."""
 
     KERNEL = "ffbp_merge"
-    SOURCES = ("common.cl", "ffbp.cl")
+    SOURCES = ("common.cl", "beam.cl", "ffbp.cl")
 
     def __init__(self, taps: int = 4, queue=None, vec=None):
         if taps not in (2, 4, 6):
@@ -183,13 +197,29 @@ def _selftest_scene():
     return args, tree, grid
 
 
+def leaf_beam_selftest(queue, vec: int, mode: str = "weighted") -> float:
+    """The leaf selftest's tree through the beam variant (-DBEAM; the bp selftest's beams, one
+    tilt per measurement, in tree order), ``mode`` "weighted" or "limited"; error against the
+    twin relative to the peak."""
+    args, tree, _ = _selftest_scene()
+    w = selftest_beam_weights(np.random.default_rng(5), mode, len(args[0]))
+    leaves = tree.levels[-1]
+    plan = FfbpLeafPlan(queue, vec, beam_lut=w.luts.shape[1], n_meas=len(args[0]))
+    got = plan(*args, leaves, tree.kref, beam=w)
+    want = twin.form_leaves(*args, leaves, tree.kref, w)
+    if mode == "limited" and not (np.any(want == 0) and np.any(want != 0)):
+        raise RuntimeError("beam selftest: the gate must drop some samples and keep others")
+    return float(np.abs(got - want).max() / np.abs(want).max())
+
+
 class FfbpPipeline:
     """Both kernels and the device buffers of one tree and grid: construct once, call per profile set."""
 
-    def __init__(self, tree: Tree, grid: VoxelGrid, n_lags: int, tables, queue=None):
+    def __init__(self, tree: Tree, grid: VoxelGrid, n_lags: int, tables, queue=None, beam_lut: int = 0,
+                 n_meas: int = 0):
         self.tree, self.grid, self.n_lags = tree, grid, n_lags
         taps = tables[0].shape[1]
-        self.leaf = FfbpLeafPlan(queue)
+        self.leaf = FfbpLeafPlan(queue, beam_lut=beam_lut, n_meas=n_meas)
         self.merge = FfbpMergePlan(taps, self.leaf.queue)
         self.merge.check_tables(tables)
         self.d_tables = self.merge.upload_tables(tables)
@@ -202,15 +232,17 @@ class FfbpPipeline:
         self.device = self.merge.device
 
     def __call__(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps,
-                 progress: Callable[[int, int], None] | None = None) -> np.ndarray:
-        """Image profiles given in tree order (as the twin takes them): (n_vox,) complex64."""
+                 progress: Callable[[int, int], None] | None = None, beam=None) -> np.ndarray:
+        """Image profiles given in tree order (as the twin takes them; ``beam`` too): (n_vox,) complex64."""
         tree, kref = self.tree, self.tree.kref
+        beam_args = self.leaf.beam_args(beam)
         total = tree.depth + 1
         events = []
         t0 = time.perf_counter()
         prof = _profiles(self.leaf, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps)
         cur = 0
-        events.append(("ffbp_leaves", self.leaf.launch_level(prof, self.levels[-1], kref, self.bufs[cur])))
+        events.append(("ffbp_leaves", self.leaf.launch_level(prof, self.levels[-1], kref, self.bufs[cur],
+                                                             beam_args)))
         if progress is not None:
             events[-1][1].wait()
             progress(1, total)
