@@ -67,7 +67,13 @@ def make_case(n: int = 16, pitch: float = 1.5e-3, facet: float = 1e-3):
 
 ROWS = (("bp", {"beam": "none"}), ("bp", {"beam": "limited"}), ("bp", {"beam": "weighted"}),
         ("omega-k", {"beam": "none"}), ("omega-k", {"beam": "limited"}), ("omega-k", {"beam": "weighted"}),
-        ("ffbp", {"beam": "none"}), ("ffbp", {"beam": "limited"}), ("ffbp", {"beam": "weighted"}))
+        ("ffbp", {"beam": "none"}), ("ffbp", {"beam": "limited"}), ("ffbp", {"beam": "weighted"}),
+        ("ffbp", {"beam": "limited", "oversample": 8.0}), ("ffbp", {"beam": "weighted", "oversample": 8.0}))
+
+
+def _beam_label(opts: dict) -> str:
+    """The table's beam column: the mode, and any other option (``limited, oversample=8``)."""
+    return ", ".join([opts.get("beam", "default")] + [f"{k}={v:g}" for k, v in opts.items() if k != "beam"])
 
 
 def _surface_share(values: np.ndarray, grid) -> float:
@@ -86,7 +92,7 @@ def run_planar(n: int = 16) -> dict:
     out = {"case": "directional", "what": what, "measurements": prof.n_meas, "voxels": grid.size, "rows": []}
     images = {}
     for name, opts in ROWS:
-        label = f"{name} {opts.get('beam', 'default')}"
+        label = f"{name} {_beam_label(opts)}"
         row = {"formation": name, "options": opts, "label": label}
         t = time.perf_counter()
         try:
@@ -107,6 +113,8 @@ def run_planar(n: int = 16) -> dict:
             row["error_vs_bp_limited_db"] = error_to_signal_db(val, ref_bp)
             row["error_vs_omega_k_limited_db"] = error_to_signal_db(val, ref_ok)
             row["abs_corr_vs_omega_k"] = _abs_corr(val, ref_ok)
+            same = images.get(f"bp {row['options'].get('beam', 'limited')}")
+            row["error_vs_bp_same_beam_db"] = None if same is None else error_to_signal_db(val, same)
     return out
 
 
@@ -179,16 +187,17 @@ def markdown(res: dict) -> list[str]:
     lines = ["# Directional transducers (issue 33)", "", f"Device: {res['device']}; load (1, 5, 15 min) "
              f"before {res['load_before']}, after {res['load_after']}.", "", f"## {p['what']}", "",
              "| formation | beam | time | surface within one voxel | vs bp limited | vs omega-k limited | "
-             "abs-corr vs omega-k |", "|---|---|---|---|---|---|---|"]
+             "abs-corr vs omega-k | vs bp, same beam |", "|---|---|---|---|---|---|---|---|"]
     for r in p["rows"]:
         if "refused" in r:
-            lines.append(f"| {r['formation']} | {r['options'].get('beam', 'default')} | refused: "
-                         f"{r['refused'][:80]}... | | | | |")
+            lines.append(f"| {r['formation']} | {_beam_label(r['options'])} | refused: "
+                         f"{r['refused'][:80]}... | | | | | |")
             continue
         vs_bp = "reference" if r["label"] == "bp limited" else _db(r["error_vs_bp_limited_db"])
         vs_ok = "reference" if r["label"] == "omega-k limited" else _db(r["error_vs_omega_k_limited_db"])
-        lines.append(f"| {r['formation']} | {r['options'].get('beam', 'default')} | {r['time_s']:.2f} s | "
-                     f"{100 * r['surface_share']:.0f} % | {vs_bp} | {vs_ok} | {r['abs_corr_vs_omega_k']:.3f} |")
+        lines.append(f"| {r['formation']} | {_beam_label(r['options'])} | {r['time_s']:.2f} s | "
+                     f"{100 * r['surface_share']:.0f} % | {vs_bp} | {vs_ok} | {r['abs_corr_vs_omega_k']:.3f} | "
+                     f"{'-' if r['formation'] == 'bp' else _db(r.get('error_vs_bp_same_beam_db'))} |")
     lines += ["", "bp and omega-k, both beam-limited, by floor (the whole grid lies in the beams' footprint):", "",
               "| beam_floor_db | bp vs omega-k | abs-corr | bp surface within one voxel |", "|---|---|---|---|"]
     lines += [f"| {r['floor_db']:g} | {_db(r['error_db'])} | {r['abs_corr']:.3f} | {100 * r['surface_share']:.0f} % |"
