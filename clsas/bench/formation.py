@@ -165,7 +165,7 @@ def run_beams_case(n: int | None = None, status=None) -> dict:
     flat surface and two pins under ``n`` x ``n`` stops 2.5 wavelengths apart, 6 mm pistons
     (:func:`clsas.bench.beams.make_case`). Rows: bp with the beam model (its default with beams,
     "limited": the reference of the error columns), bp without it and weighted, ω-k limited and
-    weighted, FFBP without beams, limited (its default with beams) and weighted, and auto."""
+    weighted, FFBP without beams, weighted (its default with beams) and limited, and auto."""
     from ..formation.planar import well_sampled_cone
     from .beams import C_WATER, make_case
 
@@ -184,7 +184,7 @@ def run_beams_case(n: int | None = None, status=None) -> dict:
                            ("bp beam=weighted", "bp", {"beam": "weighted"}), ("omega-k", "omega-k", {}),
                            ("omega-k beam=weighted", "omega-k", {"beam": "weighted"}),
                            ("ffbp beam=none", "ffbp", {"beam": "none"}), ("ffbp", "ffbp", {}),
-                           ("ffbp beam=weighted", "ffbp", {"beam": "weighted"})):
+                           ("ffbp beam=limited", "ffbp", {"beam": "limited"})):
         say(f"formation {label} on the beams case ({what})")
         row = {"formation": label, "options": opts}
         try:

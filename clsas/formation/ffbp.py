@@ -40,6 +40,12 @@ own bandwidth, hold more samples than the grid has voxels, and exact backproject
 
 The speed of sound may differ per measurement: the leaves use each measurement's own, the
 reference paths their mean.
+
+Transducer beams (``beam``, ``beam_floor_db``, as bp's) are applied at the leaves: each pair is
+weighted (or gated) by its two-way beam at the leaf sub-image's own samples, and the merges
+interpolate the weighted sub-images. The angular sampling must then also resolve the beam
+(a warning names the ``oversample`` that does); a gate (``"limited"``) is not band-limited, so
+its image keeps an error against bp's at any sampling (see the beams guide).
 """
 
 from __future__ import annotations
@@ -107,9 +113,10 @@ def _options(n_meas: int, depth=None, factor=4, oversample=2.0, range_oversample
 
 
 def plan_tree(profiles: Profiles, grid: VoxelGrid, **options) -> Tree:
-    """The sub-aperture tree and sub-image grids FFBP would use (``options`` as :func:`form`'s)."""
+    """The sub-aperture tree and sub-image grids FFBP would use (``options`` as :func:`form`'s;
+    the beam's do not change the tree)."""
     data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
-    opts = _options(len(data), **options)
+    opts = _options(len(data), **{k: val for k, val in options.items() if k not in ("beam", "beam_floor_db")})
     return _tree(data, dtau, fc, tx, rx, c, grid, opts)
 
 
@@ -148,23 +155,29 @@ def _plan(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict) -> Tree:
     return tree
 
 
-def _beam_weights(profiles: Profiles, beam: str | None, floor_db: float):
-    """The leaves' pair weights for ``beam`` (as bp resolves it: ``"limited"`` by default where
-    the profiles carry a directional beam), or None; the mode resolved."""
+def _beam_weights(profiles: Profiles, beam: str | None, floor_db: float, fc: float, c):
+    """The leaves' pair weights for ``beam``, or None; and the mode applied ("none" where nothing
+    is weighted). The default where the profiles carry a directional beam is ``"weighted"``, not
+    bp's ``"limited"``: a weighted sub-image interpolates, a gated one does not (its edges are
+    not band-limited: -10 dB or worse against bp's gate on the tests' tilted scan)."""
     from ..beam import BEAM_MODES, beam_weights
 
     floor_db = v.finite("beam_floor_db", floor_db)
     mode = None if beam is None else v.choice("beam", beam, BEAM_MODES)
-    directional = profiles.beams is not None and not profiles.beams.is_omni
+    beams = profiles.beams
+    directional = beams is not None and not beams.is_omni
+    if directional and beams.n_meas != profiles.n_meas:
+        raise ValueError(f"beams must have {profiles.n_meas} boresights (one per measurement), got {beams.n_meas}")
     if mode is None:
-        mode = "limited" if directional else "none"
+        mode = "weighted" if directional else "none"
         if directional:
-            log.info("ffbp: the profiles carry directional beams: beam='limited' (pairs above %g dB)", floor_db)
+            log.info("ffbp: the profiles carry directional beams: beam='weighted' (bp's default 'limited' gates "
+                     "pairs, and a gate's edges do not interpolate)")
     elif mode == "none" and directional:
         log.warning("ffbp: beam='none': imaging directional transducers as omnidirectional (grating lobes "
                     "of stops whose beams never saw a voxel are kept)")
-    _, _, _, fc, _, _, c = profiles.arrays()
-    return beam_weights(profiles.beams, mode, fc, c, floor_db), mode
+    weights = beam_weights(beams, mode, fc, c, floor_db)
+    return weights, (mode if weights is not None else "none")
 
 
 def _check_beam_sampling(tree: Tree, weights, oversample: float) -> None:
@@ -180,12 +193,16 @@ def _check_beam_sampling(tree: Tree, weights, oversample: float) -> None:
     below = np.flatnonzero(two_way < 0.5 * two_way[0])
     if not below.size:
         return
-    half = float(np.sin(2 * np.arcsin(u[below[0]])))  # the -6 dB half-angle as a direction cosine
+    # the -6 dB half-angle as a direction cosine (past 90 degrees the whole hemisphere)
+    half = float(np.sin(min(2 * np.arcsin(u[below[0]]), 0.5 * np.pi)))
     step = float(np.max(tree.levels[-1].geom[:, 22:24]))
     if step > half / 1.5:
+        need = oversample * 1.5 * step / half
+        fix = (f"oversample={need:.3g} would give about 1.5" if need <= 16 else
+               "even oversample=16 would not give 1.5; use formation='bp'")
         log.warning("ffbp: the beams' -6 dB half-angle spans %.1f angular steps of the leaf sub-images (1.5 or "
-                    "more keep a weighted image within about -25 dB of bp's); oversample=%.3g would give 1.5",
-                    half / step, oversample * 1.5 * step / half)
+                    "more keep a weighted image within about -25 dB of bp's; a gate errs more); %s",
+                    half / step, fix)
 
 
 def _check_memory(tree: Tree, grid: VoxelGrid, kind: str, device, force: bool) -> None:
@@ -273,9 +290,9 @@ def form(
     _check_types(profiles, grid)
     data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
     opts = _options(len(data), depth, factor, oversample, range_oversample, order, interpolator, band_hz, band_tail)
-    weights, opts["beam"] = _beam_weights(profiles, beam, beam_floor_db)
+    weights, mode = _beam_weights(profiles, beam, beam_floor_db, fc, c)
     if opts["depth"] == 0:
-        return _exact(profiles, grid, backend, device, force, progress, opts["beam"], beam_floor_db)
+        return _exact(profiles, grid, backend, device, force, progress, mode, beam_floor_db)
     sel = _cl.select(backend, device)
     check_grid(grid, sel.kind, sel.cl_device, force=force)
     t_start = time.perf_counter()
@@ -287,8 +304,8 @@ def form(
         log.info("ffbp: %s", line)
     values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings, weights)
     timings["ffbp"] = time.perf_counter() - t_start
-    provenance = {"ffbp": {k: opts[k] for k in (*OPTIONS, "beam") if k != "band_hz"}
-                  | {"band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
+    provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"} | {"beam": mode, "beam_floor_db": float(
+        beam_floor_db), "band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
     return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
                  provenance=provenance)
 
@@ -306,7 +323,8 @@ def _exact(profiles, grid, backend, device, force, progress, beam: str, beam_flo
 
     bp = Backprojector(grid, backend=backend, device=device, force=force, beam=beam, beam_floor_db=beam_floor_db)
     image = bp(profiles, progress=progress)
-    return replace(image, provenance={**image.provenance, "ffbp_depth": 0})
+    return replace(image, provenance={**image.provenance, "ffbp_depth": 0, "ffbp": {"depth": 0, "beam": beam,
+                                                                                 "beam_floor_db": beam_floor_db}})
 
 
 def _run(tree: Tree, grid: VoxelGrid, arrays: tuple, opts: dict, sel: _cl.Selection, progress, timings: dict,
