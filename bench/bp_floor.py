@@ -99,14 +99,14 @@ def main() -> None:
            "peer_build": cpeer.load()[1], "rows": rows}
     stem = a.out / f"{dt.date.today().isoformat()}-bp-floor-{a.tag}"
     a.out.mkdir(parents=True, exist_ok=True)
-    stem.with_suffix(".json").write_text(json.dumps(out, indent=1) + "\n")
+    Path(f"{stem}.json").write_text(json.dumps(out, indent=1) + "\n")
     lines = [f"# bp with its work removed: {device}, VEC={a.vec}", "",
              f"{grid.size} voxels x {a.measurements} measurements; medians of {a.repeats} kernel times; "
              f"peer: C/OpenMP ({out['peer_build']}), medians in the same process.", "",
              "| variant | kernel pairs/s | peer pairs/s | kernel / peer |", "|---|---|---|---|"]
     lines += [f"| {r['variant']} | {r['kernel_pairs_per_s']:.3e} | {r['peer_pairs_per_s']:.3e} | {r['ratio']:.2f}x |"
               for r in rows]
-    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    Path(f"{stem}.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {stem}.json and .md")
 
 
