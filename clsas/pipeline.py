@@ -155,9 +155,9 @@ def _formation(formation: str, fopts: dict, prof: Profiles, grid: VoxelGrid, met
         choice = Choice("bp", {}, "bp: a grid formed in tiles is formed by bp (each tile equals the whole image's)",
                         max_error_db, "rule", ())
     elif getattr(prof, "beams", None) is not None and not prof.beams.is_omni:
-        choice = Choice("bp", {}, "bp: directional beams are applied exactly by bp only (FFBP interpolates a gated "
-                        "sub-image, -12 to -15 dB from bp's gate; omega-k's angular weighting differs from "
-                        "bp's beam gate by more than the target)",
+        choice = Choice("bp", {}, "bp: directional beams are applied exactly by bp only (FFBP interpolates "
+                        "beam-weighted sub-images, which need finer sampling, and cannot match bp's gate; "
+                        "omega-k's angular weighting differs from bp's beam gate by more than the target)",
                         max_error_db, "rule", ())
     else:
         choice = choose(prof, grid, selection, max_error_db=max_error_db)

@@ -228,7 +228,9 @@ def test_ffbp_beam_options_are_checked_and_keep_the_planned_tree(tilted_water_sc
     img = clsas.formation.form(prof, grid, "ffbp", beam="weighted", depth=1, oversample=4.0, backend="numpy")
     assert img.plan is tree  # the beam does not change the tree, so it is not planned again
     exact = clsas.formation.form(prof, grid, "ffbp", beam="weighted", depth=0, backend="numpy")
-    assert exact.provenance["ffbp"]["beam"] == "weighted"
+    assert exact.provenance["ffbp"]["beam"] == "weighted" and exact.provenance["bp"]["beam"] == "weighted"
+    assert clsas.formation.form(prof, grid, "bp", backend="numpy").provenance["bp"] == {"beam": "limited",
+                                                                                       "beam_floor_db": -12.0}
 
 
 @pytest.fixture(scope="module")

@@ -138,7 +138,8 @@ class Backprojector:
         tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
         dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
         fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
-        weights = self._weights(profiles.beams if beams is None else beams, fc, c)
+        beams = profiles.beams if beams is None else beams
+        weights = self._weights(beams, fc, c)
         if weights is not None and len(weights.tx_dir) != n:
             raise ValueError(f"beams must have {n} boresights (one per measurement), got {len(weights.tx_dir)}")
         t_start = time.perf_counter()
@@ -153,7 +154,11 @@ class Backprojector:
                                       progress, beam=weights)
         timings["backproject"] = time.perf_counter() - t_start
         sel = self.selection
-        return Image(values.reshape(self.grid.shape), self.grid, "bp", sel.kind, sel.device, timings)
+        # with beams, the mode applied (the default resolves to "limited") is kept with the image
+        mode = "none" if weights is None else ("weighted" if weights.gate is None else "limited")
+        provenance = {} if beams is None else {"bp": {"beam": mode, "beam_floor_db": self.beam_floor_db}}
+        return Image(values.reshape(self.grid.shape), self.grid, "bp", sel.kind, sel.device, timings,
+                     provenance=provenance)
 
 
 def backproject(

@@ -51,6 +51,7 @@ its image keeps an error against bp's at any sampling (see the beams guide).
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -197,8 +198,8 @@ def _check_beam_sampling(tree: Tree, weights, oversample: float) -> None:
     half = float(np.sin(min(2 * np.arcsin(u[below[0]]), 0.5 * np.pi)))
     step = float(np.max(tree.levels[-1].geom[:, 22:24]))
     if step > half / 1.5:
-        need = oversample * 1.5 * step / half
-        fix = (f"oversample={need:.3g} would give about 1.5" if need <= 16 else
+        need = math.ceil(oversample * 1.5 * step / half * 1.05 * 100) / 100  # a little over, rounded up
+        fix = (f"oversample={need:g} would give 1.5" if need <= 16 else
                "even oversample=16 would not give 1.5; use formation='bp'")
         log.warning("ffbp: the beams' -6 dB half-angle spans %.1f angular steps of the leaf sub-images (1.5 or "
                     "more keep a weighted image within about -25 dB of bp's; a gate errs more); %s",
