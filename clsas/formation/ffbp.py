@@ -278,7 +278,7 @@ def form(
     band_tail : float
         Energy fraction left outside the estimated band (default 1e-4).
     beam, beam_floor_db
-        As :func:`clsas.backproject`, applied at the leaves' samples (see the beams guide).
+        As :func:`clsas.backproject`, applied at the leaves, but ``"weighted"`` by default with beams.
 
     Returns
     -------
