@@ -73,6 +73,8 @@ def cmd_autofocus(args) -> int:
     import clsas
     from clsas.scenes import stored_grid_and_truth
 
+    if not 0 <= args.consistency <= 10_000:
+        raise ValueError(f"--consistency must be 0 (off) to 10000 iterations, got {args.consistency}")
     ds = clsas.load(args.data)
     stored_grid, _ = stored_grid_and_truth(ds.config)
     grid = grid_arg(args.grid, args.spacing, stored_grid)
@@ -91,7 +93,26 @@ def cmd_autofocus(args) -> int:
         after = clsas.reconstruct(out, grid, **kw)
         before_after_png(before, after, args.png, f"{Path(args.data).name}: autofocus ({', '.join(rep.methods)})")
         print(f"wrote {args.png}")
+    if args.consistency:
+        _print_consistency(ds, out, grid, args, rep.improved)
     return 0
+
+
+def _print_consistency(ds, out, grid, args, improved: bool) -> None:
+    """How much of the data a target in the grid leaves unexplained, before and after."""
+    from clsas.focus.consistency import data_consistency
+
+    kw = dict(max_iter=args.consistency, backend=args.backend, device=getattr(args, "device", None))
+
+    def say(step, done, total):
+        if not args.quiet and done % 10 == 0:
+            print(f"  data consistency ({step}): iteration {done} of {total}", flush=True)
+
+    before = data_consistency(ds, grid, progress=say, **kw)
+    print(f"before: {before.line()}")
+    if improved:
+        after = data_consistency(out, grid, floor_of=before, progress=say, **kw)
+        print(f"after:  {after.line()}")
 
 
 def add_parser(sub) -> None:
@@ -104,6 +125,10 @@ def add_parser(sub) -> None:
     af.add_argument("--spacing", type=float, help="voxel spacing in m")
     af.add_argument("--png", metavar="FILE", help="write the images before and after to FILE (PNG)")
     af.add_argument("--force", action="store_true", help="go on even if the grid does not seem to fit in memory")
+    af.add_argument("--consistency", type=int, default=0, metavar="N",
+                    help="also fit a target in the grid to the scan before and after, N CGLS iterations each, and "
+                    "print what is left unexplained against the noise (clsas.focus.data_consistency; minutes on "
+                    "large grids; default 0: off)")
     add_autofocus_options(af)
     add_device_options(af)
     af.set_defaults(func=cmd_autofocus)

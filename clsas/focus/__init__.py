@@ -62,10 +62,12 @@ import numpy as np
 from .. import validate as v
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
+from .consistency import Consistency, data_consistency
 from .metrics import METRICS
 from .report import AutofocusReport
 
-__all__ = ["AutofocusReport", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "autofocus", "score"]
+__all__ = ["AutofocusReport", "Consistency", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "autofocus",
+           "data_consistency", "score"]
 
 log = logging.getLogger(__name__)
 
