@@ -96,7 +96,81 @@ def test_cli_autofocus_prints_the_consistency_before_and_after(tmp_path, capsys)
             "--spacing", "0.005", "--methods", "direct,points", "-q", "--backend", "numpy"]
     assert main([*args, "--consistency", "5"]) == 0
     text = capsys.readouterr().out
-    assert "before: data consistency:" in text and "after 5 iterations" in text
+    assert "data consistency (5 iterations)" in text and "(ratio " in text
     # a negative count is refused before any focusing
     assert main([*args, "--consistency", "-1"]) == 2
     assert "--consistency" in capsys.readouterr().err
+
+
+def test_family_bench_summary_and_files(tmp_path):
+    from clsas.bench import consistency_family as cf
+
+    def row(seed, kind, rec, true, after, floor, peak):
+        gap = rec ** 2 - true ** 2
+        return {"seed": seed, "kind": kind, "nx": 13, "ny": 14, "pitch_over_speckle": 0.5, "residual_recorded": rec,
+                "residual_true": true, "residual_after": after, "floor": floor, "determined": gap > floor ** 2,
+                "removed": (rec ** 2 - after ** 2) / gap, "peak_before_db": -8.0, "peak_after_db": peak,
+                "fit_time_s": 1.0}
+
+    rows = [row(1, "plane", 0.7, 0.03, 0.05, 0.01, -0.2), row(2, "sphere", 0.7, 0.03, 0.7, 0.01, -8.0),
+            row(3, "points", 0.06, 0.055, 0.06, 0.09, -7.0), {"seed": 4, "error": "ValueError: x"}]
+    s = cf.summarise(rows)
+    assert (s["n"], s["failed"], s["determined"], s["determined_within_1db"], s["undetermined_within_1db"]) == \
+        (3, 1, 2, 1, 0)
+    assert 0.4 < s["median_removed_determined"] < 0.6  # (1.0 + 0.0) / 2
+    cf.write(rows, "test", tmp_path / "c")
+    text = (tmp_path / "c.md").read_text()
+    assert "determine the errors in 2" in text and "error: ValueError" in text
+    assert (tmp_path / "c.png").stat().st_size > 0
+
+
+def test_autofocus_reports_the_consistency_check():
+    from clsas.focus import autofocus
+
+    out, rep = autofocus(scan(3e-3), GRID, methods=("direct", "points"), consistency_iter=10, backend="numpy")
+    assert rep.improved
+    assert 0 < rep.check["excess_ratio"] < 0.9  # the points' correction explains most of what was unexplained
+    assert rep.check["excess_after"] < rep.check["excess_before"]
+    assert "data consistency (10 iterations)" in rep.notes[-1]
+    assert any(s["step"] == "consistency" for s in rep.stages)
+    assert "excess_ratio" in out.provenance[-1]["check"]
+
+
+def test_gate_withdraws_a_correction_that_explains_nothing():
+    from clsas.focus.consistency_gate import consistency_gate
+    from clsas.focus.report import AutofocusReport
+
+    ds, rep = scan(3e-3), AutofocusReport()
+    assert not consistency_gate(ds, ds, GRID, rep, 5, clsas.cl.select("numpy"))  # the same data: ratio 1
+    assert rep.check["excess_ratio"] == pytest.approx(1.0)
+    assert "explains nothing" in rep.notes[-1]
+
+
+@pytest.mark.parametrize("direct", [False, True])
+def test_withdrawn_motion_keeps_only_the_direct_sounds_delay(monkeypatch, direct):
+    import clsas.focus.run as run
+    from clsas.focus import autofocus
+
+    monkeypatch.setattr(run, "consistency_gate", lambda *a: False)
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    ds = clsas.simulate(clsas.Scene(POINTS), clsas.raster_aperture(8, 7, 0.24, 0.2), w, FS, snr_db=30, seed=3,
+                        position_error=HandMotion(3e-3, seed=5), group_delay_s=20e-6 if direct else 0.0,
+                        direct_gain=1.0 if direct else None)
+    out, rep = autofocus(ds, GRID, methods=("direct", "points"), consistency_iter=3, backend="numpy")
+    assert not rep.parameters["motion"].applied
+    assert np.array_equal(out.tx_positions, ds.tx_positions)  # no motion in what comes back
+    if direct:  # the delay the direct sound gives is physics, not focus: it stays
+        assert rep.improved and rep.parameters["group_delay"].applied
+        assert np.median(ds.t0_s - out.t0_s) == pytest.approx(20e-6, abs=1e-6)
+        assert "the direct sound's delay alone is returned" in rep.notes[-1]
+    else:
+        assert out is ds and not rep.improved
+        assert "the input is returned unchanged" in rep.notes[-1]
+
+
+@pytest.mark.parametrize("bad", [-1, 10_001, 2.0, True])
+def test_autofocus_checks_consistency_iter(bad):
+    from clsas.focus import autofocus
+
+    with pytest.raises(ValueError, match="consistency_iter"):
+        autofocus(scan(), GRID, consistency_iter=bad)

@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-__all__ = ["run_scene", "summarise", "markdown", "plot"]
+__all__ = ["run_scene", "excess_ratio", "summarise", "markdown", "plot", "write"]
 
 log = logging.getLogger(__name__)
 
@@ -73,6 +73,15 @@ def run_scene(seed: int, rms_m: float = 3e-3, *, max_iter: int = 30, backend=Non
     return row
 
 
+def excess_ratio(r: dict) -> float:
+    """The corrected scan's excess over the recorded one's (what a user sees without the truth)."""
+    def excess(x):
+        return np.sqrt(max(x ** 2 - r["floor"] ** 2, 0.0))
+
+    before = excess(r["residual_recorded"])
+    return float(excess(r["residual_after"]) / before) if before > 0 else float("nan")
+
+
 def summarise(rows: list[dict]) -> dict:
     """Shares over the scenes: determined, within 1 dB after autofocus among them, removed."""
     ok = [r for r in rows if "error" not in r]
@@ -86,19 +95,21 @@ def summarise(rows: list[dict]) -> dict:
 
 def markdown(label: str, rows: list[dict]) -> str:
     s = summarise(rows)
+    med = s["median_removed_determined"]
     lines = [f"{label}: {s['n']} scenes; the data determine the errors in {s['determined']} "
              f"({s['determined_within_1db']} of them within 1 dB after autofocus; "
              f"{s['undetermined_within_1db']} of the others); median share of the errors' residual energy removed "
-             f"where determined: {s['median_removed_determined']}", "",
+             f"where determined: {'-' if med is None else format(med, '.2f')}", "",
              "| seed | kind | stops | pitch / speckle | residual recorded / true / after autofocus | noise floor | "
-             "determined | removed | peak before -> after dB |", "|---|---|---|---|---|---|---|---|---|"]
+             "determined | removed | excess after / before | peak before -> after dB |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['seed']} | error: {r['error']} ||||||||")
+            lines.append(f"| {r['seed']} | error: {r['error']} |||||||||")
             continue
         lines.append(f"| {r['seed']} | {r['kind']} | {r['nx']}x{r['ny']} | {r['pitch_over_speckle']:.2f} | "
                      f"{r['residual_recorded']:.3f} / {r['residual_true']:.3f} / {r['residual_after']:.3f} | "
-                     f"{r['floor']:.3f} | {r['determined']} | {r['removed']:.2f} | "
+                     f"{r['floor']:.3f} | {r['determined']} | {r['removed']:.2f} | {excess_ratio(r):.2f} | "
                      f"{r['peak_before_db']:+.2f} -> {r['peak_after_db']:+.2f} |")
     return "\n".join(lines)
 

@@ -28,6 +28,11 @@ def add_autofocus_options(sp) -> None:
     sp.add_argument("--max-delay", type=float, default=5e-4, metavar="S",
                     help="largest delay error looked for, s (default 5e-4)")
     sp.add_argument("--max-iter", type=int, default=40, help="L-BFGS iterations per stage (default 40)")
+    sp.add_argument("--consistency", type=int, default=0, metavar="N",
+                    help="a last check that trusts no image: fit a target in the grid to the scan before and after "
+                    "the correction, N CGLS iterations each, and withdraw a correction that leaves the data as "
+                    "unexplained as before (clsas.focus.data_consistency; 30 is a good start; up to minutes on "
+                    "large grids; default 0: off)")
 
 
 def run_autofocus(ds, grid, args):
@@ -41,7 +46,8 @@ def run_autofocus(ds, grid, args):
                          metric=args.metric, n_basis=args.n_basis, temperature_range_c=args.temperature_range,
                          max_delay_s=args.max_delay, max_iter=args.max_iter, backend=args.backend,
                          temperature_tolerance_c=args.temperature_tolerance, check_margin=args.check_margin,
-                         device=getattr(args, "device", None), progress=say, force=getattr(args, "force", False))
+                         device=getattr(args, "device", None), progress=say, force=getattr(args, "force", False),
+                         consistency_iter=args.consistency)
     print(rep.summary())
     return out, rep
 
@@ -93,26 +99,7 @@ def cmd_autofocus(args) -> int:
         after = clsas.reconstruct(out, grid, **kw)
         before_after_png(before, after, args.png, f"{Path(args.data).name}: autofocus ({', '.join(rep.methods)})")
         print(f"wrote {args.png}")
-    if args.consistency:
-        _print_consistency(ds, out, grid, args, rep.improved)
     return 0
-
-
-def _print_consistency(ds, out, grid, args, improved: bool) -> None:
-    """How much of the data a target in the grid leaves unexplained, before and after."""
-    from clsas.focus.consistency import data_consistency
-
-    kw = dict(max_iter=args.consistency, backend=args.backend, device=getattr(args, "device", None))
-
-    def say(step, done, total):
-        if not args.quiet and done % 10 == 0:
-            print(f"  data consistency ({step}): iteration {done} of {total}", flush=True)
-
-    before = data_consistency(ds, grid, progress=say, **kw)
-    print(f"before: {before.line()}")
-    if improved:
-        after = data_consistency(out, grid, floor_of=before, progress=say, **kw)
-        print(f"after:  {after.line()}")
 
 
 def add_parser(sub) -> None:
@@ -125,10 +112,6 @@ def add_parser(sub) -> None:
     af.add_argument("--spacing", type=float, help="voxel spacing in m")
     af.add_argument("--png", metavar="FILE", help="write the images before and after to FILE (PNG)")
     af.add_argument("--force", action="store_true", help="go on even if the grid does not seem to fit in memory")
-    af.add_argument("--consistency", type=int, default=0, metavar="N",
-                    help="also fit a target in the grid to the scan before and after, N CGLS iterations each, and "
-                    "print what is left unexplained against the noise (clsas.focus.data_consistency; minutes on "
-                    "large grids; default 0: off)")
     add_autofocus_options(af)
     add_device_options(af)
     af.set_defaults(func=cmd_autofocus)

@@ -86,7 +86,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
               pga_min_coherence: float | None = None, pga_max_points: int = 32,
               temperature_tolerance_c: float = 0.35, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
               phase_region_m: float | None = None, heldout_gain: float = 0.2, track_tolerance_m: float = 2.5e-3,
-              backend: str | None = None, device: Any = None,
+              consistency_iter: int = 0, backend: str | None = None, device: Any = None,
               progress: Callable[[str, int, float], None] | None = None,
               force: bool = False) -> tuple[Dataset, AutofocusReport]:
     """Estimate motion, sound speed and delay from the scan, and correct the dataset.
@@ -139,6 +139,14 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     phase_region_m : float, optional
         Search the phases on a fine local grid of this half-size at the brightest voxel, m
         (None: on ``grid``; see docs/guide/autofocus.md).
+    consistency_iter : int
+        0 (default): off. Else a last check that trusts no image: :func:`data_consistency` with
+        this many CGLS iterations on the input and on the corrected scan (two or three
+        least-squares fits: seconds to a minute on the scene family's scans). A correction that
+        leaves more than :data:`.consistency_gate.REVERT_RATIO` of the input's excess is not
+        returned; ``report.check`` gets ``excess_before``, ``excess_after`` and ``excess_ratio``,
+        and a note says whether the correction is complete (ratio at most
+        :data:`.consistency_gate.COMPLETE_RATIO`).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional
         Called after every image the search forms.
@@ -155,6 +163,10 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
                        pga_max_points, progress)
     options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
                                           phase_region_m, track_tolerance_m))
+    if isinstance(consistency_iter, bool) or not isinstance(consistency_iter, int | np.integer) \
+            or not 0 <= consistency_iter <= 10_000:
+        raise ValueError(f"consistency_iter must be an int from 0 (off) to 10000, got {consistency_iter!r}")
+    options["consistency_iter"] = int(consistency_iter)
     from .run import run
 
     return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,

@@ -15,6 +15,7 @@ import time
 import numpy as np
 
 from ..physics import speed_of_sound
+from .consistency_gate import consistency_gate
 from .direct import direct_arrivals
 from .engine import FocusEngine
 from .metrics import metric_and_weight
@@ -33,7 +34,8 @@ FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair
 def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
         max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
         smooth_start=True, pga_options=None, temperature_tolerance_c=0.35, delay_tolerance_s=1e-6,
-        check_margin=0.01, phase_region_m=None, heldout_gain=0.2, track_tolerance_m=2.5e-3) -> tuple:
+        check_margin=0.01, phase_region_m=None, heldout_gain=0.2, track_tolerance_m=2.5e-3,
+        consistency_iter=0) -> tuple:
     """The stages of :func:`clsas.autofocus` in turn: the direct sound, a delay, the motion, the
     temperature; then the check and the corrected dataset (or the input) and the report."""
     rep = AutofocusReport(metric=metric, methods=list(methods))
@@ -45,7 +47,7 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     rep.backend, rep.device = engine.backend, engine.device
     fo = _Focus(ds, engine, rep, metric, progress, temp0, per_stop_delay)
     fo.phase_region_m, fo.engine_options, fo.heldout_gain = phase_region_m, eopt, heldout_gain
-    fo.track_tolerance_m = track_tolerance_m
+    fo.track_tolerance_m, fo.grid, fo.consistency_iter = track_tolerance_m, grid, consistency_iter
     rep.metric_before = fo.image_metric(np.zeros(ds.n_meas), fo.c_stated, "input")
     stop, t_stop, xy = stops_of(ds)
     fo.splits = [hs for hs in (split_halves(ds, grid, stop, xy, how, backend=engine.selection, **eopt)
@@ -78,6 +80,7 @@ class _Focus:
         self.direct = None
         self.halves = None
         self.extra_delay = 0.0  # a global delay determined without the direct sound, s
+        self.grid, self.consistency_iter = engine.grid, 0
 
     def c_at(self, dt):  # the stated c scaled as a temperature offset dt scales it (at the dataset's humidity)
         temp0, hum = self.temp0, self.ds.humidity_pct
@@ -275,8 +278,34 @@ def _finish(fo, methods, d_temp, move, stop, started) -> tuple:
     out = ds.replace(t0_s=t0_est, tx_positions=tx, rx_positions=rx, c_mps=c_est,
                      temperature_c=new_temp if np.ndim(ds.temperature_c) else float(new_temp[0]),
                      provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
+    if fo.consistency_iter:
+        out = _consistency_checked(fo, out, stop, methods)
+    rep.time_s = time.perf_counter() - started
     log.info("%s", rep.summary())
     return out, rep
+
+
+def _consistency_checked(fo, out, stop, methods):
+    """``out`` where the data-consistency gate passes; else the direct sound's delay alone (the
+    physics determines it, no focus) where it was found, or the input."""
+    ds, rep = fo.ds, fo.rep
+    base = ds.replace(t0_s=fo.t0_at(fo.c_stated)) if fo.direct is not None else ds
+    if consistency_gate(base, out, fo.grid, rep, fo.consistency_iter, fo.engine.selection):
+        return out.replace(provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
+    rep.metric_after = metric_and_weight(fo.engine.image(base.t0_s - ds.t0_s, fo.c_stated), rep.metric)[0]
+    rep.improved = fo.direct is not None and bool(np.any(base.t0_s != ds.t0_s))
+    _fill(rep, ds, base.t0_s, fo.c_stated, 0.0, fo.temp0, np.zeros((ds.n_meas, 3)), stop, methods,
+          applied=rep.improved)
+    for name in ("motion", "temperature"):
+        if name in rep.parameters:
+            rep.parameters[name].applied = False
+    kept = "the direct sound's delay alone is returned" if rep.improved else "the input is returned unchanged"
+    rep.notes.append(f"the motion and air estimates are withdrawn: {kept}")
+    log.warning("autofocus: %s", rep.notes[-2])
+    if not rep.improved:
+        rep.metric_after = rep.metric_before
+        return ds
+    return base.replace(provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
 
 
 def _fill(rep, ds, t0_est, c_est, d_temp, temp0, move, stop, methods, applied: bool) -> None:
