@@ -205,10 +205,11 @@ def plot_family(results: dict, path) -> None:
 
 
 def run_and_write(seed_set: str = "tuning", rms_mm=(3.0,), *, n_seeds: int | None = None, out_dir=None,
-                  plots: bool = True, backend=None, status=None) -> dict:
+                  plots: bool = True, backend=None, status=None, consistency_iter: int = 0) -> dict:
     """The family at each RMS (mm) on ``seed_set`` (a name in :data:`clsas.scene_family.SEED_SETS`:
     ``"tuning"``, ``"tuning-2"``, ``"held-out"``, ``"held-out-2"``; the first ``n_seeds`` only),
-    summarised, and written to ``out_dir`` as ``<date>-autofocus-family-<set>.{json,md,png}``.
+    summarised, and written to ``out_dir`` as ``<date>-autofocus-family-<set>.{json,md,png}``
+    (``...-<set>-consistency<N>`` with ``consistency_iter`` N, :func:`clsas.autofocus`'s last check).
 
     Returns ``{"results": {label: {"summary", "rows"}}, "paths": {...}}``.
     """
@@ -225,16 +226,18 @@ def run_and_write(seed_set: str = "tuning", rms_mm=(3.0,), *, n_seeds: int | Non
     seeds = list(SEED_SETS[seed_set])[:n_seeds]
     results = {}
     for mm in rms_mm:
-        rows = run_family(seeds, float(mm) * 1e-3, backend=backend, status=status)
+        rows = run_family(seeds, float(mm) * 1e-3, backend=backend, status=status, consistency_iter=consistency_iter)
         results[f"{seed_set} {mm:g} mm"] = {"summary": summarise(rows), "rows": rows}
     paths = {}
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
-        stem = out / f"{datetime.date.today().isoformat()}-autofocus-family-{seed_set}"
+        tag = f"-consistency{consistency_iter}" if consistency_iter else ""
+        stem = out / f"{datetime.date.today().isoformat()}-autofocus-family-{seed_set}{tag}"
         host = {"machine": platform.machine(), "cpus": os.cpu_count(), "load": os.getloadavg()}
         stem.with_suffix(".json").write_text(json.dumps({"seed_set": seed_set, "seeds": seeds, "host": host,
                                                         "methods": list(BENCH_METHODS),
+                                                        "consistency_iter": consistency_iter,
                                                         "results": results}, default=_json, indent=1))
         md = f"# Autofocus on the scene family ({seed_set} seeds {seeds[0]}-{seeds[-1]})\n\n"
         if plots:

@@ -19,7 +19,7 @@ def cmd_bench(args) -> int:
         from clsas.bench.autofocus_family import run_and_write
 
         res = run_and_write(args.autofocus, args.rms_mm, n_seeds=args.n_seeds, out_dir=args.out,
-                            plots=not args.no_plots, status=status)
+                            plots=not args.no_plots, status=status, consistency_iter=args.autofocus_consistency)
         for label, r in res["results"].items():
             s = r["summary"]
             if s.get("n"):
@@ -180,6 +180,9 @@ def add_parser(sub) -> None:
                    help="run only formation='auto' on a seeded family of requests (planar, jittered and ring "
                    "apertures, points and planes, audio bands): its tuning seeds (default) or either held-out set "
                    "(for reports, never for tuning); 1-3 minutes on a 2-core CPU")
+    b.add_argument("--autofocus-consistency", type=int, default=0, metavar="N",
+                   help="with --autofocus: run clsas.autofocus with consistency_iter=N (its last check by data "
+                   "consistency; default 0: off)")
     b.add_argument("--rms-mm", type=float, nargs="+", default=[3.0],
                    help="with --autofocus: RMS of the hand motion, mm (default 3)")
     b.add_argument("--n-seeds", type=int, default=None,
