@@ -87,8 +87,8 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
               temperature_tolerance_c: float = 0.35, delay_tolerance_s: float = 1e-6, check_margin: float = 0.01,
               phase_region_m: float | None = None, heldout_gain: float = 0.2, track_tolerance_m: float = 2.5e-3,
               consistency_iter: int = 0, backend: str | None = None, device: Any = None,
-              progress: Callable[[str, int, float], None] | None = None,
-              force: bool = False) -> tuple[Dataset, AutofocusReport]:
+              progress: Callable[[str, int, float], None] | None = None, force: bool = False
+              ) -> tuple[Dataset, AutofocusReport]:
     """Estimate motion, sound speed and delay from the scan, and correct the dataset.
 
     Parameters
@@ -100,8 +100,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
     methods : sequence of {"direct", "temperature", "delay", "phase", "points", "track", "los", "3d", "pga"}
         The steps (see the module docstring); order is fixed. Default: the direct sound's delay
         alone (for the held-out figures of each, see docs/guide/autofocus.md).
-    metric : {"sharpness", "entropy"}
-        See :func:`clsas.focus.metrics.metric_and_weight`.
+    metric : {"sharpness", "entropy"}; see :func:`clsas.focus.metrics.metric_and_weight`.
     n_basis : int, optional
         Smooth functions for the line-of-sight and 3-D motion; default enough for motion up to
         ``motion_bandwidth_hz`` over the scan's duration (from ``timestamps``), else a quarter
@@ -116,10 +115,8 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         window, the ``"delay"`` search), s.
     per_stop_delay : bool
         Keep each recording's own direct-path delay (timing jitter) rather than their median.
-    max_iter : int
-        L-BFGS iterations per stage of the ``"los"`` search and of the ``"3d"`` search.
-    phase_sweeps : int
-        Most sweeps of the per-stop phase search (``"phase"``).
+    max_iter, phase_sweeps : int
+        L-BFGS iterations per stage of ``"los"`` and ``"3d"``; most sweeps of ``"phase"``.
     max_stop_bytes : int
         Memory for ``"phase"``'s per-stop images (complex64), bytes; past it, the brightest voxels.
     pga_min_coherence : float, optional
@@ -140,33 +137,23 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         Search the phases on a fine local grid of this half-size at the brightest voxel, m
         (None: on ``grid``; see docs/guide/autofocus.md).
     consistency_iter : int
-        0 (default): off. Else a last check that trusts no image: :func:`data_consistency` with
-        this many CGLS iterations on the input and on the corrected scan (two or three
-        least-squares fits: seconds to a minute on the scene family's scans). A correction that
-        leaves more than :data:`.consistency_gate.REVERT_RATIO` of the input's excess is not
-        returned; ``report.check`` gets ``excess_before``, ``excess_after`` and ``excess_ratio``,
-        and a note says whether the correction is complete (ratio at most
-        :data:`.consistency_gate.COMPLETE_RATIO`).
+        0 (default): off. Else a last check that trusts no image, :func:`data_consistency` with
+        this many iterations before and after the correction (:mod:`.consistency_gate`).
     backend, device, force : as for :func:`clsas.reconstruct`.
-    progress : callable(step, n_images, metric), optional
-        Called after every image the search forms.
+    progress : callable(step, n_images, metric), optional; called after every image formed.
 
     Returns
     -------
     (Dataset, AutofocusReport)
-        The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions; a
-        provenance record ``autofocus``) with only what the scan determined and the check
-        passed; or the input itself (``report.improved`` False, a note says why).
+        The corrected dataset (new ``t0_s``, ``temperature_c``/``c_mps`` and positions; a provenance
+        record ``autofocus``) with only what the scan determined and the check passed; or the input
+        itself (``report.improved`` False, a note says why).
     """
     options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
                        max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
                        pga_max_points, progress)
     options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                                          phase_region_m, track_tolerance_m))
-    if isinstance(consistency_iter, bool) or not isinstance(consistency_iter, int | np.integer) \
-            or not 0 <= consistency_iter <= 10_000:
-        raise ValueError(f"consistency_iter must be an int from 0 (off) to 10000, got {consistency_iter!r}")
-    options["consistency_iter"] = int(consistency_iter)
+                                          phase_region_m, track_tolerance_m, consistency_iter))
     from .run import run
 
     return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
@@ -213,15 +200,19 @@ def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, tempe
 
 
 def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                           phase_region_m, track_tolerance_m=2.5e-3) -> dict:
+                           phase_region_m, track_tolerance_m=2.5e-3, consistency_iter=0) -> dict:
     """The options of issue 26 (what counts as determined, and the check) checked."""
     margin = v.non_negative("check_margin", check_margin)
     if margin >= 1:
         raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")
+    if isinstance(consistency_iter, bool) or not isinstance(consistency_iter, int | np.integer) \
+            or not 0 <= consistency_iter <= 10_000:
+        raise ValueError(f"consistency_iter must be an int from 0 (off) to 10000, got {consistency_iter!r}")
     return {"temperature_tolerance_c": v.positive("temperature_tolerance_c", temperature_tolerance_c),
             "delay_tolerance_s": v.positive("delay_tolerance_s", delay_tolerance_s), "check_margin": margin,
             "heldout_gain": v.positive("heldout_gain", heldout_gain),
             "track_tolerance_m": v.positive("track_tolerance_m", track_tolerance_m),
+            "consistency_iter": int(consistency_iter),
             "phase_region_m": None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)}
 
 
