@@ -141,7 +141,8 @@ def test_gate_withdraws_a_correction_that_explains_nothing():
     from clsas.focus.report import AutofocusReport
 
     ds, rep = scan(3e-3), AutofocusReport()
-    assert not consistency_gate(ds, ds, GRID, rep, 5, clsas.cl.select("numpy"))  # the same data: ratio 1
+    same = ds.replace(t0_s=ds.t0_s.copy())  # a "correction" that changes nothing: ratio 1
+    assert not consistency_gate(ds, same, GRID, rep, 5, clsas.cl.select("numpy"))
     assert rep.check["excess_ratio"] == pytest.approx(1.0)
     assert "explains nothing" in rep.notes[-1]
 
@@ -174,3 +175,16 @@ def test_autofocus_checks_consistency_iter(bad):
 
     with pytest.raises(ValueError, match="consistency_iter"):
         autofocus(scan(), GRID, consistency_iter=bad)
+
+
+def test_only_the_direct_delay_is_reported_not_judged():
+    from clsas.focus import autofocus
+
+    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    ds = clsas.simulate(clsas.Scene(POINTS), clsas.raster_aperture(8, 7, 0.24, 0.2), w, FS, snr_db=30, seed=3,
+                        position_error=HandMotion(3e-3, seed=5), group_delay_s=20e-6, direct_gain=1.0)
+    out, rep = autofocus(ds, GRID, methods=("direct",), consistency_iter=5, backend="numpy")
+    # the delay is physics, not focus: kept, and the motion nobody looked for shows as excess
+    assert rep.improved and np.median(ds.t0_s - out.t0_s) == pytest.approx(20e-6, abs=1e-6)
+    assert "excess_ratio" not in rep.check and rep.check["excess_before"] > 0.2
+    assert "no step found" in rep.notes[-1]

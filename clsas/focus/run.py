@@ -290,7 +290,9 @@ def _consistency_checked(fo, out, stop, methods):
     physics determines it, no focus) where it was found, or the input."""
     ds, rep = fo.ds, fo.rep
     base = ds.replace(t0_s=fo.t0_at(fo.c_stated)) if fo.direct is not None else ds
-    if consistency_gate(base, out, fo.grid, rep, fo.consistency_iter, fo.engine.selection):
+    only_direct = bool(np.array_equal(out.t0_s, base.t0_s) and np.array_equal(out.tx_positions, ds.tx_positions)
+                       and np.array_equal(out.c_per_meas, ds.c_per_meas))
+    if consistency_gate(out if only_direct else base, out, fo.grid, rep, fo.consistency_iter, fo.engine.selection):
         return out.replace(provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
     rep.metric_after = metric_and_weight(fo.engine.image(base.t0_s - ds.t0_s, fo.c_stated), rep.metric)[0]
     rep.improved = fo.direct is not None and bool(np.any(base.t0_s != ds.t0_s))
