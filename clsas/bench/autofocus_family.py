@@ -196,8 +196,13 @@ def plot_family(results: dict, path) -> None:
     lo = min([-1.0] + [min(r["peak_before_db"], r["peak_after_db"]) for res in results.values()
                        for r in res["rows"] if "error" not in r])
     ax.plot([lo, 1], [lo, 1], "k:", lw=0.8, label="no change")
+    finish_peak_plot(fig, ax, "local peak without autofocus, dB re error-free", path)
+
+
+def finish_peak_plot(fig, ax, xlabel: str, path) -> None:
+    """The 1 dB line, the labels (y: the local peak after autofocus) and the legend; saved to ``path``."""
     ax.axhline(-1.0, color="grey", lw=0.8, ls="--", label="1 dB below error-free")
-    ax.set_xlabel("local peak without autofocus, dB re error-free")
+    ax.set_xlabel(xlabel)
     ax.set_ylabel("local peak after autofocus, dB re error-free")
     ax.legend(fontsize=8)
     fig.tight_layout()

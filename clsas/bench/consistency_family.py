@@ -118,18 +118,15 @@ def plot(rows: list[dict], path) -> None:
     """Peak after autofocus against the share of the errors' residual energy it removed."""
     from matplotlib.figure import Figure
 
+    from clsas.bench.autofocus_family import finish_peak_plot
+
     fig = Figure(figsize=(6, 4.5))
     ax = fig.subplots()
     for kind, marker in (("points", "o"), ("plane", "s"), ("sphere", "^")):
         ok = [r for r in rows if "error" not in r and r["kind"] == kind]
         ax.scatter([np.clip(r["removed"], -0.1, 1.05) if np.isfinite(r["removed"]) else -0.1 for r in ok],
                    [r["peak_after_db"] for r in ok], marker=marker, s=22, label=kind)
-    ax.axhline(-1.0, color="grey", lw=0.8, ls="--", label="1 dB below error-free")
-    ax.set_xlabel("share of the errors' residual energy removed by autofocus")
-    ax.set_ylabel("local peak after autofocus, dB re error-free")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    finish_peak_plot(fig, ax, "share of the errors' residual energy removed by autofocus", path)
 
 
 def write(rows: list[dict], label: str, stem) -> None:
