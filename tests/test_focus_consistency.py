@@ -76,9 +76,14 @@ def test_options_are_checked_by_name(kwargs, match):
 
 
 def test_floor_of_must_match_the_iterations():
-    c = Consistency(0.1, 0.01, 0.09, [1.0, 0.1], [0.02, 0.01], 1.0, 1.0, 1)
-    with pytest.raises(ValueError, match="floor_of"):
+    c = Consistency(0.1, 0.01, 0.09, [1.0, 0.1], [0.02, 0.01], 1.0, 1.0, iterations=1, max_iter=1,
+                    grid_shape=GRID.shape, n_meas=56)
+    with pytest.raises(ValueError, match="floor_of was fitted with max_iter 1"):
         data_consistency(scan(), GRID, max_iter=2, floor_of=c)
+    c.max_iter = 2
+    with pytest.raises(ValueError, match="floor_of is of another grid"):
+        data_consistency(scan(), clsas.VoxelGrid.from_bounds((-0.05, 0.04), (-0.03, 0.045), (0.585, 0.635), 0.01),
+                         max_iter=2, floor_of=c)
 
 
 def test_dataset_and_grid_types_are_checked():
@@ -143,7 +148,7 @@ def test_gate_withdraws_a_correction_that_explains_nothing():
     ds, rep = scan(3e-3), AutofocusReport()
     same = ds.replace(t0_s=ds.t0_s.copy())  # a "correction" that changes nothing: ratio 1
     assert not consistency_gate(ds, same, GRID, rep, 5, clsas.cl.select("numpy"))
-    assert rep.check["excess_ratio"] == pytest.approx(1.0)
+    assert rep.check["excess_ratio"] == pytest.approx(1.0) and rep.check["consistency_passed"] is False
     assert "explains nothing" in rep.notes[-1]
 
 
@@ -152,21 +157,45 @@ def test_withdrawn_motion_keeps_only_the_direct_sounds_delay(monkeypatch, direct
     import clsas.focus.run as run
     from clsas.focus import autofocus
 
-    monkeypatch.setattr(run, "consistency_gate", lambda *a: False)
+    seen = []
+
+    def refuse(base, out, *a):
+        seen.append((base, out))
+        return False
+
+    monkeypatch.setattr(run, "consistency_gate", refuse)
     w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    # a scan where "points" applies a motion (with the direct sound at a third of its level, or none)
     ds = clsas.simulate(clsas.Scene(POINTS), clsas.raster_aperture(8, 7, 0.24, 0.2), w, FS, snr_db=30, seed=3,
                         position_error=HandMotion(3e-3, seed=5), group_delay_s=20e-6 if direct else 0.0,
-                        direct_gain=1.0 if direct else None)
+                        direct_gain=0.3 if direct else None)
+    ref_out, ref = autofocus(ds, GRID, methods=("direct", "points"), backend="numpy")
+    assert ref.parameters["motion"].applied  # without the gate the motion is applied
     out, rep = autofocus(ds, GRID, methods=("direct", "points"), consistency_iter=3, backend="numpy")
+    (base, judged), = seen
+    assert base is not judged and not np.array_equal(judged.tx_positions, ds.tx_positions)  # a real motion judged
     assert not rep.parameters["motion"].applied
     assert np.array_equal(out.tx_positions, ds.tx_positions)  # no motion in what comes back
+    assert "withdrawn" in rep.notes[-1]
     if direct:  # the delay the direct sound gives is physics, not focus: it stays
         assert rep.improved and rep.parameters["group_delay"].applied
         assert np.median(ds.t0_s - out.t0_s) == pytest.approx(20e-6, abs=1e-6)
         assert "the direct sound's delay alone is returned" in rep.notes[-1]
+        assert out.provenance[-1]["step"] == "autofocus"
     else:
         assert out is ds and not rep.improved
-        assert "the input is returned unchanged" in rep.notes[-1]
+        assert "motion, air and delay estimates are withdrawn; the input is returned unchanged" in rep.notes[-1]
+
+
+def test_the_input_returned_still_gets_its_consistency():
+    from clsas.focus import autofocus
+
+    # too little motion for "points" to be determined: nothing applied, but the excess is reported
+    ds = scan()
+    out, rep = autofocus(ds, GRID, methods=("points",), consistency_iter=3, backend="numpy")
+    assert out is ds and not rep.improved
+    assert "excess_after" in rep.check and "excess_ratio" not in rep.check
+    assert "no step found" in rep.notes[-1]
 
 
 @pytest.mark.parametrize("bad", [-1, 10_001, 2.0, True])
@@ -186,5 +215,14 @@ def test_only_the_direct_delay_is_reported_not_judged():
     out, rep = autofocus(ds, GRID, methods=("direct",), consistency_iter=5, backend="numpy")
     # the delay is physics, not focus: kept, and the motion nobody looked for shows as excess
     assert rep.improved and np.median(ds.t0_s - out.t0_s) == pytest.approx(20e-6, abs=1e-6)
-    assert "excess_ratio" not in rep.check and rep.check["excess_before"] > 0.2
+    assert "excess_ratio" not in rep.check and rep.check["excess_after"] > 0.2
     assert "no step found" in rep.notes[-1]
+
+
+def test_a_fit_that_converges_early_can_still_lend_its_floor():
+    # 8 voxels: CGLS converges long before 200 iterations; reusing its floor must not fail
+    small = clsas.VoxelGrid.from_bounds((0.0, 0.005), (0.0, 0.005), (0.6, 0.605), 0.005)
+    c = data_consistency(scan(), small, max_iter=200, backend="numpy")
+    assert c.iterations < 200 and c.max_iter == 200
+    again = data_consistency(scan(), small, max_iter=200, floor_of=c, backend="numpy")
+    assert again.floor == pytest.approx(c.floor)

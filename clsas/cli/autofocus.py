@@ -35,6 +35,12 @@ def add_autofocus_options(sp) -> None:
                     "large grids; default 0: off)")
 
 
+def check_consistency(args) -> None:
+    """``--consistency`` checked before any work."""
+    if not 0 <= args.consistency <= 10_000:
+        raise ValueError(f"--consistency must be 0 (off) to 10000 iterations, got {args.consistency}")
+
+
 def run_autofocus(ds, grid, args):
     from clsas.focus import autofocus
 
@@ -79,8 +85,7 @@ def cmd_autofocus(args) -> int:
     import clsas
     from clsas.scenes import stored_grid_and_truth
 
-    if not 0 <= args.consistency <= 10_000:
-        raise ValueError(f"--consistency must be 0 (off) to 10000 iterations, got {args.consistency}")
+    check_consistency(args)
     ds = clsas.load(args.data)
     stored_grid, _ = stored_grid_and_truth(ds.config)
     grid = grid_arg(args.grid, args.spacing, stored_grid)

@@ -15,6 +15,11 @@ def cmd_bench(args) -> int:
         if not args.quiet:
             print(f"[bench] {line}", flush=True)
 
+    if args.autofocus_consistency and args.autofocus is None:
+        raise ValueError("--autofocus-consistency needs --autofocus")
+    if not 0 <= args.autofocus_consistency <= 10_000:
+        raise ValueError("--autofocus-consistency must be 0 (off) to 10000 iterations, got "
+                         f"{args.autofocus_consistency}")
     if args.autofocus is not None:
         from clsas.bench.autofocus_family import run_and_write
 

@@ -18,6 +18,7 @@ def cmd_reconstruct(args) -> int:
 
     if args.plot and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
         raise ValueError(f"--plot: the file must end in .png, .svg or .pdf, got {args.plot!r}")
+    af.check_consistency(args)
     ds = clsas.load(args.data)
     partial = _partial_scan(args.data)
     if partial:

@@ -61,12 +61,18 @@ class Consistency:
         ``sqrt(residual**2 - floor**2)`` (0 where the residual is at or below the floor): the
         part of the data that neither the target nor the noise explains.
     history, floor_history : list of float
-        ``residual`` and ``floor`` after each iteration (index 0: before the fit).
+        ``residual`` and ``floor`` after each iteration (index 0: before the fit); shorter than
+        ``max_iter + 1`` where CGLS converged early.
     noise_sigma : float
         The profiles' per-sample noise standard deviation used for the draw.
     scale : float
         ``||b||``, what ``residual`` and ``floor`` are relative to.
     iterations : int
+        The CGLS iterations the scan's fit ran (at most ``max_iter``).
+    max_iter : int
+        The iterations asked for (what ``floor_of`` must match).
+    grid_shape : tuple of int
+    n_meas : int
     backend, device : str
     time_s : float
     """
@@ -79,6 +85,9 @@ class Consistency:
     noise_sigma: float = float("nan")
     scale: float = float("nan")
     iterations: int = 0
+    max_iter: int = 0
+    grid_shape: tuple = ()
+    n_meas: int = 0
     backend: str = ""
     device: str = ""
     time_s: float = 0.0
@@ -133,8 +142,11 @@ def data_consistency(dataset: Dataset, grid: VoxelGrid, *, max_iter: int = 60, s
     if floor_of is not None:
         if not isinstance(floor_of, Consistency):
             raise TypeError(f"floor_of must be a Consistency, got {type(floor_of).__name__}")
-        if floor_of.iterations != n_iter:
-            raise ValueError(f"floor_of was fitted with {floor_of.iterations} iterations, max_iter is {n_iter}")
+        if floor_of.max_iter != n_iter:
+            raise ValueError(f"floor_of was fitted with max_iter {floor_of.max_iter}, max_iter is {n_iter}")
+        if tuple(floor_of.grid_shape) != tuple(grid.shape) or floor_of.n_meas != dataset.n_meas:
+            raise ValueError(f"floor_of is of another grid or scan ({floor_of.grid_shape}, {floor_of.n_meas} "
+                             f"measurements; here {grid.shape}, {dataset.n_meas})")
     if progress is not None and not callable(progress):
         raise TypeError(f"progress must be callable, got {type(progress).__name__}")
     return _fit_both(dataset, grid, n_iter, int(seed), floor_of, _cl.select(backend, device), progress)
@@ -172,5 +184,5 @@ def _fit_both(dataset, grid, n_iter, seed, floor_of, selection, progress) -> Con
         floor_hist = [f * floor_of.scale / scale for f in floor_of.floor_history]
     r, f = hist[-1], floor_hist[-1]
     excess = float(np.sqrt(max(r * r - f * f, 0.0)))
-    return Consistency(r, f, excess, hist, floor_hist, float(sigma), scale, len(hist) - 1, A.backend,
-                       A.selection.device, time.perf_counter() - t0)
+    return Consistency(r, f, excess, hist, floor_hist, float(sigma), scale, len(hist) - 1, n_iter, tuple(grid.shape),
+                       dataset.n_meas, A.backend, A.selection.device, time.perf_counter() - t0)

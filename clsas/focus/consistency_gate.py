@@ -1,9 +1,12 @@
 """The last check of :func:`clsas.autofocus` with ``consistency_iter``: does the correction make the data consistent?
 
-:func:`.consistency.data_consistency` on the input and on the corrected scan (the input's noise
-floor reused). The *excess ratio* is the corrected scan's excess over the input's: what the
-correction left of the part of the data that no target in the grid explained at the stated
-geometry. It needs no truth and trusts no image.
+:func:`.consistency.data_consistency` on the input (with the direct sound's delay applied where
+it was found: that is physics, not focus, and is never withdrawn) and on the corrected scan (the
+first's noise floor reused). The *excess ratio* is the corrected scan's excess over the
+first's: what the correction left of the part of the data that no target in the grid
+explained. It needs no truth and trusts no image. (The bench's ratio,
+:func:`clsas.bench.consistency_family.excess_ratio`, divides by the scan as recorded instead;
+the two differ only on scans with direct sound.)
 
 On the scene family's tuning-2 seeds (2000-2029, 3 mm hand motion, 30 iterations; issue 26,
 thirteenth session, ``bench/results/2026-11-28-consistency-tuning-2.md``) every correction with
@@ -17,8 +20,6 @@ from __future__ import annotations
 
 import logging
 
-import numpy as np
-
 from .consistency import data_consistency
 
 __all__ = ["COMPLETE_RATIO", "REVERT_RATIO", "consistency_gate"]
@@ -31,38 +32,41 @@ COMPLETE_RATIO = 0.2
 REVERT_RATIO = 0.9
 
 
-def consistency_gate(ds, out, grid, rep, max_iter: int, selection) -> bool:
-    """Judge ``out`` (the corrected ``ds``) by data consistency; fill ``rep.check`` and a note.
+def consistency_gate(base, out, grid, rep, max_iter: int, selection) -> bool:
+    """Judge ``out`` against ``base`` (the input with the direct sound's delay, where found) by
+    data consistency; fill ``rep.check`` and a note.
 
-    Returns False where the correction is to be withdrawn (its excess ratio over
-    :data:`REVERT_RATIO`). Where ``out`` is ``ds`` itself (nothing beyond what ``ds`` already
-    holds was estimated), only its consistency is reported.
+    Returns False where the correction is to be withdrawn: its excess ratio is over
+    :data:`REVERT_RATIO`, or ``base`` is already explained to the noise (the data do not
+    determine a correction). Where ``out`` is ``base`` itself (nothing to judge), only its
+    consistency is reported (``excess_after``).
     """
-    before = data_consistency(ds, grid, max_iter=max_iter, backend=selection)
-    head = f"data consistency ({max_iter} iterations): {before.residual:.3f} of the data unexplained"
-    if out is ds:
-        rep.check.update(excess_before=before.excess, noise_floor=before.floor)
-        rep.stages.append({"step": "consistency", "iterations": max_iter, "residual_before": before.residual,
-                           "floor": before.floor, "time_s": before.time_s})
-        rep.notes.append(head + f" by any target in the grid, noise alone {before.floor:.3f}; an excess well over "
+    first = data_consistency(base, grid, max_iter=max_iter, backend=selection)
+    head = f"data consistency ({max_iter} iterations): {first.residual:.3f} of the data unexplained"
+    if out is base:
+        rep.check.update(excess_after=first.excess, noise_floor=first.floor)
+        rep.stages.append({"step": "consistency", "iterations": max_iter, "residual_after": first.residual,
+                           "floor": first.floor, "time_s": first.time_s})
+        rep.notes.append(head + f" by any target in the grid, noise alone {first.floor:.3f}; an excess well over "
                          "the noise is an error in the geometry that no step found (or in the model)")
         return True
-    after = data_consistency(out, grid, max_iter=max_iter, floor_of=before, backend=selection)
-    ratio = after.excess / before.excess if before.excess > 0 else float("nan")
-    rep.check.update(excess_before=before.excess, excess_after=after.excess, excess_ratio=ratio,
-                     noise_floor=before.floor)
-    rep.stages.append({"step": "consistency", "iterations": max_iter, "residual_before": before.residual,
-                       "residual_after": after.residual, "floor": before.floor,
-                       "time_s": before.time_s + after.time_s})
-    head += f" before, {after.residual:.3f} after, noise alone {before.floor:.3f}"
-    return _judged(head, ratio, rep)
+    after = data_consistency(out, grid, max_iter=max_iter, floor_of=first, backend=selection)
+    rep.check.update(excess_before=first.excess, excess_after=after.excess, noise_floor=first.floor)
+    rep.stages.append({"step": "consistency", "iterations": max_iter, "residual_before": first.residual,
+                       "residual_after": after.residual, "floor": first.floor,
+                       "time_s": first.time_s + after.time_s})
+    head += f" before, {after.residual:.3f} after, noise alone {first.floor:.3f}"
+    if not first.excess > 0:
+        rep.notes.append(head + ": the data are explained without the correction, so they do not determine it")
+        passed = False
+    else:
+        rep.check["excess_ratio"] = after.excess / first.excess
+        passed = _judged(head, rep.check["excess_ratio"], rep)
+    rep.check["consistency_passed"] = passed
+    return passed
 
 
 def _judged(head: str, ratio: float, rep) -> bool:
-    if not np.isfinite(ratio):
-        rep.notes.append(head + ": the stated geometry already explains the data to the noise, so they do not "
-                         "determine a correction; kept as the other checks decided")
-        return True
     if ratio > REVERT_RATIO:
         rep.notes.append(head + f": the correction leaves {ratio:.0%} of the unexplained part (over "
                          f"{REVERT_RATIO:.0%}), so it explains nothing the data say")

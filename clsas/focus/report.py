@@ -96,8 +96,9 @@ class AutofocusReport:
     check : dict
         The held-out check: ``coherence_before``, ``coherence_heldout`` (motion of the other
         half), ``coherence_after`` (the returned correction), ``passed``, ``motion_passed``; with
-        ``consistency_iter``, ``excess_before``, ``excess_after``, ``excess_ratio`` and
-        ``noise_floor`` (:mod:`clsas.focus.consistency_gate`).
+        ``consistency_iter``, ``excess_after`` and ``noise_floor``, and where a correction was
+        judged ``excess_before``, ``excess_ratio`` and ``consistency_passed``
+        (:mod:`clsas.focus.consistency_gate`).
     """
 
     improved: bool = False
@@ -138,16 +139,18 @@ class AutofocusReport:
             lines.append(f"  line-of-sight corrections: {f'{self.n_basis} functions' if self.n_basis else 'per stop'}, "
                          f"{np.sqrt(np.mean(self.los_path_m ** 2)) / 2 * 1e3:.2f} mm RMS (one way)")
         lines += [f"  {p.line()}" for p in self.parameters.values()]
-        consistency = ("excess_before", "excess_after", "excess_ratio", "noise_floor")
+        consistency = ("excess_before", "excess_after", "excess_ratio", "noise_floor", "consistency_passed")
         if self.check:
             lines.append("  check (disjoint halves of the stops): coherence "
                          + ", ".join(f"{k} {v:.3f}" for k, v in self.check.items()
                                      if isinstance(v, float) and k not in consistency)
                          + f"; {'passed' if self.check.get('passed') else 'failed'}")
-        if "excess_ratio" in self.check:
-            c = self.check
-            lines.append(f"  data consistency: unexplained beyond the noise {c['excess_before']:.3f} -> "
-                         f"{c['excess_after']:.3f} (ratio {c['excess_ratio']:.2f})")
+        c = self.check
+        if "excess_after" in c:
+            before = f"{c['excess_before']:.3f} -> " if "excess_before" in c else ""
+            ratio = f" (ratio {c['excess_ratio']:.2f})" if "excess_ratio" in c else ""
+            lines.append(f"  data consistency: unexplained beyond the noise {before}{c['excess_after']:.3f}{ratio}"
+                         + ("" if c.get("consistency_passed", True) else "; the correction was withdrawn"))
         lines += [f"  {n}" for n in self.notes]
         return "\n".join(lines)
 

@@ -273,41 +273,47 @@ def _finish(fo, methods, d_temp, move, stop, started) -> tuple:
         rep.notes.append((why if not rep.check["passed"] else "nothing was determined well enough to apply")
                          + ": the input is returned unchanged; the estimates above are not applied")
         log.warning("autofocus: %s; returning the input", rep.notes[-1])
+        if fo.consistency_iter:  # what the input leaves unexplained, for the record
+            consistency_gate(ds, ds, fo.grid, rep, fo.consistency_iter, engine.selection)
+            rep.time_s = time.perf_counter() - started
         return ds, rep
     new_temp = fo.temp0 + d_temp
     out = ds.replace(t0_s=t0_est, tx_positions=tx, rx_positions=rx, c_mps=c_est,
                      temperature_c=new_temp if np.ndim(ds.temperature_c) else float(new_temp[0]),
                      provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
     if fo.consistency_iter:
-        out = _consistency_checked(fo, out, stop, methods)
+        out = _consistency_checked(fo, out, stop, methods, started)
     rep.time_s = time.perf_counter() - started
     log.info("%s", rep.summary())
     return out, rep
 
 
-def _consistency_checked(fo, out, stop, methods):
+def _consistency_checked(fo, out, stop, methods, started):
     """``out`` where the data-consistency gate passes; else the direct sound's delay alone (the
     physics determines it, no focus) where it was found, or the input."""
     ds, rep = fo.ds, fo.rep
     base = ds.replace(t0_s=fo.t0_at(fo.c_stated)) if fo.direct is not None else ds
     only_direct = bool(np.array_equal(out.t0_s, base.t0_s) and np.array_equal(out.tx_positions, ds.tx_positions)
                        and np.array_equal(out.c_per_meas, ds.c_per_meas))
-    if consistency_gate(out if only_direct else base, out, fo.grid, rep, fo.consistency_iter, fo.engine.selection):
-        return out.replace(provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
-    rep.metric_after = metric_and_weight(fo.engine.image(base.t0_s - ds.t0_s, fo.c_stated), rep.metric)[0]
-    rep.improved = fo.direct is not None and bool(np.any(base.t0_s != ds.t0_s))
-    _fill(rep, ds, base.t0_s, fo.c_stated, 0.0, fo.temp0, np.zeros((ds.n_meas, 3)), stop, methods,
-          applied=rep.improved)
-    for name in ("motion", "temperature"):
-        if name in rep.parameters:
-            rep.parameters[name].applied = False
-    kept = "the direct sound's delay alone is returned" if rep.improved else "the input is returned unchanged"
-    rep.notes.append(f"the motion and air estimates are withdrawn: {kept}")
-    log.warning("autofocus: %s", rep.notes[-2])
+    passed = consistency_gate(out if only_direct else base, out, fo.grid, rep, fo.consistency_iter,
+                              fo.engine.selection)
+    if not passed:
+        rep.metric_after = metric_and_weight(fo.engine.image(base.t0_s - ds.t0_s, fo.c_stated), rep.metric)[0]
+        rep.history.append(rep.metric_after)
+        rep.improved = fo.direct is not None and bool(np.any(base.t0_s != ds.t0_s))
+        _fill(rep, ds, base.t0_s, fo.c_stated, 0.0, fo.temp0, np.zeros((ds.n_meas, 3)), stop, methods,
+              applied=rep.improved)
+        for p in rep.parameters.values():
+            p.applied = bool(p.applied and p.name in ("group_delay", "timing") and fo.direct is not None)
+        dropped = "motion and air estimates are" if fo.direct is not None else "motion, air and delay estimates are"
+        kept = "the direct sound's delay alone is returned" if rep.improved else "the input is returned unchanged"
+        rep.notes.append(f"data consistency: the {dropped} withdrawn; {kept}")
+        log.warning("autofocus: %s (%s)", rep.notes[-1], rep.notes[-2])
+    rep.time_s = time.perf_counter() - started
     if not rep.improved:
         rep.metric_after = rep.metric_before
         return ds
-    return base.replace(provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
+    return (out if passed else base).replace(provenance=list(ds.provenance) + [{"step": "autofocus", **_record(rep)}])
 
 
 def _fill(rep, ds, t0_est, c_est, d_temp, temp0, move, stop, methods, applied: bool) -> None:
