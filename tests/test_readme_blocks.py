@@ -40,6 +40,8 @@ RUN_HERE = {
     ("Fast image formation", "python", 0): "test_fragments_on_a_small_scan",
     ("Fast image formation", "python", 1): "test_fragments_on_a_small_scan",
     ("Extending clsas: one module and one line", "python", 0): "test_extending_registers_a_formation",
+    ("Does the scan determine its motion? Data consistency (thirteenth session)", "python", 0):
+        "test_data_consistency_fragment",
 }
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
@@ -190,6 +192,19 @@ def test_fragments_on_a_small_scan():
         env = {"clsas": clsas, "dataset": dataset, "grid": grid}
         exec(compile(block("Fast image formation", "python", k), f"README.md (formation {k})", "exec"), env)  # noqa: S102
         assert env["image"].values.shape == grid.shape
+
+
+def test_data_consistency_fragment(capsys):
+    """The data-consistency fragment, with ``ds`` and ``grid`` a small scan of one point."""
+    fs = 96e3
+    chirp = clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.1)
+    ds = clsas.simulate(clsas.Scene(np.array([[0.0, 0.0, 0.6]])), clsas.raster_aperture(6, 6, 0.2, 0.2), chirp, fs,
+                        snr_db=30)
+    grid = clsas.VoxelGrid.from_bounds((-0.03, 0.03), (-0.03, 0.03), (0.58, 0.62), 0.006)
+    env = {"clsas": clsas, "ds": ds, "grid": grid}
+    code = block("Does the scan determine its motion? Data consistency (thirteenth session)", "python")
+    exec(compile(code, "autofocus.md (data consistency)", "exec"), env)  # noqa: S102
+    assert env["c"].iterations <= 30 and "data consistency:" in capsys.readouterr().out
 
 
 def test_extending_registers_a_formation():

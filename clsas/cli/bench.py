@@ -17,24 +17,8 @@ def cmd_bench(args) -> int:
 
     if args.autofocus_consistency and args.autofocus is None:
         raise ValueError("--autofocus-consistency needs --autofocus")
-    if not 0 <= args.autofocus_consistency <= 10_000:
-        raise ValueError("--autofocus-consistency must be 0 (off) to 10000 iterations, got "
-                         f"{args.autofocus_consistency}")
     if args.autofocus is not None:
-        from clsas.bench.autofocus_family import run_and_write
-
-        res = run_and_write(args.autofocus, args.rms_mm, n_seeds=args.n_seeds, out_dir=args.out,
-                            plots=not args.no_plots, status=status, consistency_iter=args.autofocus_consistency)
-        for label, r in res["results"].items():
-            s = r["summary"]
-            if s.get("n"):
-                print(f"{label}: {s['n']} scenes, {s['within_1db']:.0%} within 1 dB, {s['worse_than_none']:.0%} "
-                      f"worse than none ({s['worse_than_none_by_0_5db']:.0%} by > 0.5 dB), median "
-                      f"{s['median_peak_db']:+.2f} dB, worst {s['worst_peak_db']:+.2f} dB, "
-                      f"median {s['median_time_s']:.0f} s")
-        for path in res["paths"].values():
-            print(f"wrote {path}")
-        return 0
+        return _bench_autofocus(args, status)
 
     if args.formation_family is not None:
         return _bench_formation_family(args, status)
@@ -133,6 +117,27 @@ def _scale_arg(text: str) -> float | str:
         return float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number (the dense case's size), got {text!r}") from None
+
+
+def _bench_autofocus(args, status) -> int:
+    """``--autofocus SET``: the scene family's distribution (:mod:`clsas.bench.autofocus_family`)."""
+    from clsas.bench.autofocus_family import run_and_write
+
+    if not 0 <= args.autofocus_consistency <= 10_000:
+        raise ValueError("--autofocus-consistency must be 0 (off) to 10000 iterations, got "
+                         f"{args.autofocus_consistency}")
+    res = run_and_write(args.autofocus, args.rms_mm, n_seeds=args.n_seeds, out_dir=args.out,
+                        plots=not args.no_plots, status=status, consistency_iter=args.autofocus_consistency)
+    for label, r in res["results"].items():
+        s = r["summary"]
+        if s.get("n"):
+            print(f"{label}: {s['n']} scenes, {s['within_1db']:.0%} within 1 dB, {s['worse_than_none']:.0%} "
+                  f"worse than none ({s['worse_than_none_by_0_5db']:.0%} by > 0.5 dB), median "
+                  f"{s['median_peak_db']:+.2f} dB, worst {s['worst_peak_db']:+.2f} dB, "
+                  f"median {s['median_time_s']:.0f} s")
+    for path in res["paths"].values():
+        print(f"wrote {path}")
+    return 0
 
 
 def _bench_formation_family(args, status) -> int:
