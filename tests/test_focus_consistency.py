@@ -141,15 +141,23 @@ def test_autofocus_reports_the_consistency_check():
     assert "excess_ratio" in out.provenance[-1]["check"]
 
 
-def test_gate_withdraws_a_correction_that_explains_nothing():
+def test_gate_keeps_what_the_data_cannot_see_and_withdraws_what_they_contradict():
     from clsas.focus.consistency_gate import consistency_gate
     from clsas.focus.report import AutofocusReport
 
-    ds, rep = scan(3e-3), AutofocusReport()
-    same = ds.replace(t0_s=ds.t0_s.copy())  # a "correction" that changes nothing: ratio 1
-    assert not consistency_gate(ds, same, GRID, rep, 5, clsas.cl.select("numpy"))
-    assert rep.check["excess_ratio"] == pytest.approx(1.0) and rep.check["consistency_passed"] is False
-    assert "explains nothing" in rep.notes[-1]
+    ds, sel = scan(3e-3), clsas.cl.select("numpy")
+    rep = AutofocusReport()
+    same = ds.replace(t0_s=ds.t0_s.copy())  # a "correction" that changes nothing: ratio 1, nothing to see
+    assert consistency_gate(ds, same, GRID, rep, 5, sel)
+    assert rep.check["excess_ratio"] == pytest.approx(1.0) and rep.check["consistency_passed"] is True
+    assert "the data do not see the correction" in rep.notes[-1]
+    # from the true positions to the stated ones: the data contradict that "correction"
+    tr = ds.truth
+    at_truth = ds.replace(tx_positions=tr["tx_positions"], rx_positions=tr["rx_positions"])
+    rep = AutofocusReport()
+    assert not consistency_gate(at_truth, ds, GRID, rep, 10, sel)
+    assert rep.check["excess_ratio"] > 3 and rep.check["consistency_passed"] is False
+    assert "the data contradict it" in rep.notes[-1]
 
 
 @pytest.mark.parametrize("direct", [False, True])
@@ -184,7 +192,8 @@ def test_withdrawn_motion_keeps_only_the_direct_sounds_delay(monkeypatch, direct
         assert out.provenance[-1]["step"] == "autofocus"
     else:
         assert out is ds and not rep.improved
-        assert "motion, air and delay estimates are withdrawn; the input is returned unchanged" in rep.notes[-1]
+        assert "the motion estimate is withdrawn; the input is returned unchanged" in rep.notes[-1]
+        assert "data-consistency check withdrew the correction" in rep.summary()
 
 
 def test_the_input_returned_still_gets_its_consistency():

@@ -131,7 +131,9 @@ class AutofocusReport:
         """A few lines for people."""
         lines = [f"autofocus ({', '.join(self.methods)}; metric {self.metric}) on {self.device}: "
                  f"{self.metric_before:.4g} -> {self.metric_after:.4g} in {self.time_s:.1f} s"
-                 + ("" if self.improved else " (nothing applied that passed the check: the input is returned)"),
+                 + ("" if self.improved else " (the data-consistency check withdrew the correction: the input is "
+                                             "returned)" if self.check.get("consistency_passed") is False
+                    else " (nothing applied that passed the check: the input is returned)"),
                  f"  group delay {self.group_delay_s * 1e6:+.2f} us, "
                  f"timing jitter {self.timing_jitter_rms_s * 1e6:.2f} us RMS; air {self.temperature_c:.2f} C "
                  f"({self.temperature_offset_c:+.2f} C), c {self.c_mps:.2f} m/s"]

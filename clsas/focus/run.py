@@ -298,6 +298,7 @@ def _consistency_checked(fo, out, stop, methods, started):
     passed = consistency_gate(out if only_direct else base, out, fo.grid, rep, fo.consistency_iter,
                               fo.engine.selection)
     if not passed:
+        rep.check["consistency_passed"] = False
         rep.metric_after = metric_and_weight(fo.engine.image(base.t0_s - ds.t0_s, fo.c_stated), rep.metric)[0]
         rep.history.append(rep.metric_after)
         rep.improved = fo.direct is not None and bool(np.any(base.t0_s != ds.t0_s))
@@ -305,9 +306,12 @@ def _consistency_checked(fo, out, stop, methods, started):
               applied=rep.improved)
         for p in rep.parameters.values():
             p.applied = bool(p.applied and p.name in ("group_delay", "timing") and fo.direct is not None)
-        dropped = "motion and air estimates are" if fo.direct is not None else "motion, air and delay estimates are"
+        dropped = [n for n, changed in (("motion", np.any(out.tx_positions != ds.tx_positions)),
+                                        ("air", np.any(out.c_per_meas != ds.c_per_meas)),
+                                        ("delay", fo.direct is None and np.any(out.t0_s != ds.t0_s))) if changed]
         kept = "the direct sound's delay alone is returned" if rep.improved else "the input is returned unchanged"
-        rep.notes.append(f"data consistency: the {dropped} withdrawn; {kept}")
+        rep.notes.append(f"data consistency: the {', '.join(dropped) or 'correction'} estimate"
+                         f"{'s are' if len(dropped) > 1 else ' is'} withdrawn; {kept}")
         log.warning("autofocus: %s (%s)", rep.notes[-1], rep.notes[-2])
     rep.time_s = time.perf_counter() - started
     if not rep.improved:
