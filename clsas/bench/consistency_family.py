@@ -144,7 +144,8 @@ def write(rows: list[dict], label: str, stem) -> None:
                                        f"host: {host}\n")
 
 
-def _main(argv=None) -> int:
+def _main(argv=None) -> str:
+    """The command line (module docstring); returns the Markdown table (empty with ``--rewrite``)."""
     import argparse
     import datetime
     import json
@@ -166,20 +167,21 @@ def _main(argv=None) -> int:
     if a.rewrite:
         old = json.loads(Path(a.rewrite).read_text())
         write(old["rows"], old["label"], Path(a.rewrite).with_suffix(""))
-        return 0
+        return ""
     rows = []
     for s in list(SEED_SETS[a.seed_set])[:a.n_seeds]:
-        print(f"consistency: seed {s}", flush=True)
+        log.info("consistency: seed %s", s)
         try:
             rows.append(run_scene(int(s), a.rms_mm * 1e-3, max_iter=a.max_iter))
         except (ValueError, RuntimeError, np.linalg.LinAlgError) as e:
             rows.append({"seed": int(s), "error": f"{type(e).__name__}: {e}"})
-        print(json.dumps(rows[-1]), flush=True)
+        log.info("%s", json.dumps(rows[-1]))
     label = f"{a.seed_set} {a.rms_mm:g} mm, max_iter {a.max_iter}"
     write(rows, label, stem)
-    print(markdown(label, rows))
-    return 0
+    return markdown(label, rows)
 
 
 if __name__ == "__main__":
-    raise SystemExit(_main())
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if text := _main():
+        print(text)
