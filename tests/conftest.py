@@ -5,17 +5,61 @@ import clsas
 
 
 def _opencl_reason() -> str | None:
+    """Why the kernel tests cannot run here (None: they run on the default device).
+
+    The default device is one that builds and runs kernels (``clsas.cl.health``); a device named by
+    ``PYOPENCL_CTX`` is checked the same way, so a runtime whose compiler cannot target this CPU
+    counts as missing, not as a device whose every kernel test fails.
+    """
+    import os
+
     from clsas import cl
 
+    if os.environ.get("CLSAS_BACKEND", "").strip() == "numpy":
+        return "CLSAS_BACKEND=numpy (the NumPy twins only)"
     try:
-        cl.get_queue()
+        queue = cl.get_queue()
     except cl.OpenCLUnavailable as exc:
         return str(exc)
+    h = cl.health(queue.device)
+    if not h.ok:
+        return f"{cl.describe(queue.device)} builds no kernel: {h.reason}. Fix: {h.fix}"
     return None
+
+
+def opencl_required() -> bool:
+    """Whether this run must run kernels (CI, or ``CLSAS_REQUIRE_OPENCL=1``): then a missing device
+    fails the run instead of skipping the kernel tests."""
+    import os
+
+    if os.environ.get("CLSAS_BACKEND", "").strip() == "numpy":
+        return False
+    flag = os.environ.get("CLSAS_REQUIRE_OPENCL", "").strip()
+    if flag:
+        return flag not in ("0", "false", "no")
+    return os.environ.get("CI", "").strip().lower() in ("1", "true", "yes")
 
 
 OPENCL_MISSING = _opencl_reason()
 needs_opencl = pytest.mark.skipif(OPENCL_MISSING is not None, reason=f"no OpenCL device: {OPENCL_MISSING}")
+
+
+def pytest_report_header(config):
+    from clsas import cl
+
+    if OPENCL_MISSING is None:
+        q = cl.get_queue()
+        return [f"clsas kernels: OpenCL on {cl.describe(q.device)} ({q.device.platform.version.strip()}, "
+                f"driver {q.device.driver_version.strip()})"]
+    return [f"clsas kernels: NOT run, NumPy twins only ({OPENCL_MISSING})"]
+
+
+def pytest_sessionstart(session):
+    if OPENCL_MISSING is not None and opencl_required():
+        pytest.exit(f"this run must test the OpenCL kernels (CI=true or CLSAS_REQUIRE_OPENCL=1) but no OpenCL "
+                    f"device builds them: {OPENCL_MISSING}", returncode=3)
+
+
 BACKENDS = [
     pytest.param("numpy", id="numpy"),
     pytest.param("opencl", id="opencl", marks=needs_opencl),
@@ -29,8 +73,12 @@ def width_or_skip(kernel: str, vec: int) -> None:
     """Skip unless the device layer verified ``kernel`` at width ``vec`` on the default device."""
     from clsas import cl
 
-    verdict = cl.check(cl.get_queue(), kernel, vec)
+    queue = cl.get_queue()
+    verdict = cl.check(queue, kernel, vec)
     if not verdict.ok:
+        if opencl_required() and not any(cl.check(queue, kernel, w).ok for w in cl.candidate_widths(queue.device)):
+            pytest.fail(f"{kernel}: {cl.describe(queue.device)} accepts no vector width "
+                        f"({', '.join(map(str, cl.candidate_widths(queue.device)))}): {verdict.reason}")
         pytest.skip(f"{kernel} at VEC={vec} is not usable on this device: {verdict.reason}")
 
 

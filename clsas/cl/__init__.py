@@ -8,7 +8,10 @@ Selection is passed down (every function that takes ``backend`` takes one), and
 (:class:`BuildError`) and ``"auto"`` was asked for, says "run the NumPy twin" with one warning.
 
 - :mod:`.errors`: :class:`OpenCLUnavailable` and :class:`BuildError` (which carries the build log).
-- :mod:`.device`: which device, one queue per device, the Selection a call runs on.
+- :mod:`.runtimes`: the CPU runtimes installed with pip (Intel's), made visible to the ICD loader
+  before pyopencl starts.
+- :mod:`.device`: which device (one that builds kernels: :func:`health`), one owner of each
+  context and queue, the Selection a call runs on.
 - :mod:`.program`: kernel sources, memoised builds that must hold the kernel and carry no
   vector-ABI warning.
 - :mod:`.variants`: the vector width per device, verified once in a child process and cached
@@ -24,6 +27,7 @@ from dataclasses import dataclass
 
 from .device import (
     BACKENDS,
+    Health,
     OpenCLUnavailable,
     Selection,
     _cl,
@@ -32,6 +36,7 @@ from .device import (
     device_info,
     device_kind,
     get_queue,
+    health,
     is_cpu,
     resolve_backend,
     select,
@@ -55,7 +60,8 @@ from .variants import (
 __all__ = [
     "BACKENDS", "BuildError", "DeviceRow", "KERNELS", "KernelSpec", "OpenCLUnavailable", "Plan", "Selection",
     "Verdict", "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend",
-    "describe", "device_info", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source", "kernel_spec",
+    "describe", "device_info", "Health", "health", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source",
+    "kernel_spec",
     "copy_seconds", "list_devices", "override_source", "register_kernel", "resolve_backend", "select",
     "sub_device_queue",
 ]
@@ -73,6 +79,10 @@ class DeviceRow:
     selected: bool
     driver: str = ""
     preferred_vec: int = 0
+    platform_version: str = ""
+    builds: bool = True  # whether a small kernel builds and runs there (:func:`health`)
+    reason: str = ""  # the compiler's or runtime's words where it does not
+    fix: str = ""  # what to do then
 
 
 def list_devices() -> list[DeviceRow]:
@@ -89,12 +99,14 @@ def list_devices() -> list[DeviceRow]:
     rows = []
     for i, p in enumerate(platforms):
         for j, d in enumerate(p.get_devices()):
+            h = health(d)
             rows.append(
                 DeviceRow(
                     f"{i}:{j}", p.name.strip(), d.name.strip(), device_kind(d), d.max_compute_units,
                     d.global_mem_size // 2**20, bool(d.double_fp_config),
                     selected is not None and d.int_ptr == selected.int_ptr,
-                    d.driver_version.strip(), int(d.preferred_vector_width_float),
+                    d.driver_version.strip(), int(d.preferred_vector_width_float), p.version.strip(),
+                    h.ok, h.reason, h.fix,
                 )
             )
     return rows

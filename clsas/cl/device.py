@@ -10,6 +10,8 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import sys
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -22,6 +24,11 @@ BACKENDS = ("auto", "opencl", "numpy")
 
 
 def _cl():
+    """pyopencl, imported after the pip-installed CPU runtimes are registered (:mod:`.runtimes`)."""
+    if "pyopencl" not in sys.modules:
+        from .runtimes import register
+
+        register()
     try:
         import pyopencl
     except ImportError as exc:  # pragma: no cover - pyopencl is a dependency
@@ -32,12 +39,16 @@ def _cl():
 
 
 def _score(device: Any) -> int:
-    """Preference when no device is named: GPUs, then PoCL's CPU, then other CPUs."""
+    """Preference when no device is named: GPUs, then Intel's CPU runtime, then PoCL's CPU, then
+    other CPUs; never the Oclgrind simulator. The chosen device must also build kernels
+    (:func:`health`)."""
     cl = _cl()
-    plat = device.platform.name
+    plat = device.platform.name.strip()
     if "Oclgrind" in plat:
         return -1  # a debugging simulator: only when asked for by name
     if device.type & cl.device_type.GPU:
+        return 4
+    if plat.startswith("Intel(R) OpenCL") and device.type & cl.device_type.CPU:
         return 3
     if "Portable Computing Language" in plat:
         return 2
@@ -73,19 +84,134 @@ def _default_device() -> Any:
     env = os.environ.get("PYOPENCL_CTX")
     if env:
         return _by_numbers(env, "PYOPENCL_CTX")
-    devices = [d for p in _platforms() for d in p.get_devices() if _score(d) >= 0]
+    devices = sorted((d for p in _platforms() for d in p.get_devices() if _score(d) >= 0), key=_score, reverse=True)
     if not devices:
-        raise OpenCLUnavailable("no OpenCL device found (install pyopencl[pocl])")
-    return max(devices, key=_score)
+        raise OpenCLUnavailable(f"no OpenCL device found; {FIX_CPU}")
+    refused = []
+    for d in devices:
+        if health(d).ok:
+            if refused:
+                log.info("OpenCL: %s chosen (%s build no kernel)", describe(d), ", ".join(map(describe, refused)))
+            return d
+        refused.append(d)
+    raise OpenCLUnavailable("no OpenCL device builds kernels: " + "; ".join(
+        f"{describe(d)}: {health(d).reason}. Fix: {health(d).fix}" for d in refused))
+
+
+@dataclass(frozen=True)
+class Health:
+    """Whether a device builds and runs kernels (a small kernel, built and launched once per process).
+
+    ``reason`` gives the compiler's (or runtime's) own words where it fails, ``fix`` what to do.
+    """
+
+    ok: bool
+    reason: str = ""
+    fix: str = ""
+
+
+CANARY = """__kernel void clsas_canary(__global float *x) {
+    size_t i = get_global_id(0);
+    x[i] = mad(2.0f, x[i], 1.0f);
+}"""
+
+_HEALTH: dict[int, Health] = {}
+_ANNOUNCED: set[int] = set()
+
+
+def health(device: Any) -> Health:
+    """Whether ``device`` compiles and runs a small kernel (asked once per device and process).
+
+    A device whose compiler cannot target the machine fails here, before any real kernel is
+    tried, with the compiler's words and the fix: the PoCL 3.0 on PyPI (LLVM 14) on CPUs newer
+    than its LLVM says ``unknown target CPU 'generic'``.
+    """
+    key = device.int_ptr
+    if key not in _HEALTH:
+        _HEALTH[key] = _try_canary(device)
+        if not _HEALTH[key].ok:
+            log.info("OpenCL: %s builds no kernel: %s", describe(device), _HEALTH[key].reason)
+    return _HEALTH[key]
+
+
+def _try_canary(device: Any) -> Health:
+    import numpy as np
+
+    cl = _cl()
+    try:
+        queue = _queue_for(device.int_ptr)
+        prog = cl.Program(queue.context, CANARY)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # pyopencl's CompilerWarning
+            try:
+                prog.build()
+            except cl.RuntimeError as exc:
+                try:
+                    text = prog.get_build_info(device, cl.program_build_info.LOG) or str(exc)
+                except cl.Error:
+                    text = str(exc)
+                return Health(False, f"the compiler failed: {compiler_words(text)}", fix_for(device, text))
+        x = np.arange(64, dtype=np.float32)
+        buf = cl.Buffer(queue.context, cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR, hostbuf=x)
+        prog.clsas_canary(queue, (64,), None, buf)
+        out = np.empty_like(x)
+        cl.enqueue_copy(queue, out, buf).wait()
+    except Exception as exc:  # noqa: BLE001 - any failure of the runtime is the verdict
+        text = f"{type(exc).__name__}: {exc}"
+        return Health(False, f"the runtime failed: {compiler_words(text)}", fix_for(device, text))
+    if not np.array_equal(out, 2 * x + 1):
+        return Health(False, "a kernel computing 2x+1 gave wrong numbers", fix_for(device, ""))
+    return Health(True)
+
+
+def compiler_words(log_text: str, lines: int = 2) -> str:
+    """The first lines of a build log that say what went wrong (lines naming an error first)."""
+    rows = [r.strip() for r in str(log_text).splitlines() if r.strip()]
+    errors = [r for r in rows if "error" in r.lower()]
+    picked = (errors or rows)[:lines]
+    return " | ".join(picked) if picked else "(no build log)"
+
+
+FIX_CPU = ("install Intel's CPU runtime for OpenCL (pip install intel-opencl-rt intel-cmplr-lib-rt; clsas "
+           "registers it itself) or a newer PoCL (Debian/Ubuntu: apt-get install pocl-opencl-icd)")
+
+
+def fix_for(device: Any, log_text: str) -> str:
+    """What to do about a device that builds no kernel."""
+    plat = device.platform
+    if "unknown target CPU" in log_text:
+        return f"the compiler of {plat.name.strip()} ({plat.version.strip()}) does not know this CPU; {FIX_CPU}"
+    if device.type & _cl().device_type.CPU:
+        return FIX_CPU
+    return f"update the OpenCL driver of {plat.name.strip()}, or use a CPU runtime: {FIX_CPU}"
+
+
+# queue int_ptr -> the context it was made in: the one owner of every context this layer makes.
+# Some runtimes' queues do not keep their context alive (Intel's CPU runtime: a queue whose
+# context object was collected answers INVALID_CONTEXT), so the context lives as long as its queue.
+_CONTEXTS: dict[int, Any] = {}
+
+
+def make_queue(device: Any, sub_device: bool = False) -> Any:
+    """A profiling-enabled queue on ``device`` in a new context that this module keeps alive.
+
+    ``sub_device``: name the device on the queue too (PoCL 3.0 lists a sub-device's parent as its
+    context's device, and a queue made without naming the device then runs on every core).
+    """
+    cl = _cl()
+    ctx = cl.Context([device])
+    props = cl.command_queue_properties.PROFILING_ENABLE
+    queue = cl.CommandQueue(ctx, device=device, properties=props) if sub_device else \
+        cl.CommandQueue(ctx, properties=props)
+    _CONTEXTS[queue.int_ptr] = ctx
+    return queue
 
 
 @functools.cache
 def _queue_for(device_ptr: int) -> Any:
-    cl = _cl()
     device = next(d for p in _platforms() for d in p.get_devices() if d.int_ptr == device_ptr)
-    ctx = cl.Context([device])
-    queue = cl.CommandQueue(ctx, properties=cl.command_queue_properties.PROFILING_ENABLE)
-    log.info("OpenCL device: %s", describe(device))
+    queue = make_queue(device)
+    log.debug("OpenCL queue on %s", describe(device))
     return queue
 
 
@@ -105,6 +231,9 @@ def get_queue(device: Any = None) -> Any:
         return device
     if device is None:
         device = _default_device()
+        if device.int_ptr not in _ANNOUNCED:
+            _ANNOUNCED.add(device.int_ptr)
+            log.info("OpenCL device: %s", describe(device))
     elif isinstance(device, str):
         device = _by_numbers(device, "device")
     elif not isinstance(device, cl.Device):

@@ -7,7 +7,7 @@ import functools
 import logging
 from typing import Any
 
-from .device import _cl, describe
+from .device import _cl, describe, make_queue
 
 log = logging.getLogger("clsas.cl")
 
@@ -24,11 +24,10 @@ def sub_device_queue(device_ptr: int, units: int) -> Any:
     except (pcl.Error, AttributeError) as exc:  # a driver without fission: the whole device
         log.info("%s: no sub-device of %d compute units (%s); using the whole device", describe(device), units, exc)
         return None
-    ctx = pcl.Context([sub])
     log.info("%s: a sub-device of %d of %d compute units", describe(device), units, device.max_compute_units)
     # the queue names the sub-device: PoCL 3.0 lists the parent as the context's device, and a queue
     # made without naming the device then runs kernels on every core (measured: per-thread CPU ticks)
-    return pcl.CommandQueue(ctx, device=sub, properties=pcl.command_queue_properties.PROFILING_ENABLE)
+    return make_queue(sub, sub_device=True)
 
 
 def copy_seconds(queue: Any, nbytes: int, repeats: int = 3) -> float | None:

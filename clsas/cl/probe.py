@@ -15,7 +15,7 @@ import json
 import sys
 
 from . import variants
-from .device import _cl
+from .device import _cl, make_queue
 from .program import BuildError, override_source
 
 TOLERANCE = 1e-3  # relative to the peak: catches wrong code, not float32 rounding
@@ -39,11 +39,10 @@ def _plan_class(module: str, qualname: str):
 
 
 def run(spec: dict) -> dict:
-    cl = _cl()
     variants._IN_PROBE = True
     vec = int(spec["vec"])
     device = _device(spec["platform"], spec["device"])
-    queue = cl.CommandQueue(cl.Context([device]), properties=cl.command_queue_properties.PROFILING_ENABLE)
+    queue = make_queue(device)
     with contextlib.ExitStack() as stack:
         for f, text in spec.get("sources", {}).items():
             stack.enter_context(override_source(f, text))

@@ -18,7 +18,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from .device import _cl, describe
+from .device import _cl, compiler_words, describe
 from .errors import BuildError
 
 __all__ = ["BuildError", "kernel_source", "sources_hash", "build", "kernel", "override_source"]
@@ -112,8 +112,9 @@ def _build(ctx: Any, files: tuple[str, ...], defines: tuple[tuple[str, Any], ...
         try:
             prog.build(options=_options(defines, device))
         except cl.RuntimeError as exc:
+            text = _log(prog, device) or str(exc)
             raise BuildError(
-                files, describe(device), f"{_variant(defines)}: the compiler failed", _log(prog, device) or str(exc)
+                files, describe(device), f"{_variant(defines)}: the compiler failed: {compiler_words(text)}", text
             ) from None
     build_log = _log(prog, device)
     if ABI_WARNING.search(build_log):

@@ -22,8 +22,16 @@ def cmd_devices(args) -> int:
         print(f"{mark} {r.index}  {r.platform} | {r.device} | {r.kind} | {r.compute_units} CUs | "
               f"{r.global_mem_mib} MiB | fp64 {'yes' if r.fp64 else 'no'} | driver {r.driver} | "
               f"preferred float width {r.preferred_vec}{sim}")
+        print(f"      {r.platform_version} | kernels: " + ("build and run" if r.builds else
+                                                             f"DO NOT BUILD: {r.reason}. Fix: {r.fix}"))
     if rows:
         print("(* = used by backend='auto'; choose with --device P:D or PYOPENCL_CTX=P:D)")
+    from clsas.cl.runtimes import registration
+
+    for line in registration().lines():
+        print(f"pip-installed runtime: {line}")
+    if rows and not any(r.builds for r in rows if not is_simulator(r.platform)):
+        print(f"no OpenCL device here builds kernels: clsas runs the NumPy twins. Fix: {cl.device.FIX_CPU}")
     from clsas.cl.icd import unregistered_drivers
 
     listed = " ".join(f"{r.platform} {r.device}" for r in rows if r.kind != "CPU").lower()
