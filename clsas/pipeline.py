@@ -292,5 +292,14 @@ def _form(prof: Profiles, grid: VoxelGrid, formation: str, options: dict, select
         provenance = {**image.provenance, "formation": formation}
         if options:
             provenance["formation_options"] = dict(options)
-        return replace(image, provenance=provenance)
-    return form(prof, grid, formation, backend=selection, progress=progress, force=force, **options)
+        return _with_runtime(replace(image, provenance=provenance), selection)
+    return _with_runtime(form(prof, grid, formation, backend=selection, progress=progress, force=force, **options),
+                         selection)
+
+
+def _with_runtime(image: Image, selection: cl.Selection) -> Image:
+    """The OpenCL runtime an image was formed on (platform, version, device, driver, kernel widths)
+    in its provenance, so that every figure made from it names its runtime."""
+    if image.backend != "opencl" or not selection.opencl:
+        return image
+    return replace(image, provenance={**image.provenance, "opencl": cl.runtime_record(selection.queue)})

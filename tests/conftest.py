@@ -16,7 +16,7 @@ def _opencl_reason() -> str | None:
     from clsas import cl
 
     if os.environ.get("CLSAS_BACKEND", "").strip() == "numpy":
-        return "CLSAS_BACKEND=numpy (the NumPy twins only)"
+        return "CLSAS_BACKEND=numpy"
     try:
         queue = cl.get_queue()
     except cl.OpenCLUnavailable as exc:

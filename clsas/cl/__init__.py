@@ -55,6 +55,7 @@ from .variants import (
     clear_cache,
     kernel_spec,
     register_kernel,
+    runtime_record,
 )
 
 __all__ = [
@@ -62,7 +63,7 @@ __all__ = [
     "Verdict", "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend",
     "describe", "device_info", "Health", "health", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source",
     "kernel_spec",
-    "copy_seconds", "list_devices", "override_source", "register_kernel", "resolve_backend", "select",
+    "copy_seconds", "list_devices", "override_source", "register_kernel", "resolve_backend", "runtime_record", "select",
     "sub_device_queue",
 ]
 

@@ -38,7 +38,7 @@ from .program import BuildError, is_simulator, kernel, kernel_source, sources_ha
 
 __all__ = [
     "KERNELS", "KernelSpec", "Verdict", "cache_dir", "candidate_widths", "check", "choose", "clear_cache",
-    "kernel_spec", "register_kernel",
+    "kernel_spec", "register_kernel", "runtime_record",
 ]
 
 log = logging.getLogger("clsas.cl.variants")
@@ -283,6 +283,20 @@ def check(queue: Any, name: str, vec: int) -> Verdict:
     return verdict
 
 
+# (device int_ptr, kernel) -> the width chosen for it in this process
+_CHOSEN: dict[tuple[int, str], int] = {}
+
+
+def runtime_record(queue: Any) -> dict:
+    """The OpenCL runtime a result came from, for provenance and benchmarks: platform and its
+    version, device, driver, and the vector width chosen for each kernel run on it so far."""
+    device = queue.device
+    ident = device_identity(device)
+    kernels = {k: w for (ptr, k), w in sorted(_CHOSEN.items(), key=lambda kv: kv[0][1]) if ptr == device.int_ptr}
+    return {"platform": ident["platform"], "platform_version": ident["platform_version"], "device": ident["device"],
+            "driver": ident["driver"], "kernels_vec": kernels}
+
+
 def choose(queue: Any, name: str, vec: int | None = None) -> int:
     """The width to build ``name`` with on this queue's device.
 
@@ -296,6 +310,7 @@ def choose(queue: Any, name: str, vec: int | None = None) -> int:
     for w in widths:
         verdict = check(queue, name, w)
         if verdict.ok:
+            _CHOSEN[(device.int_ptr, name)] = w
             if rejected:
                 log.info("kernel %s on %s: VEC=%d (wider rejected)", name, describe(device), w)
             return w
