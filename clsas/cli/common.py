@@ -91,7 +91,7 @@ def slow_job_notice(method: str):
 
 
 #: CBP-Taylor's time per recording, s, at a number of atoms (about one per sample of the gate
-#: plus a pulse each side): about 350 s at the README scene's 1470 (issue 29, a 2-core CPU). The
+#: plus a pulse each side): about 350 s at the README scene's 1470 (on a 2-core CPU). The
 #: time grows more slowly than the cube of the size (the atoms are short, so the problem is
 #: sparse); an exponent of 1.5 is assumed, and the first recording's measured time corrects it
 CONVEX_S_PER_RECORDING = {"cbp-taylor": (350.0, 1470), "cbp-polar-socp": (350.0, 1470)}
@@ -191,6 +191,7 @@ def formation_options(items: list[str] | None) -> dict:
 
 def reconstruct_image(ds, grid, args, progress=True):
     import clsas
+    from clsas.formation.cost import DEFAULT_MAX_ERROR_DB
 
     formation = getattr(args, "formation", "bp")
     options = formation_options(getattr(args, "formation_option", None)) or None
@@ -208,7 +209,8 @@ def reconstruct_image(ds, grid, args, progress=True):
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
                                  force=getattr(args, "force", False), formation=formation,
-                                 formation_options=options, max_error_db=getattr(args, "max_error_db", -30.0))
+                                 formation_options=options,
+                                 max_error_db=getattr(args, "max_error_db", DEFAULT_MAX_ERROR_DB))
 
 
 def add_device_options(sp) -> None:

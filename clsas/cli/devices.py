@@ -11,8 +11,9 @@ def cmd_devices(args) -> int:
         print(f"removed {n} kernel-variant verdict(s) from {cl.cache_dir()}")
     rows = cl.list_devices()
     if not rows:
-        print("no OpenCL platform found: install pyopencl[pocl] for the PoCL CPU device; "
-              "the NumPy backend works without one")
+        from clsas.cl.device import FIX_CPU
+
+        print(f"no OpenCL platform found: {FIX_CPU}; the NumPy backend works without one")
     from .common import is_simulator
 
     for r in rows:
@@ -21,9 +22,8 @@ def cmd_devices(args) -> int:
                else "")
         print(f"{mark} {r.index}  {r.platform} | {r.device} | {r.kind} | {r.compute_units} CUs | "
               f"{r.global_mem_mib} MiB | fp64 {'yes' if r.fp64 else 'no'} | driver {r.driver} | "
-              f"preferred float width {r.preferred_vec}{sim}")
-        print(f"      {r.platform_version} | kernels: " + ("build and run" if r.builds else
-                                                             f"DO NOT BUILD: {r.reason}. Fix: {r.fix}"))
+              f"preferred float width {r.preferred_vec} | {r.platform_version} | kernels: "
+              + ("build and run" if r.builds else f"DO NOT BUILD: {r.reason}. Fix: {r.fix}") + sim)
     if rows:
         print("(* = used by backend='auto'; choose with --device P:D or PYOPENCL_CTX=P:D)")
     from clsas.cl.runtimes import registration

@@ -108,6 +108,7 @@ def _partial_scan(path) -> str:
 
 def add_parser(sub) -> None:
     from clsas.formation import FORMATIONS
+    from clsas.formation.cost import DEFAULT_MAX_ERROR_DB
     from clsas.pipeline import methods
 
     r = sub.add_parser("reconstruct", help="image a dataset file")
@@ -142,8 +143,9 @@ def add_parser(sub) -> None:
                    help="how the profiles become an image: auto (default: the fastest whose predicted error meets "
                    "--max-error-db, said in the log and kept in the image file), bp (exact backprojection), omega-k "
                    "(planar uniform apertures, much faster), ... (see docs/guide/fast-formation.md)")
-    r.add_argument("--max-error-db", type=float, default=-30.0, metavar="DB",
-                   help="with --formation auto: the largest error against exact backprojection allowed (default -30)")
+    r.add_argument("--max-error-db", type=float, default=DEFAULT_MAX_ERROR_DB, metavar="DB",
+                   help="with --formation auto: the largest error against exact backprojection allowed (default "
+                   f"{DEFAULT_MAX_ERROR_DB:g})")
     r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
                    help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     add_preprocess_options(r)
