@@ -39,7 +39,7 @@ extensions = [
 
 source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 root_doc = "index"
-exclude_patterns = ["_build", "guide_src", "README.template.md", "migrate_readme.py", "**/GALLERY_HEADER.rst",
+exclude_patterns = ["_build", "**/GALLERY_HEADER.rst",
                     "api/examples", "auto_examples/*.ipynb", "auto_examples/*.py", "auto_examples/*.zip"]
 templates_path = ["_templates"]
 suppress_warnings = ["myst.header"]
