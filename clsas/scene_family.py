@@ -31,10 +31,10 @@ __all__ = ["FamilyScene", "family_scene", "TUNING_SEEDS", "HELD_OUT_SEEDS", "TUN
 
 TUNING_SEEDS = tuple(range(0, 12))
 HELD_OUT_SEEDS = tuple(range(1000, 1030))
-#: A second tuning set (the eleventh session looked at it while changing "track"'s check).
+#: A second tuning set (``"track"``'s check was tuned on it too).
 TUNING_2_SEEDS = tuple(range(2000, 2030))
-#: A second held-out set, for reports on what changed after :data:`HELD_OUT_SEEDS` had been
-#: reported several times; never for tuning.
+#: A second held-out set, for reports once :data:`HELD_OUT_SEEDS` has been reported several
+#: times; never for tuning.
 HELD_OUT_2_SEEDS = tuple(range(3000, 3030))
 SEED_SETS = {"tuning": TUNING_SEEDS, "tuning-2": TUNING_2_SEEDS, "held-out": HELD_OUT_SEEDS,
              "held-out-2": HELD_OUT_2_SEEDS}

@@ -269,7 +269,7 @@ def _errors(aperture: Aperture, seed, position_error, temperature_error_c, group
             "moved": moved, "any": moved or dt != 0 or gd != 0 or tj > 0}
 
 
-EXTRAS = """simulate's keywords of issue 33.
+EXTRAS = """simulate's keywords for directional transducers, specular surfaces and other media.
 
 beams : clsas.beam.Beams, optional
     Directional transducers: every echo (reflectors, mirror images, facets, wall echoes, the

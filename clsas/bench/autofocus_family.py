@@ -9,15 +9,14 @@ and scored against the same scan without errors:
 - the line-of-sight error before and after (:func:`clsas.focus.score`: constant and tilt, which
   no focus metric sees, removed);
 - the group delay and temperature errors where the report says they were determined;
-- the time of :func:`clsas.autofocus` (with :data:`BENCH_METHODS`; until issue 26's second
-  session :data:`clsas.focus.FOCUS_METHODS`: direct, phase, temperature).
+- the time of :func:`clsas.autofocus` (with :data:`BENCH_METHODS`).
 
 - *the ceiling of a per-stop correction* (``peak_oracle_db``): the scan corrected by the truth
   as a per-stop delay (each stop's two-way path error towards the grid's centre, with the
   true clock and speed of sound; positions as stated), what :func:`clsas.autofocus`'s motion
-  model (one line-of-sight path per stop) could reach with a perfect estimate (issue 26, third
-  session: within 0.2 dB of error-free on all 12 tuning scenes at 3 mm: the model suffices and
-  the estimate is what is missing).
+  model (one line-of-sight path per stop) could reach with a perfect estimate (within 0.2 dB of
+  error-free on all 12 tuning scenes at 3 mm: the model suffices and the estimate is what is
+  missing).
 
 :func:`summarise` gives the distribution: share within 1 dB of the error-free local peak, share
 worse than no autofocus (by any amount and by more than 0.5 dB), median and worst peak loss,
@@ -39,9 +38,8 @@ log = logging.getLogger(__name__)
 
 #: The methods the family is scored with: the direct sound's delay, then the phases the strong
 #: points share (``"points"``, where the scene has isolated points), else the neighbouring stops'
-#: phases (``"track"``). Issue 26's first held-out run used ``FOCUS_METHODS`` (direct, phase,
-#: temperature); the temperature step was determined in 2 of 30 scenes and 2-3 C wrong there.
-#: ``"points"`` joined in the fifth session.
+#: phases (``"track"``). Not ``FOCUS_METHODS`` (direct, phase, temperature): on 30 held-out scenes
+#: its temperature step was determined in 2 and 2-3 C wrong there.
 BENCH_METHODS = ("direct", "points", "track")
 
 

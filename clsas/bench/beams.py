@@ -1,4 +1,4 @@
-"""Directional transducers (issue 33): a simulated MHz scan in water of a flat surface and pins
+"""Directional transducers: a simulated MHz scan in water of a flat surface and pins
 under a coarse planar raster, imaged by every formation with and without the beam model, a
 dense line scan (omega-k's 2-D Stolt step against bp), and FFBP on a 1e6-voxel grid.
 
@@ -10,7 +10,7 @@ Measured per image, inside the beam's footprint (the columns over the stops' ext
 - ``surface_share``: columns whose brightest voxel lies within one voxel of the true surface;
 - ``error_vs_*_db``: complex error-to-signal against bp with the beam model (``beam="limited"``)
   and against omega-k with it, :func:`clsas.formation.error_to_signal_db`, no rescaling;
-- ``abs_corr_vs_omega_k``: the ``|.|``-correlation with omega-k's image (the issue's measure).
+- ``abs_corr_vs_omega_k``: the ``|.|``-correlation with omega-k's image (the measure this case is judged by).
 """
 
 from __future__ import annotations
@@ -184,7 +184,7 @@ def _db(x) -> str:
 
 def markdown(res: dict) -> list[str]:
     p = res["planar"]
-    lines = ["# Directional transducers (issue 33)", "", f"Device: {res['device']}; load (1, 5, 15 min) "
+    lines = ["# Directional transducers", "", f"Device: {res['device']}; load (1, 5, 15 min) "
              f"before {res['load_before']}, after {res['load_after']}.", "", f"## {p['what']}", "",
              "| formation | beam | time | surface within one voxel | vs bp limited | vs omega-k limited | "
              "abs-corr vs omega-k | vs bp, same beam |", "|---|---|---|---|---|---|---|---|"]

@@ -1,6 +1,6 @@
 """Does each family scene's data determine its motion, and how much of it does autofocus remove?
 
-For each scene of :mod:`clsas.scene_family` (issue 26, thirteenth session), :func:`clsas.focus.data_consistency`
+For each scene of :mod:`clsas.scene_family`, :func:`clsas.focus.data_consistency`
 fits a target in the scene's grid to
 
 - the scan as recorded (stated positions, clock and air),

@@ -1,4 +1,4 @@
-"""Fast image formation against exact backprojection: error against run time (issue 13).
+"""Fast image formation against exact backprojection: error against run time.
 
 For every formation in :data:`clsas.formation.FORMATIONS` (with its defaults) and every case:
 
@@ -45,8 +45,8 @@ __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", 
 log = logging.getLogger(__name__)
 
 CASES = ("demo", "dense", "circular")
-# the crossover table (clsas.bench.crossover) and the directional-transducer case (issue 33,
-# run_beams_case) run as cases of their own
+# the crossover table (clsas.bench.crossover) and the directional-transducer case
+# (run_beams_case) run as cases of their own
 ALL_CASES = (*CASES, "beams", "crossover")
 # what ``clsas bench`` runs: the quick set shrinks the dense scan to 32 x 32 stops and leaves out
 # the beams case (FFBP at MHz alone takes most of a minute)
@@ -161,7 +161,7 @@ def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dic
 
 
 def run_beams_case(n: int | None = None, status=None) -> dict:
-    """The directional-transducer case (issue 33) in the formation table's form: water, 1-4 MHz, a
+    """The directional-transducer case in the formation table's form: water, 1-4 MHz, a
     flat surface and two pins under ``n`` x ``n`` stops 2.5 wavelengths apart, 6 mm pistons
     (:func:`clsas.bench.beams.make_case`). Rows: bp with the beam model (its default with beams,
     "limited": the reference of the error columns), bp without it and weighted, ω-k limited and
@@ -268,7 +268,7 @@ def _db(x) -> str:
 
 def markdown(res: dict) -> list[str]:
     """The formation section of the benchmark report."""
-    md = ["## Image formation against exact backprojection (issue 13)", "",
+    md = ["## Image formation against exact backprojection", "",
           "Error: complex error-to-signal ratio against `bp` on the same grid, inside the aperture's "
           "well-sampled cone (voxels every stop sees within 0.8 of the angle its lattice samples unaliased at "
           f"{F_TOP / 1e3:.0f} kHz) and over the whole grid. Times exclude pulse compression (given per case). "

@@ -1,4 +1,4 @@
-"""The K-echo task (issue 17's benchmark table): K echoes of the paper's chirp, ``spacing_b / B``
+"""The K-echo benchmark task: K echoes of the paper's chirp, ``spacing_b / B``
 apart, every other one weaker by an amplitude ratio, complex amplitudes of random phase, in
 white noise. Each method's success is set against three references on the same profiles:
 

@@ -1,4 +1,4 @@
-"""``clsas bench --superres-image``: model-based reconstruction against backprojection (issue 28).
+"""``clsas bench --superres-image``: model-based reconstruction against backprojection.
 
 Error against run time for ``bp``, per-profile ``cbp-polar``, ``psf`` (Wiener deconvolution), ``ls``,
 ``l1``, ``l1-psf`` (L1 on the PSF model of the Gram), ``tv``, ``l1-tv`` and ``offgrid``, in one run:
@@ -258,7 +258,7 @@ def picture(path: Path, scan: str, pics: dict) -> None:
 
 
 def markdown(out: dict) -> str:
-    lines = [f"# Model-based reconstruction (issue 28), {out['date']}", "",
+    lines = [f"# Model-based reconstruction, {out['date']}", "",
              f"Device: {out['device']}; load before {out['load_before']}, after {out['load_after']}.", ""]
     if out["pairs"]:
         lines += ["## Simulated pairs (20 dB)", "", "| set-up | separation (x res) | method | resolved | RMS error "

@@ -133,7 +133,7 @@ def _fmcw(task, b):
 
 def _ml2(task, b):
     """Two-echo maximum likelihood, the number of echoes known: exhaustive pair search over
-    the gate, then nlopt refinement (the reference the issue quotes)."""
+    the gate, then nlopt refinement (the task's reference)."""
     from ..sparse.varpro import VarPro, best_pair, mainlobe_s
 
     y, d = _envelope(task, b)
@@ -269,7 +269,7 @@ def grid_sweep(methods=GRID_METHODS, deltas=GRID_DELTAS, lam_fracs=GRID_LAM_FRAC
 
 def measured_like(n_recordings: int = 4, *, seed: int = 0, snr_db: float = 20.0, n_samples: int = 1000,
                   fs_hz: float = 100e3, colour: bool = True):
-    """Recordings like the measured ones of issue 12, and the gate to search, for timing the
+    """Recordings like measured ones, and the gate to search, for timing the
     sparse methods on the imaging path (:func:`clsas.sparse.profiles.superres_profiles`).
 
     LFM 30 -> 10 kHz, 1 ms, Tukey 0.2, at ``fs_hz``; in each recording an extended reflector

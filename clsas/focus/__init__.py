@@ -17,7 +17,7 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    (:func:`.steps._held_out_phases`): each interleaved half's phases, predicted onto the other,
    must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
    time, left and right) must not agree less (:mod:`.motion_steps`, ``check_margin``);
-4. ``"points"`` (issue 26, fifth session): the stops' phases that the image's strong points
+4. ``"points"``: the stops' phases that the image's strong points
    share, the left singular vector of their per-stop contributions (rank one, no point taken as
    the reference), unwrapped in time and fitted in the hand's band, the points picked again
    after each pass (:mod:`.points`). *Determined* where the points are still coherent after it
@@ -25,9 +25,9 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    sub-apertures' images agree better by :data:`.motion_steps.POINTS_GAIN`; else the other
    motion steps named run (``"track"`` in the bench). Where ``"track"`` is named it runs after
    ``"points"`` passes too, and its correction replaces the points' where it passes its own
-   decision and the sub-apertures agree better after it (eleventh session: on a surface the
-   strong points are speckle peaks);
-5. ``"track"`` (issue 26, second session): one line-of-sight path per stop from the phase
+   decision and the sub-apertures agree better after it (on a surface the strong points are
+   speckle peaks);
+5. ``"track"``: one line-of-sight path per stop from the phase
    differences of neighbouring stops' images (in time and on the next row), integrated over
    the graph of neighbours (no per-stop phase is unwrapped on its own), refined in a smooth
    basis of stop time (the hand's 0.2-5 Hz band) plus the tilt, constant and tilt then set to
@@ -43,8 +43,8 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    applied), within the thermometer's ± ``temperature_range_c``; applied only where their
    uncertainty is within ``temperature_tolerance_c`` and neither is at the search's edge.
 
-:data:`FOCUS_METHODS` (direct, phase, temperature) was the default until the held-out run of
-issue 26 showed the focus steps making a third of the scenes worse (see docs/guide/autofocus.md). The whole
+:data:`FOCUS_METHODS` (direct, phase, temperature) is not the default: on held-out scenes the focus steps
+made a third of the scenes worse (see docs/guide/autofocus.md). The whole
 correction must not make the sub-apertures agree less than the direct sound's delay alone does;
 else, or where nothing was determined, the input comes back (``report.improved`` False, a note
 says why).
@@ -72,9 +72,8 @@ __all__ = ["AutofocusReport", "Consistency", "DEFAULT_METHODS", "FOCUS_METHODS",
 log = logging.getLogger(__name__)
 
 METHODS = ("direct", "temperature", "delay", "phase", "points", "track", "los", "3d", "pga")
-# ("direct", "phase", "temperature") until the held-out run of issue 26 (commit 2f50580) showed
-# "phase" and "temperature" making a third of the held-out scenes worse: now only what the
-# physics determines by default; the focus steps run when named
+# only what the physics determines by default: on held-out scenes "phase" and "temperature" made
+# a third of the scenes worse; the focus steps run when named
 DEFAULT_METHODS = ("direct",)
 FOCUS_METHODS = ("direct", "phase", "temperature")
 
@@ -201,7 +200,7 @@ def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, tempe
 
 def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
                            phase_region_m, track_tolerance_m=2.5e-3, consistency_iter=0) -> dict:
-    """The options of issue 26 (what counts as determined, and the check) checked."""
+    """The autofocus options of what counts as determined, and of the check, checked."""
     margin = v.non_negative("check_margin", check_margin)
     if margin >= 1:
         raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")

@@ -8,7 +8,7 @@ at the scan's noise level, fitted with as many iterations). What is left beyond 
 *excess*, measures errors in the geometry (motion, timing, air) and in the model, without any
 focus metric: a sharper image does not lower it unless the data agree with it.
 
-It answers two questions that a focus metric cannot (issue 26, thirteenth session):
+It answers two questions that a focus metric cannot:
 
 - *Does the scan determine its motion?* Where the stated geometry already explains the data
   to the noise (excess near the model's own), no motion can be found from the data: a target in

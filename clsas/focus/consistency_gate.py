@@ -8,15 +8,15 @@ explained. It needs no truth and trusts no image. (The bench's ratio,
 :func:`clsas.bench.consistency_family.excess_ratio`, divides by the scan as recorded instead;
 the two differ only on scans with direct sound.)
 
-On the scene family's tuning-2 seeds (2000-2029, 3 mm hand motion, 30 iterations; issue 26,
-thirteenth session, ``bench/results/2026-11-28-consistency-tuning-2.md``) every correction with
-a ratio at most 0.19 left the local peak within 1 dB of the error-free image's (16 of 16), and
-every one at 0.26 or more did not (14 of 14; those at 0.95-1.0 were the direct sound's delay
-alone, the motion not determined). The thresholds below were set there, before the held-out run
-(held-out-2, 3000-3029: 11 of 11 at most 0.16 within 1 dB, 17 of 18 at 0.26 or more not). The
-withdrawal rule was first "over 0.9"; a walkthrough of the autofocus guide showed it discarding
-a right correction the data could not see, so it is now "over 1.1" (the data contradict it);
-no applied motion on either family set had a ratio over 0.36.
+On the scene family's tuning-2 seeds (2000-2029, 3 mm hand motion, 30 iterations;
+``bench/results/2026-11-28-consistency-tuning-2.md``) every correction with a ratio at most 0.19
+left the local peak within 1 dB of the error-free image's (16 of 16), and every one at 0.26 or
+more did not (14 of 14; those at 0.95-1.0 were the direct sound's delay alone, the motion not
+determined). The thresholds below were set on those seeds; on the held-out seeds (held-out-2,
+3000-3029) 11 of 11 at most 0.16 were within 1 dB, and 17 of 18 at 0.26 or more were not. A
+correction is withdrawn only "over 1.1" (the data contradict it), not over 0.9, which discards
+right corrections the data cannot see; no applied motion on either family set had a ratio over
+0.36.
 """
 
 from __future__ import annotations
@@ -34,8 +34,8 @@ COMPLETE_RATIO = 0.2
 #: Over this the data contradict the correction (it leaves them less consistent than without it):
 #: it is withdrawn. Between :data:`CONFIRM_RATIO` and this the data do not see it (a target in the
 #: grid explains them either way, as a few points in a large grid can): kept as the other checks
-#: decided, with a note. (A newcomer's walkthrough of the autofocus guide found the first rule,
-#: withdrawing over 0.9, discarding a correct "points" correction on such a scene.)
+#: decided, with a note. (Withdrawing over 0.9 discards a correct "points" correction on such a
+#: scene.)
 REVERT_RATIO = 1.1
 #: Up to this the data confirm at least part of the correction.
 CONFIRM_RATIO = 0.9

@@ -103,14 +103,13 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
 
 #: ``"points"`` is applied only where the disjoint sub-apertures' images agree better after it by
 #: at least this (the mean over the pairs of the magnitude correlation's rise; tuning seeds 0-23 of
-#: the scene family, issue 26, fifth session: the point scenes rose by 0.30-0.66, the one scene it
-#: made worse by 0.08).
+#: the scene family: the point scenes rose by 0.30-0.66, the one scene it made worse by 0.08).
 POINTS_GAIN = 0.1
 
 #: Below this :func:`.track.nearest_coherence` the closest stops' images differ by more than
 #: the motion does (the stops are too far apart for the target's speckle) and the report says
-#: so. On the family's tuning seeds (issue 26, eleventh session) "track" reached 1 dB only at
-#: 0.92 and failed at 0.21-0.69; a note, it changes no estimate.
+#: so. On the family's tuning seeds "track" reached 1 dB only at 0.92 and failed at 0.21-0.69;
+#: a note, it changes no estimate.
 SAMPLING_COHERENCE = 0.8
 
 
@@ -167,8 +166,8 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
     own decision (:func:`_track_decision`) and the disjoint sub-apertures agree better after it
     than after the points' (the mean over the pairs). On a surface that the strong points only
     sample (speckle peaks that pass for points) the neighbours' phases hold more of the motion:
-    on the family's tuning sets (issue 26, eleventh session) this took 3 scenes from -2.7, -2.6
-    and -1.2 dB to within 0.2 dB and changed none for the worse."""
+    on the family's tuning sets this took 3 scenes from -2.7, -2.6 and -1.2 dB to within 0.2 dB
+    and changed none for the worse."""
     from .track_step import track_step
 
     rep, engine = fo.rep, fo.engine

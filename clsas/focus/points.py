@@ -15,10 +15,10 @@ the other points average).
 
 Where the scene has no isolated points (an extended surface, speckle) the matrix is not rank
 one: a speckle blob's phase changes with the look angle. Measured on the tuning seeds of the
-scene family (issue 26, fifth session), the per-point coherence ``|sum_s a_sk|^2 / (n sum_s
-|a_sk|^2)`` of the points after the correction has a median of 0.18-0.67 on point scenes and
-0.03-0.13 on surfaces and sphere caps (with one plane at 0.34); the estimate is *determined*
-only at :data:`MIN_COHERENCE` or more, and with at least :data:`MIN_POINTS` points.
+scene family, the per-point coherence ``|sum_s a_sk|^2 / (n sum_s |a_sk|^2)`` of the points
+after the correction has a median of 0.18-0.67 on point scenes and 0.03-0.13 on surfaces and
+sphere caps (with one plane at 0.34); the estimate is *determined* only at :data:`MIN_COHERENCE`
+or more, and with at least :data:`MIN_POINTS` points.
 
 With the scatterers' true positions the estimate reaches 0.13-0.15 mm RMS (one way) on the
 tuning point scenes at 3 mm of hand motion; with the picked positions it converges to

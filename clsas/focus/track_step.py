@@ -31,9 +31,8 @@ log = logging.getLogger("clsas.autofocus")
 #: The two sides of the target (:func:`.track.region_agreement`) must give one path to within
 #: this, m RMS one way, for the motion to be determined when the even and the odd stops do not
 #: (halving the stops doubles their pitch, and on a surface that alone can decorrelate the
-#: neighbours). Tuning sets 0-11 and 2000-2029 of the family (issue 26, eleventh session): the
-#: sides agreed to 0.26-0.37 mm where the path was within 0.5 rad of the truth, 0.70-7.1 mm
-#: where it was 0.86-2.2 rad off.
+#: neighbours). Tuning sets 0-11 and 2000-2029 of the family: the sides agreed to 0.26-0.37 mm
+#: where the path was within 0.5 rad of the truth, 0.70-7.1 mm where it was 0.86-2.2 rad off.
 REGION_TOLERANCE_M = 0.5e-3
 
 #: Most voxels the stop images keep (the brightest of the uncorrected image): time and memory.

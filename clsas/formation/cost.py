@@ -18,8 +18,8 @@ Time. Each formation's time is a sum of counted work times seconds per unit:
   per leaf), the merges (samples x factor x taps³ per level) and the last step (voxels x factor
   x taps³), sizes from :func:`clsas.formation.ffbp.plan_tree`.
 
-The built-in seconds per unit (:data:`BUILTIN`) were fitted on a 2-core AMD EPYC VM (PoCL CPU
-device, 2026-11-25, refitted on the quiet host 2026-11-27) and are scaled to other devices by
+The built-in seconds per unit (:data:`BUILTIN`) were fitted on a quiet 2-core AMD EPYC VM (PoCL
+CPU device; see docs/guide/fast-formation.md) and are scaled to other devices by
 their compute units (kernels; a GPU's four times a CPU's); ω-k's host work by the host's cores
 over 2 to the power :data:`OMEGA_K_CORE_EXPONENT` (0.2: its FFTs gain little from many cores at
 these sizes). ``clsas bench`` measures the formations
@@ -100,17 +100,16 @@ OMEGA_K_UP_MAX_SINE = 0.75
 FFBP_BASE_DB = {1.5: -39.0, 2.0: -49.0, 2.5: -56.0, 3.0: -62.0}  # at order 3, lsq weights, depth 0
 FFBP_CANDIDATES = (1.5, 2.0, 2.5, 3.0)
 # the tree's planning (host, Python) takes about this per measurement (0.07 s for 4096 stops, 0.3 s
-# for 16384, since its sampling rates are worked out per node where they can be; 0.18 s and 0.8 s
-# before, 2026-11-28; 27-46 ms, 1.7-2.8e-5 s each, for 1155-1634 measurements on the formation family's
-# fit seeds; the bound takes less); with part of the last step's time it bounds FFBP's time from
-# below before a tree is planned (FFBP_FLOOR_GRID)
+# for 16384, its sampling rates worked out per node where they can be; 27-46 ms, 1.7-2.8e-5 s each, for
+# 1155-1634 measurements on the formation family's fit seeds; the bound takes less); with part of the
+# last step's time it bounds FFBP's time from below before a tree is planned (FFBP_FLOOR_GRID)
 FFBP_PLAN_S_PER_MEAS = 1.2e-5
 PLAN_IF_UNDER = 0.7
 # FFBP's lower bound: this fixed part, s, this share of its last step's modelled time, and its planning
-# (FFBP_PLAN_S_PER_MEAS). It had counted 1.5 times the model's whole last step, its 5 ms fixed part
-# included, and planning at 1.7e-5 s a measurement: more than FFBP's whole time on 21 of the 63 planar
-# and off-lattice fit requests of the formation family (seeds 500-599, up to 1.66x), so auto took bp
-# where FFBP was up to 2.2x faster. These constants are under FFBP's time on all 63 (at most 0.98x)
+# (FFBP_PLAN_S_PER_MEAS). Counting 1.5 times the model's whole last step, its 5 ms fixed part included,
+# and planning at 1.7e-5 s a measurement gives more than FFBP's whole time on 21 of the 63 planar and
+# off-lattice fit requests of the formation family (seeds 500-599, up to 1.66x), and auto would take bp
+# where FFBP is up to 2.2x faster. These constants are under FFBP's time on all 63 (at most 0.98x)
 FFBP_FLOOR_FIXED_S = 1e-3
 FFBP_FLOOR_GRID = 0.75
 # sizing ω-k (its lattice, band and aliased share, host side) takes about this fixed part and this per

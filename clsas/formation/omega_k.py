@@ -60,7 +60,7 @@ wavenumber domain. The steps, and what each costs in accuracy:
    grid's ``x`` and ``y`` by a chirp-z (Bluestein) transform. Nothing is interpolated in the
    finished image.
 
-Transducer beams (issue 33): options ``beam`` (``"none"``, ``"limited"``, ``"weighted"``; default
+Transducer beams: options ``beam`` (``"none"``, ``"limited"``, ``"weighted"``; default
 ``"limited"`` where the profiles carry directional beams, else ``"none"``) and ``beam_floor_db``
 (-12) weight each plane wave by the two-way pattern at its angle ``asin(|k_xy| / k)`` from the
 normal (:func:`clsas.beam.angular_weights`, the same tables as bp's), which needs every boresight
@@ -325,7 +325,7 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
     tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
     ap = _aperture(profiles, grid, o, tol)
-    if isinstance(ap, Image):  # a 2-D line scan (issue 33), imaged by the 2-D Stolt step
+    if isinstance(ap, Image):  # a 2-D line scan, imaged by the 2-D Stolt step
         return ap
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
@@ -519,7 +519,7 @@ def _form_group(g, spec, k, pu, pv, depth, o, workers, stolt_step, k_top, progre
         cc = cols[c0: c0 + step]
         iu_, iv_ = cc[:, 0], cc[:, 1]
         block = dspec[iu_ % mu, iv_ % mv] * (wu[iu_] * wv[iv_]).astype(np.float32)[:, None]
-        block *= _plane_wave_beam(o["angular"], ku_all[iu_], kv_all[iv_], k)  # issue 33: 1 without beams
+        block *= _plane_wave_beam(o["angular"], ku_all[iu_], kv_all[iv_], k)  # the beam weights: 1 without beams
         t = time.perf_counter()
         T[iu_, iv_] = _stolt_columns(stolt_step, block, k, ku_all[iu_], kv_all[iv_], params, factors, workers)
         t_stolt += time.perf_counter() - t

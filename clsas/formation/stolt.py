@@ -51,7 +51,7 @@ __all__ = ["StoltParams", "spread", "direct", "deapodization", "columns_to_depth
 # cells): direct 2.0 n_f n_z (1 + 0.2 (t - 1)) + 49 n_f, spread 18.2 n_f t W + 121 n_z t (the
 # spread kernel, the cells' inverse FFT and the sum of terms); a non-negative least-squares fit
 # to both timed on 72 column sets (2048 and 8192 columns, n_f 20-300, n_z 20-256, 1-3 terms)
-# on the 2-core AMD EPYC VM with PoCL, 2026-11-28: "auto" then loses at most 1.37x (near ties)
+# on the 2-core AMD EPYC VM with PoCL: "auto" then loses at most 1.37x (near ties)
 DIRECT_COST = (2.0, 49.0)
 SPREAD_COST = (18.2, 121.0)
 

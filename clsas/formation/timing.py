@@ -22,27 +22,23 @@ from ..profiles import Profiles
 __all__ = ["BUILTIN", "FORMAT", "GPU_FIXED", "calibration_path", "load_calibration", "store_calibration",
            "work_bp", "work_ffbp", "work_omega_k"]
 
-# 2: the 2026-11-27 refit; 3: omega-k's work counts its bistatic terms; 4: the 2026-11-28 refit of
-# bp and FFBP; 5: omega-k's direct sum at the depths; 6: bp's fixed part split into a per-measurement
-# term (a factor stored by an older format no longer applies)
+# 2: a refit of the built-in model; 3: omega-k's work counts its bistatic terms; 4: a refit of bp and
+# FFBP; 5: omega-k's direct sum at the depths; 6: bp's fixed part split into a per-measurement term
+# (a factor stored by an older format no longer applies)
 FORMAT = 6
 
-# seconds per unit of counted work on the reference device (2 compute units, 2 host cores)
-# (refitted 2026-11-27 on the quiet 2-core AMD EPYC VM, load under 2, after omega-k's faster Stolt
-# kernel: the 2026-11-25 fit had been taken at load 12-14 and over-predicted ω-k 5x, bp 2.5x;
-# omega-k's Stolt and depth terms divided by the 3 bistatic terms (and the Stolt term by the 6-cell
-# kernel) of the cases they were fitted on when its work began to count them; then omega-k's fixed
-# part (1.5 ms, was 5 ms) and its variable part (x 1.15) refitted on the crossover scans of
-# bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128 stops a side; bp's pairs term
-# x 0.81 (2e-9 before) on 2026-11-28 after the split-carrier kernel, its measured over predicted on
-# the crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier.json; FFBP's
-# variable terms x 0.55 (its median measured over predicted on the crossover scans of
-# bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json, after its faster leaves and planning);
-# bp refitted again on 2026-11-28 (eighth session) by non-negative least squares in relative error on 69
-# requests of the formation family's fit seeds 500-579 (clsas.bench.formation_family, up to 3e8 pairs):
-# its 5 ms fixed part over-predicted bp up to 5x on scans it forms in 1-3 ms (auto then took ω-k
-# there, twice bp's time); now 0.63 ms, 5.6 us per measurement (its records and profiles, host side)
-# and 1.83e-9 per pair (measured / predicted 0.66-1.78 on those requests, was 0.21-1.78)
+# seconds per unit of counted work on the reference device (2 compute units, 2 host cores), fitted
+# on the quiet 2-core AMD EPYC VM with PoCL, load under 2 (a fit at load 12-14 over-predicted ω-k 5x,
+# bp 2.5x; see docs/guide/fast-formation.md). omega-k's Stolt and depth terms are per bistatic term
+# (the Stolt term also per cell of its 6-cell kernel); its fixed part (1.5 ms) and variable part
+# fitted on the crossover scans of bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128
+# stops a side. FFBP's variable terms scaled by its median measured over predicted (0.55) on the
+# crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json. bp fitted by
+# non-negative least squares in relative error on 69 requests of the formation family's fit seeds
+# 500-579 (clsas.bench.formation_family, up to 3e8 pairs): 0.63 ms fixed, 5.6 us per measurement
+# (its records and profiles, host side) and 1.83e-9 per pair, measured / predicted 0.66-1.78 on those
+# requests (a 5 ms fixed part over-predicted bp up to 5x on scans it forms in 1-3 ms, and auto took
+# ω-k there at twice bp's time)
 BUILTIN: dict[str, dict[str, float]] = {
     "bp": {"fixed": 6.3e-4, "meas": 5.6e-6, "pairs": 1.83e-9},
     "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9,
@@ -50,13 +46,13 @@ BUILTIN: dict[str, dict[str, float]] = {
     "ffbp": {"fixed": 5e-3, "leaf": 1.1e-9, "merge": 1.4e-9, "grid": 1.4e-9},
 }
 # bp's fixed part on a GPU: 1.5 ms (1.45-1.9 ms for the whole of bp's smallest cases on an H200
-# through NVIDIA's OpenCL, bench/results/2026-11-28-formation-gpu-h200.md), not the 5 ms PoCL's model
-# had then: with that, auto sized ω-k for scans bp forms in 2-5 ms, and the sizing alone doubled auto's time
+# through NVIDIA's OpenCL, bench/results/2026-11-28-formation-gpu-h200.md); with a 5 ms fixed part
+# auto sized ω-k for scans bp forms in 2-5 ms, and the sizing alone doubled auto's time
 GPU_FIXED = {"bp": 1.5e-3}
 HOST_TERMS = ("fixed", "meas", "plan")  # work the host does, whatever the device
 REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
 # ω-k's host work speeds up as (cores / REF_UNITS) ** this: 1.25-1.8x on a 16-core host against the
-# 2-core reference (8 ** 0.1-0.28), measured with a GPU doing bp on 2026-11-28
+# 2-core reference (8 ** 0.1-0.28), measured with a GPU doing bp (bench/results/2026-11-28-formation-gpu-h200.md)
 OMEGA_K_CORE_EXPONENT = 0.2
 NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses
 

@@ -1,4 +1,4 @@
-"""Model-based image reconstruction (issue 28): the forward projector (the adjoint of backprojection),
+"""Model-based image reconstruction: the forward projector (the adjoint of backprojection),
 solvers with sparsity and total-variation priors, PSF deconvolution, and off-grid reflectors.
 
 - :mod:`.project_numpy`, :mod:`.project_opencl`: the forward projector's twin and OpenCL plan

@@ -17,8 +17,8 @@ pure noise leaves ``|A^H b| < lam`` everywhere, so the L1 solution is 0 (no refl
 least 95 % of draws. TV takes ``lam_tv = tv_ratio * lam`` (default ``tv_ratio`` 0.5), L1+TV both.
 Least squares stops by the discrepancy principle, at ``||A x - b|| = 1.05 sigma sqrt(n_data)``.
 
-Transducer beams (issue 33)
----------------------------
+Transducer beams
+----------------
 Options ``beam`` and ``beam_floor_db`` are bp's (:func:`clsas.backproject`): the operator weights
 every voxel-measurement pair by the profiles' two-way beam in both the forward projection and the
 backprojection (so ``A^H`` stays the exact adjoint); default ``"limited"`` where the dataset carries

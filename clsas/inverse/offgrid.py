@@ -82,7 +82,7 @@ class PointModel:
         i0c = np.clip(i0, 0, len(self.fine) - 2)
         val = np.where(ok, (1 - w) * self.fine[i0c] + w * self.fine[i0c + 1], 0)
         spread = self.r0 / np.maximum(r_tx * r_rx, 1e-6)  # spherical spreading, 1 at the grid's centre
-        if A.weights is not None:  # the operator's beam weights (issue 33), the same pair by pair
+        if A.weights is not None:  # the operator's beam weights, the same pair by pair
             bw = A.weights
             spread = spread * np.stack([pair_weights(bw.luts, A.tx[m], A.rx[m], bw.tx_dir[m], bw.rx_dir[m], pos,
                                                      bw.gate) for m in range(A.n_meas)], axis=1)

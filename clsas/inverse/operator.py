@@ -120,7 +120,7 @@ class ImagingOperator(LinearOperator):
     device : optional
         As for :func:`clsas.backproject`.
     beam : {"none", "limited", "weighted"}, optional
-        Apodization by the transducers' beams, as :func:`clsas.backproject` takes it (issue 33): the
+        Apodization by the transducers' beams, as :func:`clsas.backproject` takes it: the
         same real two-way weight (or gate) of each voxel-measurement pair in ``A`` and ``A^H``, so
         ``A^H`` stays the exact adjoint and equals beam-weighted backprojection. Default, as bp's:
         ``"limited"`` where the beams are directional, else ``"none"``.
