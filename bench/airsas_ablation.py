@@ -1,6 +1,6 @@
 """What separates clsas's AirSAS 20k image from the owners' delay-and-sum, one ingredient at a time.
 
-    python bench/airsas_ablation.py /work/data/airsas [--scan 20k] [--out bench/results]
+    python -m bench.airsas_ablation /work/data/airsas [--scan 20k] [--out bench/results]
 
 DATA as for ``bench/airsas_compare.py`` (a local copy of github.com/awreed/CSAS_Deconvolution_INR).
 Starting from the guide's pipeline (import -> preprocess with ``dc, bandpass, direct_clock,
@@ -29,14 +29,14 @@ import argparse
 import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-from airsas_compare import (  # noqa: E402  (the sibling script, run from anywhere)
+import clsas  # noqa: E402
+import clsas.io  # noqa: E402
+from bench.airsas_compare import (
     OWNERS_RADIUS_M,
     SCANS,
     image,
@@ -45,9 +45,6 @@ from airsas_compare import (  # noqa: E402  (the sibling script, run from anywhe
     owners_scene,
     to_clsas,
 )
-
-import clsas  # noqa: E402
-import clsas.io  # noqa: E402
 from clsas import preprocess as pp  # noqa: E402
 from clsas.focus.direct import direct_arrivals  # noqa: E402
 from clsas.physics import cramer_speed_of_sound  # noqa: E402

@@ -1,6 +1,6 @@
 """clsas on the public AirSAS measured scans, against the data owners' delay-and-sum images.
 
-    python bench/airsas_compare.py /work/data/airsas [--scans 20k 5k] [--calibrate] [--out bench/results]
+    python -m bench.airsas_compare /work/data/airsas [--scans 20k 5k] [--calibrate] [--out bench/results]
 
 DATA is a local copy of github.com/awreed/CSAS_Deconvolution_INR (at least its folder
 ``airsas_deconv_pipeline``: ``airsas_data/small_features_cutout_{20k,5k}``, ``bg_{20k,5k}``,

@@ -1,6 +1,6 @@
 """Does the data pin the stops' paths on extended targets? A data-consistency probe (issue 26).
 
-    python bench/autofocus_consistency.py [--seeds 0 1 2 3 4 5] [--rms-mm 3] [--alphas 0 0.3 0.6 1]
+    python -m bench.autofocus_consistency [--seeds 0 1 2 3 4 5] [--rms-mm 3] [--alphas 0 0.3 0.6 1]
                                           [--out bench/results]
 
 Sharpness and image energy over-fit on the scene family's planes and sphere caps (the eighth
@@ -20,7 +20,7 @@ with the true clock and speed of sound, so that only the motion is unknown):
 
 Printed and written per scene and start: the residual and the wrapped phase error against the
 truth (rad RMS, gauge removed) before and after the passes, and the local peak against the
-error-free image (as :mod:`clsas.bench.autofocus_family` scores it).
+error-free image (as :mod:`bench.autofocus_family` scores it).
 
 Writes ``<date>-autofocus-consistency.{json,md}`` under --out. It is a probe, not a method: nothing
 in :func:`clsas.autofocus` uses it.
@@ -38,7 +38,7 @@ import numpy as np
 from scipy.sparse.linalg import lsqr
 
 import clsas
-from clsas.bench.autofocus_family import _local_peak_db
+from bench.autofocus_family import _local_peak_db
 from clsas.focus.engine import FocusEngine
 from clsas.focus.motion import stops_of
 from clsas.focus.points import _smooth_unwrapped
@@ -142,7 +142,7 @@ def markdown(rows: list[dict], args) -> str:
     out = [f"# Data-consistency probe on the autofocus family (issue 26), {args.rms_mm:g} mm hand motion\n",
            f"Seeds {', '.join(map(str, args.seeds))}; true clock and speed of sound; {PASSES} passes of "
            f"{INNER} LSQR iterations; device: {', '.join(sorted({r['device'] for r in rows}))}; "
-           f"{sum(r['time_s'] for r in rows):.0f} s. `python bench/autofocus_consistency.py`.\n",
+           f"{sum(r['time_s'] for r in rows):.0f} s. `python -m bench.autofocus_consistency`.\n",
            "| seed | kind | start (x truth) | phase error, rad | residual | local peak, dB |",
            "|---|---|---|---|---|---|"]
     for r in rows:

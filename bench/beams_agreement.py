@@ -1,8 +1,8 @@
 """Why beam-limited bp and omega-k disagree on the directional-transducer case (issue 33).
 
-    python bench/beams_agreement.py [--out bench/results]
+    python -m bench.beams_agreement [--out bench/results]
 
-On :func:`clsas.bench.beams.make_case` (water, 1-4 MHz, 6 mm pistons, a flat surface at 30 mm
+On :func:`bench.beams.make_case` (water, 1-4 MHz, 6 mm pistons, a flat surface at 30 mm
 and two pins), for each beam mode (``limited``, ``weighted``, ``none``):
 
 1. bp against omega-k (complex error-to-signal, |.|-correlation) at the case's 1.5 mm pitch
@@ -37,8 +37,8 @@ from pathlib import Path
 import numpy as np
 
 import clsas
-from clsas.bench import beams as B
-from clsas.bench.stats import jsonable
+from bench import beams as B
+from bench.stats import jsonable
 from clsas.formation import error_to_signal_db, form
 
 MODES = ("limited", "weighted", "none")

@@ -1,9 +1,9 @@
 """Stress figures of the sparse methods (issue 17): CBP-Polar's nlopt stops, extra echoes on
 real recordings (tapered and hard-edged chirps), and the false-alarm rate on pure noise.
 
-    python bench/bench_stress.py [--stalls 50] [--edges 20] [--noise 200] [--out bench/results]
+    python -m bench.bench_stress [--stalls 50] [--edges 20] [--noise 200] [--out bench/results]
 
-``--stalls N``: the K-echo profiles (clsas.bench.kecho.draw_k: K = 2, 3, 4, 5 echoes 2/B apart,
+``--stalls N``: the K-echo profiles (bench.kecho.draw_k: K = 2, 3, 4, 5 echoes 2/B apart,
 amplitude ratio 1 and 0.5, 10 dB, seeds 0..N-1), refined CBP-Polar as the K-echo table runs it;
 counts every nlopt fit's status (``stalled`` is L-BFGS's runtime_error, the best point kept),
 the answers' statuses and their success (each delay within 0.25 / B).
@@ -46,7 +46,7 @@ def _load() -> float:
 
 
 def stalls(n_seeds: int) -> dict:
-    from clsas.bench.kecho import _task_for, draw_k
+    from bench.kecho import _task_for, draw_k
     from clsas.sparse import delay_error, lam_noise, sparse_echoes
 
     varpro = importlib.import_module("clsas.sparse.varpro")

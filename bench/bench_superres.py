@@ -1,24 +1,24 @@
 """Super-resolution benchmark: error against run time on the two-echo task, and the fast BPDN
 solver against cvxpy at about 3,600 atoms.
 
-    python bench/bench_superres.py [--trials 25] [--quick] [--out bench/results]
-    python bench/bench_superres.py --measured 16 [--out bench/results]
-    python bench/bench_superres.py --kecho 20 [--out bench/results]
+    python -m bench.bench_superres [--trials 25] [--quick] [--out bench/results]
+    python -m bench.bench_superres --measured 16 [--out bench/results]
+    python -m bench.bench_superres --kecho 20 [--out bench/results]
 
-Two-echo task (clsas.bench.trials): the paper's chirp (20-30 kHz, 2 ms, Tukey 0.2) at
+Two-echo task (bench.trials): the paper's chirp (20-30 kHz, 2 ms, Tukey 0.2) at
 96 kHz, 1000-sample profiles, complex amplitudes (unknown phase), separations 0.125-2 / B,
 SNR 0-30 dB (one echo's power per sample over its pulse, over the noise power per sample).
 Success: exactly two echoes, each within 0.25 / B (25 us) of a true one. Every method sees the
 same noisy profiles. Writes <date>-superres-<host>.json, .md and a Pareto plot (.png).
 
 ``--measured N``: instead, the imaging path (``superres_profiles``, complex amplitudes) on N
-recordings that look measured (clsas.bench.trials.measured_like: 1000 samples at 100 kHz,
+recordings that look measured (bench.trials.measured_like: 1000 samples at 100 kHz,
 LFM 30 -> 10 kHz 1 ms Tukey, an extended reflector of 30 scatterers, strong static clutter,
 echoes across the gate's edges, a coloured pulse, 20 dB): seconds per recording, echoes
 found, recordings capped and fallen back, per method, with complex BPDN's working sets polished
 (the default) and by FISTA alone (the solver before). Writes <date>-measured-<host>.json.
 
-``--kecho N``: instead, the K-echo table (clsas.bench.kecho): K = 2, 3, 5, 10 echoes 2/B apart,
+``--kecho N``: instead, the K-echo table (bench.kecho): K = 2, 3, 5, 10 echoes 2/B apart,
 amplitude ratio 1, 0.5, 0.1, 10 dB, N profiles per cell; refined CBP-Polar, BPDN and BPDN with
 its debias-and-detect step (bpdn-detect) against the Cramer-Rao bound's success and known-count
 ML, with the time per profile. Writes
@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 
 import clsas
-from clsas.bench.trials import TwoEchoTask, measured_like, summarise, sweep
+from bench.trials import TwoEchoTask, measured_like, summarise, sweep
 from clsas.sparse import Atom, Dictionary, bpdn, bpdn_cvxpy
 
 METHODS = ("matched", "bpdn", "cbp-polar", "ml2")
@@ -218,8 +218,8 @@ def main_measured(n_recordings: int, out: Path) -> int:
 def main_kecho(trials: int, out: Path) -> int:
     import os
 
-    from clsas.bench.accuracy import k_echo
-    from clsas.bench.kecho import k_markdown
+    from bench.accuracy import k_echo
+    from bench.kecho import k_markdown
 
     host = platform.node() or "host"
     cpu = _cpu_name()
@@ -236,7 +236,7 @@ def main_kecho(trials: int, out: Path) -> int:
              f"Machine: {cpu}, {os.cpu_count()} cores (shared; load {load:.1f} at start), clsas {clsas.__version__}; "
              f"{res['wall_s']:.0f} s in all.", "", res["task"] + f"; {trials} profiles per cell, the same for "
              "every method. \"bound with order test\": the bound times the chance that every echo's likelihood "
-             "ratio passes CBP-Polar's 1 % false-alarm order test (clsas.bench.kecho.detection_success).", "",
+             "ratio passes CBP-Polar's 1 % false-alarm order test (bench.kecho.detection_success).", "",
              *k_markdown(res["table"])]
     Path(f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -1,8 +1,8 @@
 """How fast can any backprojection go on this OpenCL device? The bp kernel with its work removed.
 
-    python bench/bp_floor.py [--side 64] [--measurements 1024] [--vec 8] [--out bench/results]
+    python -m bench.bp_floor [--side 64] [--measurements 1024] [--vec 8] [--out bench/results]
 
-Issue 31 asks for bp at >= 2.5x the C/OpenMP peer (``clsas/bench/backproject_omp.c``). This
+Issue 31 asks for bp at >= 2.5x the C/OpenMP peer (``bench/backproject_omp.c``). This
 script times, on ``throughput.backprojection_workload`` (the bench's cube grid), the shipped
 kernel and three copies of it with parts taken out:
 
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 import clsas.cl.plan as plan_module
-from clsas.bench import cpeer, throughput
+from bench import cpeer, throughput
 from clsas.cl.program import kernel_source, override_source
 from clsas.formation.bp_opencl import BackprojectPlan
 

@@ -1,13 +1,13 @@
 """Backprojection throughput on this machine's OpenCL device against the C/OpenMP and Numba peers.
 
-    python bench/bp_throughput.py [--sides 64 128] [--measurements 1000] [--out bench/results]
+    python -m bench.bp_throughput [--sides 64 128] [--measurements 1000] [--out bench/results]
 
-Only the bp part of ``clsas bench``, with the sizes a GPU needs to fill. It needs no cvxpy, Dask
+Only the bp part of ``python -m bench``, with the sizes a GPU needs to fill. It needs no cvxpy, Dask
 or Numba (Numba's peer is left out without it). The device is the one ``backend="auto"`` picks,
 or ``PYOPENCL_CTX``. For each N it backprojects N³ voxels x M measurements, times the OpenCL
 kernel (profiling events) and the whole call (wall, transfers included), and runs in the same
 process the NumPy twin, the Numba peer and the hand-vectorised C/OpenMP peer on the host's cores.
-It prints the roofline (:func:`clsas.bench.throughput.compute_bound`) and writes
+It prints the roofline (:func:`bench.throughput.compute_bound`) and writes
 ``<date>-bp-<device>.json`` and ``.md``. The H200 figures of 2026-11-28 came from this
 (``bench/results/2026-11-28-bp-gpu-h200*.json``).
 """
@@ -33,8 +33,8 @@ def main(argv: list[str] | None = None) -> int:
 
     import numpy as np
 
-    from clsas.bench import _versions
-    from clsas.bench import throughput as tp
+    from bench import _versions
+    from bench import throughput as tp
 
     info = tp.opencl_device_info()
     if info is None:
@@ -64,8 +64,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def markdown(res: dict) -> list[str]:
-    """The table and the roofline, in the words of ``clsas bench``'s report."""
-    from clsas.bench.report import _md_backprojection
+    """The table and the roofline, in the words of ``python -m bench``'s report."""
+    from bench.report import _md_backprojection
 
     md = [f"# bp throughput on {res['device']['name']}, {res['date']}", "",
           f"Script: `bench/bp_throughput.py`; clsas {res['versions'].get('clsas_commit') or '(not a git checkout)'}.",

@@ -3,7 +3,7 @@ on the stress suite's 1000-sample profile (five echoes of the paper's chirp, two
 samples apart, in white noise), one seed per profile, with the working-set solver's Newton
 polish (the default) and without it (FISTA alone, the solver before), in the same run.
 
-    python bench/bpdn_budget.py [--profiles 20] [--out bench/results/DATE-bpdn-budget-vm]
+    python -m bench.bpdn_budget [--profiles 20] [--out bench/results/DATE-bpdn-budget-vm]
 """
 
 from __future__ import annotations

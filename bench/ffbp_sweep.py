@@ -1,14 +1,14 @@
 """FFBP against exact backprojection: error-to-signal and run time for a few depth/oversampling settings.
 
-    python bench/ffbp_sweep.py                 # the dense planar scan (128 x 128 stops, 256 x 256 x 128 voxels)
+    python -m bench.ffbp_sweep                 # the dense planar scan (128 x 128 stops, 256 x 256 x 128 voxels)
                                                # and the circular scan; bp on the dense case takes minutes
-    python bench/ffbp_sweep.py --scale 0.25    # the dense scan shrunk to 32 x 32 stops (a quick look)
-    python bench/ffbp_sweep.py --cases circular --settings "depth=3,oversample=2" "oversample=3"
+    python -m bench.ffbp_sweep --scale 0.25    # the dense scan shrunk to 32 x 32 stops (a quick look)
+    python -m bench.ffbp_sweep --cases circular --settings "depth=3,oversample=2" "oversample=3"
 
 The cases are those of the formation benchmark (issue 13, part A): ``dense`` is N x N stops
 at 0.75 m / 127 pitch (N = 128 x scale) and 2N x 2N x N voxels of half that pitch from 1 m
 away, six reflectors; ``circular`` is 360 stops on a 1 m circle around three reflectors, a
-0.4 x 0.4 x 0.1 m grid of 5 mm. Where :mod:`clsas.bench.formation` is installed its
+0.4 x 0.4 x 0.1 m grid of 5 mm. Where :mod:`bench.formation` is installed its
 ``make_case`` builds them and the error is taken inside its well-sampled cone
 (:func:`clsas.formation.planar.well_sampled_cone`); otherwise the same cases are built here
 and the mask is the voxels whose lateral position lies inside the aperture shrunk by 15 % of
@@ -76,7 +76,7 @@ def _own_case(name: str, scale: float):
 def case(name: str, scale: float):
     """(dataset, grid, description, mask, mask description)."""
     try:
-        from clsas.bench.formation import make_case
+        from bench.formation import make_case
         from clsas.formation.planar import NotPlanarUniform, well_sampled_cone
     except ImportError:
         ds, grid, text = _own_case(name, scale)

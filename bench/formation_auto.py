@@ -2,7 +2,7 @@
 stops a side, grids growing with N; it calibrates auto's cost model on this device), then auto on the
 demo, circular and dense cases (calibrated model), written to bench/results/<date>-formation-auto-<tag>.*
 
-Usage: python bench/formation_auto.py [--tag vm] [--sides 16 24 32 48 64 96 128] [--dense-scale 0.5]
+Usage: python -m bench.formation_auto [--tag vm] [--sides 16 24 32 48 64 96 128] [--dense-scale 0.5]
 """
 
 import argparse
@@ -12,10 +12,10 @@ import os
 import platform
 from pathlib import Path
 
-from clsas.bench import crossover as cx
-from clsas.bench import formation as bf
-from clsas.bench.stats import jsonable
-from clsas.bench.throughput import opencl_device_info
+from bench import crossover as cx
+from bench import formation as bf
+from bench.stats import jsonable
+from bench.throughput import opencl_device_info
 
 
 def main() -> int:

@@ -1,9 +1,9 @@
 """formation='auto' on held-out crossover scans: sizes and seeds the cost model was not fitted on.
 
-    python bench/formation_auto_heldout.py [--out bench/results]
+    python -m bench.formation_auto_heldout [--out bench/results]
 
 The built-in cost model (:data:`clsas.formation.cost.BUILTIN`) was fitted on the crossover scans
-of :mod:`clsas.bench.crossover` (N = 16-128 stops a side, seed 0). Here: N = 20, 40, 56, 80 with
+of :mod:`bench.crossover` (N = 16-128 stops a side, seed 0). Here: N = 20, 40, 56, 80 with
 seeds 1001-1004 (one seed per size), every formation timed as the crossover times it, auto with
 its choosing; no device calibration is used (the cache is pointed at an empty folder).
 """
@@ -26,8 +26,8 @@ def main() -> int:
     args = ap.parse_args()
     os.environ["CLSAS_CACHE_DIR"] = tempfile.mkdtemp()  # the built-in model, no stored calibration
     import clsas
-    from clsas.bench import crossover as X
-    from clsas.bench.stats import jsonable
+    from bench import crossover as X
+    from bench.stats import jsonable
     from clsas.formation import form
 
     X._warm_up()

@@ -1,8 +1,8 @@
 """One cell of the K-echo table with more profiles than the table's 10 (one profile there is 10
 points): CBP-Polar, known-count ML and BPDN + detect on the same profiles, with the bound and
-the bound with the 1 % order test (clsas.bench.kecho.detection_success).
+the bound with the 1 % order test (bench.kecho.detection_success).
 
-    python bench/kecho_cell.py --k 10 --ratio 0.1 --profiles 40 [--out FILE.json]
+    python -m bench.kecho_cell --k 10 --ratio 0.1 --profiles 40 [--out FILE.json]
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from clsas.bench.kecho import run_k_trial
+from bench.kecho import run_k_trial
 
 METHODS = ("cbp-polar", "mlk", "bpdn-detect")
 

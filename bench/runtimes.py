@@ -1,19 +1,19 @@
 """Every OpenCL runtime here, side by side, against the C/OpenMP peer, in one run.
 
-    python bench/runtimes.py [--side 64] [--measurements 400] [--stops 24] [--repeats 5] [--out bench/results]
+    python -m bench.runtimes [--side 64] [--measurements 400] [--stops 24] [--repeats 5] [--out bench/results]
 
 For each OpenCL device that builds kernels (the Oclgrind simulator left out), a child process
 with ``PYOPENCL_CTX`` set to it times:
 
 - bp: the backprojection kernel (profiling events) and the whole plan call (transfers included)
-  on ``side``³ voxels x ``measurements`` measurements (``clsas.bench.throughput``'s workload),
+  on ``side``³ voxels x ``measurements`` measurements (``bench.throughput``'s workload),
   in voxel-measurement pairs/s;
 - compression: the matched filter (FFT) of a planar scan's recordings, kernel and whole call, in
   input samples/s;
 - ``reconstruct`` with formation bp, omega-k and FFBP on the same planar scan (``stops``² stops,
   a 0.01 m grid): the whole call's wall time and its kernel time, compression included.
 
-The parent process runs the hand-vectorised C/OpenMP backprojection (``clsas.bench.cpeer``) on
+The parent process runs the hand-vectorised C/OpenMP backprojection (``bench.cpeer``) on
 the same bp workload, so each runtime's rates come with their ratio to the peer of this run. It
 prints a table and writes ``<date>-runtimes-<cpu>.json`` and ``.md`` (each row names the runtime
 and its version).
@@ -76,8 +76,8 @@ def child(args) -> dict:
     import numpy as np
 
     import clsas
+    from bench import throughput as tp
     from clsas import cl
-    from clsas.bench import throughput as tp
 
     queue = cl.get_queue()
     row = {"runtime": cl.runtime_record(queue)}
@@ -113,8 +113,8 @@ def child(args) -> dict:
 def _peer(args) -> dict:
     import numpy as np
 
-    from clsas.bench import cpeer
-    from clsas.bench import throughput as tp
+    from bench import cpeer
+    from bench import throughput as tp
 
     rng = np.random.default_rng(0)
     grid = tp.cube_grid(args.side)

@@ -1,6 +1,6 @@
 """A measured scan through UFF and back: sizes, times, and whether anything changed.
 
-    python bench/uff_roundtrip.py /work/data/airsas [--scan 20k] [--out bench/results]
+    python -m bench.uff_roundtrip /work/data/airsas [--scan 20k] [--out bench/results]
 
 DATA as for ``bench/airsas_compare.py``. The AirSAS scan (with its empty-scene scan) is
 imported, written with :func:`clsas.io.export_uff`, read back with :func:`clsas.io.import_uff`
@@ -16,18 +16,15 @@ import argparse
 import json
 import os
 import platform
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).parent))
-from airsas_compare import SCANS, owners_axes  # noqa: E402
-
 import clsas  # noqa: E402
 import clsas.io  # noqa: E402
+from bench.airsas_compare import SCANS, owners_axes
 from clsas import preprocess as pp  # noqa: E402
 
 

@@ -10,7 +10,7 @@ direct speaker-to-microphone sound; in the other half none of these.
 The seeds are split once, and for good: :data:`TUNING_SEEDS` (and :data:`TUNING_2_SEEDS`) are
 the ones autofocus may be developed and tuned on; :data:`HELD_OUT_SEEDS` and
 :data:`HELD_OUT_2_SEEDS` (disjoint, 30 scenes each) are for reports only
-(``clsas bench --autofocus held-out`` / ``held-out-2``). :data:`SEED_SETS` names them.
+(``python -m bench --autofocus held-out`` / ``held-out-2``). :data:`SEED_SETS` names them.
 """
 
 from __future__ import annotations

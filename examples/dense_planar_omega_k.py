@@ -14,7 +14,7 @@ and of their difference, in dB re bp's peak) and dense_planar_omega_k.md.
 
 On a 1 cm grid bp is cheap (1.5e5 voxels) while ω-k's cost follows the aperture's band and
 lattice, so the speed-up here is small (2x on a loaded 2-core machine, -44 dB); it grows with
-the grid, as in the benchmark's 256 x 256 x 128 voxels (``clsas bench --formation``).
+the grid, as in the benchmark's 256 x 256 x 128 voxels (``python -m bench --formation``).
 """
 
 from __future__ import annotations

@@ -328,7 +328,7 @@ def test_pga_leaves_an_extended_target_alone():
 
 
 def test_bench_peak_measures():
-    from clsas.bench.autofocus import _fine_peaks_db, _peaks_db, _untilted_truth
+    from bench.autofocus import _fine_peaks_db, _peaks_db, _untilted_truth
 
     ds = scan(nx=7, ny=5, position_error=HandMotion(0.001, seed=3))
     u = _untilted_truth(ds)

@@ -264,8 +264,8 @@ def test_bp_without_the_beam_model_puts_the_surface_above_itself(flat_surface_un
 
 
 def test_formation_table_has_the_directional_case():
-    # issue 33: bp with and without the beam model, omega-k and FFBP in `clsas bench`'s table
-    from clsas.bench import formation as bf
+    # issue 33: bp with and without the beam model, omega-k and FFBP in `python -m bench`'s table
+    from bench import formation as bf
 
     res = bf.run_beams_case(4)
     rows = {r["formation"]: r for r in res["rows"]}

@@ -67,7 +67,7 @@ def test_line_scan_omega_k_weights_plane_waves_like_bp(mode):
 def test_beam_bench_report_is_written(tmp_path):
     """The directional bench's Markdown and JSON from a result of its shape (the run itself is the
     benchmark's, not a test's)."""
-    from clsas.bench import beams
+    from bench import beams
 
     row = {"formation": "bp", "options": {"beam": "limited"}, "label": "bp limited", "time_s": 1.0,
            "surface_share": 1.0, "error_vs_bp_limited_db": -600.0, "error_vs_omega_k_limited_db": -3.0,

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.bench import accuracy, distributed, stats
-from clsas.bench.trials import TwoEchoTask, grid_sweep, sweep
+from bench import accuracy, distributed, stats
+from bench.trials import TwoEchoTask, grid_sweep, sweep
 
 pytest.importorskip("distributed", reason="the Dask tests need dask.distributed (pip install 'clsas[bench]')")
 
@@ -90,14 +90,14 @@ def test_tiled_volume_equals_one_call(client):
 def test_quick_bench_writes_json_report_and_plot(tmp_path, capsys, monkeypatch):
     """The whole quick suite's path through the CLI, its heaviest parts shrunk (the quick set itself
     runs autofocus on the demo mannequin and every K-echo cell: minutes, a benchmark's time)."""
-    from clsas import bench
-    from clsas.bench import formation
-    from clsas.cli import main
+    import bench
+    from bench import formation
+    from bench.__main__ import main
 
     monkeypatch.setitem(bench.QUICK, "autofocus", None)
     monkeypatch.setitem(bench.QUICK, "k_echo", {"ks": (2,), "ratios": (1.0,), "trials": 1})
     monkeypatch.setattr(formation, "QUICK", {"cases": ("demo", "circular"), "scale": 0.25, "sides": (8, 12)})
-    assert main(["bench", "--out", str(tmp_path), "-q"]) == 0
+    assert main(["--out", str(tmp_path), "-q"]) == 0
     out = capsys.readouterr().out
     js = sorted(tmp_path.glob("*-quick.json"))
     assert len(js) == 1 and "wrote" in out
@@ -117,7 +117,7 @@ def test_quick_bench_writes_json_report_and_plot(tmp_path, capsys, monkeypatch):
 def test_bench_names_what_to_install_before_any_work(monkeypatch, tmp_path):
     import importlib.util
 
-    from clsas import bench
+    import bench
 
     real = importlib.util.find_spec
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "nlopt" else real(name, *a))
@@ -127,8 +127,8 @@ def test_bench_names_what_to_install_before_any_work(monkeypatch, tmp_path):
 
 
 def test_c_openmp_peer_equals_the_twin(rng):
-    """The compiled peer of `clsas bench` computes the same image (float32) as the NumPy twin."""
-    from clsas.bench import cpeer, throughput
+    """The compiled peer of `python -m bench` computes the same image (float32) as the NumPy twin."""
+    from bench import cpeer, throughput
     from clsas.formation import bp_numpy as twin
 
     fn, why = cpeer.load()

@@ -1,9 +1,9 @@
-"""The crossover table of ``clsas bench --formation`` and the calibration it stores (no timing is asserted)."""
+"""The crossover table of ``python -m bench --formation`` and the calibration it stores (no timing is asserted)."""
 
 import pytest
 
 import clsas
-from clsas.bench import crossover as cx
+from bench import crossover as cx
 from clsas.formation import cost
 
 
@@ -30,7 +30,7 @@ def test_calibrate_takes_the_median_ratio():
 
 
 def test_roofline_ceilings_of_the_bp_kernel():
-    from clsas.bench import throughput as tp
+    from bench import throughput as tp
 
     info = {"compute_units": 2, "clock_mhz": 2000, "vector_width_float": 8}
     cb = tp.compute_bound(info, bandwidth_bps=16e9)
@@ -46,7 +46,7 @@ def test_lanes_per_unit_of_cpus_and_gpus():
     pytest.importorskip("pyopencl")
     import pyopencl as cl
 
-    from clsas.bench import throughput as tp
+    from bench import throughput as tp
 
     class Dev:
         def __init__(self, kind, **attrs):
@@ -74,7 +74,7 @@ def test_lanes_per_unit_of_cpus_and_gpus():
                                        compute_capability_minor_nv=0))
     assert lanes is None and "4.0" in why
     # the report: the memory ceiling alone, and why there is no arithmetic one
-    from clsas.bench import report
+    from bench import report
 
     row = {"workload": "w", "pairs": 1e6, "opencl_kernel": {"rate_per_s": 1e11}}
     md = "\n".join(report._md_backprojection({"backprojection": [row], "compute_bound": mem_only,
@@ -91,8 +91,8 @@ def test_results_name_the_commit_they_ran():
     import re
     import shutil
 
-    from clsas.bench import _versions
-    from clsas.bench.stats import source_commit
+    from bench import _versions
+    from bench.stats import source_commit
 
     got = source_commit()
     if shutil.which("git") is None or got is None:
@@ -104,18 +104,13 @@ def test_results_name_the_commit_they_ran():
 def test_bp_throughput_script_writes_its_table(tmp_path):
     """``bench/bp_throughput.py`` (the bp part alone, for a GPU): a tiny run writes JSON and Markdown
     naming the device and the commit; without an OpenCL device it says so and returns 1."""
-    import importlib.util
     import json
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "bp_throughput.py"
-    spec = importlib.util.spec_from_file_location("bp_throughput", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    from bench import bp_throughput as mod
     with pytest.raises(SystemExit):
         mod.main(["--sides", "1"])
     rc = mod.main(["--sides", "4", "--measurements", "3", "--repeats", "1", "--out", str(tmp_path)])
-    from clsas.bench import throughput as tp
+    from bench import throughput as tp
 
     if tp.opencl_device_info() is None:
         assert rc == 1
@@ -125,3 +120,21 @@ def test_bp_throughput_script_writes_its_table(tmp_path):
     assert res["rows"][0]["voxels"] == 64 and "opencl_kernel" in res["rows"][0]
     md = next(tmp_path.glob("*-bp-*.md")).read_text()
     assert "| 4^3 voxels x 3 measurements |" in md and "Script: `bench/bp_throughput.py`" in md
+
+
+def test_clsas_calibrate_measures_and_keeps_autos_factors(tmp_path, monkeypatch, capsys):
+    """``clsas calibrate`` (the library's, not the benchmark's): each formation's measured over
+    predicted time on this device, kept where formation='auto' reads it; --dry-run keeps nothing."""
+    from clsas.cli import main
+    from clsas.formation import calibration, cost
+
+    monkeypatch.setenv("CLSAS_CACHE_DIR", str(tmp_path))
+    assert main(["calibrate", "--sides", "8", "--dry-run", "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "not kept" in out and not any(tmp_path.rglob("formation_cost/*.json"))
+    res = calibration.calibrate_auto((8,), status=lambda s: None)
+    assert set(res["factors"]) == set(calibration.FORMS) and all(f > 0 for f in res["factors"].values())
+    assert cost.load_calibration(clsas.cl.select(None)) == pytest.approx(res["factors"])
+    with pytest.raises(ValueError, match="sides"):
+        calibration.calibrate_auto((4,))
+    assert main(["calibrate", "--sides", "4"]) == 2

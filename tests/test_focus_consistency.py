@@ -108,7 +108,7 @@ def test_cli_autofocus_prints_the_consistency_before_and_after(tmp_path, capsys)
 
 
 def test_family_bench_summary_and_files(tmp_path):
-    from clsas.bench import consistency_family as cf
+    from bench import consistency_family as cf
 
     def row(seed, kind, rec, true, after, floor, peak):
         gap = rec ** 2 - true ** 2

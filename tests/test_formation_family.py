@@ -1,9 +1,9 @@
-"""The seeded request family of ``clsas bench --formation-family`` (no timing is asserted)."""
+"""The seeded request family of ``python -m bench --formation-family`` (no timing is asserted)."""
 
 import numpy as np
 import pytest
 
-from clsas.bench import formation_family as ff
+from bench import formation_family as ff
 
 
 def test_requests_are_drawn_from_their_seed_and_bounded():
@@ -35,7 +35,7 @@ def test_the_seed_is_checked(bad):
 
 
 def test_a_request_times_every_formation_and_auto(monkeypatch):
-    from clsas.bench import crossover
+    from bench import crossover
 
     monkeypatch.setattr(crossover, "ROUNDS", (1, 1))
     jittered = next(s for s in range(40) if ff.draw(s)["params"]["kind"] == "jittered")
@@ -64,8 +64,8 @@ def test_summary_counts_auto_over_its_target():
 
 
 def test_the_cli_writes_the_family_report(tmp_path):
-    from clsas.cli import main
+    from bench.__main__ import main
 
-    assert main(["bench", "--formation-family", "--n-seeds", "1", "--out", str(tmp_path), "-q", "--no-plots"]) == 0
+    assert main(["--formation-family", "--n-seeds", "1", "--out", str(tmp_path), "-q", "--no-plots"]) == 0
     md = next(tmp_path.glob("*-formation-family-tuning.md")).read_text()
     assert "tuning seeds 0-0" in md and "| 0 |" in md

@@ -1,9 +1,9 @@
-"""The measures of clsas.bench.superres_image on images whose answer is known."""
+"""The measures of bench.superres_image on images whose answer is known."""
 
 import numpy as np
 
 import clsas
-from clsas.bench.superres_image import edge_width_mm, resolved, tcr_db
+from bench.superres_image import edge_width_mm, resolved, tcr_db
 
 
 def _image(values, grid):
@@ -38,9 +38,10 @@ def test_edge_width_and_tcr_of_a_drawn_rectangle():
 
 
 def test_cli_takes_the_benchmark_and_the_methods(monkeypatch, tmp_path):
-    """``clsas bench --superres-image`` reaches run_superres_image with its arguments (stubbed: the real
+    """``python -m bench --superres-image`` reaches run_superres_image with its arguments (stubbed: the real
     run takes minutes); ``clsas reconstruct --method`` offers the model-based methods."""
-    from clsas.cli import build_parser, main
+    from bench.__main__ import main as bench_main
+    from clsas.cli import build_parser
 
     seen = {}
 
@@ -48,8 +49,8 @@ def test_cli_takes_the_benchmark_and_the_methods(monkeypatch, tmp_path):
         seen.update(out=out, **kw)
         return {"pairs": [], "airsas": [], "paths": {}}
 
-    monkeypatch.setattr("clsas.bench.superres_image.run_superres_image", fake)
-    assert main(["bench", "--superres-image", "--n-seeds", "3", "--out", str(tmp_path), "-q"]) == 0
+    monkeypatch.setattr("bench.superres_image.run_superres_image", fake)
+    assert bench_main(["--superres-image", "--n-seeds", "3", "--out", str(tmp_path), "-q"]) == 0
     assert seen["n_trials"] == seen["noise_draws"] == 3 and seen["airsas_root"] is None and seen["out"] == str(tmp_path)
     args = build_parser().parse_args(["reconstruct", "x.h5", "--method", "offgrid"])
     assert args.method == "offgrid"

@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from clsas.bench.kecho import _task_for, bound_success, draw_k, k_markdown, k_sweep, k_table, ml_known_count
+from bench.kecho import _task_for, bound_success, draw_k, k_markdown, k_sweep, k_table, ml_known_count
 from clsas.sparse import ShiftOperator, lam_max, lam_noise
 
 
@@ -46,7 +46,7 @@ def test_k_table_has_a_row_per_cell_and_method():
 def test_detection_success_matches_the_fitted_likelihood_ratio_on_noise_draws():
     """The order test's pass rate at an echo's true delay (amplitude and delay fitted, noise
     known): measured on 200 draws, it is the formula's noncentral chi-square (3 degrees of freedom)."""
-    from clsas.bench.kecho import detection_success
+    from bench.kecho import detection_success
     from clsas.sparse.varpro import VarPro
 
     task = _task_for(1, 2.0)

@@ -301,7 +301,7 @@ def test_any_plane_normal_and_either_side(frame):
 def test_formation_benchmark_writes_its_table(tmp_path):
     import json
 
-    from clsas.bench import run_formation
+    from bench import run_formation
 
     res = run_formation(out_dir=tmp_path, scale=0.1, cases=("dense", "circular"), sides=(6, 8), plots=False)
     js = json.loads(next(tmp_path.glob("*-formation-*-quick.json")).read_text())

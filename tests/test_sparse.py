@@ -318,7 +318,7 @@ def test_noise_level_lam_keeps_echoes_and_drops_noise(rng, chirp, cplx):
 
 def test_two_echo_task_cbp_polar_resolves_what_the_matched_filter_cannot():
     """0.25/B apart at 10 dB: the refined CBP-Polar separates them, the matched filter never."""
-    from clsas.bench.trials import TwoEchoTask, run_trial, summarise
+    from bench.trials import TwoEchoTask, run_trial, summarise
 
     task = TwoEchoTask()
     rows = [run_trial(task, m, 0.25, 10, seed) for seed in range(5) for m in ("matched", "cbp-polar")]
@@ -397,7 +397,7 @@ def test_2d_example_matched_filter_one_blob_superres_two(tmp_path):
 
 @pytest.mark.parametrize("cplx", [False, True], ids=["real", "complex"])
 def test_atom_correlate_equals_the_dictionary_product(cplx, rng):
-    from clsas.bench.trials import TwoEchoTask
+    from bench.trials import TwoEchoTask
 
     task = TwoEchoTask(amplitudes="complex" if cplx else "positive")
     b, _, _ = task.draw(0.5, 20, 3)

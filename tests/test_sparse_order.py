@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.bench.kecho import _task_for, draw_k
+from bench.kecho import _task_for, draw_k
 from clsas.sparse import Atom, Dictionary, ShiftOperator, delay_error, echo_threshold, lam_noise, sparse_echoes
 from clsas.sparse.varpro import real_dof
 

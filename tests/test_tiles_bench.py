@@ -1,10 +1,10 @@
-"""``clsas bench --scale`` on tiny sizes: it runs and writes its report (no timing is asserted)."""
+"""``python -m bench --scale`` on tiny sizes: it runs and writes its report (no timing is asserted)."""
 
 import json
 
 import pytest
 
-from clsas.bench import scale
+from bench import scale
 
 TINY = {
     "rss": {"voxels": (2e4, 6e4), "n_meas": 3, "max_memory": 4e8, "sample": 2},

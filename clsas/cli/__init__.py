@@ -21,7 +21,7 @@ from importlib.metadata import entry_points
 from . import (
     acquire,
     autofocus,
-    bench,
+    calibrate,
     compare,
     demo,
     devices,
@@ -45,7 +45,7 @@ PLUGIN_GROUP = "clsas.plugins"
 
 # the subcommands in the order ``clsas --help`` lists them
 COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare, devices, acquire, importing,
-            inspecting, export, bench)
+            inspecting, export, calibrate)
 
 
 #: the exit codes of every command (docs/guide/command-line.md: "Exit codes")
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
-    # a warning repeated word for word (bench's FMCW) is said once per command (one filter per handler)
+    # a warning repeated word for word is said once per command (one filter per handler)
     filters = [(handler, _Once()) for handler in logging.getLogger().handlers]
     for handler, once in filters:
         handler.addFilter(once)

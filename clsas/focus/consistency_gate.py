@@ -5,7 +5,7 @@ it was found: that is physics, not focus, and is never withdrawn) and on the cor
 first's noise floor reused). The *excess ratio* is the corrected scan's excess over the
 first's: what the correction left of the part of the data that no target in the grid
 explained. It needs no truth and trusts no image. (The bench's ratio,
-:func:`clsas.bench.consistency_family.excess_ratio`, divides by the scan as recorded instead;
+:func:`bench.consistency_family.excess_ratio`, divides by the scan as recorded instead;
 the two differ only on scans with direct sound.)
 
 On the scene family's tuning-2 seeds (2000-2029, 3 mm hand motion, 30 iterations;

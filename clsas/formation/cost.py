@@ -22,7 +22,7 @@ The built-in seconds per unit (:data:`BUILTIN`) were fitted on a quiet 2-core AM
 CPU device; see docs/guide/fast-formation.md) and are scaled to other devices by
 their compute units (kernels; a GPU's four times a CPU's); ω-k's host work by the host's cores
 over 2 to the power :data:`OMEGA_K_CORE_EXPONENT` (0.2: its FFTs gain little from many cores at
-these sizes). ``clsas bench`` measures the formations
+these sizes). ``python -m bench`` measures the formations
 on the device and stores one factor per formation (measured over predicted, the median over its
 cases) beside the kernel-variant verdicts (:func:`calibration_path`); :func:`choose` applies it.
 The model need only rank the formations: within a factor of two is enough where they differ by
@@ -376,7 +376,7 @@ def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db:
     target = check_max_error_db(max_error_db)
     formations = tuple(dict.fromkeys(("bp", *formations)))
     factors = load_calibration(selection)
-    model = "calibrated on this device by clsas bench" if factors else "built-in (not calibrated on this device)"
+    model = "calibrated on this device by python -m bench" if factors else "built-in (not calibrated on this device)"
     ests = estimate(profiles, grid, selection, max_error_db=target, factors=factors, formations=formations)
     fast = any(e.feasible and e.formation != "bp" and e.error_db <= target + CHECK_ABOVE_DB for e in ests)
     steps = _steps(ests, target, check_seconds(profiles, grid, selection, factors) if fast else math.inf)
@@ -421,7 +421,7 @@ def _describe(e: Estimate, target: float) -> str:
 def predict_time(formation: str, profiles: Profiles, grid: VoxelGrid, selection=None, options: dict | None = None,
                  factors: dict | None = None) -> float:
     """Predicted run time of ``formation`` with ``options`` (s); ``factors`` default to none (the built-in
-    model, as ``clsas bench`` calibrates it), not the stored calibration. FFBP plans its tree to count."""
+    model, as ``python -m bench`` calibrates it), not the stored calibration. FFBP plans its tree to count."""
     factors = {} if factors is None else factors
     options = dict(options or {})
     if formation == "bp":

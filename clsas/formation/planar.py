@@ -17,7 +17,7 @@ stop of the aperture sees within that angle on both lattice axes, with a margin 
 default 0.8 of the limit). This is the region where a wavenumber-domain formation on the
 aperture's own lattice reproduces backprojection; outside it, backprojection adds contributions
 of stops that see the voxel at aliased angles (the grating lobes), which ω-k does not form. The
-benchmark (:mod:`clsas.bench.formation`) and the tests measure errors inside this mask.
+benchmark (:mod:`bench.formation`) and the tests measure errors inside this mask.
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 The time half of ``formation="auto"``'s cost model (:mod:`clsas.formation.cost` counts each
 formation's work and predicts its error): :data:`BUILTIN` seconds per unit on the reference
 device, scaled to other devices by their compute units and host cores (:func:`_speed`), and the
-factors ``clsas bench`` measures on a device and stores beside the kernel-variant verdicts
+factors ``python -m bench`` measures on a device and stores beside the kernel-variant verdicts
 (:func:`calibration_path`, :func:`store_calibration`, :func:`load_calibration`).
 """
 
@@ -35,7 +35,7 @@ FORMAT = 6
 # stops a side. FFBP's variable terms scaled by its median measured over predicted (0.55) on the
 # crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json. bp fitted by
 # non-negative least squares in relative error on 69 requests of the formation family's fit seeds
-# 500-579 (clsas.bench.formation_family, up to 3e8 pairs): 0.63 ms fixed, 5.6 us per measurement
+# 500-579 (bench.formation_family, up to 3e8 pairs): 0.63 ms fixed, 5.6 us per measurement
 # (its records and profiles, host side) and 1.83e-9 per pair, measured / predicted 0.66-1.78 on those
 # requests (a 5 ms fixed part over-predicted bp up to 5x on scans it forms in 1-3 ms, and auto took
 # ω-k there at twice bp's time)

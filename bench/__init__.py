@@ -1,4 +1,4 @@
-"""The benchmark suite behind ``clsas bench``.
+"""The benchmark suite behind ``python -m bench``.
 
 One call of :func:`run` measures, on the OpenCL device that ``backend="auto"`` picks (or the
 one ``PYOPENCL_CTX`` names):
@@ -10,9 +10,9 @@ one ``PYOPENCL_CTX`` names):
   of the scene-aware plan against a full-window, full-volume one;
 - error against run time for every reconstruction method on the two-echo task and on the
   paper's Delta x lam grid;
-- fast image formation (:mod:`clsas.bench.formation`): every registered formation against exact
+- fast image formation (:mod:`bench.formation`): every registered formation against exact
   backprojection, error against run time on the demo, a dense planar and a circular scan,
-  with fitted cost exponents (``clsas bench --formation`` runs this part alone);
+  with fitted cost exponents (``python -m bench --formation`` runs this part alone);
 - with Dask (``--full``, or ``--scheduler``): the sweeps run on the cluster and are checked
   against a serial run, and a volume is backprojected in tiles and checked against one call.
 
@@ -164,7 +164,7 @@ def _throughput_part(res: dict, cfg: dict, rng, opencl: bool, device: str, say) 
     res["backprojection"] = []
     for name, side, n_meas, twin_meas, numba_meas in cfg["backprojection"]:
         if side == "demo":
-            from ..scenes import demo_configs, parse_config
+            from clsas.scenes import demo_configs, parse_config
 
             grid = parse_config(demo_configs(0.01)["front"]).grid
         else:
@@ -202,7 +202,7 @@ def _accuracy_part(res: dict, cfg: dict, say) -> None:
 def run_formation(full: bool = False, out_dir: str | Path = "bench/results", *, formations=None,
                   scale: float | None = None, cases=None, sides=None, plots: bool = True,
                   status: Callable[[str], None] | None = None) -> dict:
-    """Only the image-formation part (:mod:`clsas.bench.formation`), written to
+    """Only the image-formation part (:mod:`bench.formation`), written to
     ``<out>/<date>-formation-<device>[-quick].json`` and ``.md`` (and ``.png``).
 
     ``scale`` shrinks the dense planar case (1: 128 x 128 stops, 256 x 256 x 128 voxels; the
@@ -234,7 +234,7 @@ def _check_dependencies(use_dask: bool, say) -> None:
     need = ["cvxpy", "nlopt"] + (["distributed"] if use_dask else [])
     missing = [m for m in need if find_spec(m) is None]
     if missing:
-        raise ImportError(f"clsas bench needs {', '.join(missing)} (the sparse methods"
+        raise ImportError(f"python -m bench needs {', '.join(missing)} (the sparse methods"
                           f"{' and the Dask runs' if 'distributed' in missing else ''}): pip install 'clsas[bench]'")
     if find_spec("numba") is None:
         say("numba is not installed: the Numba peer is left out of the report (pip install 'clsas[bench]')")

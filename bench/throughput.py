@@ -13,10 +13,10 @@ import numpy as np
 import scipy.signal
 
 import clsas
+from clsas.compression import compress
+from clsas.formation import bp_numpy as twin
+from clsas.rangegate import path_bounds
 
-from ..compression import compress
-from ..formation import bp_numpy as twin
-from ..rangegate import path_bounds
 from .stats import fit_exponent, timed
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,7 @@ def memory_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 3) -> float | Non
     on other devices a buffer-to-buffer copy timed by profiling events. None without a device."""
     import time
 
-    from .. import cl as ccl
+    from clsas import cl as ccl
 
     try:
         q = ccl.get_queue()
@@ -128,7 +128,7 @@ def lanes_per_unit(device) -> tuple[int | None, str]:
     compute capability; an AMD GPU: SIMDs per unit x SIMD width x instruction width (the vendors'
     attribute extensions). Any other GPU: (None, why), since OpenCL does not say.
     """
-    from .. import cl as ccl
+    from clsas import cl as ccl
 
     if ccl.is_cpu(device):
         return max(1, int(device.preferred_vector_width_float)), "preferred float vector width"
@@ -178,7 +178,7 @@ def compute_bound(device_info: dict, bandwidth_bps: float | None = None) -> dict
 
 
 def opencl_device_info() -> dict | None:
-    from .. import cl as ccl
+    from clsas import cl as ccl
 
     try:
         q = ccl.get_queue()
@@ -206,7 +206,7 @@ def bench_backprojection(name, grid, n_meas, *, repeats, twin_meas, numba_meas, 
     row = {"workload": name, "voxels": grid.size, "measurements": n_meas, "lags": wl["data"].shape[1],
            "pairs": pairs}
     if opencl:
-        from ..formation.bp_opencl import BackprojectPlan
+        from clsas.formation.bp_opencl import BackprojectPlan
 
         plan = BackprojectPlan(grid, n_meas, wl["data"].shape[1])
         row["opencl_vec"] = plan.vec
@@ -288,7 +288,7 @@ def bench_scaling(*, voxel_sides, meas_counts, sample_counts, repeats, rng, open
     """Cost against voxels, measurements and samples, with the fitted exponents."""
     out = {}
     if opencl:
-        from ..formation.bp_opencl import BackprojectPlan
+        from clsas.formation.bp_opencl import BackprojectPlan
 
         def bp_time(side, n_meas):
             g = clsas.VoxelGrid.from_bounds((-0.3, 0.3), (-0.3, 0.3), (1.0, 1.6), 0.6 / (side - 1))
@@ -339,7 +339,7 @@ def _series(points, x_name, fixed) -> dict:
 
 def bench_plan_saving(*, repeats, backend, spacing_m=0.01) -> dict:
     """The demo's front scene: the scene-aware plan against a full-window, full-volume one, and a plane."""
-    from ..scenes import demo_configs, parse_config
+    from clsas.scenes import demo_configs, parse_config
 
     cfg = parse_config(demo_configs(spacing_m)["front"])
     ds = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=20)

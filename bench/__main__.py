@@ -1,4 +1,9 @@
-"""``clsas bench``: the benchmark suite."""
+"""``python -m bench``: the benchmark suite (run from the repository root).
+
+    python -m bench                  # the quick set, 3 to 6 minutes on a 2-core CPU
+    python -m bench --full           # the full set
+    python -m bench --formation ...  # only the image-formation benchmark (see --help)
+"""
 
 from __future__ import annotations
 
@@ -6,8 +11,8 @@ from __future__ import annotations
 def cmd_bench(args) -> int:
     import time
 
-    from clsas.bench import run, run_formation
-    from clsas.bench.stats import seconds, times
+    from bench import run, run_formation
+    from bench.stats import seconds, times
 
     t_start = time.perf_counter()
 
@@ -74,9 +79,9 @@ def cmd_bench(args) -> int:
 
 
 def _bench_scale(args, status) -> int:
-    """``clsas bench --scale``: peak RSS, tiles/s, strong scaling (see :mod:`clsas.bench.scale`)."""
-    from clsas.bench.scale import run_scale
-    from clsas.bench.stats import seconds
+    """``python -m bench --scale``: peak RSS, tiles/s, strong scaling (see :mod:`bench.scale`)."""
+    from bench.scale import run_scale
+    from bench.stats import seconds
 
     res = run_scale(full=args.full, out_dir=args.out, parts=tuple(args.scale_parts), status=status)
     for r in res.get("rss", []):
@@ -93,8 +98,8 @@ def _bench_scale(args, status) -> int:
 
 
 def _bench_superres_image(args, status) -> int:
-    """``clsas bench --superres-image``: model-based methods against bp (see :mod:`clsas.bench.superres_image`)."""
-    from clsas.bench.superres_image import run_superres_image
+    """``python -m bench --superres-image``: model-based methods against bp (see :mod:`bench.superres_image`)."""
+    from bench.superres_image import run_superres_image
 
     n = args.n_seeds or (50 if args.full else 10)
     res = run_superres_image(args.out, n_trials=n, noise_draws=n, airsas_root=args.airsas, status=status)
@@ -120,8 +125,8 @@ def _scale_arg(text: str) -> float | str:
 
 
 def _bench_autofocus(args, status) -> int:
-    """``--autofocus SET``: the scene family's distribution (:mod:`clsas.bench.autofocus_family`)."""
-    from clsas.bench.autofocus_family import run_and_write
+    """``--autofocus SET``: the scene family's distribution (:mod:`bench.autofocus_family`)."""
+    from bench.autofocus_family import run_and_write
 
     if not 0 <= args.autofocus_consistency <= 10_000:
         raise ValueError("--autofocus-consistency must be 0 (off) to 10000 iterations, got "
@@ -142,7 +147,7 @@ def _bench_autofocus(args, status) -> int:
 
 def _bench_formation_family(args, status) -> int:
     """``--formation-family``: formation="auto" on the seeded request family, its summary printed."""
-    from clsas.bench.formation_family import run_and_write
+    from bench.formation_family import run_and_write
 
     res = run_and_write(args.formation_family, n_seeds=args.n_seeds, out_dir=args.out, plots=not args.no_plots,
                         status=status)
@@ -158,9 +163,11 @@ def _bench_formation_family(args, status) -> int:
     return 0 if s.get("n") else 1
 
 
-def add_parser(sub) -> None:
-    b = sub.add_parser("bench", help="benchmarks: kernels against their peers, scaling, error against run time "
-                       "(the quick set: 3 to 6 minutes on a 2-core CPU)")
+def build_parser():
+    import argparse
+
+    b = argparse.ArgumentParser(prog="python -m bench", description="benchmarks: kernels against their peers, "
+                                "scaling, error against run time (the quick set: 3 to 6 minutes on a 2-core CPU)")
     b.add_argument("--full", action="store_true", help="the full set (3 to 8 minutes on a 2-core CPU; the quick "
                    "set, the default, 3 to 6 minutes)")
     b.add_argument("--out", default="bench/results", help="results folder (default: bench/results)")
@@ -205,4 +212,28 @@ def add_parser(sub) -> None:
                    help="with --superres-image: local copy of CSAS_Deconvolution_INR (or its airsas_deconv_pipeline)")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.add_argument("-v", "--verbose", action="store_true", help="log details")
-    b.set_defaults(func=cmd_bench)
+    b.add_argument("--debug", action="store_true", help="show tracebacks")
+    return b
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark the arguments name; 0 done, 1 failed, 2 bad arguments."""
+    import logging
+    import sys
+
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    if not args.quiet:
+        logging.getLogger("clsas.cl.variants").setLevel(logging.INFO)
+    try:
+        return cmd_bench(args)
+    except (ValueError, TypeError, FileNotFoundError) as exc:
+        if args.debug:
+            raise
+        print(f"python -m bench: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -33,7 +33,7 @@ def _rate(row, key):
 
 
 def markdown(res: dict, png: Path | None = None) -> str:
-    """The report of :func:`clsas.bench.run`'s results ``res`` as Markdown (``png``: the plots' file)."""
+    """The report of :func:`bench.run`'s results ``res`` as Markdown (``png``: the plots' file)."""
     md = _md_header(res, png)
     md += _md_backprojection(res)
     md += _md_compression(res)
@@ -65,7 +65,7 @@ def _md_dask(d: dict) -> list[str]:
 def _md_header(res: dict, png: Path | None) -> list[str]:
     """The title, device, host and versions (and the plots)."""
     dev = res["device"]
-    md = [f"# clsas benchmark ({res['mode']}), {res['date']}", "",
+    md = [f"# python -m benchmark ({res['mode']}), {res['date']}", "",
           f"Device: **{dev['name']}**" + (f" (driver {dev.get('driver')}, {dev.get('opencl')}, "
                                           f"{dev.get('compute_units')} compute units at {dev.get('clock_mhz')} MHz)"
                                           if "driver" in dev else "") + ".",
@@ -92,7 +92,7 @@ def _md_backprojection(res: dict) -> list[str]:
     peer = next((r["c_openmp_peer_build"] for r in res["backprojection"] if "c_openmp_peer_build" in r), None)
     missing = next((r["c_openmp_peer_missing"] for r in res["backprojection"] if "c_openmp_peer_missing" in r), None)
     if peer:
-        md += ["", f"C/OpenMP peer: `clsas/bench/backproject_omp.c`, {peer}: float32, the same polynomial sin/cos, "
+        md += ["", f"C/OpenMP peer: `bench/backproject_omp.c`, {peer}: float32, the same polynomial sin/cos, "
                    "hand-vectorised with vector extensions (8 lanes, 16 on AVX-512), blocks of 4 vectors of voxels per "
                    "thread, interleaved complex profiles; run on the whole workload."]
     elif missing:

@@ -1,7 +1,7 @@
 """``formation="auto"`` on a seeded family of requests it was not tuned on: the distribution.
 
-The crossover table and the three fixed cases (:mod:`clsas.bench.crossover`,
-:mod:`clsas.bench.formation`) are the scans the cost model was fitted on. This module draws
+The crossover table and the three fixed cases (:mod:`bench.crossover`,
+:mod:`bench.formation`) are the scans the cost model was fitted on. This module draws
 requests at random from a seed (:func:`family_request`) and scores the choice on each:
 
 - the aperture: a planar raster (half the seeds), the same raster with every stop off its
@@ -17,7 +17,7 @@ requests at random from a seed (:func:`family_request`) and scores the choice on
 
 For each request, in one run on one device: every formation at its defaults and ``auto`` (its
 choosing included), timed in turn round after round and each one's fastest kept
-(:func:`clsas.bench.crossover._interleaved`), and their error against bp over the grid. *Best* is
+(:func:`bench.crossover._interleaved`), and their error against bp over the grid. *Best* is
 the fastest formation whose measured error meets the target (bp always does). :func:`summarise`
 gives the share of requests where auto took the best, the share where it is within 20 % of the
 best's time (overall, and where the best takes 50 ms or more), the share where its measured error
@@ -26,7 +26,7 @@ is over its target, the median and worst time over the best, and which formation
 The seeds are split once: :data:`TUNING_SEEDS` (and the fit seeds 500-599 the cost and error
 models were refitted on) may be looked at while changing the choice; :data:`HELD_OUT_SEEDS`,
 :data:`HELD_OUT_2_SEEDS`, :data:`HELD_OUT_3_SEEDS` and :data:`HELD_OUT_4_SEEDS` are for reports
-only (``clsas bench --formation-family held-out``), each run once on the code it judged.
+only (``python -m bench --formation-family held-out``), each run once on the code it judged.
 Benchmarks measure; nothing here asserts.
 """
 
@@ -38,10 +38,10 @@ import os
 import numpy as np
 
 import clsas
+from clsas import validate as v
+from clsas.formation import cost, form
+from clsas.formation.check import form_choice
 
-from .. import validate as v
-from ..formation import cost, form
-from ..formation.check import form_choice
 from .crossover import _errors, _interleaved
 from .crossover import profiles as _profiles
 

@@ -3,7 +3,7 @@
 On the demo mannequin (``clsas demo``'s front scene, 216 stops, its 1 cm grid, the direct sound
 added): hand-like 3-D jitter of a given RMS, a wrong air temperature, an unknown group delay.
 Each row gives the error, what autofocus estimated, the residual, every reflector's peak
-against the error-free image, and the time. ``python -m clsas.bench.autofocus`` runs the
+against the error-free image, and the time. ``python -m bench.autofocus`` runs the
 quick cases and prints the table (``--jitter``: the 0.5, 1, 3, 5 and 10 mm jitter rows only;
 ``--full``: every row; ``--out DIR``: also write JSON and Markdown there).
 

@@ -18,7 +18,7 @@ white noise. Each method's success is set against three references on the same p
 Methods: ``cbp-polar`` (refined), ``bpdn`` (the convex solve, grouped), ``bpdn-detect`` (BPDN
 then ``detect=True``: debiased, echoes added and dropped by CBP-Polar's order test), ``mlk``.
 
-SNR convention as :mod:`clsas.bench.trials`: one strong echo's power per sample over its pulse,
+SNR convention as :mod:`bench.trials`: one strong echo's power per sample over its pulse,
 over the noise power per sample. Success: exactly K echoes, each matched within ``tol_b / B``.
 """
 
@@ -29,7 +29,8 @@ import time
 import numpy as np
 import scipy.special
 
-from ..sparse.metrics import Echoes, crb_delays, delay_error
+from clsas.sparse.metrics import Echoes, crb_delays, delay_error
+
 from .trials import TwoEchoTask
 
 __all__ = ["KECHO_METHODS", "bound_success", "detection_success", "draw_k", "k_sweep", "k_table", "ml_known_count",
@@ -63,7 +64,7 @@ def draw_k(task: TwoEchoTask, k: int, ratio: float, spacing_b: float, snr_db: fl
 def ml_known_count(task: TwoEchoTask, b, k: int) -> Echoes:
     """Known-count maximum likelihood, a local search: greedy seeds, the joint fit, one pass of
     moving each echo to the residual's largest correlation (kept where the RSS drops)."""
-    from ..sparse.varpro import VarPro, mainlobe_s
+    from clsas.sparse.varpro import VarPro, mainlobe_s
 
     over = 4
     d = task.dictionary(1.0 / (over * task.fs_hz))
@@ -132,9 +133,9 @@ def detection_success(task: TwoEchoTask, truth: Echoes, sigma: float, threshold:
 def run_k_trial(method: str, k: int, ratio: float, seed: int, *, spacing_b: float = 2.0, snr_db: float = 10.0,
                 tol_b: float = 0.25) -> dict:
     """One profile, one method: a dict of the setting, success, echoes found, run time, bound success."""
-    from ..sparse import lam_noise, sparse_echoes
-    from ..sparse.noise import echo_threshold
-    from ..sparse.varpro import delay_bounds
+    from clsas.sparse import lam_noise, sparse_echoes
+    from clsas.sparse.noise import echo_threshold
+    from clsas.sparse.varpro import delay_bounds
 
     if method not in KECHO_METHODS:
         raise ValueError(f"method must be one of {KECHO_METHODS}, got {method!r}")

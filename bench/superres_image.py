@@ -1,4 +1,4 @@
-"""``clsas bench --superres-image``: model-based reconstruction against backprojection.
+"""``python -m bench --superres-image``: model-based reconstruction against backprojection.
 
 Error against run time for ``bp``, per-profile ``cbp-polar``, ``psf`` (Wiener deconvolution), ``ls``,
 ``l1``, ``l1-psf`` (L1 on the PSF model of the Gram), ``tv``, ``l1-tv`` and ``offgrid``, in one run:

@@ -5,7 +5,7 @@ fits a target in the scene's grid to
 
 - the scan as recorded (stated positions, clock and air),
 - the same recordings at their true geometry (``dataset.truth``: positions, clock, air), and
-- the scan as :func:`clsas.autofocus` returns it (:data:`clsas.bench.autofocus_family.BENCH_METHODS`),
+- the scan as :func:`clsas.autofocus` returns it (:data:`bench.autofocus_family.BENCH_METHODS`),
 
 all with ``max_iter`` CGLS iterations and the recorded scan's noise floor. The recorded scan's
 errors are *determined by the data* where the residual they leave beyond the true geometry's
@@ -13,7 +13,7 @@ carries more energy than the whole noise draw does (``residual_recorded**2 - res
 floor**2``): a target in the grid cannot explain them away. ``removed`` is the share of that
 energy the autofocus correction took away (1: all of it; 0 or less: none).
 
-Run ``python -m clsas.bench.consistency_family SET [--max-iter N] [--n-seeds K] [--out DIR]``;
+Run ``python -m bench.consistency_family SET [--max-iter N] [--n-seeds K] [--out DIR]``;
 it writes ``<date>-consistency-<set>.{json,md}``. A scene costs 3 fits plus a noise fit plus
 an autofocus: one to several minutes on 2 cores.
 """
@@ -40,7 +40,7 @@ def _true_geometry(ds):
 def run_scene(seed: int, rms_m: float = 3e-3, *, max_iter: int = 30, backend=None) -> dict:
     """One scene: the three fits, the autofocus, the peaks (see the module docstring)."""
     import clsas
-    from clsas.bench.autofocus_family import BENCH_METHODS, _local_peak_db
+    from bench.autofocus_family import BENCH_METHODS, _local_peak_db
     from clsas.focus import autofocus
     from clsas.focus.consistency import data_consistency
     from clsas.scene_family import family_scene
@@ -118,7 +118,7 @@ def plot(rows: list[dict], path) -> None:
     """Peak after autofocus against the share of the errors' residual energy it removed."""
     from matplotlib.figure import Figure
 
-    from clsas.bench.autofocus_family import finish_peak_plot
+    from bench.autofocus_family import finish_peak_plot
 
     fig = Figure(figsize=(6, 4.5))
     ax = fig.subplots()
@@ -153,7 +153,7 @@ def _main(argv=None) -> str:
 
     from clsas.scene_family import SEED_SETS
 
-    ap = argparse.ArgumentParser(prog="python -m clsas.bench.consistency_family", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.consistency_family", description=__doc__.split("\n")[0])
     ap.add_argument("seed_set", choices=sorted(SEED_SETS))
     ap.add_argument("--max-iter", type=int, default=30)
     ap.add_argument("--n-seeds", type=int, default=None)

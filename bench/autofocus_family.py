@@ -20,7 +20,7 @@ and scored against the same scan without errors:
 
 :func:`summarise` gives the distribution: share within 1 dB of the error-free local peak, share
 worse than no autofocus (by any amount and by more than 0.5 dB), median and worst peak loss,
-the share whose line-of-sight error went down, and the times. ``clsas bench --autofocus`` runs it
+the share whose line-of-sight error went down, and the times. ``python -m bench --autofocus`` runs it
 (``--autofocus tuning``, ``tuning-2``, ``held-out`` or ``held-out-2``) and writes JSON, Markdown
 and a plot.
 """

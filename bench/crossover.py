@@ -11,9 +11,9 @@ the grid and inside the well-sampled cone, the built-in cost model's prediction,
 that meets its error target. The load average is recorded before and after each N (the machine
 may be shared: the ratios are what count).
 
-The calibration of ``formation="auto"`` (:mod:`clsas.formation.cost`): per formation, the median
-over the rows of measured / predicted time; stored for the device with
-:func:`clsas.formation.cost.store_calibration`.
+The calibration of ``formation="auto"`` is :func:`clsas.formation.calibration.calibrate_auto`'s
+(``clsas calibrate``): per formation, the median over the rows of measured / predicted time,
+stored for the device; the table stores it too.
 """
 
 from __future__ import annotations
@@ -25,94 +25,51 @@ import time
 import numpy as np
 
 import clsas
+from clsas.formation import cost, error_to_signal_db, form
+from clsas.formation.calibration import (
+    FORMS,
+    PITCH,
+    SIDES_FULL,
+    SIDES_QUICK,
+    VOXEL,
+    best_time,
+    calibration_case,
+    case_profiles,
+    factors_of,
+    forget_tree,
+    time_formations,
+    warm_up,
+)
+from clsas.formation.check import form_choice
 
-from ..formation import cost, error_to_signal_db, form
-from ..formation.check import form_choice
 from .stats import seconds
 
 __all__ = [
-    "CROSSOVER_QUICK", "CROSSOVER_FULL", "crossover_case", "profiles", "cone", "auto_row", "crossover", "calibrate",
-    "markdown",
+    "FORMS", "CROSSOVER_QUICK", "CROSSOVER_FULL", "crossover_case", "profiles", "cone", "auto_row", "crossover",
+    "calibrate", "markdown",
 ]
 
 log = logging.getLogger(__name__)
 
-CROSSOVER_QUICK = (16, 24, 32, 48, 64)
-CROSSOVER_FULL = (16, 24, 32, 48, 64, 96, 128)
-PITCH = 0.0056  # stop spacing, m
-VOXEL = 0.004  # voxel spacing, m
-FS = 96e3
+CROSSOVER_QUICK = SIDES_QUICK
+CROSSOVER_FULL = SIDES_FULL
 TARGET_DB = cost.DEFAULT_MAX_ERROR_DB
-FORMS = ("bp", "omega-k", "ffbp")
-
-
-def crossover_case(n: int, seed: int = 0):
-    """(dataset, grid) of the N x N-stop scan (see the module notes)."""
-    side = PITCH * (n - 1)
-    ap = clsas.raster_aperture(n, n, side, side)
-    half = side / 3
-    n_lat = int(round(2 * half / VOXEL)) + 1
-    lat = np.linspace(-half, half, n_lat)
-    grid = clsas.VoxelGrid(lat, lat, np.linspace(0.58, 0.74, 41))
-    scale = min(1.0, side / 0.36)
-    pts = np.array([[0.02 * scale, -0.01 * scale, 0.62], [-0.03 * scale, 0.02 * scale, 0.66],
-                    [0.0, 0.03 * scale, 0.70]])
-    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
-    ds = clsas.simulate(clsas.Scene(pts), ap, w, FS, snr_db=30, seed=seed,
-                        chirp={"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": 2e-3})
-    return ds, grid
-
-
-def profiles(ds, grid):
-    """The case's profiles over its grid's delay gate (matched filter, the default device)."""
-    plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
-    return clsas.compress(ds, gate_s=plan.gate_s)
+# the scans, their profiles and the timing rule are those of auto's calibration (clsas calibrate)
+crossover_case = calibration_case
+profiles = case_profiles
+_timed = best_time
+_warm_up = warm_up
+_forget_tree = forget_tree
 
 
 def cone(ds, grid):
     """The well-sampled cone at 30 kHz, or None for an aperture without a lattice."""
-    from ..formation.planar import NotPlanarUniform, well_sampled_cone
+    from clsas.formation.planar import NotPlanarUniform, well_sampled_cone
 
     try:
         return well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, 30e3, float(np.mean(ds.c_mps)))
     except NotPlanarUniform:
         return None
-
-
-def _warm_up() -> None:
-    """Build each formation's kernels on a small scan, outside any timing."""
-    ds, grid = crossover_case(12)
-    prof = profiles(ds, grid)
-    for f in FORMS:
-        form(prof, grid, f)
-
-
-def _forget_tree() -> None:
-    from ..formation import ffbp
-
-    ffbp._LAST_TREE.clear()
-
-
-REPEAT_UNDER_S = 2.0  # a run shorter than this is repeated and the fastest kept (load spikes aside)
-REPEAT_FOR_S = 1.0  # ... until this much time has been spent on it (at least two runs, at most REPEAT_MAX)
-REPEAT_MAX = 7
-
-
-def _timed(fn):
-    """(seconds, result) of ``fn()``: one run if it took REPEAT_UNDER_S or more, else the fastest of
-    at least two and at most REPEAT_MAX runs, repeated until REPEAT_FOR_S has been spent (on a shared
-    2-core host a 0.1 s run varies by tens of per cent from one to the next; every formation is
-    timed alike, and auto then in turn with the best, :func:`_interleaved`)."""
-    best, out, spent, runs = float("inf"), None, 0.0, 0
-    while True:
-        _forget_tree()
-        t = time.perf_counter()
-        out = fn()
-        took = time.perf_counter() - t
-        best, spent, runs = min(best, took), spent + took, runs + 1
-        if best >= REPEAT_UNDER_S or runs >= REPEAT_MAX or (runs >= 2 and spent >= REPEAT_FOR_S):
-            break
-    return best, out
 
 
 # fewest and most timing rounds (each times every formation and auto once, in turn); 5 at the least since
@@ -183,17 +140,14 @@ def _one(n: int, say) -> dict:
            "pairs": float(ds.n_meas) * grid.size,
            "cone_fraction": None if cone_mask is None else float(cone_mask.mean()),
            "load_before": os.getloadavg(), "rows": []}
-    ref = None
-    for f in FORMS:
-        say(f"crossover: {f} at N = {n} ({ds.n_meas} stops, {grid.size} voxels)")
-        took, img = _timed(lambda f=f: form(prof, grid, f))
-        r = {"formation": f, "time_s": took, "backend": img.backend}
-        if f == "bp":
-            ref = img
+    say(f"crossover: N = {n} ({ds.n_meas} stops, {grid.size} voxels)")
+    timed, images = time_formations(prof, grid, sel, say)
+    ref = images["bp"]
+    for r in timed:
+        if r["formation"] == "bp":
             r.update(error_all_db=None, error_cone_db=None)
         else:
-            r.update(_errors(img, ref, cone_mask), speedup=row["rows"][0]["time_s"] / r["time_s"])
-        r["predicted_builtin_s"] = cost.predict_time(f, prof, grid, sel, factors={})
+            r.update(_errors(images[r["formation"]], ref, cone_mask), speedup=timed[0]["time_s"] / r["time_s"])
         row["rows"].append(r)
     say(f"crossover: auto at N = {n}")
     row["rows"].append(auto_row(prof, grid, ref, cone_mask, row["rows"]))
@@ -203,12 +157,7 @@ def _one(n: int, say) -> dict:
 
 def calibrate(rows: list[dict]) -> dict[str, float]:
     """Per formation, the median of measured / built-in predicted time over ``rows``' entries."""
-    ratios: dict[str, list[float]] = {}
-    for row in rows:
-        for r in row["rows"]:
-            if r.get("predicted_builtin_s"):
-                ratios.setdefault(r["formation"], []).append(r["time_s"] / r["predicted_builtin_s"])
-    return {f: float(np.median(x)) for f, x in ratios.items()}
+    return factors_of([r for row in rows for r in row["rows"]])
 
 
 def crossover(sides=CROSSOVER_QUICK, status=None, store: bool = True) -> dict:

@@ -16,8 +16,8 @@ from functools import cached_property
 
 import numpy as np
 
-from ..sparse.atoms import Atom, Dictionary
-from ..sparse.metrics import Echoes, crb_delays, delay_error
+from clsas.sparse.atoms import Atom, Dictionary
+from clsas.sparse.metrics import Echoes, crb_delays, delay_error
 
 __all__ = ["TwoEchoTask", "TASK_METHODS", "run_trial", "sweep", "summarise", "GRID_METHODS", "grid_problem",
            "grid_cell", "grid_sweep", "measured_like"]
@@ -47,7 +47,7 @@ class TwoEchoTask:
 
     @cached_property
     def waveform(self) -> np.ndarray:
-        from ..signals import lfm_chirp
+        from clsas.signals import lfm_chirp
 
         return lfm_chirp(self.f_start_hz, self.f_stop_hz, self.duration_s, self.fs_hz, taper=self.taper)
 
@@ -118,7 +118,7 @@ def _fmcw(task, b):
     near edge (a delayed reference, as long-range FMCW does); the mixed window is the overlap
     of that reference with the gate's far edge, which sets the resolution.
     """
-    from ..compression import compress
+    from clsas.compression import compress
 
     chirp = {"f_start_hz": task.f_start_hz, "f_stop_hz": task.f_stop_hz, "duration_s": task.duration_s}
     start = int(task.gate_s[0] * task.fs_hz)  # the reference chirp starts here
@@ -134,7 +134,7 @@ def _fmcw(task, b):
 def _ml2(task, b):
     """Two-echo maximum likelihood, the number of echoes known: exhaustive pair search over
     the gate, then nlopt refinement (the task's reference)."""
-    from ..sparse.varpro import VarPro, best_pair, mainlobe_s
+    from clsas.sparse.varpro import VarPro, best_pair, mainlobe_s
 
     y, d = _envelope(task, b)
     centre = d.taus[int(np.argmax(y))]
@@ -152,7 +152,7 @@ def run_trial(task: TwoEchoTask, method: str, separation_b: float, snr_db: float
     BPDN's answer is read as one echo per run of neighbouring atoms (the fairest reading of a
     grid method's answer), atoms below 2 % of the largest ignored, as the convex CBPs' are.
     """
-    from ..sparse import ShiftOperator, lam_max, lam_noise, sparse_echoes
+    from clsas.sparse import ShiftOperator, lam_max, lam_noise, sparse_echoes
 
     if method not in TASK_METHODS:
         raise ValueError(f"method must be one of {TASK_METHODS}, got {method!r}")
@@ -224,7 +224,7 @@ GRID_METHODS = ("bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar")
 
 def grid_problem(alpha: float = 8.0, fs_hz: float = 1000.0, noise: float = 1e-4, seed: int = 4):
     """(atom, signal, truth) of the paper's 1-D problem (Fig. 4 and 6)."""
-    from ..sparse.atoms import decaying_exponential
+    from clsas.sparse.atoms import decaying_exponential
 
     truth = Echoes([0.31, 0.47], [1.0, 0.8])
     atom = Atom(decaying_exponential(alpha), fs_hz, 1000,
@@ -239,7 +239,7 @@ def grid_cell(method: str, delta_s: float, lam_frac: float) -> dict:
     As in the paper, BPDN's answer is every active atom (exact, duality gap 1e-7), and the
     convex CBPs' every echo above 1e-3 of the largest; no echo cap but refined CBP-Polar's 8.
     """
-    from ..sparse import sparse_echoes
+    from clsas.sparse import sparse_echoes
 
     if method not in GRID_METHODS:
         raise ValueError(f"method must be one of {GRID_METHODS}, got {method!r}")
@@ -286,8 +286,8 @@ def measured_like(n_recordings: int = 4, *, seed: int = 0, snr_db: float = 20.0,
     """
     import scipy.signal
 
-    from ..dataset import Dataset
-    from ..signals import lfm_chirp
+    from clsas.dataset import Dataset
+    from clsas.signals import lfm_chirp
 
     wave = lfm_chirp(30e3, 10e3, 1e-3, fs_hz, taper=0.2)
     heard = wave

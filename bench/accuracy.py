@@ -1,6 +1,6 @@
 """Error against run time for every reconstruction method.
 
-Two tasks: the two-echo task (clsas.bench.trials: the paper's chirp, complex amplitudes,
+Two tasks: the two-echo task (bench.trials: the paper's chirp, complex amplitudes,
 separations in units of 1/B, SNR per echo sample) and the paper's Delta x lam grid (Fig. 6,
 eq. 5 error). Every method sees the same data; the best setting of each method is named.
 """
@@ -50,7 +50,7 @@ def two_echo(methods, separations_b, snrs_db, trials: int, *, amplitudes: str = 
 
 def k_echo(ks, ratios, trials: int, *, methods=None, spacing_b: float = 2.0, snr_db: float = 10.0,
            progress=None) -> dict:
-    """The K-echo table (:mod:`clsas.bench.kecho`): success per (K, amplitude ratio, method)
+    """The K-echo table (:mod:`bench.kecho`): success per (K, amplitude ratio, method)
     against the Cramer-Rao bound's success and known-count ML's, with the time per profile."""
     from .kecho import KECHO_METHODS, k_sweep, k_table
 

@@ -14,7 +14,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from ..geometry import VoxelGrid
+from clsas.geometry import VoxelGrid
 
 __all__ = ["dask_client", "sweep_dask", "grid_sweep_dask", "backproject_tiled", "tiles"]
 
@@ -61,7 +61,7 @@ def _client(distributed, scheduler, n_workers):
 
 
 def sweep_dask(client, task, methods, separations_b, snrs_db, trials: int, *, seed0: int = 0, **kwargs) -> list[dict]:
-    """:func:`clsas.bench.trials.sweep` with one Dask task per trial; same rows, same order."""
+    """:func:`bench.trials.sweep` with one Dask task per trial; same rows, same order."""
     from .trials import run_trial
 
     futures = [client.submit(run_trial, task, m, sep, snr, seed0 + k, pure=False, **kwargs)
@@ -70,7 +70,7 @@ def sweep_dask(client, task, methods, separations_b, snrs_db, trials: int, *, se
 
 
 def grid_sweep_dask(client, methods, deltas, lam_fracs) -> list[dict]:
-    """:func:`clsas.bench.trials.grid_sweep` with one Dask task per cell; same rows, same order."""
+    """:func:`bench.trials.grid_sweep` with one Dask task per cell; same rows, same order."""
     from .trials import grid_cell
 
     futures = [client.submit(grid_cell, m, d, lf, pure=False) for d in deltas for lf in lam_fracs for m in methods]
@@ -93,8 +93,8 @@ def backproject_tiled(client, profiles, grid: VoxelGrid, n_tiles: int, backend: 
 
     Returns ``(values (nx, ny, nz) complex, devices)``: the joined image and the device each tile ran on.
     """
-    from ..tiling import Tile
-    from ..tiling.dask import run_on_cluster
+    from clsas.tiling import Tile
+    from clsas.tiling.dask import run_on_cluster
 
     parts = [Tile(i, (sl, slice(None), slice(None)), sub) for i, (sl, sub) in enumerate(tiles(grid, n_tiles))]
     out = None

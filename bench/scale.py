@@ -1,4 +1,4 @@
-"""``clsas bench --scale``: volumes past memory and past one process (:mod:`clsas.tiling`).
+"""``python -m bench --scale``: volumes past memory and past one process (:mod:`clsas.tiling`).
 
 - peak RSS against grid size: each grid formed out of core (``reconstruct(out=..., max_memory=...)``)
   in a fresh child process, its peak resident memory (``VmHWM``) read there, and a sample of its
@@ -26,9 +26,8 @@ from pathlib import Path
 import numpy as np
 
 import clsas
-
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
+from clsas.geometry import VoxelGrid
+from clsas.profiles import Profiles
 
 __all__ = ["QUICK_SCALE", "FULL_SCALE", "run_scale", "out_of_core_case", "strong_scaling", "tile_size_effect"]
 
@@ -85,7 +84,7 @@ def _autogroup() -> str | None:
 
 def _ooc_child(n_voxels: float, n_meas: int, max_memory: float, path: str, sample: int) -> dict:
     """In a fresh process: form the grid out of core, read the peak RSS, check a sample of tiles."""
-    from ..tiling import peak_rss_bytes, rss_bytes, tile_grid
+    from clsas.tiling import peak_rss_bytes, rss_bytes, tile_grid
 
     grid = _grid(n_voxels)
     prof = _profiles(grid, n_meas)
@@ -145,8 +144,8 @@ def tile_size_effect(n_voxels: float, n_meas: int, planes: tuple) -> list[dict]:
 
 def _warm(grid_axes, dask_worker=None) -> str:
     """On a worker: build the kernel once on the device its tiles will use (not counted in the timed run)."""
-    from ..formation import form
-    from ..tiling.dask import worker_selection
+    from clsas.formation import form
+    from clsas.tiling.dask import worker_selection
 
     threads = None if dask_worker is None else dask_worker.state.nthreads
     selection, units = worker_selection("auto", None, threads=threads)
@@ -267,7 +266,7 @@ def run_scale(full: bool = False, out_dir: str | Path = "bench/results", *, part
 
 def markdown(res: dict) -> str:
     """The report: one table per part, with the load average beside each timing."""
-    lines = [f"# clsas bench --scale ({'full' if res['full'] else 'quick'}), {res['date']}", "",
+    lines = [f"# python -m bench --scale ({'full' if res['full'] else 'quick'}), {res['date']}", "",
              f"Host {res['host']}, {res['cpus']} CPUs; load average (1, 5, 15 min) at the start {res['load_start']}, "
              f"at the end {res['load_end']}; scheduler autogroup {res.get('sched_autogroup')} (on: the CPU is "
              "shared between sessions first, so on a busy host the workers of this run share one session's part).", ""]

@@ -17,7 +17,7 @@ a few reflectors; ``scale`` shrinks both sides), ``circular`` (360 stops on a 1 
 5 mm grid; ``scale`` < 1 thins both), ``beams`` (directional transducers over a flat surface at
 MHz in water, :func:`run_beams_case`; full set only).
 Every case also times ``auto`` (:func:`clsas.formation.cost.choose`, its choosing included) and
-names the formation it took. The crossover table (:func:`crossover`, in :mod:`clsas.bench.crossover`)
+names the formation it took. The crossover table (:func:`crossover`, in :mod:`bench.crossover`)
 times bp, ω-k, FFBP and auto on dense planar scans of N x N stops (N = 16-64 quick, 16-128 full)
 onto grids that grow with N, and calibrates the cost model of ``formation="auto"`` on the device.
 Cost exponents: each formation timed (the faster of two calls) on planar scans of N x N stops
@@ -33,8 +33,8 @@ import time
 import numpy as np
 
 import clsas
+from clsas.formation import FORMATIONS, error_to_signal_db, form
 
-from ..formation import FORMATIONS, error_to_signal_db, form
 from .crossover import _timed, auto_row
 from .crossover import cone as _cone
 from .crossover import profiles as _profiles
@@ -45,14 +45,14 @@ __all__ = ["CASES", "QUICK", "FULL", "make_case", "run_case", "scaling", "run", 
 log = logging.getLogger(__name__)
 
 CASES = ("demo", "dense", "circular")
-# the crossover table (clsas.bench.crossover) and the directional-transducer case
+# the crossover table (bench.crossover) and the directional-transducer case
 # (run_beams_case) run as cases of their own
 ALL_CASES = (*CASES, "beams", "crossover")
-# what ``clsas bench`` runs: the quick set shrinks the dense scan to 32 x 32 stops and leaves out
+# what ``python -m bench`` runs: the quick set shrinks the dense scan to 32 x 32 stops and leaves out
 # the beams case (FFBP at MHz alone takes most of a minute)
 QUICK = {"cases": (*CASES, "crossover"), "scale": 0.25, "sides": (8, 12, 16)}
 FULL = {"cases": ALL_CASES, "scale": 1.0, "sides": (12, 16, 24, 32, 48)}
-BEAM_STOPS = 16  # the beams case: n x n stops at 1.5 mm (clsas.bench.beams.make_case)
+BEAM_STOPS = 16  # the beams case: n x n stops at 1.5 mm (bench.beams.make_case)
 FS = 96e3
 F_TOP = 30e3
 PITCH = 0.75 / 127  # the dense scan's stop spacing, m (lambda/2 at 29 kHz)
@@ -84,7 +84,7 @@ def make_case(name: str, scale: float = 1.0):
     """(dataset, grid, description) of a case; ``scale`` < 1 shrinks the dense scan's sides and the
     circular scan's stop count and grid."""
     if name == "demo":
-        from ..scenes import demo_configs, parse_config
+        from clsas.scenes import demo_configs, parse_config
 
         cfg = parse_config(demo_configs(0.01)["front"])
         ds = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=cfg.snr_db, chirp=cfg.chirp)
@@ -163,10 +163,11 @@ def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dic
 def run_beams_case(n: int | None = None, status=None) -> dict:
     """The directional-transducer case in the formation table's form: water, 1-4 MHz, a
     flat surface and two pins under ``n`` x ``n`` stops 2.5 wavelengths apart, 6 mm pistons
-    (:func:`clsas.bench.beams.make_case`). Rows: bp with the beam model (its default with beams,
+    (:func:`bench.beams.make_case`). Rows: bp with the beam model (its default with beams,
     "limited": the reference of the error columns), bp without it and weighted, ω-k limited and
     weighted, FFBP without beams, weighted (its default with beams) and limited, and auto."""
-    from ..formation.planar import well_sampled_cone
+    from clsas.formation.planar import well_sampled_cone
+
     from .beams import C_WATER, make_case
 
     say = status or (lambda s: log.info("%s", s))

@@ -14,7 +14,7 @@ import logging
 import os
 import shutil
 import subprocess
-from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
@@ -25,14 +25,14 @@ _LIB: dict[str, object] = {}
 
 
 def _source() -> str:
-    return (resources.files("clsas.bench") / "backproject_omp.c").read_text()
+    return (Path(__file__).with_name("backproject_omp.c")).read_text()
 
 
 def load() -> tuple[object | None, str]:
     """(the ctypes function, a description) or (None, why it is unavailable)."""
     if "fn" in _LIB:
         return _LIB["fn"], _LIB["why"]
-    from ..cl.variants import cache_dir
+    from clsas.cl.variants import cache_dir
 
     cc = os.environ.get("CC", "gcc")
     if shutil.which(cc) is None:

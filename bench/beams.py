@@ -2,8 +2,8 @@
 under a coarse planar raster, imaged by every formation with and without the beam model, a
 dense line scan (omega-k's 2-D Stolt step against bp), and FFBP on a 1e6-voxel grid.
 
-Run ``python -m clsas.bench.beams [--quick] [--out bench/results]``; the formation table of
-``clsas bench --formation`` has the directional case too (:func:`make_case`).
+Run ``python -m bench.beams [--quick] [--out bench/results]``; the formation table of
+``python -m bench --formation`` has the directional case too (:func:`make_case`).
 
 Measured per image, inside the beam's footprint (the columns over the stops' extent):
 
@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 import clsas
+from clsas.beam import Beams, Piston
+from clsas.formation import error_to_signal_db, form
+from clsas.specular import Surface
 
-from ..beam import Beams, Piston
-from ..formation import error_to_signal_db, form
-from ..specular import Surface
 from .stats import jsonable
 
 __all__ = ["make_case", "run", "markdown", "write", "C_WATER"]
