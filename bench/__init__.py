@@ -72,7 +72,7 @@ FULL = {
 }
 
 
-def _versions() -> dict:
+def package_versions() -> dict:
     import scipy
 
     import clsas
@@ -130,7 +130,8 @@ def run(full: bool = False, out_dir: str | Path = "bench/results", *, scheduler:
         "compute_bound": throughput.compute_bound(info, throughput.memory_bandwidth()) if opencl else None,
         "host": {"machine": platform.machine(), "processor": platform.processor(), "cpus": os.cpu_count(),
                  "system": platform.platform()},
-        "versions": _versions(), "repeats": cfg["repeats"], "sizes": {k: v for k, v in cfg.items() if k != "repeats"},
+        "versions": package_versions(), "repeats": cfg["repeats"],
+        "sizes": {k: v for k, v in cfg.items() if k != "repeats"},
     }
 
     _throughput_part(res, cfg, rng, opencl, device, say)
@@ -220,7 +221,7 @@ def run_formation(full: bool = False, out_dir: str | Path = "bench/results", *, 
                         cfg["sides"] if sides is None else sides, status=say)
     res.update(date=dt.datetime.now().isoformat(timespec="seconds"), device=device, mode="full" if full else "quick",
                host=f"{platform.processor() or platform.machine()}, {os.cpu_count()} logical CPUs",
-               versions=_versions())
+               versions=package_versions())
     stem = (f"{dt.date.today()}-formation-{re.sub(r'[^A-Za-z0-9]+', '-', device).strip('-')[:60]}"
             + ("" if full else "-quick"))
     res["paths"] = formation.write(res, Path(out_dir), stem, plots=plots)

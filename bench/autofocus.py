@@ -29,7 +29,7 @@ CASES_FULL = [("delay", d) for d in (-20e-6, 5e-6, 20e-6)] + [("temperature", t)
     CASES_JITTER
 
 
-def _peaks_db(image, truth_m, grid, radius_m=0.015) -> np.ndarray:
+def peaks_db(image, truth_m, grid, radius_m=0.015) -> np.ndarray:
     """Peak magnitude within ``radius_m`` of each true reflector, dB."""
     pts = grid.points()
     mag = np.abs(image.values).ravel()
@@ -40,7 +40,7 @@ def _peaks_db(image, truth_m, grid, radius_m=0.015) -> np.ndarray:
     return np.asarray(out)
 
 
-def _fine_peaks_db(ds, truth_m, radius_m=0.015, step_m=0.0015, backend=None) -> np.ndarray:
+def fine_peaks_db(ds, truth_m, radius_m=0.015, step_m=0.0015, backend=None) -> np.ndarray:
     """Peak magnitude within ``radius_m`` of each true reflector on a local grid ``step_m``
     apart, dB: the peak itself rather than its value at the nearest voxels of a coarse grid
     (which moves by up to a dB with a sub-millimetre shift of the image)."""
@@ -56,7 +56,7 @@ def _fine_peaks_db(ds, truth_m, radius_m=0.015, step_m=0.0015, backend=None) -> 
     return np.asarray(out)
 
 
-def _untilted_truth(ds):
+def untilted_truth(ds):
     """``ds`` at its true positions less their constant and tilt across the aperture (what no
     focus metric sees): the best any autofocus can give, up to a sub-mm shift of the image."""
     from clsas.focus.motion import stops_of
@@ -82,8 +82,8 @@ def run_cases(cases=CASES_QUICK, *, spacing_m: float = 0.01, max_iter: int = 40,
     grid, truth = cfg.grid, cfg.scene.image_sources()[0]
     common = dict(snr_db=20, direct_gain=1.0, chirp=cfg.chirp)
     clean = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, **common)
-    ref = _peaks_db(clsas.reconstruct(clean, grid, backend=backend), truth, grid)
-    ref_fine = _fine_peaks_db(clean, truth, backend=backend)
+    ref = peaks_db(clsas.reconstruct(clean, grid, backend=backend), truth, grid)
+    ref_fine = fine_peaks_db(clean, truth, backend=backend)
     rows = []
     for kind, size in cases:
         if status:
@@ -97,12 +97,12 @@ def run_cases(cases=CASES_QUICK, *, spacing_m: float = 0.01, max_iter: int = 40,
         out, rep = autofocus(ds, grid, methods=methods, max_iter=max_iter, backend=backend)
         elapsed = time.perf_counter() - t
         s = score(rep, ds)
-        before = _peaks_db(clsas.reconstruct(ds, grid, backend=backend), truth, grid) - ref
-        after = _peaks_db(clsas.reconstruct(out, grid, backend=backend), truth, grid) - ref
-        fine = _fine_peaks_db(out, truth, backend=backend) - ref_fine
+        before = peaks_db(clsas.reconstruct(ds, grid, backend=backend), truth, grid) - ref
+        after = peaks_db(clsas.reconstruct(out, grid, backend=backend), truth, grid) - ref
+        fine = fine_peaks_db(out, truth, backend=backend) - ref_fine
         extra = {}
         if kind == "jitter":
-            floor = _peaks_db(clsas.reconstruct(_untilted_truth(ds), grid, backend=backend), truth, grid) - ref
+            floor = peaks_db(clsas.reconstruct(untilted_truth(ds), grid, backend=backend), truth, grid) - ref
             extra = {"worst_peak_untilted_truth_db": float(floor.min()),
                      "within_1db_untilted_truth": int(np.sum(floor >= -1.0)),
                      "pga": next(({k: st.get(k) for k in ("kept", "points", "candidates")}

@@ -38,11 +38,11 @@ import numpy as np
 from scipy.sparse.linalg import lsqr
 
 import clsas
-from bench.autofocus_family import _local_peak_db
+from bench.autofocus_family import local_peak_db
 from clsas.focus.engine import FocusEngine
 from clsas.focus.motion import stops_of
-from clsas.focus.points import _smooth_unwrapped
-from clsas.focus.track import DEFAULT_CUTOFF_HZ, _smooth_basis, gauge_free
+from clsas.focus.points import smooth_unwrapped
+from clsas.focus.track import DEFAULT_CUTOFF_HZ, gauge_free, smooth_basis
 from clsas.inverse.operator import ImagingOperator, compressed_pulse
 from clsas.profiles import Profiles
 from clsas.scene_family import family_scene
@@ -79,7 +79,7 @@ class Probe:
         self.n = len(self.t_stop)
         first = np.r_[0, np.flatnonzero(np.diff(self.stop)) + 1]
         self.to_path = self.c[first] / (2 * np.pi * p.fc_hz)
-        self.basis = _smooth_basis(self.t_stop, self.xy, DEFAULT_CUTOFF_HZ)
+        self.basis = smooth_basis(self.t_stop, self.xy, DEFAULT_CUTOFF_HZ)
         self.truth = truth_paths(fs, self.stop)
 
     def model(self, p_stop: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
@@ -107,20 +107,20 @@ class Probe:
             res.append(r)
             zm = np.sum(np.conj(m) * y, axis=1)
             z = np.bincount(self.stop, zm.real, self.n) + 1j * np.bincount(self.stop, zm.imag, self.n)
-            p_stop = gauge_free(p_stop - _smooth_unwrapped(z, self.t_stop, self.basis) * self.to_path, self.xy)
+            p_stop = gauge_free(p_stop - smooth_unwrapped(z, self.t_stop, self.basis) * self.to_path, self.xy)
         res.append(self.model(p_stop)[2])
         return p_stop, res
 
     def peak_db(self, p_stop: np.ndarray, point: np.ndarray, ref_db: float) -> float:
         ds = self.ds.replace(t0_s=self.ds.t0_s - p_stop[self.stop] / self.c)
-        return _local_peak_db(ds, point) - ref_db
+        return local_peak_db(ds, point) - ref_db
 
 
 def probe_scene(seed: int, rms_m: float, alphas) -> list[dict]:
     pb = Probe(seed, rms_m)
     clean = np.abs(clsas.reconstruct(pb.fs.clean, pb.fs.grid).values).ravel()
     point = pb.fs.grid.points()[int(np.argmax(clean))]
-    ref = _local_peak_db(pb.fs.clean, point)
+    ref = local_peak_db(pb.fs.clean, point)
     rows = []
     for a in alphas:
         t = time.perf_counter()

@@ -43,7 +43,7 @@ log = logging.getLogger(__name__)
 BENCH_METHODS = ("direct", "points", "track")
 
 
-def _local_peak_db(ds, point, radius_m=0.015, step_m=0.0015, backend=None) -> float:
+def local_peak_db(ds, point, radius_m=0.015, step_m=0.0015, backend=None) -> float:
     import clsas
 
     ax = np.arange(-radius_m, radius_m + 1e-12, step_m)
@@ -77,13 +77,13 @@ def run_scene(seed: int, rms_m: float, *, backend=None, methods=None, **options)
     fs = family_scene(seed, rms_m=rms_m)
     clean = clsas.reconstruct(fs.clean, fs.grid, backend=backend)
     point = fs.grid.points()[int(np.argmax(np.abs(clean.values).ravel()))]
-    ref = _local_peak_db(fs.clean, point, backend=backend)
-    before = _local_peak_db(fs.dataset, point, backend=backend) - ref
-    oracle = _local_peak_db(oracle_per_stop(fs), point, backend=backend) - ref if fs.dataset.truth else before
+    ref = local_peak_db(fs.clean, point, backend=backend)
+    before = local_peak_db(fs.dataset, point, backend=backend) - ref
+    oracle = local_peak_db(oracle_per_stop(fs), point, backend=backend) - ref if fs.dataset.truth else before
     t = time.perf_counter()
     out, rep = autofocus(fs.dataset, fs.grid, methods=methods or BENCH_METHODS, backend=backend, **options)
     elapsed = time.perf_counter() - t
-    after = _local_peak_db(out, point, backend=backend) - ref if rep.improved else before
+    after = local_peak_db(out, point, backend=backend) - ref if rep.improved else before
     s = score(rep, fs.dataset)
     par = {k: p.as_dict() for k, p in rep.parameters.items()} if hasattr(rep, "parameters") else {}
     row = {"seed": seed, "kind": fs.kind, "rms_m": rms_m, **{k: fs.params[k] for k in (

@@ -46,7 +46,7 @@ def _load() -> float:
 
 
 def stalls(n_seeds: int) -> dict:
-    from bench.kecho import _task_for, draw_k
+    from bench.kecho import draw_k, task_for
     from clsas.sparse import delay_error, lam_noise, sparse_echoes
 
     varpro = importlib.import_module("clsas.sparse.varpro")
@@ -65,7 +65,7 @@ def stalls(n_seeds: int) -> dict:
         for k in (2, 3, 4, 5):
             for ratio in (1.0, 0.5):
                 for seed in range(n_seeds):
-                    task = _task_for(k, 2.0)
+                    task = task_for(k, 2.0)
                     b, truth, _ = draw_k(task, k, ratio, 2.0, 10.0, seed)
                     d = task.dictionary()
                     e = sparse_echoes("cbp-polar", d, b, lam_noise(d, b, "complex"), amplitudes="complex",

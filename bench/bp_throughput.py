@@ -33,7 +33,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import numpy as np
 
-    from bench import _versions
+    from bench import package_versions
     from bench import throughput as tp
 
     info = tp.opencl_device_info()
@@ -54,7 +54,7 @@ def main(argv: list[str] | None = None) -> int:
                                                     "numpy_twin") if k in row}
         print(f"{row['workload']}: " + ", ".join(f"{k} {v:.3g} pairs/s" for k, v in rates.items()))
     res = {"date": dt.datetime.now().isoformat(timespec="seconds"), "device": info, "bandwidth_bps": bandwidth,
-           "compute_bound": bound, "versions": _versions(), "rows": rows}
+           "compute_bound": bound, "versions": package_versions(), "rows": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     stem = f"{dt.date.today()}-bp-{re.sub(r'[^A-Za-z0-9]+', '-', info['name']).strip('-')[:60]}"
     (args.out / f"{stem}.json").write_text(json.dumps(res, indent=1, default=str))

@@ -40,7 +40,7 @@ def _true_geometry(ds):
 def run_scene(seed: int, rms_m: float = 3e-3, *, max_iter: int = 30, backend=None) -> dict:
     """One scene: the three fits, the autofocus, the peaks (see the module docstring)."""
     import clsas
-    from bench.autofocus_family import BENCH_METHODS, _local_peak_db
+    from bench.autofocus_family import BENCH_METHODS, local_peak_db
     from clsas.focus import autofocus
     from clsas.focus.consistency import data_consistency
     from clsas.scene_family import family_scene
@@ -54,9 +54,9 @@ def run_scene(seed: int, rms_m: float = 3e-3, *, max_iter: int = 30, backend=Non
     after = data_consistency(out, fs.grid, max_iter=max_iter, floor_of=rec, backend=backend) if rep.improved else rec
     clean = clsas.reconstruct(fs.clean, fs.grid, backend=backend)
     point = fs.grid.points()[int(np.argmax(np.abs(clean.values).ravel()))]
-    ref = _local_peak_db(fs.clean, point, backend=backend)
-    peak_before = _local_peak_db(fs.dataset, point, backend=backend) - ref
-    peak_after = _local_peak_db(out, point, backend=backend) - ref if rep.improved else peak_before
+    ref = local_peak_db(fs.clean, point, backend=backend)
+    peak_before = local_peak_db(fs.dataset, point, backend=backend) - ref
+    peak_after = local_peak_db(out, point, backend=backend) - ref if rep.improved else peak_before
     gap = rec.residual ** 2 - true.residual ** 2
     p = fs.params
     pitch = max(p["width_m"] / (p["nx"] - 1), p["height_m"] / (p["ny"] - 1))

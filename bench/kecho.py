@@ -39,7 +39,7 @@ __all__ = ["KECHO_METHODS", "bound_success", "detection_success", "draw_k", "k_s
 KECHO_METHODS = ("cbp-polar", "bpdn", "bpdn-detect", "mlk")
 
 
-def _task_for(k: int, spacing_b: float) -> TwoEchoTask:
+def task_for(k: int, spacing_b: float) -> TwoEchoTask:
     """The two-echo task's chirp and profile, its gate widened to the K echoes' span."""
     base = TwoEchoTask()
     span = (k - 1) * spacing_b / base.bandwidth_hz
@@ -139,7 +139,7 @@ def run_k_trial(method: str, k: int, ratio: float, seed: int, *, spacing_b: floa
 
     if method not in KECHO_METHODS:
         raise ValueError(f"method must be one of {KECHO_METHODS}, got {method!r}")
-    task = _task_for(k, spacing_b)
+    task = task_for(k, spacing_b)
     b, truth, sigma = draw_k(task, k, ratio, spacing_b, snr_db, seed)
     t = time.perf_counter()
     if method == "mlk":

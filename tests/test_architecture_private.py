@@ -158,3 +158,16 @@ if __name__ == "__main__":
     print(f"{len(longs)} functions over {MAX_LINES} lines:")
     for row in longs:
         print("  {}  {}  {} lines".format(*row), "(known)" if row[:2] in KNOWN_LONG else "")
+
+
+def test_no_test_imports_a_private_name():
+    """Tests use what the library and the benchmark package offer: no ``from clsas.x import _y`` or
+    ``from bench.x import _y`` (a helper worth testing on its own gets a public name)."""
+    found = []
+    for path in sorted((ROOT / "tests").glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in ("clsas", "bench"):
+                found += [f"{path.name}: from {node.module} import {a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not found, found

@@ -226,12 +226,12 @@ def test_cli_autofocus_writes_the_corrected_scan_and_pictures(tmp_path, capsys):
 
 
 def test_conditional_phase_is_the_exact_best(rng):
-    from clsas.focus.phases import _conditional_best
+    from clsas.focus.phases import conditional_best
 
     rest = rng.normal(size=300) + 1j * rng.normal(size=300)
     a = 0.7 * (rng.normal(size=300) + 1j * rng.normal(size=300))
     table = -np.pi + 2 * np.pi * np.arange(64) / 64
-    k, m = _conditional_best(rest, a, np.exp(1j * table), np.exp(2j * table))
+    k, m = conditional_best(rest, a, np.exp(1j * table), np.exp(2j * table))
     brute = [metric_and_weight(rest + np.exp(1j * t) * a)[0] for t in table]
     assert k == int(np.argmax(brute)) and m == pytest.approx(max(brute), rel=1e-9)
 
@@ -328,10 +328,10 @@ def test_pga_leaves_an_extended_target_alone():
 
 
 def test_bench_peak_measures():
-    from bench.autofocus import _fine_peaks_db, _peaks_db, _untilted_truth
+    from bench.autofocus import fine_peaks_db, peaks_db, untilted_truth
 
     ds = scan(nx=7, ny=5, position_error=HandMotion(0.001, seed=3))
-    u = _untilted_truth(ds)
+    u = untilted_truth(ds)
     d = u.tx_positions - ds.tx_positions
     xy = ds.tx_positions[:, :2]
     nuis = np.c_[np.ones(len(xy)), xy - xy.mean(axis=0)]
@@ -340,7 +340,7 @@ def test_bench_peak_measures():
     coef, *_ = np.linalg.lstsq(nuis, true_d, rcond=None)
     assert np.allclose(d, true_d - nuis @ coef)  # the rest of the true motion, unchanged
     pts = np.asarray(POINTS)
-    grid_db = _peaks_db(clsas.reconstruct(ds, GRID, backend="numpy"), pts, GRID)
-    fine_db = _fine_peaks_db(ds, pts, backend="numpy")
+    grid_db = peaks_db(clsas.reconstruct(ds, GRID, backend="numpy"), pts, GRID)
+    fine_db = fine_peaks_db(ds, pts, backend="numpy")
     assert np.all(fine_db >= grid_db - 0.05)  # the local peak is the peak, not a voxel near it
     assert np.all(fine_db - grid_db < 3.0)

@@ -165,12 +165,12 @@ def test_bench_autofocus_set_is_checked():
 def test_the_per_stop_ceiling_undoes_the_hand_motion_of_a_family_scene():
     # the truth applied as one delay per stop (towards the grid's centre) brings the brightest
     # voxel's local peak back to the error-free one: the per-stop model holds on this scene
-    from bench.autofocus_family import _local_peak_db, oracle_per_stop
+    from bench.autofocus_family import local_peak_db, oracle_per_stop
     from clsas.scene_family import family_scene
 
     fs = family_scene(6)
     clean = clsas.reconstruct(fs.clean, fs.grid)
     point = fs.grid.points()[int(np.argmax(np.abs(clean.values).ravel()))]
-    ref = _local_peak_db(fs.clean, point)
-    assert _local_peak_db(fs.dataset, point) - ref < -3
-    assert abs(_local_peak_db(oracle_per_stop(fs), point) - ref) < 0.3
+    ref = local_peak_db(fs.clean, point)
+    assert local_peak_db(fs.dataset, point) - ref < -3
+    assert abs(local_peak_db(oracle_per_stop(fs), point) - ref) < 0.3

@@ -84,8 +84,8 @@ def test_points_is_a_method_name_and_others_are_refused():
 
 
 def test_smooth_unwrapped_follows_time_order_and_skips_dead_stops():
-    from clsas.focus.points import _smooth_unwrapped
-    from clsas.focus.track import _smooth_basis
+    from clsas.focus.points import smooth_unwrapped
+    from clsas.focus.track import smooth_basis
 
     rng = np.random.default_rng(4)
     n = 240
@@ -95,8 +95,8 @@ def test_smooth_unwrapped_follows_time_order_and_skips_dead_stops():
     z = np.exp(1j * phi)
     z[[40, 41, 120]] = 1e-4 * np.exp(2j * np.pi * rng.uniform(size=3))  # dead stops: random phase, no weight
     perm = rng.permutation(n)  # stops not in time order: the time axis decides
-    basis = _smooth_basis(t[perm], xy[perm], 6.0)
-    got = _smooth_unwrapped(z[perm], t[perm], basis)
+    basis = smooth_basis(t[perm], xy[perm], 6.0)
+    got = smooth_unwrapped(z[perm], t[perm], basis)
     err = got - phi[perm] - np.mean(got - phi[perm])
     assert np.sqrt(np.mean(err**2)) < 0.05
 

@@ -6,7 +6,7 @@ import pytest
 
 import clsas
 from clsas.focus import autofocus, score
-from clsas.focus.motion_steps import SAMPLING_COHERENCE, _sampling_note
+from clsas.focus.motion_steps import SAMPLING_COHERENCE, sampling_note
 from clsas.focus.track import (
     gauge_free,
     integrate_phases,
@@ -67,11 +67,11 @@ def test_nearest_coherence_reads_only_the_closest_stops():
     assert nearest_coherence(xy, edges, coh) == pytest.approx(0.9)
     assert nearest_coherence(xy, edges, np.where(length < 0.015, 0.3, 0.95)) == pytest.approx(0.3)
     assert np.isnan(nearest_coherence(xy, np.zeros((0, 2), int), np.zeros(0)))
-    note = _sampling_note({"coherence_nearest": 0.3})
+    note = sampling_note({"coherence_nearest": 0.3})
     assert "0.30" in note and "speckle" in note and "not reliably determined" in note
-    passed = _sampling_note({"coherence_nearest": 0.3}, determined=True)
+    passed = sampling_note({"coherence_nearest": 0.3}, determined=True)
     assert "passed the tests above" in passed and "not reliably determined" not in passed
-    assert _sampling_note({"coherence_nearest": 0.95}) == "" and _sampling_note({}) == ""
+    assert sampling_note({"coherence_nearest": 0.95}) == "" and sampling_note({}) == ""
 
 
 def test_two_sides_of_a_target_give_one_path_where_the_phases_carry_it():
@@ -138,7 +138,7 @@ def test_track_phases_on_stop_images_of_a_moved_scan():
     est = gauge_free(phi * float(np.mean(ds.c_per_meas)) / (2 * np.pi * engine.prof.fc_hz), xy)
     assert info["coherence_median"] > 0.5
     # a compact target far away: the closest stops are finer than its speckle (no sampling note)
-    assert info["coherence_nearest"] > SAMPLING_COHERENCE and not _sampling_note(info)
+    assert info["coherence_nearest"] > SAMPLING_COHERENCE and not sampling_note(info)
     assert np.sqrt(np.mean((est - true) ** 2)) < 0.3 * np.sqrt(np.mean(true**2))
 
 

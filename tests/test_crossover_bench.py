@@ -91,14 +91,14 @@ def test_results_name_the_commit_they_ran():
     import re
     import shutil
 
-    from bench import _versions
+    from bench import package_versions
     from bench.stats import source_commit
 
     got = source_commit()
     if shutil.which("git") is None or got is None:
         pytest.skip("not a git checkout, or no git")
     assert re.fullmatch(r"[0-9a-f]{7,40}(\+dirty)?", got)
-    assert _versions()["clsas_commit"] == got
+    assert package_versions()["clsas_commit"] == got
 
 
 def test_bp_throughput_script_writes_its_table(tmp_path):

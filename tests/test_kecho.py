@@ -2,12 +2,12 @@
 
 import numpy as np
 
-from bench.kecho import _task_for, bound_success, draw_k, k_markdown, k_sweep, k_table, ml_known_count
+from bench.kecho import bound_success, draw_k, k_markdown, k_sweep, k_table, ml_known_count, task_for
 from clsas.sparse import ShiftOperator, lam_max, lam_noise
 
 
 def test_bound_success_is_a_probability_that_grows_with_snr():
-    task = _task_for(3, 2.0)
+    task = task_for(3, 2.0)
     p = []
     for snr in (-20.0, 0.0, 30.0):
         _, truth, sigma = draw_k(task, 3, 0.5, 2.0, snr, 0)
@@ -17,7 +17,7 @@ def test_bound_success_is_a_probability_that_grows_with_snr():
 
 
 def test_known_count_ml_finds_five_echoes_with_a_weak_one_between():
-    task = _task_for(5, 2.0)
+    task = task_for(5, 2.0)
     b, truth, _ = draw_k(task, 5, 0.1, 2.0, 30.0, 1)
     est = ml_known_count(task, b, 5)
     assert len(est) == 5
@@ -27,7 +27,7 @@ def test_known_count_ml_finds_five_echoes_with_a_weak_one_between():
 def test_lam_noise_below_lam_max_when_echoes_cover_the_gate():
     # ten echoes 2/B apart fill the whole gate with chirps: the first noise estimate (median
     # correlation over the gate) is above lam_max; the residual's is not, so the echoes are kept
-    task = _task_for(10, 2.0)
+    task = task_for(10, 2.0)
     b, _, _ = draw_k(task, 10, 1.0, 2.0, 10.0, 0)
     d = task.dictionary()
     assert lam_noise(d, b, "complex") < 0.1 * lam_max(ShiftOperator(d), b, "complex")
@@ -49,7 +49,7 @@ def test_detection_success_matches_the_fitted_likelihood_ratio_on_noise_draws():
     from bench.kecho import detection_success
     from clsas.sparse.varpro import VarPro
 
-    task = _task_for(1, 2.0)
+    task = task_for(1, 2.0)
     threshold, n, hits = 18.1, 200, 0
     lo, hi = task.gate_s
     for seed in range(n):
@@ -60,7 +60,7 @@ def test_detection_success_matches_the_fitted_likelihood_ratio_on_noise_draws():
     assert 0.6 < p < 0.95  # the level where the test is sensitive
     assert abs(hits / n - p) < 3 * np.sqrt(p * (1 - p) / n)  # measured 0.813 against 0.813 on 300
     # with ten echoes the weak ones' evidence is what the strong ones leave: lower, never above one
-    _, truth10, sigma10 = draw_k(_task_for(10, 2.0), 10, 0.1, 2.0, 10.0, 0)
-    p10 = detection_success(_task_for(10, 2.0), truth10, sigma10, threshold)
+    _, truth10, sigma10 = draw_k(task_for(10, 2.0), 10, 0.1, 2.0, 10.0, 0)
+    p10 = detection_success(task_for(10, 2.0), truth10, sigma10, threshold)
     assert 0.8 < p10 < 0.95
-    assert detection_success(_task_for(10, 2.0), truth10, sigma10, 0.0) == 1.0
+    assert detection_success(task_for(10, 2.0), truth10, sigma10, 0.0) == 1.0

@@ -320,12 +320,12 @@ def test_formation_benchmark_writes_its_table(tmp_path):
 def test_stolt_interpolation_equals_the_direct_sum():
     # spreading + FFT + de-apodisation against the non-uniform DFT it stands for, term by term
     from clsas.formation.opencl import StoltPlan
-    from clsas.formation.stolt import _strengths, columns_to_depths
+    from clsas.formation.stolt import columns_to_depths, stolt_strengths
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
     n_z = p.n_cells // 2
     got = columns_to_depths(spread(spec, k, ku, kv, p), n_z, p)
-    c0, alpha, _, valid = _strengths(spec, k, ku, kv, p)
+    c0, alpha, _, valid = stolt_strengths(spec, k, ku, kv, p)
     kz = np.sign(k) * np.sqrt(np.maximum(k[None, :] ** 2 - (ku**2 + kv**2)[:, None], 0))  # k < 0: kz < 0
     ell = np.arange(n_z) - n_z // 2
     phase = np.exp(1j * kz[:, :, None] * ell[None, None, :] * p.dz_m)  # (cols, f, z)

@@ -7,7 +7,7 @@ import pytest
 
 import clsas
 from clsas.sparse.atoms import Atom
-from clsas.sparse.gram import _as_pairs, _mag, fista_gram, newton_polish
+from clsas.sparse.gram import as_pairs, atom_magnitudes, fista_gram, newton_polish
 
 FS = 96e3
 
@@ -27,7 +27,7 @@ def _problem(seed=0, k=40, n=300):
 
 
 def _objective(G, c, bb, lam, x, amplitudes="complex"):
-    return float(bb + np.vdot(x, G @ x).real - 2 * np.vdot(c, x).real + lam * _mag(x, amplitudes).sum())
+    return float(bb + np.vdot(x, G @ x).real - 2 * np.vdot(c, x).real + lam * atom_magnitudes(x, amplitudes).sum())
 
 
 def _kkt(G, c, lam, x):
@@ -80,7 +80,7 @@ def test_newton_polish_never_raises_the_objective_and_reaches_optimality_on_the_
 
 def test_pairs_layout_is_the_complex_problem():
     G, c, bb, lam = _problem(5)
-    G2, c2, _ = _as_pairs(G, c, np.zeros(len(c), complex))
+    G2, c2, _ = as_pairs(G, c, np.zeros(len(c), complex))
     k = len(c)
     x, _ = fista_gram(G, c, bb, lam, "complex", np.zeros(k, complex), 1e-10, 200_000)
     u, _ = fista_gram(G2, c2, bb, lam, "pairs", np.zeros(2 * k), 1e-10, 200_000)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import clsas
-from bench.kecho import _task_for, draw_k
+from bench.kecho import draw_k, task_for
 from clsas.sparse import Atom, Dictionary, ShiftOperator, delay_error, echo_threshold, lam_noise, sparse_echoes
 from clsas.sparse.varpro import real_dof
 
@@ -114,7 +114,7 @@ def test_bpdn_detect_finds_weak_echoes_that_the_convex_solve_misses():
     """Two echoes 2/B apart, the second a tenth of the first, 10 dB (the K-echo task): BPDN's
     lam sits at the 1 % false-alarm threshold and drops the weak echo in most profiles; the
     debias-and-detect step (the order test CBP-Polar uses) finds it."""
-    task = _task_for(2, 2.0)
+    task = task_for(2, 2.0)
     d = task.dictionary()
     plain = detected = 0
     for seed in range(8):

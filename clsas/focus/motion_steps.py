@@ -215,7 +215,7 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
            f"apart differ by {track.get('halves_rms_m', float('nan')) * 1e3:.2f} mm RMS (one way; determined at "
            f"<= {fo.track_tolerance_m * 1e3:.2f} mm), the target's two sides by "
            f"{track.get('regions_rms_m', float('nan')) * 1e3:.2f} mm (at <= {REGION_TOLERANCE_M * 1e3:.2f} mm)")
-    sampling = _sampling_note(track, bool(track["determined"]))
+    sampling = sampling_note(track, bool(track["determined"]))
     if sampling:
         rep.notes.append(sampling)
     if track["determined"]:
@@ -236,7 +236,7 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
     return move, True
 
 
-def _sampling_note(track: dict, determined: bool = False) -> str:
+def sampling_note(track: dict, determined: bool = False) -> str:
     """A note where the closest stops' images are too unlike for their phases to carry the
     motion reliably (:data:`SAMPLING_COHERENCE`), else ``""``; ``determined``: the motion
     passed its own test all the same."""

@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 PHASE_MIN_GAIN = 0.05
 
 
-def _conditional_best(rest: np.ndarray, a_s: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> tuple[int, float]:
+def conditional_best(rest: np.ndarray, a_s: np.ndarray, e1: np.ndarray, e2: np.ndarray) -> tuple[int, float]:
     """Index into the phase table of the best ``phi`` for ``rest + exp(j phi) a_s``, and its log-sharpness.
 
     ``|rest + e a|^2 = q + 2 Re(e b)`` with ``q = |rest|^2 + |a|^2``, ``b = conj(rest) a``; so
@@ -105,7 +105,7 @@ def stop_phase_search(
         for s in rng.permutation(n_stops):
             a_s = a[s].astype(np.complex128)
             rest = image - np.exp(1j * phi[s]) * a_s
-            k, m = _conditional_best(rest, a_s, e1, e2)
+            k, m = conditional_best(rest, a_s, e1, e2)
             phi[s] = table[k]
             image = rest + e1[k] * a_s
         m = _log_sharpness(image)  # afresh: no drift from the running sums

@@ -7,7 +7,7 @@ strong points is rank one, and its left singular vector (columns normalised) hol
 phases: no point's phase is taken as a reference, no image has to be in focus first, and no
 focus metric is maximised. The phases are unwrapped in time order (a hand moves smoothly: at 50
 stops a second the path changes by well under a quarter wavelength from one stop to the next),
-fitted in a band-limited basis of stop time plus the tilt (:func:`.track._smooth_basis`), turned
+fitted in a band-limited basis of stop time plus the tilt (:func:`.track.smooth_basis`), turned
 into a path, and the constant and the tilt across the aperture (the gauge) removed. The points
 are the local maxima of the corrected image, picked again after each update (a point whose
 voxel is off its true place by a few millimetres adds its own tilt, which the gauge removes and
@@ -33,7 +33,7 @@ import time
 import numpy as np
 
 from .pga import _coherence, _per_stop, local_maxima, point_samples
-from .track import DEFAULT_CUTOFF_HZ, _smooth_basis, gauge_free
+from .track import DEFAULT_CUTOFF_HZ, gauge_free, smooth_basis
 
 __all__ = ["DYNAMIC_RANGE_DB", "MIN_COHERENCE", "MIN_POINTS", "MIN_STOPS", "pick_points", "common_phases",
            "points_paths"]
@@ -79,7 +79,7 @@ def common_phases(a_stop: np.ndarray) -> tuple[np.ndarray, int]:
     return m @ vh[0].conj(), int(keep.sum())
 
 
-def _smooth_unwrapped(z: np.ndarray, t: np.ndarray, basis: np.ndarray) -> np.ndarray:
+def smooth_unwrapped(z: np.ndarray, t: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """The phases of ``z`` unwrapped in time order and fitted in ``basis`` (weights ``|z|^2``, capped
     at 4 times their median), rad. Stops under a tenth of the median weight take no part in the
     unwrapping (a near-zero gain has a random phase, and a slip there would shift every later
@@ -116,7 +116,7 @@ def points_paths(engine, shift: np.ndarray, c: np.ndarray, stop: np.ndarray, t_s
     c = np.broadcast_to(np.asarray(c, float), (ds.n_meas,))
     first = np.r_[0, np.flatnonzero(np.diff(stop)) + 1]
     to_path = c[first] / (2 * np.pi * engine.prof.fc_hz)
-    basis = _smooth_basis(np.asarray(t_stop, float), xy, cutoff_hz)
+    basis = smooth_basis(np.asarray(t_stop, float), xy, cutoff_hz)
     p = np.zeros(n_stops)
     pts = np.zeros((0, 3))
     for _ in range(n_iter):
@@ -127,7 +127,7 @@ def points_paths(engine, shift: np.ndarray, c: np.ndarray, stop: np.ndarray, t_s
             return np.zeros(n_stops), info
         a, _ = point_samples(engine, sh, c, ds.tx_positions, ds.rx_positions, pts)
         z, info["points"] = common_phases(_per_stop(a, stop, n_stops))
-        new = gauge_free(p - _smooth_unwrapped(z, t_stop, basis) * to_path, xy)
+        new = gauge_free(p - smooth_unwrapped(z, t_stop, basis) * to_path, xy)
         rms = float(np.sqrt(np.mean((new - p) ** 2)) / 2)  # the change, gauge removed (one way)
         p = new
         info["update_rms_m"].append(rms)

@@ -143,7 +143,7 @@ def gauge_free(p: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return p - q @ (q.T @ p)
 
 
-def _smooth_basis(t: np.ndarray, xy: np.ndarray, cutoff_hz: float) -> np.ndarray:
+def smooth_basis(t: np.ndarray, xy: np.ndarray, cutoff_hz: float) -> np.ndarray:
     """Orthonormal columns: cosines of stop time up to ``cutoff_hz``, and the carriage's x and y."""
     n = len(t)
     dt = float(np.median(np.diff(np.sort(t)))) if n > 1 else 1.0
@@ -159,7 +159,7 @@ def smooth_refine(a: np.ndarray, t: np.ndarray, xy: np.ndarray, phi: np.ndarray,
                   cutoff_hz: float = DEFAULT_CUTOFF_HZ, n_iter: int = 10) -> np.ndarray:
     """From ``phi``: each stop's phase against the image of the others, unwrapped against
     ``phi`` and fitted in a band-limited basis of stop time ``t`` (s) plus the tilt, repeated."""
-    basis = _smooth_basis(t, xy, cutoff_hz)
+    basis = smooth_basis(t, xy, cutoff_hz)
     a2 = np.sum(np.abs(a) ** 2, axis=1)
     phi = np.asarray(phi, float).copy()
     for _ in range(n_iter):

@@ -83,7 +83,7 @@ class StoltParams:
         return es_beta(self.width)
 
 
-def _strengths(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: StoltParams):
+def stolt_strengths(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: StoltParams):
     """(c0, alpha, pos, valid) per (column, sample): strength, bistatic alpha, position in cells."""
     kp2 = (ku**2 + kv**2)[:, None]
     kk = k[None, :]
@@ -132,7 +132,7 @@ def spread(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: S
     (n_terms, n_cols, n_cells) complex128: the spread cells of each term.
     """
     n_cols = spec.shape[0]
-    c0, alpha, pos, valid = _strengths(np.asarray(spec, np.complex128), np.asarray(k, float), ku, kv, p)
+    c0, alpha, pos, valid = stolt_strengths(np.asarray(spec, np.complex128), np.asarray(k, float), ku, kv, p)
     M, W = p.n_cells, p.width
     first = np.ceil(pos - W / 2)
     rows = np.arange(n_cols)[:, None] * M
@@ -180,7 +180,7 @@ def direct(spec: np.ndarray, k: np.ndarray, ku: np.ndarray, kv: np.ndarray, p: S
     out = np.zeros((spec.shape[0], n_z), np.complex128)
     for c0_ in range(0, spec.shape[0], chunk):
         sl = slice(c0_, c0_ + chunk)
-        c0, alpha, _, valid = _strengths(spec[sl], k, np.asarray(ku)[sl], np.asarray(kv)[sl], p)
+        c0, alpha, _, valid = stolt_strengths(spec[sl], k, np.asarray(ku)[sl], np.asarray(kv)[sl], p)
         c0 = np.where(valid, c0, 0.0)
         alpha = np.where(valid, alpha, 0.0)
         kz = np.sign(k)[None, :] * np.sqrt(np.where(valid, k[None, :] ** 2 - (ku[sl] ** 2 + kv[sl] ** 2)[:, None], 1.0))

@@ -24,7 +24,7 @@ __all__ = ["POLISH", "fista_gram", "newton_polish"]
 POLISH = True
 
 
-def _mag(z, amplitudes):
+def atom_magnitudes(z, amplitudes):
     """Per-atom magnitudes; ``"pairs"``: ``z`` holds ``[Re x, Im x]`` stacked (real)."""
     if amplitudes == "pairs":
         k = len(z) // 2
@@ -45,7 +45,7 @@ def _prox(z, t, amplitudes):
     return np.where(mag > t, (1 - t / np.maximum(mag, 1e-300)) * z, 0.0)
 
 
-def _as_pairs(G, c, x):
+def as_pairs(G, c, x):
     """The complex problem as a real one in ``[Re x, Im x]``: ``x^H G x = u^T G2 u``."""
     G2 = np.block([[G.real, -G.imag], [G.imag, G.real]])
     return G2, np.r_[c.real, c.imag], np.r_[x.real, x.imag]
@@ -59,7 +59,7 @@ def newton_polish(G, c, lam, x, amplitudes, max_steps: int = 30):
     so ``x`` returns with an objective no higher than it came with.
     ``amplitudes``: ``"complex"`` or ``"pairs"``. Returns the polished ``x`` (same layout)."""
     if amplitudes == "complex":
-        G2, c2, u = _as_pairs(G, c, x)
+        G2, c2, u = as_pairs(G, c, x)
         u = _newton_pairs(G2, c2, lam, u, max_steps)
         k = len(x)
         return u[:k] + 1j * u[k:]
@@ -148,16 +148,16 @@ def fista_gram(G, c, bb, lam, amplitudes, x, tol, max_iter, deadline=np.inf, pol
     lp = lam / 2
 
     def f(z):
-        return float(bb + np.vdot(z, G @ z).real - 2 * np.vdot(c, z).real + lam * _mag(z, amplitudes).sum())
+        return float(bb + np.vdot(z, G @ z).real - 2 * np.vdot(c, z).real + lam * atom_magnitudes(z, amplitudes).sum())
 
     def gap(z):
         g = c - G @ z  # D^H r
-        dn = np.max(g.real) if amplitudes == "positive" else np.max(_mag(g, amplitudes))
+        dn = np.max(g.real) if amplitudes == "positive" else np.max(atom_magnitudes(g, amplitudes))
         s = 1.0 if dn <= lp else lp / dn
         xgx, cx = np.vdot(z, G @ z).real, np.vdot(c, z).real
         rr = bb - 2 * cx + xgx
         b_minus_theta = (1 - s) ** 2 * bb + 2 * s * (1 - s) * cx + s**2 * xgx
-        return max(0.0, rr + lam * _mag(z, amplitudes).sum() - (bb - b_minus_theta))
+        return max(0.0, rr + lam * atom_magnitudes(z, amplitudes).sum() - (bb - b_minus_theta))
 
     y, t_mom, f_prev = x.copy(), 1.0, f(x)
     it = 0
