@@ -12,7 +12,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,7 @@ from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
 from .formation import FORMATIONS
 from .formation.cost import DEFAULT_MAX_ERROR_DB, Choice, check_max_error_db, choose
-from .formation.guard import check_grid
+from .formation.guard import check_grid, checked_once
 from .geometry import VoxelGrid
 from .image import Image
 from .profiles import Profiles
@@ -100,58 +100,92 @@ def reconstruct(
 
     With ``"bp"`` a tiled image equals the whole one (to float32 rounding).
     """
+    req = _request(dataset, grid, method, compression=compression, backend=backend, device=device,
+                   progress=progress, sparse=sparse, force=force, formation=formation,
+                   formation_options=formation_options, out=out, max_memory=max_memory, client=client,
+                   tile_shape=tile_shape, max_error_db=max_error_db, inverse=inverse)
+    if req.tiled is not None:
+        return _reconstruct(dataset, req)
+    check_grid(grid, req.selection.kind, req.selection.cl_device, force=force)  # the image must fit before any work
+    with checked_once(grid, req.selection.kind):  # ... and is not checked again by the stages
+        return _reconstruct(dataset, req)
+
+
+@dataclass(frozen=True)
+class Request:
+    """One :func:`reconstruct` call's request, checked once and passed whole to its stages."""
+
+    grid: VoxelGrid
+    method: str
+    compression: str
+    sparse: dict
+    formation: str  # "auto" or a registered formation
+    formation_options: dict
+    selection: cl.Selection
+    progress: Callable[[int, int], None] | None
+    force: bool
+    tiled: tiling.TiledRequest | None
+    max_error_db: float
+    inverse: dict | None
+
+
+def _request(dataset, grid, method, *, compression, backend, device, progress, sparse, force, formation,
+             formation_options, out, max_memory, client, tile_shape, max_error_db, inverse) -> Request:
+    """Every argument of :func:`reconstruct` checked before any work, as one :class:`Request`."""
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options, inverse)
     max_error_db = check_max_error_db(max_error_db)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
-    selection = _selection(backend, device, tiled)
-    if not force and tiled is None:  # the image must fit before any work starts
-        check_grid(grid, selection.kind, selection.cl_device)
+    return Request(grid, method, compression, dict(sparse or {}), formation, fopts, _selection(backend, device, tiled),
+                   progress, bool(force), tiled, max_error_db, inverse)
+
+
+def _reconstruct(dataset: Dataset | Profiles, req: Request) -> Image:
+    """The stages of :func:`reconstruct`: profiles (compression or the sparse step), then the image."""
     t_start = time.perf_counter()
-    form = (formation, fopts, selection, progress, force, tiled, max_error_db, inverse)
     if isinstance(dataset, Profiles):  # input already compressed (Profiles.from_range_profiles)
-        image, _ = _image(dataset, dataset, grid, "bp", *form)
-        return _finish(image, tiled, method=f"bp ({dataset.method} profiles)",
+        image, _ = _image(dataset, dataset, replace(req, method="bp"))
+        return _finish(image, req.tiled, method=f"bp ({dataset.method} profiles)",
                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
-    plan = plan_reconstruction(dataset, grid)
-    if method == "bp" or _is_model(method):
-        prof, echoes, plan = _compressed(dataset, plan, compression, selection)
+    plan = plan_reconstruction(dataset, req.grid)
+    if req.method == "bp" or _is_model(req.method):
+        prof, echoes, plan = _compressed(dataset, plan, req.compression, req.selection)
     else:
-        prof, echoes, plan = _super_resolved(dataset, plan, method, sparse or {}, progress, tiled)
-    image, step = _image(dataset, prof, grid, method, *form)
-    plan = _with_kernels(plan, (f"compress ({compression})", prof.backend), (step, image.backend))
-    return _finish(image, tiled, method=method, plan=plan, echoes=echoes,
+        prof, echoes, plan = _super_resolved(dataset, plan, req.method, req.sparse, req.progress, req.tiled)
+    image, step = _image(dataset, prof, req)
+    plan = _with_kernels(plan, (f"compress ({req.compression})", prof.backend), (step, image.backend))
+    return _finish(image, req.tiled, method=req.method, plan=plan, echoes=echoes,
                    timings_s={**prof.timings_s, **image.timings_s, "total": time.perf_counter() - t_start})
 
 
-def _image(dataset, prof: Profiles, grid: VoxelGrid, method: str, formation: str, fopts: dict,
-           selection: cl.Selection, progress, force: bool, tiled, max_error_db: float,
-           inverse: dict | None) -> tuple[Image, str]:
+def _image(dataset, prof: Profiles, req: Request) -> tuple[Image, str]:
     """Stage: the image from the profiles (a model-based method, or the formation auto or the caller
     chose), with the name of the step that formed it."""
-    if _is_model(method):
-        return _model_based(method, dataset, prof, grid, selection, progress, inverse, tiled), method
-    formation, fopts, choice = _formation(formation, fopts, prof, grid, method, tiled, selection, max_error_db)
-    if choice is not None and tiled is None:  # auto's steps in turn, each measured where it was to be
+    if _is_model(req.method):
+        return _with_runtime(_model_based(dataset, prof, req), req.selection), req.method
+    formation, fopts, choice = _formation(prof, req)
+    if choice is not None and req.tiled is None:  # auto's steps in turn, each measured where it was to be
         from .formation.check import form_choice
 
-        image, record = form_choice(prof, grid, choice, backend=selection, progress=progress, force=force)
+        image, record = form_choice(prof, req.grid, choice, backend=req.selection, progress=req.progress,
+                                    force=req.force)
         image, formation = replace(image, provenance={**image.provenance, "formation_auto": record}), \
             record["formation"]
     else:
-        image = _recorded(_form(prof, grid, formation, fopts, selection, progress, force, tiled), choice)
-    return image, ("backproject" if formation == "bp" else formation)
+        image = _recorded(_form(prof, req, formation, fopts), choice)
+    return _with_runtime(image, req.selection), ("backproject" if formation == "bp" else formation)
 
 
-def _formation(formation: str, fopts: dict, prof: Profiles, grid: VoxelGrid, method: str, tiled,
-               selection: cl.Selection, max_error_db: float) -> tuple[str, dict, Choice | None]:
+def _formation(prof: Profiles, req: Request) -> tuple[str, dict, Choice | None]:
     """Stage: ``"auto"`` resolved to a registered formation and its options (with the Choice)."""
+    formation, fopts, method, grid, max_error_db = (req.formation, req.formation_options, req.method, req.grid,
+                                                    req.max_error_db)
     if formation != "auto":
         return formation, fopts, None
     if method != "bp":
         choice = Choice("bp", {}, f"bp: the {method} profiles are imaged by bp only (the fast formations do not match "
                         "it on rendered pulses)", max_error_db, "rule", ())
-    elif tiled is not None:
+    elif req.tiled is not None:
         choice = Choice("bp", {}, "bp: a grid formed in tiles is formed by bp (each tile equals the whole image's)",
                         max_error_db, "rule", ())
     elif getattr(prof, "beams", None) is not None and not prof.beams.is_omni:
@@ -160,7 +194,7 @@ def _formation(formation: str, fopts: dict, prof: Profiles, grid: VoxelGrid, met
                         "omega-k's angular weighting differs from bp's beam gate by more than the target)",
                         max_error_db, "rule", ())
     else:
-        choice = choose(prof, grid, selection, max_error_db=max_error_db)
+        choice = choose(prof, grid, req.selection, max_error_db=max_error_db)
         return choice.formation, dict(choice.options), choice
     log.info("formation auto: %s", choice.reason)
     return choice.formation, dict(choice.options), choice
@@ -173,14 +207,14 @@ def _recorded(image: Image, choice: Choice | None) -> Image:
     return replace(image, provenance={**image.provenance, "formation_auto": choice.as_dict()})
 
 
-def _model_based(method, dataset, prof, grid, selection, progress, inverse, tiled) -> Image:
+def _model_based(dataset, prof: Profiles, req: Request) -> Image:
     """Stage: the model-based method (:mod:`clsas.inverse`) forms the image from the compressed profiles."""
     from .inverse.methods import model_reconstruct
 
-    if tiled is not None:
-        raise ValueError(f"method={method!r} is not formed in tiles: out, max_memory, client, tile_shape and "
+    if req.tiled is not None:
+        raise ValueError(f"method={req.method!r} is not formed in tiles: out, max_memory, client, tile_shape and "
                          "several devices are for the other methods")
-    return model_reconstruct(method, dataset, prof, grid, selection, progress, inverse)
+    return model_reconstruct(req.method, dataset, prof, req.grid, req.selection, req.progress, req.inverse)
 
 
 def _check_inverse(method: str, inverse: dict | None, formation: str) -> None:
@@ -280,21 +314,20 @@ def _super_resolved(dataset: Dataset, plan: ReconstructionPlan, method: str, opt
     return prof, echoes, replace(plan, lags=prof.n_lags, notes=[*plan.notes, note])
 
 
-def _form(prof: Profiles, grid: VoxelGrid, formation: str, options: dict, selection: cl.Selection, progress,
-          force: bool, tiled: tiling.TiledRequest | None = None) -> Image:
+def _form(prof: Profiles, req: Request, formation: str, options: dict) -> Image:
     """Stage: the registered formation -> Image (its name recorded in the provenance); in tiles
     (:mod:`clsas.tiling`) where ``out``, ``max_memory``, ``client``, ``tile_shape`` or several
     devices were given."""
     from .formation import form
 
-    if tiled is not None:
-        image = tiling.form_tiled(prof, grid, formation, options, selection, tiled, progress=progress, force=force)
+    if req.tiled is not None:
+        image = tiling.form_tiled(prof, req.grid, formation, options, req.selection, req.tiled,
+                                  progress=req.progress, force=req.force)
         provenance = {**image.provenance, "formation": formation}
         if options:
             provenance["formation_options"] = dict(options)
-        return _with_runtime(replace(image, provenance=provenance), selection)
-    return _with_runtime(form(prof, grid, formation, backend=selection, progress=progress, force=force, **options),
-                         selection)
+        return replace(image, provenance=provenance)
+    return form(prof, req.grid, formation, backend=req.selection, progress=req.progress, force=req.force, **options)
 
 
 def _with_runtime(image: Image, selection: cl.Selection) -> Image:

@@ -40,3 +40,32 @@ def test_error_to_signal_db_checks_its_inputs():
         error_to_signal_db(a, 0 * a)
     with pytest.raises(ValueError, match="shape"):
         error_to_signal_db(a, np.ones((2, 2)))
+
+
+@pytest.mark.parametrize("formation", ["bp", "ffbp", "auto"])
+def test_the_memory_guard_runs_once_per_reconstruct(monkeypatch, formation):
+    """reconstruct checks its grid once, before any work; the formation it calls does not check it
+    again (a fallback to another backend kind would)."""
+    from clsas.formation import guard
+
+    calls = []
+    real = guard._memory_problems
+    monkeypatch.setattr(guard, "_memory_problems", lambda *a: (calls.append(a[1]), real(*a)))
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=6, ny=5)
+    grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.04, 0.04), (0.45, 0.55), 0.01)
+    clsas.reconstruct(ds, grid, backend="numpy", formation=formation)
+    assert len(calls) == 1, calls
+
+
+def test_the_command_line_checks_the_grid_once(monkeypatch, tmp_path):
+    from clsas.cli import main
+    from clsas.formation import guard
+
+    calls = []
+    real = guard._memory_problems
+    monkeypatch.setattr(guard, "_memory_problems", lambda *a: (calls.append(a[1]), real(*a)))
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=6, ny=5)
+    ds.save(tmp_path / "scan.h5")
+    assert main(["reconstruct", str(tmp_path / "scan.h5"), "--grid=-0.05,0.05,-0.04,0.04,0.45,0.55",
+                 "--spacing", "0.01", "--backend", "numpy", "-q"]) == 0
+    assert len(calls) == 1, calls

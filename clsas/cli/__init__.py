@@ -13,6 +13,7 @@ group ``clsas.plugins`` in that package's pyproject.toml::
 from __future__ import annotations
 
 import argparse
+import contextvars
 import importlib
 import logging
 import sys
@@ -121,7 +122,9 @@ def main(argv: list[str] | None = None) -> int:
     for handler, once in filters:
         handler.addFilter(once)
     try:
-        return _run(args)
+        # each command in a context of its own: what a command records there (the grids it checked)
+        # ends with it
+        return contextvars.copy_context().run(_run, args)
     finally:
         for handler, once in filters:
             handler.removeFilter(once)

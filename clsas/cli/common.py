@@ -292,10 +292,11 @@ def check_grids_fit(grids, args) -> None:
     """The memory guard for every grid a command will image, run before any of the work starts
     (``clsas demo`` images two scenes; ``reconstruct --autofocus`` works for minutes first)."""
     from clsas import cl
-    from clsas.formation.guard import check_grid
+    from clsas.formation.guard import check_grid, mark_checked
 
     if getattr(args, "formation", "bp") not in ("bp", "auto"):
         return  # a formation checks its own memory (its tree or spectrum, not the grid alone)
     sel = cl.select(getattr(args, "backend", None), getattr(args, "device", None))
     for grid in grids:
         check_grid(grid, sel.kind, sel.queue.device if sel.opencl else None, force=getattr(args, "force", False))
+        mark_checked(grid, sel.kind)  # not checked again by the library during this command

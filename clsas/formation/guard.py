@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 
 from ..geometry import VoxelGrid
 
-__all__ = ["available_memory_bytes", "check_grid", "bytes_per_voxel"]
+__all__ = ["available_memory_bytes", "check_grid", "bytes_per_voxel", "checked_once", "mark_checked"]
 
 log = logging.getLogger(__name__)
 
@@ -55,12 +58,43 @@ def _gb(n: float) -> str:
     return f"{n / 1e9:.3g} GB"
 
 
+# (grid, kind) pairs already checked by the call this context belongs to (see checked_once)
+_CHECKED: ContextVar[tuple] = ContextVar("clsas_grids_checked", default=())
+
+
+@contextmanager
+def checked_once(grid: VoxelGrid, kind: str) -> Iterator[None]:
+    """Within the block, :func:`check_grid` of this grid on this backend kind returns at once: the
+    caller (a command, ``reconstruct``) checked it before any work, and the stages it calls do not
+    check it again. Another grid, or the same one on another kind (a fallback to NumPy), is
+    checked as usual."""
+    token = _CHECKED.set((*_CHECKED.get(), (grid, kind)))
+    try:
+        yield
+    finally:
+        _CHECKED.reset(token)
+
+
+def mark_checked(grid: VoxelGrid, kind: str) -> None:
+    """Record, for the rest of the current context, that ``grid`` on ``kind`` was checked (the command
+    line runs each command in a context of its own, so this ends with the command)."""
+    _CHECKED.set((*_CHECKED.get(), (grid, kind)))
+
+
 def check_grid(grid: VoxelGrid, kind: str, device=None, *, force: bool = False) -> None:
     """Refuse ``grid`` if imaging it on ``kind`` would not fit in memory.
 
     Raises ``ValueError`` naming the voxel count, the memory needed and available, and a
-    spacing that fits; ``force=True`` logs a warning instead.
+    spacing that fits; ``force=True`` logs a warning instead. Inside :func:`checked_once` for the
+    same grid and kind it does nothing (it was checked).
     """
+    if any(g is grid and k == kind for g, k in _CHECKED.get()):
+        return
+    _memory_problems(grid, kind, device, force)
+
+
+def _memory_problems(grid: VoxelGrid, kind: str, device, force: bool) -> None:
+    """The check itself (see :func:`check_grid`)."""
     need = grid.size * bytes_per_voxel(kind)
     problems = []
     avail = available_memory_bytes()
