@@ -263,6 +263,10 @@ def _check_request(dataset, grid, method, compression, sparse, formation, format
     fopts = dict(formation_options or {})
     if formation == "bp" and set(fopts) - {"beam", "beam_floor_db"}:
         raise ValueError(f"formation_options: formation 'bp' takes beam, beam_floor_db, got {sorted(fopts)}")
+    if formation != "auto":
+        from .formation import check_options
+
+        check_options(formation, FORMATIONS[formation], fopts)
     if formation == "auto" and fopts:
         raise ValueError(f"formation_options: formation 'auto' takes none, got {sorted(fopts)} (name the "
                          "formation whose options these are)")

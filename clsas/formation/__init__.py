@@ -14,6 +14,7 @@ defined; this package imports each formation module once (one line each, below).
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
@@ -25,7 +26,8 @@ from ..profiles import Profiles
 from . import bp, ffbp, omega_k  # noqa: F401 - each registers its formation
 from .registry import FORMATIONS
 
-__all__ = ["FORMATIONS", "form", "error_to_signal_db"]
+__all__ = ["FORMATIONS", "check_options", "declared_options", "error_to_signal_db", "form"]
+
 
 def form(profiles: Profiles, grid: VoxelGrid, formation: str = "bp", *, backend: str | None = None,
          device: Any = None, progress: Callable[[int, int], None] | None = None, force: bool = False,
@@ -35,12 +37,35 @@ def form(profiles: Profiles, grid: VoxelGrid, formation: str = "bp", *, backend:
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    image = FORMATIONS.choose(formation)(profiles, grid, backend=backend, device=device, progress=progress, force=force,
-                               **options)
+    fn = FORMATIONS.choose(formation)
+    check_options(formation, fn, options)
+    image = fn(profiles, grid, backend=backend, device=device, progress=progress, force=force, **options)
     provenance = {**image.provenance, "formation": formation}
     if options:
         provenance["formation_options"] = dict(options)
     return replace(image, provenance=provenance)
+
+
+_COMMON = ("backend", "device", "progress", "force")
+
+
+def declared_options(fn: Callable) -> tuple[str, ...] | None:
+    """The options a formation function declares (its keyword-only parameters besides the common
+    ones), or None where it takes ``**options`` and checks them itself."""
+    params = inspect.signature(fn).parameters.values()
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params):
+        return None
+    return tuple(p.name for p in params if p.kind is inspect.Parameter.KEYWORD_ONLY and p.name not in _COMMON)
+
+
+def check_options(formation: str, fn: Callable, options: dict) -> None:
+    """Refuse options ``fn`` does not declare, naming them and the ones it takes (before any work)."""
+    known = declared_options(fn)
+    if known is None:
+        return
+    unknown = sorted(set(options) - set(known))
+    if unknown:
+        raise ValueError(f"formation_options: unknown option(s) {unknown} for {formation!r}; known: {sorted(known)}")
 
 
 def error_to_signal_db(image, reference, mask: np.ndarray | None = None) -> float:
