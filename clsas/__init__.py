@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-__version__ = "0.1.0"
-
 from . import preprocess  # a module: clsas.preprocess.apply(ds, ...)
 from .apertures import aperture_from_csv, circular_aperture, helical_aperture
 from .compression import compress
@@ -22,6 +20,7 @@ from .quality import compare, tcr_db
 from .rangegate import ReconstructionPlan
 from .signals import analytic, lfm_chirp
 from .simulation import simulate
+from .version import __version__  # noqa: F401 - clsas.__version__
 
 __all__ = [
     "Aperture", "Backprojector", "Dataset", "Image", "Profiles", "ReconstructionPlan", "Scene", "VoxelGrid",

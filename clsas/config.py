@@ -375,11 +375,14 @@ def grid_table(cfg: dict, source: str) -> VoxelGrid | None:
     return tab.build(VoxelGrid.from_bounds, *bounds, spacing)
 
 
+#: the keys of a ``[preprocess]`` table, one per step of :func:`clsas.preprocess.apply`
+PREPROCESS_KEYS = ("group_delay_s", "group_delay_samples", "direct_clock", "dc", "bandpass", "background",
+                   "common", "blank_direct")
+
+
 def preprocess_table(cfg: dict, source: str) -> dict:
     """The ``[preprocess]`` table, passed through (``clsas.preprocess.from_table`` checks its
     values); only its keys are checked here."""
-    from .preprocess import PREPROCESS_KEYS
-
     if "preprocess" not in cfg:
         return {}
     return dict(Table(cfg["preprocess"], source, "[preprocess]", PREPROCESS_KEYS).data)

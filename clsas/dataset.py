@@ -229,7 +229,7 @@ class Dataset:
         """Write the dataset to an HDF5 file (see the guide, docs/guide/files.md, "Dataset file")."""
         import h5py
 
-        from . import __version__
+        from .version import __version__
 
         path = Path(path)
         with h5py.File(path, "w") as f:

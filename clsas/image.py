@@ -206,7 +206,7 @@ class Image:
 
     def describe_provenance(self) -> dict:
         """What made this image: ``provenance`` plus method, formation, grid and device."""
-        from . import __version__
+        from .version import __version__
 
         prov = {
             "method": self.method,

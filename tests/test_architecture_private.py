@@ -171,3 +171,57 @@ def test_no_test_imports_a_private_name():
                 found += [f"{path.name}: from {node.module} import {a.name}" for a in node.names
                           if a.name.startswith("_") and not a.name.startswith("__")]
     assert not found, found
+
+
+def _room(module: str) -> str:
+    """A module's room: its package directory under clsas/, or the top-level module itself."""
+    parts = module.split(".")
+    if len(parts) >= 2 and ((PACKAGE / parts[1]).is_dir() or (PACKAGE / f"{parts[1]}.py").is_file()):
+        return ".".join(parts[:2])
+    return "clsas"  # the package's __init__ (or a name it defines)
+
+
+def _imports():
+    """(room, imported room, module-level?, where) for every import of a clsas module by another room."""
+    for rel, name, _package, is_init, tree in _modules():
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = name.split(".") if is_init else name.split(".")[:-1]
+                    base = base[: len(base) - (node.level - 1)]
+                    mod = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    mod = node.module or ""
+                targets = [f"{mod}.{a.name}" for a in node.names] if mod == "clsas" else [mod]
+            else:
+                continue
+            for t in targets:
+                if t.split(".")[0] == "clsas" and _room(t) != _room(name):
+                    yield _room(name), _room(t), node.col_offset == 0, f"{rel}:{node.lineno}"
+
+
+def test_no_import_cycle_and_no_upward_lazy_import():
+    """Module-level imports between the rooms of clsas form no cycle, and no import inside a
+    function reaches up to a room that imports the caller's room (which would be a cycle hidden
+    from import time)."""
+    edges = list(_imports())
+    top: dict[str, set[str]] = {}
+    for a, b, module_level, _ in edges:
+        if module_level:
+            top.setdefault(a, set()).add(b)
+
+    def reach(start: str) -> set[str]:
+        seen, todo = set(), [start]
+        while todo:
+            for nxt in top.get(todo.pop(), ()):
+                if nxt not in seen:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        return seen
+
+    cycles = sorted({a for a in top if a in reach(a)})
+    assert not cycles, f"module-level import cycles through {cycles}"
+    upward = [f"{where}: {a} -> {b}" for a, b, module_level, where in edges if not module_level and a in reach(b)]
+    assert not upward, upward

@@ -43,29 +43,32 @@ REPEAT_MAX = 7
 
 def calibration_case(n: int, seed: int = 0):
     """(dataset, grid) of the N x N-stop scan (see the module notes)."""
-    import clsas
+    from ..geometry import Scene, VoxelGrid, raster_aperture
+    from ..signals import lfm_chirp
+    from ..simulation import simulate
 
     side = PITCH * (n - 1)
-    ap = clsas.raster_aperture(n, n, side, side)
+    ap = raster_aperture(n, n, side, side)
     half = side / 3
     n_lat = int(round(2 * half / VOXEL)) + 1
     lat = np.linspace(-half, half, n_lat)
-    grid = clsas.VoxelGrid(lat, lat, np.linspace(0.58, 0.74, 41))
+    grid = VoxelGrid(lat, lat, np.linspace(0.58, 0.74, 41))
     scale = min(1.0, side / 0.36)
     pts = np.array([[0.02 * scale, -0.01 * scale, 0.62], [-0.03 * scale, 0.02 * scale, 0.66],
                     [0.0, 0.03 * scale, 0.70]])
-    w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
-    ds = clsas.simulate(clsas.Scene(pts), ap, w, FS, snr_db=30, seed=seed,
+    w = lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
+    ds = simulate(Scene(pts), ap, w, FS, snr_db=30, seed=seed,
                         chirp={"f_start_hz": 20e3, "f_stop_hz": 30e3, "duration_s": 2e-3})
     return ds, grid
 
 
 def case_profiles(ds, grid, selection=None):
     """The case's profiles over its grid's delay gate (matched filter)."""
-    import clsas
+    from ..compression import compress
+    from ..rangegate import plan_reconstruction
 
-    plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
-    return clsas.compress(ds, gate_s=plan.gate_s, backend=selection)
+    plan = plan_reconstruction(ds, grid, [])
+    return compress(ds, gate_s=plan.gate_s, backend=selection)
 
 
 def forget_tree() -> None:

@@ -243,7 +243,7 @@ def _pulse(cd, ds: Dataset) -> None:
 
 
 def _write_clsas_group(g, location: str, ds: Dataset, layout: dict) -> None:
-    from .. import __version__
+    from ..version import __version__
 
     g.attrs["location"] = location
     g.attrs["clsas_version"] = __version__

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from .. import validate as v
+from ..config import PREPROCESS_KEYS
 from ..dataset import Dataset
 from ._base import _check_ds
 from .background import attach_background, subtract_background
@@ -18,8 +19,6 @@ from .filters import bandpass, remove_dc, remove_delay
 __all__ = ["PREPROCESS_KEYS", "apply", "from_table"]
 
 # keys of a [preprocess] table and of apply()'s keyword arguments
-PREPROCESS_KEYS = ("group_delay_s", "group_delay_samples", "direct_clock", "dc", "bandpass", "background",
-                   "common", "blank_direct")
 
 
 # apply() takes arguments named like the steps; these names reach the step functions

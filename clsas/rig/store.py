@@ -42,7 +42,7 @@ class ScanFile:
         transducers' models to store, their boresights come with each stop."""
         import h5py
 
-        from .. import __version__
+        from ..version import __version__
 
         f = h5py.File(path, "w")
         chunk = max(1, min(64, 2**20 // max(1, 4 * n_samples)))
