@@ -26,7 +26,7 @@ __all__ = ["estimate_motion", "carriage_3d"]
 def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, smooth_start,
                     pga_options, margin) -> tuple[np.ndarray, bool]:
     """The carriage's displacement (n_meas, 3), m, and whether it passed the check."""
-    ds, rep, engine = fo.ds, fo.rep, fo.engine
+    ds = fo.ds
     t = time.perf_counter()
     c = fo.c_stated
     shift = fo.t0_at(c) - ds.t0_s
@@ -37,20 +37,7 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
             return _points_or_track(fo, found, shift, c, stop, t_stop, xy, max_bytes), True
         if found is not None or not others:
             return (found, True) if found is not None else (np.zeros((ds.n_meas, 3)), False)
-    p_stop = np.zeros(len(t_stop))
-    centre = None
-    if "phase" in methods:
-        ph_engine, centre = _local_engine(fo, shift, c) if fo.phase_region_m is not None else (engine, None)
-
-        def local_metric(sh, cc, step):
-            return fo.metric_of(ph_engine.image(sh, cc), step)
-
-        p_stop = _phase_step(ph_engine, ds, ph_engine.grid, shift, c, stop, sweeps, max_bytes, local_metric,
-                             rep.history, fo.progress, rep, margin=fo.heldout_gain)
-        # the gauge no focus metric sees: a constant path is a range shift, one linear in the
-        # carriage's x and y a shift across; the phase search leaves them free, so they go
-        nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
-        p_stop = p_stop - nuis @ (nuis.T @ p_stop)
+    p_stop, centre = _phase_paths(fo, methods, shift, c, stop, t_stop, xy, sweeps, max_bytes)
     track = None
     if "track" in methods:
         from .track_step import track_step
@@ -58,6 +45,43 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
         p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.track_tolerance_m)
     if "los" in methods:
         p_stop = fo.line_of_sight(shift, c, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter)
+    move = _carriage_move(fo, methods, shift, c, stop, t_stop, xy, p_stop, centre, n_basis, bandwidth_hz, max_iter,
+                          smooth_start, pga_options)
+    before = fo.split_agreement(shift, c, None)
+    after = fo.split_agreement(shift, c, move)
+    if track is not None and set(methods) & {"phase", "3d", "los", "pga"} == set():
+        return _track_decision(fo, shift, c, move, track, before, after)
+    passed = _motion_passed(fo.rep.check.get("phase_heldout"), methods, move, before, after, margin)
+    _record_motion(fo, methods, move, before, after, passed, margin, time.perf_counter() - t)
+    return (move, True) if passed else (np.zeros((ds.n_meas, 3)), False)
+
+
+def _phase_paths(fo, methods, shift, c, stop, t_stop, xy, sweeps, max_bytes) -> tuple[np.ndarray, np.ndarray | None]:
+    """Each stop's path-length error from the per-stop phase search (zeros without ``"phase"``), with
+    the range and cross-range gauge removed, and the focus centre of a local phase region (or None)."""
+    ds, rep, engine = fo.ds, fo.rep, fo.engine
+    p_stop = np.zeros(len(t_stop))
+    centre = None
+    if "phase" not in methods:
+        return p_stop, centre
+    ph_engine, centre = _local_engine(fo, shift, c) if fo.phase_region_m is not None else (engine, None)
+
+    def local_metric(sh, cc, step):
+        return fo.metric_of(ph_engine.image(sh, cc), step)
+
+    p_stop = _phase_step(ph_engine, ds, ph_engine.grid, shift, c, stop, sweeps, max_bytes, local_metric,
+                         rep.history, fo.progress, rep, margin=fo.heldout_gain)
+    # the gauge no focus metric sees: a constant path is a range shift, one linear in the
+    # carriage's x and y a shift across; the phase search leaves them free, so they go
+    nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
+    return p_stop - nuis @ (nuis.T @ p_stop), centre
+
+
+def _carriage_move(fo, methods, shift, c, stop, t_stop, xy, p_stop, centre, n_basis, bandwidth_hz, max_iter,
+                   smooth_start, pga_options) -> np.ndarray:
+    """The path-length errors as a carriage displacement along the lines of sight to the focus
+    centre, refined in 3-D (``"3d"``) and by phase-gradient autofocus (``"pga"``) where named."""
+    ds, rep, engine = fo.ds, fo.rep, fo.engine
     if centre is None:
         centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
     rep.focus_centre_m = centre
@@ -66,17 +90,22 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
         move = carriage_3d(fo, shift, c, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start)
     if "pga" in methods:
         move, _ = _pga_step(engine, ds, shift, c, stop, xy, move, pga_options, fo.image_metric, rep)
-    before = fo.split_agreement(shift, c, None)
-    after = fo.split_agreement(shift, c, move)
+    return move
+
+
+def _motion_passed(held, methods, move, before, after, margin) -> bool:
+    """The motion's check: with phases alone, the held-out halves' verdict and no sub-aperture pair
+    agreeing less; otherwise, on all stops, the sub-aperture pairs agreeing better on average."""
     gain = np.asarray(after) - np.asarray(before)
-    held = rep.check.get("phase_heldout")
-    if track is not None and set(methods) & {"phase", "3d", "los", "pga"} == set():
-        return _track_decision(fo, shift, c, move, track, before, after)
     if held is not None and set(methods) & {"3d", "los", "pga"} == set():
-        # phases alone: held out (each half predicts the other), and no sub-aperture pair agrees less
-        passed = bool(held["passed"] and gain.min() > -margin and np.any(move != 0))
-    else:  # on all stops, nothing held out: the sub-aperture pairs must agree better
-        passed = bool(gain.mean() > margin and gain.min() > -margin and (held is None or held["passed"]))
+        return bool(held["passed"] and gain.min() > -margin and np.any(move != 0))
+    return bool(gain.mean() > margin and gain.min() > -margin and (held is None or held["passed"]))
+
+
+def _record_motion(fo, methods, move, before, after, passed, margin, seconds) -> None:
+    """The motion's estimate, check, stage and (when it failed) the note, in the report."""
+    rep = fo.rep
+    held = rep.check.get("phase_heldout")
     rms = float(np.sqrt(np.mean(np.sum(move**2, axis=1))))
     pairs = ", ".join(f"{n} {b:.3f} -> {a:.3f}" for n, b, a in zip(fo.split_names, before, after, strict=True))
     if held is not None:
@@ -92,13 +121,11 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
         f"{used} on all stops ({rep.n_basis or 'per-stop'} functions per axis); sub-aperture images agree "
         f"(magnitude correlation): {pairs}")
     rep.stages.append({"step": "motion", "methods": used, "agreement_before": list(before),
-                       "agreement_after": list(after), "passed": passed, "time_s": time.perf_counter() - t})
+                       "agreement_after": list(after), "passed": passed, "time_s": seconds})
     if not passed:
         rep.notes.append(f"motion: the disjoint sub-apertures' images do not agree better after it ({pairs}; margin "
                          f"{margin:g}): the sharpness over-fits, or the scan does not determine the motion; "
                          "not applied")
-        return np.zeros((ds.n_meas, 3)), False
-    return move, True
 
 
 #: ``"points"`` is applied only where the disjoint sub-apertures' images agree better after it by
