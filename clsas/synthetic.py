@@ -12,6 +12,7 @@ delay that the recording does not know about.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -123,39 +124,60 @@ def turntable_scan(
     temps = np.linspace(temperature_c[0], temperature_c[1], n)
     t_bg = float(np.mean(temperature_c)) if background_temperature_c is None else background_temperature_c
     gd = group_delay_samples / fs_hz
-    t0 = -gd  # sample 0 is recorded gd before the sound leaves the speaker
-    kw = dict(n_samples=n_samples, t0_s=t0, chirp=chirp, absorption=True)
+    # sample 0 is recorded gd before the sound leaves the speaker
+    kw = dict(n_samples=n_samples, t0_s=-gd, chirp=chirp, absorption=True)
     # the target: unit scatterers with a little spread
     amps = rng.uniform(0.6, 1.0, len(target))
     echo = simulate(Scene(target, amps, humidity_pct=humidity_pct), ap_target, wave, fs_hz, temperature_c=temps,
                     **kw).signals
-    peak = float(np.abs(echo).max())
-    # the turntable's fixed stand and a post beside it: at the target's range, so their echoes
-    # fall into the imaged gate (as rings: they do not turn with the target)
-    clutter = np.array([[0.12, 0.12, -0.03], [-0.15, -0.05, 0.05], [0.02, -0.17, 0.0]])
-    # the direct sound: a scatterer halfway between speaker and microphone, scaled afterwards
-    direct_pt = 0.5 * (tx_room + rx_room)[None, :]
-
-    def room(temp, noise_seed):
-        clut = simulate(Scene(clutter, np.ones(len(clutter)), humidity_pct=humidity_pct), ap_room, wave, fs_hz,
-                        temperature_c=temp, **kw)
-        dirc = simulate(Scene(direct_pt, np.ones(1), humidity_pct=humidity_pct), ap_room, wave, fs_hz,
-                        temperature_c=temp, **kw)
-        sig = clut.signals * (peak * 10 ** (clutter_db / 20) / max(np.abs(clut.signals).max(), 1e-300))
-        sig += dirc.signals * (peak * 10 ** (direct_db / 20) / max(np.abs(dirc.signals).max(), 1e-300))
-        r = np.random.default_rng(noise_seed)
-        tt = np.arange(n_samples) / fs_hz
-        sig += dc * peak + hum * peak * np.sin(2 * np.pi * 60.0 * tt + r.uniform(0, 2 * np.pi))
-        sig += r.normal(0.0, peak * 10 ** (-snr_db / 20) / np.sqrt(2), sig.shape)
-        return sig
-
-    signals = echo + room(temps, seed + 1)
-    bg_signals = room(np.full(n, t_bg), seed + 2)
+    room = _RoomSound(ap_room, 0.5 * (tx_room + rx_room)[None, :], wave, fs_hz, humidity_pct, kw,
+                      peak=float(np.abs(echo).max()), clutter_db=clutter_db, direct_db=direct_db, dc=dc, hum=hum,
+                      snr_db=snr_db)
     common = dict(fs_hz=fs_hz, waveform=wave, t0_s=np.zeros(n), chirp=chirp, humidity_pct=humidity_pct)
-    ds = Dataset(signals, ap_target.tx_positions, ap_target.rx_positions, temperature_c=temps,
-                 provenance=[{"step": "synthetic", "kind": "turntable_scan", "seed": seed}], **common)
-    bg = Dataset(bg_signals, ap_target.tx_positions, ap_target.rx_positions, temperature_c=t_bg,
-                 provenance=[{"step": "synthetic", "kind": "turntable_scan background", "seed": seed}], **common)
+    ds = Dataset(echo + room.signals(temps, seed + 1), ap_target.tx_positions, ap_target.rx_positions,
+                 temperature_c=temps, provenance=[{"step": "synthetic", "kind": "turntable_scan", "seed": seed}],
+                 **common)
+    bg = Dataset(room.signals(np.full(n, t_bg), seed + 2), ap_target.tx_positions, ap_target.rx_positions,
+                 temperature_c=t_bg, provenance=[{"step": "synthetic", "kind": "turntable_scan background",
+                                                  "seed": seed}], **common)
     pad = 0.03
     box = np.c_[target.min(axis=0) - pad, target.max(axis=0) + pad]
-    return TurntableScan(ds, bg, target, clutter, gd, box)
+    return TurntableScan(ds, bg, target, _RoomSound.CLUTTER, gd, box)
+
+
+@dataclass(frozen=True)
+class _RoomSound:
+    """What the room adds to every recording of a turntable scan: the fixed clutter, the direct
+    sound, a DC offset, mains hum and noise, at levels relative to the target's strongest echo."""
+
+    # the turntable's fixed stand and a post beside it: at the target's range, so their echoes
+    # fall into the imaged gate (as rings: they do not turn with the target)
+    CLUTTER: ClassVar[np.ndarray] = np.array([[0.12, 0.12, -0.03], [-0.15, -0.05, 0.05], [0.02, -0.17, 0.0]])
+
+    aperture: Aperture
+    direct_point: np.ndarray  # a scatterer halfway between speaker and microphone, scaled afterwards
+    wave: np.ndarray
+    fs_hz: float
+    humidity_pct: float
+    simulate_kw: dict
+    peak: float
+    clutter_db: float
+    direct_db: float
+    dc: float
+    hum: float
+    snr_db: float
+
+    def _echoes(self, points: np.ndarray, temp) -> np.ndarray:
+        scene = Scene(points, np.ones(len(points)), humidity_pct=self.humidity_pct)
+        return simulate(scene, self.aperture, self.wave, self.fs_hz, temperature_c=temp, **self.simulate_kw).signals
+
+    def signals(self, temp, noise_seed: int) -> np.ndarray:
+        """The room's part of each recording at the air temperatures ``temp`` (noise from ``noise_seed``)."""
+        clut, dirc = self._echoes(self.CLUTTER, temp), self._echoes(self.direct_point, temp)
+        sig = clut * (self.peak * 10 ** (self.clutter_db / 20) / max(np.abs(clut).max(), 1e-300))
+        sig += dirc * (self.peak * 10 ** (self.direct_db / 20) / max(np.abs(dirc).max(), 1e-300))
+        r = np.random.default_rng(noise_seed)
+        tt = np.arange(sig.shape[1]) / self.fs_hz
+        sig += self.dc * self.peak + self.hum * self.peak * np.sin(2 * np.pi * 60.0 * tt + r.uniform(0, 2 * np.pi))
+        sig += r.normal(0.0, self.peak * 10 ** (-self.snr_db / 20) / np.sqrt(2), sig.shape)
+        return sig
