@@ -359,14 +359,32 @@ def build_tree(
     taps : int
         Interpolation stencil per axis (every grid keeps at least this many samples per axis).
     """
-    n = len(tx)
-    centres = 0.5 * (tx + rx)
     f_lo, f_hi = band_hz
     f0 = 0.5 * (f_lo + f_hi)
     c_ref = float(np.mean(c_mps))
-    target = grid_bounds.mean(axis=1)
+    sets, order, rank = _subapertures(0.5 * (tx + rx), depth, factor)
+    tx_o, rx_o, c_o = tx[order], rx[order], c_mps[order]
+    levels: list[Level] = []
+    parent_geom = parent_ints = None
+    for d in range(1, depth + 1):
+        ints = _node_ranges(sets[d], rank, factor, last=d == depth)
+        sizes, starts = ints[:, 5] - ints[:, 4], ints[:, 4]
+        geom = _node_frames(tx_o, rx_o, starts, sizes, grid_bounds.mean(axis=1))
+        # the region each node must cover: the grid's box (depth 1) or its parent's grid
+        box = _regions(geom, grid_bounds, parent_geom, parent_ints, factor)
+        # sampling: the largest local frequency of any measurement's term over the node's region
+        fr, fu, fv = _rates(geom, box, tx_o, rx_o, c_o, sizes, (f_lo, f_hi), f0, c_ref)
+        steps = np.stack([1.0 / (2 * fr * range_oversample), 1.0 / (2 * np.maximum(fu, 1e-9) * oversample),
+                          1.0 / (2 * np.maximum(fv, 1e-9) * oversample)], axis=1)
+        levels.append(_sampled_level(geom, ints, *_sample_grids(box, steps, taps)))
+        parent_geom, parent_ints = geom, ints
+    return Tree(order, levels, factor, f0, c_ref, (f_lo, f_hi))
 
-    # the tree, top down; leaves in order give the measurement permutation
+
+def _subapertures(centres: np.ndarray, depth: int, factor: int):
+    """The tree's node sets, top down (each a list of measurement index arrays), the measurement
+    order its leaves give, and each measurement's rank in that order."""
+    n = len(centres)
     sets = [[np.arange(n)]]
     parts = split_sizes(factor)
     for _ in range(depth):
@@ -374,45 +392,46 @@ def build_tree(
     order = np.concatenate(sets[-1]) if depth else np.arange(n)
     rank = np.empty(n, np.int64)
     rank[order] = np.arange(n)
+    return sets, order, rank
 
-    levels: list[Level] = []
-    parent_geom = None
-    parent_ints = None
-    for d in range(1, depth + 1):
-        nodes = sets[d]
-        nn = len(nodes)
-        ints = np.zeros((nn, NI), np.int64)
-        ints[:, 4] = [rank[s].min() for s in nodes]
-        ints[:, 5] = [rank[s].max() + 1 for s in nodes]
-        if d < depth:
-            ints[:, 6] = np.arange(nn) * factor
-            ints[:, 7] = ints[:, 6] + factor
-        sizes = ints[:, 5] - ints[:, 4]
-        starts = ints[:, 4]
-        tx_o, rx_o, c_o = tx[order], rx[order], c_mps[order]
-        t_mean = np.add.reduceat(tx_o, starts) / sizes[:, None]
-        r_mean = np.add.reduceat(rx_o, starts) / sizes[:, None]
-        geom = np.zeros((nn, NG))
-        geom[:, 0:3] = 0.5 * (t_mean + r_mean)
-        geom[:, 3:12] = _frames(geom[:, 0:3], target).reshape(nn, 9)
-        geom[:, 12:15] = t_mean
-        geom[:, 15:18] = r_mean
 
-        # the region each node must cover: the grid's box (depth 1) or its parent's grid
-        box = _regions(geom, grid_bounds, parent_geom, parent_ints, factor)
+def _node_ranges(nodes, rank: np.ndarray, factor: int, last: bool) -> np.ndarray:
+    """A level's integer record: each node's first and past-last measurement in the leaf order and,
+    above the leaves, its first and past-last child."""
+    nn = len(nodes)
+    ints = np.zeros((nn, NI), np.int64)
+    ints[:, 4] = [rank[s].min() for s in nodes]
+    ints[:, 5] = [rank[s].max() + 1 for s in nodes]
+    if not last:
+        ints[:, 6] = np.arange(nn) * factor
+        ints[:, 7] = ints[:, 6] + factor
+    return ints
 
-        # sampling: the largest local frequency of any measurement's term over the node's region
-        fr, fu, fv = _rates(geom, box, tx_o, rx_o, c_o, sizes, (f_lo, f_hi), f0, c_ref)
-        steps = np.stack([1.0 / (2 * fr * range_oversample), 1.0 / (2 * np.maximum(fu, 1e-9) * oversample),
-                          1.0 / (2 * np.maximum(fv, 1e-9) * oversample)], axis=1)
-        counts, origin, steps = _sample_grids(box, steps, taps)
-        geom[:, 18:21] = origin
-        geom[:, 21:24] = steps
-        geom[:, 24:27] = 1.0 / steps
-        ints[:, 0:3] = counts
-        per_node = np.prod(counts, axis=1)
-        padded = -(-per_node // BLOCK) * BLOCK
-        ints[:, 3] = np.concatenate([[0], np.cumsum(padded)[:-1]])
-        levels.append(Level(geom, ints, int(padded.sum())))
-        parent_geom, parent_ints = geom, ints
-    return Tree(order, levels, factor, f0, c_ref, (f_lo, f_hi))
+
+def _node_frames(tx_o: np.ndarray, rx_o: np.ndarray, starts: np.ndarray, sizes: np.ndarray,
+                 target: np.ndarray) -> np.ndarray:
+    """A level's geometry record: each node's phase centre, its frame facing ``target`` and its mean
+    speaker and microphone positions (the sampled grid's part is filled by :func:`_sampled_level`)."""
+    nn = len(sizes)
+    t_mean = np.add.reduceat(tx_o, starts) / sizes[:, None]
+    r_mean = np.add.reduceat(rx_o, starts) / sizes[:, None]
+    geom = np.zeros((nn, NG))
+    geom[:, 0:3] = 0.5 * (t_mean + r_mean)
+    geom[:, 3:12] = _frames(geom[:, 0:3], target).reshape(nn, 9)
+    geom[:, 12:15] = t_mean
+    geom[:, 15:18] = r_mean
+    return geom
+
+
+def _sampled_level(geom: np.ndarray, ints: np.ndarray, counts: np.ndarray, origin: np.ndarray,
+                   steps: np.ndarray) -> Level:
+    """The level with its nodes' sampled grids (origin, steps, counts) and their offsets in one
+    buffer, each padded to whole blocks."""
+    geom[:, 18:21] = origin
+    geom[:, 21:24] = steps
+    geom[:, 24:27] = 1.0 / steps
+    ints[:, 0:3] = counts
+    per_node = np.prod(counts, axis=1)
+    padded = -(-per_node // BLOCK) * BLOCK
+    ints[:, 3] = np.concatenate([[0], np.cumsum(padded)[:-1]])
+    return Level(geom, ints, int(padded.sum()))
