@@ -80,3 +80,37 @@ def test_demo_writes_datasets_images_and_pictures(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.count("from the nearest true (image) reflector") == 2
     assert np.all(np.isfinite(clsas.Image.load(tmp_path / "corner-image.h5").values))
+
+
+@pytest.mark.parametrize("command", ["simulate", "preprocess", "reconstruct", "export", "inspect", "autofocus"])
+def test_a_command_never_replaces_a_file_unasked(tmp_path, capsys, command):
+    """Every command that writes refuses an existing output before any work, naming the file and
+    --overwrite; with --overwrite it replaces it."""
+    from conftest import small_dataset
+
+    from clsas.cli import main
+
+    ds = small_dataset([[0.0, 0.0, 0.5]], nx=5, ny=4)
+    scan = ds.save(tmp_path / "scan.h5")
+    grid = "--grid=-0.05,0.05,-0.04,0.04,0.45,0.55"
+    image = tmp_path / "scan-image.h5"
+    assert main(["reconstruct", str(scan), grid, "--spacing", "0.02", "--backend", "numpy", "-q"]) == 0
+    scene = tmp_path / "scene.toml"
+    scene.write_text(SCENE)
+    target = {"simulate": tmp_path / "sim.h5", "preprocess": tmp_path / "pre.h5", "reconstruct": image,
+              "export": tmp_path / "x.npy", "inspect": tmp_path / "scan-inspect.png",
+              "autofocus": tmp_path / "af.h5"}[command]
+    argv = {"simulate": ["simulate", str(scene), str(target), "-q", "--backend", "numpy"],
+            "preprocess": ["preprocess", str(scan), str(target), "--dc"],
+            "reconstruct": ["reconstruct", str(scan), grid, "--spacing", "0.02", "--backend", "numpy", "-q"],
+            "export": ["export", str(image), str(target)],
+            "inspect": ["inspect", str(scan), grid],
+            "autofocus": ["autofocus", str(scan), str(target), grid, "--spacing", "0.02", "--backend", "numpy",
+                          "-q"]}[command]
+    target.write_bytes(b"precious")
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert str(target) in err and "--overwrite" in err
+    assert target.read_bytes() == b"precious"
+    assert main([*argv, "--overwrite"]) == 0
+    assert target.read_bytes() != b"precious"

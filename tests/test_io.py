@@ -297,5 +297,12 @@ def test_cli_import(tmp_path, capsys):
     ds = clsas.load(out)
     assert ds.n_meas == 8 and ds.background is not None and ds.provenance[0]["format"] == "airsas"
     np.testing.assert_allclose(ds.t0_s, -GD / FS)
-    assert main(["import", str(tmp_path / "scan"), str(out), "--format", "folder"]) == 2
+    assert main(["import", str(tmp_path / "scan"), str(out), "--format", "folder", "--overwrite"]) == 2
     assert "positions.csv" in capsys.readouterr().err
+    # without --overwrite the existing scan is not replaced: one line naming it, before any reading
+    before = out.read_bytes()
+    assert main(["import", str(tmp_path / "scan"), str(out)]) == 2
+    err = capsys.readouterr().err
+    assert str(out) in err and "--overwrite" in err and err.count("\n") == 1
+    assert out.read_bytes() == before
+    assert main(["import", str(tmp_path / "scan"), str(out), "--overwrite"]) == 0

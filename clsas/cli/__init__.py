@@ -34,7 +34,7 @@ from . import (
     reconstruct,
     simulate,
 )
-from .common import check_device_request, check_input_files, check_method_dependencies
+from .common import WRITERS, check_device_request, check_input_files, check_method_dependencies, check_output_files
 
 __all__ = ["COMMANDS", "EXIT_BAD_INPUT", "EXIT_FAILURE", "EXIT_OK", "EXIT_RESUMABLE", "PLUGIN_GROUP", "build_parser",
            "load_plugins", "main"]
@@ -99,6 +99,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_parser(sub)
+    for name in WRITERS:
+        sub.choices[name].add_argument("--overwrite", action="store_true",
+                                       help="replace the files it writes where they exist (else it refuses)")
     for sp in sub.choices.values():
         opts = sp._option_string_actions
         sp.add_argument("--debug", action="store_true", help="show tracebacks")
@@ -138,6 +141,7 @@ def _run(args) -> int:
         logging.getLogger("clsas.cl.variants").setLevel(logging.INFO)
     try:
         check_input_files(args)  # every guard on the command line runs before any work
+        check_output_files(args)
         check_device_request(args)
         check_method_dependencies(getattr(args, "method", None))
         return args.func(args)

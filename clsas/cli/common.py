@@ -28,6 +28,41 @@ def check_input_files(args) -> None:
                              "write it again (or restore a copy)") from None
 
 
+#: the commands that write files, each refusing to replace one unless given --overwrite
+WRITERS = ("simulate", "import", "preprocess", "autofocus", "export", "reconstruct", "inspect")
+
+
+def output_files(args) -> list[Path]:
+    """The files the command ``args`` names will write, named as it will name them."""
+    cmd = getattr(args, "command", "")
+    out: list[Path] = []
+    if cmd in ("simulate", "import", "preprocess", "autofocus", "export") and getattr(args, "out", None):
+        out.append(Path(args.out))
+    if cmd == "autofocus" and getattr(args, "png", None):
+        out.append(Path(args.png))
+    if cmd == "reconstruct":
+        image = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
+        tiled = args.max_memory is not None or args.scheduler is not None or image.suffix.lower() == ".zarr"
+        if not tiled:  # a file formed in tiles is resumed where an earlier run stopped, not replaced
+            out.append(image)
+        out += ([image.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else [])
+    if cmd == "inspect":
+        data = Path(args.data)
+        out.append(Path(args.png) if args.png else data.with_name(data.stem + "-inspect.png"))
+    return out
+
+
+def check_output_files(args) -> None:
+    """Refuse, before any work, to replace a file the command would write (a ``FileExistsError``:
+    exit 2) unless ``--overwrite`` was given."""
+    if getattr(args, "overwrite", False):
+        return
+    for path in output_files(args):
+        if path.exists():
+            raise FileExistsError(f"{path} exists and clsas {args.command} would replace it: pass --overwrite to "
+                                  "replace it, or name another file")
+
+
 #: the methods the CLI offers instead of a slow one, fastest last (docs/guide/super-resolution.md)
 FASTER = {"cbp-taylor": ("cbp-polar", "bpdn", "bp"), "cbp-polar-socp": ("cbp-polar", "bpdn", "bp"),
           "cbp-polar": ("bpdn", "bp"), "bpdn": ("bp",)}

@@ -11,7 +11,7 @@ def cmd_export(args) -> int:
         import clsas
         import clsas.io
 
-        print(f"wrote {clsas.io.export_uff(clsas.load(args.image), args.out, overwrite=True)}")
+        print(f"wrote {clsas.io.export_uff(clsas.load(args.image), args.out, overwrite=args.overwrite)}")
         return 0
     from clsas.export import export
     from clsas.image import Image
