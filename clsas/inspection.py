@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import sanity
 from .dataset import Dataset
 from .geometry import VoxelGrid
 
@@ -65,26 +66,7 @@ class Inspection:
 
 def _envelope(ds: Dataset) -> np.ndarray:
     """|matched filter| of each recording, aligned so that sample k is an echo at t0 + k / fs."""
-    from .signals import analytic
-
-    n = ds.n_samples + len(ds.waveform)
-    nf = 1 << int(np.ceil(np.log2(n)))
-    spec = np.fft.fft(ds.signals, nf, axis=1) * np.conj(np.fft.fft(analytic(ds.waveform), nf))[None, :]
-    spec[:, nf // 2:] = 0
-    return np.abs(np.fft.ifft(spec, axis=1))[:, : ds.n_samples] * 2
-
-
-def _gate(ds: Dataset, grid: VoxelGrid, max_points: int = 4096) -> np.ndarray:
-    """(n_meas, 2) min and max bistatic delay from each measurement to the grid, s."""
-    pts = grid.points().reshape(-1, 3)
-    if len(pts) > max_points:  # the extremes of a box lie on its surface: corners and a sample
-        rng = np.random.default_rng(0)
-        corners = np.array(np.meshgrid(*[(ax[0], ax[-1]) for ax in (grid.x_m, grid.y_m, grid.z_m)],
-                                       indexing="ij")).reshape(3, -1).T
-        pts = np.vstack([corners, pts[rng.choice(len(pts), max_points, replace=False)]])
-    d = (np.linalg.norm(pts[None] - ds.tx_positions[:, None], axis=2)
-         + np.linalg.norm(pts[None] - ds.rx_positions[:, None], axis=2)) / ds.c_per_meas[:, None]
-    return np.c_[d.min(axis=1), d.max(axis=1)]
+    return sanity.envelope(ds, np.arange(ds.n_meas))
 
 
 def _direct_check(ds: Dataset, warnings: list) -> tuple[np.ndarray, np.ndarray]:
@@ -145,16 +127,12 @@ def inspect_dataset(ds: Dataset, grid: VoxelGrid | None = None, *, min_in_gate: 
     t = ds.t0_s[:, None] + np.arange(ds.n_samples)[None, :] / ds.fs_hz
     gate, frac, bounds = None, float("nan"), None
     if grid is not None:
-        gate = _gate(ds, grid)
-        wave_s = len(ds.waveform) / ds.fs_hz
-        after = t > (pred + 1.2 * wave_s)[:, None]
-        inside = (t >= gate[:, :1]) & (t <= gate[:, 1:])
-        energy = float((env[after] ** 2).sum())
-        frac = float((env[after & inside] ** 2).sum() / energy) if energy > 0 else float("nan")
+        gate = sanity.grid_delays(ds, grid)
+        frac = sanity.echo_share_in_grid(ds, grid)
         bounds = np.array([[ax[0], ax[-1]] for ax in (grid.x_m, grid.y_m, grid.z_m)])
         if np.isfinite(frac) and frac < min_in_gate:
             warnings.append(f"only {100 * frac:.0f} % of the echo energy after the direct sound falls in the grid's "
-                            "delays: is the grid where the target is, and are the positions in metres in its frame?")
+                            f"delays; {sanity.likely_cause(ds, grid)}")
     peak = np.abs(ds.signals).max(axis=1, keepdims=True)
     at_peak = (np.abs(ds.signals) >= 0.999 * peak).sum(axis=1)
     if np.mean(at_peak >= 4) > 0.1:

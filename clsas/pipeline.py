@@ -27,6 +27,7 @@ from .geometry import VoxelGrid
 from .image import Image
 from .profiles import Profiles
 from .rangegate import ReconstructionPlan, plan_reconstruction
+from .sanity import check_grid_against_data
 
 __all__ = ["methods", "reconstruct"]
 
@@ -104,11 +105,21 @@ def reconstruct(
                    progress=progress, sparse=sparse, force=force, formation=formation,
                    formation_options=formation_options, out=out, max_memory=max_memory, client=client,
                    tile_shape=tile_shape, max_error_db=max_error_db, inverse=inverse)
+    # the grid must hold the recordings' echoes (a grid in millimetres does not) ...
+    grid_check = check_grid_against_data(dataset, grid) if isinstance(dataset, Dataset) else None
     if req.tiled is not None:
-        return _reconstruct(dataset, req)
-    check_grid(grid, req.selection.kind, req.selection.cl_device, force=force)  # the image must fit before any work
+        return _with_grid_check(_reconstruct(dataset, req), grid_check)
+    check_grid(grid, req.selection.kind, req.selection.cl_device, force=force)  # ... and fit, before any work
     with checked_once(grid, req.selection.kind):  # ... and is not checked again by the stages
-        return _reconstruct(dataset, req)
+        return _with_grid_check(_reconstruct(dataset, req), grid_check)
+
+
+def _with_grid_check(image: Image, check) -> Image:
+    """The image with the share of the echo energy its grid holds, and any warning about it."""
+    if check is None:
+        return image
+    record = {"echo_share": check.share, "warnings": list(check.warnings)}
+    return replace(image, provenance={**image.provenance, "grid_check": record})
 
 
 @dataclass(frozen=True)

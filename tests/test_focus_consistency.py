@@ -103,7 +103,7 @@ def test_cli_autofocus_prints_the_consistency_before_and_after(tmp_path, capsys)
     text = capsys.readouterr().out
     assert "data consistency (5 iterations)" in text and "(ratio " in text
     # a negative count is refused before any focusing
-    assert main([*args, "--consistency", "-1"]) == 2
+    assert main([*args, "--consistency", "-1", "--overwrite"]) == 2
     assert "--consistency" in capsys.readouterr().err
 
 

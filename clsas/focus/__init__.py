@@ -153,10 +153,19 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
                        pga_max_points, progress)
     options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
                                           phase_region_m, track_tolerance_m, consistency_iter))
+    return _focus(dataset, grid, options, backend=backend, device=device, progress=progress, force=force)
+
+
+def _focus(dataset, grid, options: dict, **where) -> tuple[Dataset, AutofocusReport]:
+    """The checked request run: the grid against the scan's echoes first (a grid beside the
+    target leaves nothing to focus on; its warning leads the report's notes), then the steps."""
+    from ..sanity import check_grid_against_data
     from .run import run
 
-    return run(dataset, grid, backend=backend, device=device, progress=progress, force=force,
-               started=time.perf_counter(), **options)
+    grid_check = check_grid_against_data(dataset, grid, where="autofocus")
+    out, report = run(dataset, grid, started=time.perf_counter(), **where, **options)
+    report.notes[:0] = list(grid_check.warnings)
+    return out, report
 
 
 def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c, max_delay_s,

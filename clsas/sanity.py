@@ -1,0 +1,134 @@
+"""The request against the data, before any work: does the grid hold the echoes at all?
+
+A grid typed in millimetres (``VoxelGrid.from_bounds((-400, 400), ..., 10)``), positions in the
+wrong unit or frame, or a grid beside the target image nothing but noise, silently. Every entry
+point that images a grid (``reconstruct`` with any method and formation, ``autofocus``, the
+command line, ``inspect``) asks :func:`check_grid_against_data` first:
+
+- no voxel's delay within any recording's time span: the grid cannot be imaged from these
+  recordings; refused (``ValueError`` naming ``grid``) with the likely cause;
+- under :data:`MIN_SHARE` of the echo energy after the direct sound with delays inside the grid's:
+  a warning naming the share and the likely cause (units, frame), kept in the result.
+
+The share is computed as ``clsas inspect`` computes it (the matched filter's envelope, on at most
+:data:`MAX_RECORDINGS` recordings spread over the scan, so it costs a fraction of a compression).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .dataset import Dataset
+from .geometry import VoxelGrid
+
+__all__ = ["MAX_RECORDINGS", "MIN_SHARE", "GridCheck", "check_grid_against_data", "echo_share_in_grid", "envelope",
+           "grid_delays", "likely_cause"]
+
+log = logging.getLogger(__name__)
+
+MIN_SHARE = 0.2  # warn below this share of the echo energy in the grid's delays
+MAX_RECORDINGS = 64  # recordings the share is computed on, spread over the scan
+MAX_POINTS = 4096  # grid points the delays are taken at (the box's corners always)
+
+
+@dataclass(frozen=True)
+class GridCheck:
+    """What :func:`check_grid_against_data` found: the echo energy's share in the grid's delays
+    (NaN where the recordings hold no echo energy after the direct sound), and the warnings."""
+
+    share: float
+    warnings: tuple[str, ...] = ()
+
+
+def _grid_points(grid: VoxelGrid, max_points: int = MAX_POINTS) -> np.ndarray:
+    """The grid's voxel centres, or (for a larger grid) its corners and ``max_points`` voxels drawn
+    at random, without forming the whole grid (a grid typed in millimetres may have 1e9 voxels)."""
+    axes = (np.asarray(grid.x_m), np.asarray(grid.y_m), np.asarray(grid.z_m))
+    if grid.size <= max_points:
+        return grid.points().reshape(-1, 3)
+    rng = np.random.default_rng(0)
+    corners = np.array(np.meshgrid(*[(ax[0], ax[-1]) for ax in axes], indexing="ij")).reshape(3, -1).T
+    drawn = np.stack([ax[rng.integers(0, len(ax), max_points)] for ax in axes], axis=1)
+    return np.vstack([corners, drawn])
+
+
+def grid_delays(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = None) -> np.ndarray:
+    """(n, 2) the least and greatest bistatic delay from each measurement (``rows``) to the grid, s."""
+    rows = np.arange(ds.n_meas) if rows is None else rows
+    pts = _grid_points(grid)
+    tx, rx, c = ds.tx_positions[rows], ds.rx_positions[rows], ds.c_per_meas[rows]
+    d = (np.linalg.norm(pts[None] - tx[:, None], axis=2) + np.linalg.norm(pts[None] - rx[:, None], axis=2)) / c[:, None]
+    return np.c_[d.min(axis=1), d.max(axis=1)]
+
+
+def envelope(ds: Dataset, rows: np.ndarray) -> np.ndarray:
+    """|matched filter| of the recordings ``rows``: sample k is an echo at t0 + k / fs."""
+    from .signals import analytic
+
+    n = ds.n_samples + len(ds.waveform)
+    nf = 1 << int(np.ceil(np.log2(n)))
+    spec = np.fft.fft(ds.signals[rows], nf, axis=1) * np.conj(np.fft.fft(analytic(ds.waveform), nf))[None, :]
+    spec[:, nf // 2:] = 0
+    return np.abs(np.fft.ifft(spec, axis=1))[:, : ds.n_samples] * 2
+
+
+def echo_share_in_grid(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = None) -> float:
+    """The share of the echo energy after the direct sound whose delays fall inside the grid's
+    (NaN where there is none), on the recordings ``rows`` (default all)."""
+    rows = np.arange(ds.n_meas) if rows is None else rows
+    env = envelope(ds, rows)
+    t = ds.t0_s[rows, None] + np.arange(ds.n_samples)[None, :] / ds.fs_hz
+    direct = np.linalg.norm(ds.tx_positions[rows] - ds.rx_positions[rows], axis=1) / ds.c_per_meas[rows]
+    after = t > (direct + 1.2 * len(ds.waveform) / ds.fs_hz)[:, None]
+    gate = grid_delays(ds, grid, rows)
+    inside = (t >= gate[:, :1]) & (t <= gate[:, 1:])
+    energy = float((env[after] ** 2).sum())
+    return float((env[after & inside] ** 2).sum() / energy) if energy > 0 else float("nan")
+
+
+def likely_cause(ds: Dataset, grid: VoxelGrid) -> str:
+    """The grid's and the positions' extents, and the likely cause of a grid that misses the data."""
+    ext = np.array([[ax[0], ax[-1]] for ax in (grid.x_m, grid.y_m, grid.z_m)])
+    span = float(np.max(np.abs(ext)))
+    pos = float(np.max(np.abs(np.r_[ds.tx_positions, ds.rx_positions])))
+    reach = 0.5 * float(np.max(ds.t0_s) + ds.n_samples / ds.fs_hz) * float(np.max(ds.c_per_meas))
+    text = (f"the grid reaches {span:.3g} m from the origin, the transducers {pos:.3g} m, and the recordings "
+            f"hear echoes out to about {reach:.3g} m")
+    if span > 20 * max(reach, pos, 1e-9):
+        return text + ": is the grid in millimetres? (clsas works in metres)"
+    if pos > 20 * max(reach, span, 1e-9):
+        return text + ": are the positions in millimetres? (clsas works in metres)"
+    return text + ": is the grid where the target is, and are the positions in metres in its frame?"
+
+
+def check_grid_against_data(ds: Dataset, grid: VoxelGrid, *, where: str = "reconstruct",
+                            min_share: float = MIN_SHARE) -> GridCheck:
+    """Check that ``grid`` can be imaged from ``ds``'s recordings, before any work.
+
+    Raises ``ValueError`` naming ``grid`` where no voxel's delay falls within any recording's time
+    span; returns the echo energy's share in the grid's delays, with a warning (logged, and for the
+    caller to keep in its result) below ``min_share``.
+    """
+    if not isinstance(ds, Dataset):
+        raise TypeError(f"dataset must be a clsas.Dataset, got {type(ds).__name__}")
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    rows = np.unique(np.linspace(0, ds.n_meas - 1, min(ds.n_meas, MAX_RECORDINGS)).round().astype(int))
+    gate = grid_delays(ds, grid, rows)
+    start = ds.t0_s[rows]
+    end = start + ds.n_samples / ds.fs_hz
+    if not np.any((gate[:, 1] >= start) & (gate[:, 0] <= end)):
+        raise ValueError(f"grid: no voxel's echo delay ({gate.min() * 1e3:.4g} to {gate.max() * 1e3:.4g} ms) "
+                         f"falls within the recordings ({start.min() * 1e3:.4g} to {end.max() * 1e3:.4g} ms): "
+                         f"{likely_cause(ds, grid)}")
+    share = echo_share_in_grid(ds, grid, rows)
+    warnings = ()
+    if np.isfinite(share) and share < min_share:
+        warnings = (f"{where}: only {100 * share:.0f} % of the echo energy after the direct sound falls in the "
+                    f"grid's delays; {likely_cause(ds, grid)}",)
+        for w in warnings:
+            log.warning("%s", w)
+    return GridCheck(share, warnings)

@@ -1,0 +1,89 @@
+"""The request against the data before any work (clsas.sanity): a grid in millimetres, a grid
+beside the target, positions in the wrong unit."""
+
+import logging
+
+import numpy as np
+import pytest
+from conftest import small_dataset
+
+import clsas
+from clsas.sanity import check_grid_against_data, echo_share_in_grid
+
+
+@pytest.fixture(scope="module")
+def scan():
+    return small_dataset([[0.02, -0.01, 0.5]], nx=6, ny=5)
+
+
+def test_a_grid_on_the_target_holds_its_echoes(scan):
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.6), 0.02)
+    check = check_grid_against_data(scan, grid)
+    assert check.share > 0.9 and not check.warnings
+
+
+def test_a_grid_in_millimetres_is_refused_before_any_work(scan, monkeypatch):
+    """The README's grid typed in millimetres: every voxel's delay lies seconds after the recordings
+    end; reconstruct refuses it naming grid and the likely unit, before compressing anything."""
+    mm = clsas.VoxelGrid.from_bounds((-100, 100), (-80, 80), (400, 600), 20)
+    import clsas.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "compress", lambda *a, **k: pytest.fail("compressed before the check"))
+    with pytest.raises(ValueError, match=r"^grid: .*millimetres"):
+        clsas.reconstruct(scan, mm, backend="numpy")
+
+
+def test_a_grid_beside_the_target_warns_and_says_so_in_the_image(scan, caplog):
+    """A grid whose delays overlap the recordings but not the echo: imaged, with one warning naming
+    the share, kept in the image's provenance."""
+    beside = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.15, 0.25), 0.02)
+    with caplog.at_level(logging.WARNING, logger="clsas.sanity"):
+        image = clsas.reconstruct(scan, beside, backend="numpy", formation="bp")
+    record = image.provenance["grid_check"]
+    assert record["echo_share"] < 0.2 and len(record["warnings"]) == 1
+    assert "% of the echo energy" in record["warnings"][0]
+    assert sum("echo energy" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_positions_in_millimetres_are_named(scan):
+    """Positions 1000x too large, grid in metres: the message points at the positions."""
+    ds = clsas.Dataset(scan.signals, scan.tx_positions * 1000, scan.rx_positions * 1000, scan.fs_hz, scan.waveform,
+                       temperature_c=20.0)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.6), 0.02)
+    with pytest.raises(ValueError, match="positions in millimetres"):
+        check_grid_against_data(ds, grid)
+
+
+def test_the_share_is_the_one_inspect_reports(scan):
+    from clsas.inspection import inspect_dataset
+
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.45, 0.55), 0.02)
+    assert inspect_dataset(scan, grid).in_gate_fraction == pytest.approx(echo_share_in_grid(scan, grid))
+    assert np.isfinite(echo_share_in_grid(scan, grid))
+
+
+def test_the_command_line_refuses_a_grid_in_millimetres(scan, tmp_path, capsys):
+    from clsas.cli import main
+
+    scan.save(tmp_path / "scan.h5")
+    assert main(["reconstruct", str(tmp_path / "scan.h5"), "--grid=-100,100,-80,80,400,600", "--spacing", "20",
+                 "--backend", "numpy", "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "millimetres" in err and err.count("\n") == 1
+
+
+def test_inspect_on_a_grid_of_a_billion_voxels_stays_small(scan, tmp_path, capsys):
+    """`clsas inspect --grid` in millimetres with the default spacing: 9e8 voxels; the check draws
+    a few thousand of them and says what is wrong, within a small memory budget."""
+    import resource
+
+    from clsas.cli import main
+
+    scan.save(tmp_path / "scan.h5")
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    assert main(["inspect", str(tmp_path / "scan.h5"), "--grid=-150,150,-150,150,0,0",
+                 "--png", str(tmp_path / "i.png")]) in (0, 2)
+    grown_mib = (resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before) / 1024
+    assert grown_mib < 500, grown_mib
+    out = capsys.readouterr()
+    assert "echo energy" in out.out + out.err or "millimetres" in out.out + out.err
