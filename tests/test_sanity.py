@@ -87,3 +87,26 @@ def test_inspect_on_a_grid_of_a_billion_voxels_stays_small(scan, tmp_path, capsy
     assert grown_mib < 500, grown_mib
     out = capsys.readouterr()
     assert "echo energy" in out.out + out.err or "millimetres" in out.out + out.err
+
+
+def test_a_missing_solver_names_the_extra_in_the_python_api(monkeypatch, chirp96):
+    """superres with CBP-Polar where nlopt is not installed: an ImportError naming nlopt and the
+    sparse extra, before any work (not a bare ModuleNotFoundError from inside the solve)."""
+    import importlib.util
+
+    import clsas.sparse
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "nlopt" else real(name, *a))
+    chirp, fs = chirp96
+    x = np.zeros(600)
+    x[100:100 + chirp.size] = chirp
+    with pytest.raises(ImportError, match=r"nlopt .*sparse extra.*pip install"):
+        clsas.sparse.superres(x, chirp, fs, method="cbp-polar")
+    assert len(clsas.sparse.superres(x, chirp, fs, method="bpdn").delays_s) >= 1
+
+
+def test_a_formation_option_typo_lists_the_valid_ones(scan):
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.6), 0.02)
+    with pytest.raises(ValueError, match=r"unknown option\(s\) \['oversampel'\] for 'ffbp'; known: .*'oversample'"):
+        clsas.reconstruct(scan, grid, backend="numpy", formation="ffbp", formation_options={"oversampel": 1.5})

@@ -260,18 +260,17 @@ def add_device_options(sp) -> None:
     sp.add_argument("-v", "--verbose", action="store_true", help="log what is computed and skipped")
 
 
-#: the packages each super-resolution method imports (the ``sparse`` extra), checked before any work
-METHOD_NEEDS = {"cbp-taylor": ("cvxpy",), "cbp-polar": ("nlopt",), "cbp-polar-socp": ("cvxpy",)}
-
-
 def check_method_dependencies(method: str | None) -> None:
     """Refuse a sparse method whose solver is not installed, naming the extra (ImportError: exit 1),
     instead of every recording falling back to the matched filter."""
+    if not method or method == "bp":
+        return  # (the sparse package is imported only where a sparse method is named)
     from importlib.util import find_spec
 
+    from clsas.sparse.registry import METHOD_NEEDS
     from clsas.validate import install_hint
 
-    missing = [m for m in METHOD_NEEDS.get(method or "", ()) if find_spec(m) is None]
+    missing = [m for m in METHOD_NEEDS.get(method, ()) if find_spec(m) is None]
     if missing:
         raise ImportError(f"--method {method} needs {' and '.join(missing)} (the sparse extra), which is not "
                           f"installed: {install_hint('sparse')}; or image with --method bp (or bpdn, which needs "

@@ -77,6 +77,9 @@ def _check_options(method: str, method_options: dict | None) -> dict:
     caller's error, raised once here, not a failure of every recording)."""
     import inspect
 
+    from .registry import require_solver
+
+    require_solver(method)
     options = dict(method_options or {})
     params = inspect.signature(SPARSE_METHODS[method]).parameters
     known = {k for k, p in params.items() if p.kind is inspect.Parameter.KEYWORD_ONLY} - {"max_echoes"}

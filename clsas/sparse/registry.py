@@ -133,6 +133,21 @@ SPARSE_METHODS.register("cbp-polar", _cbp_polar)
 SPARSE_METHODS.register("cbp-polar-socp", _cbp_polar_socp)
 
 
+#: the packages each method imports (the ``sparse`` extra); checked before any work
+METHOD_NEEDS = {"cbp-taylor": ("cvxpy",), "cbp-polar": ("nlopt",), "cbp-polar-socp": ("cvxpy",)}
+
+
+def require_solver(method: str, parameter: str = "method") -> None:
+    """Refuse a method whose solver is not installed with an ImportError naming the package and the
+    extra that brings it (not a bare ``ModuleNotFoundError`` from deep inside the solve)."""
+    from importlib.util import find_spec
+
+    missing = [m for m in METHOD_NEEDS.get(method, ()) if find_spec(m) is None]
+    if missing:
+        raise ImportError(f"{parameter}={method!r} needs {' and '.join(missing)} (the sparse extra), which is not "
+                          f"installed: {v.install_hint('sparse')}; or use method='bpdn', which needs neither")
+
+
 def _nothing(method: str, reason: str, t_start: float, info: dict) -> Echoes:
     """No echo, answered without a solve (``status`` ``"optimal"``, ``info["trivial"]`` the reason)."""
     return Echoes([], [], method, "optimal", 0, time.perf_counter() - t_start, {**info, "trivial": reason})
@@ -293,6 +308,7 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
     from .atoms import Atom, margin_s
 
     v.choice("method", method, tuple(SPARSE_METHODS))
+    require_solver(method)
     fs = v.positive("fs_hz", fs_hz)
     x = v.array("signal", signal, ndim=1, allow_complex=True)
     if remove_dc:
