@@ -124,7 +124,7 @@ class Dataset:
     beams: Beams | None = None
 
     def __post_init__(self) -> None:
-        self.fs_hz = v.positive("fs_hz", self.fs_hz)
+        self.fs_hz = v.sampling_rate("fs_hz", self.fs_hz)
         sig = v.array("signals", self.signals, ndim=2, dtype=None)
         if not np.issubdtype(sig.dtype, np.floating):
             sig = sig.astype(np.float64)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from . import validate as v
@@ -10,7 +12,7 @@ __all__ = ["lfm_chirp", "analytic", "chirp_times", "tukey_taper"]
 
 
 def _check_band(f_start_hz: float, f_stop_hz: float, fs_hz: float) -> tuple[float, float, float]:
-    fs = v.positive("fs_hz", fs_hz)
+    fs = v.sampling_rate("fs_hz", fs_hz)
     f1 = v.non_negative("f_start_hz", f_start_hz)
     f2 = v.non_negative("f_stop_hz", f_stop_hz)
     nyq = fs / 2
@@ -93,6 +95,10 @@ def lfm_chirp(
     (480,)
     """
     f1, f2, fs = _check_band(f_start_hz, f_stop_hz, fs_hz)
+    if max(f1, f2) < v.LEAST_BAND_HZ and v.positive("duration_s", duration_s) >= 0.5:
+        logging.getLogger("clsas").warning(
+            "lfm_chirp: a %g s chirp of %g-%g Hz; if these are ms and kHz, give s and Hz "
+            "(lfm_chirp(%g, %g, %g, fs_hz))", duration_s, f1, f2, f1 * 1e3, f2 * 1e3, duration_s * 1e-3)
     t = chirp_times(duration_s, fs)
     T = len(t) / fs
     xi = 2 * np.pi * (f2 - f1) / T

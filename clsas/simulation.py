@@ -109,7 +109,7 @@ def _checked(scene, aperture, fs_hz, waveform, t0_s, snr_db, temperature_c):
         raise TypeError(f"scene must be a clsas.Scene, got {type(scene).__name__}")
     if not isinstance(aperture, Aperture):
         raise TypeError(f"aperture must be a clsas.Aperture, got {type(aperture).__name__}")
-    fs = v.positive("fs_hz", fs_hz)
+    fs = v.sampling_rate("fs_hz", fs_hz)
     wave = v.array("waveform", waveform, ndim=1)
     n_meas = aperture.n_meas
     t0 = np.broadcast_to(np.asarray(t0_s, dtype=float), (n_meas,)).copy()

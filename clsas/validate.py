@@ -145,3 +145,21 @@ def unit_rows(name: str, value: Any, n: int) -> np.ndarray:
     if np.any(norm == 0):
         raise ValueError(f"{name}: a direction must not be the zero vector (row {int(np.argmin(norm))})")
     return arr / norm[:, None]
+
+
+#: below these an audio or ultrasound rate or band is most likely given in kHz, a duration in ms
+LEAST_FS_HZ = 1000.0
+LEAST_BAND_HZ = 100.0
+
+
+def sampling_rate(name: str, fs_hz) -> float:
+    """A positive sampling rate, Hz; one under :data:`LEAST_FS_HZ` is logged as a likely kHz value
+    (``96`` for 96 kHz), since the recordings' times and delays are then 1000x too long."""
+    fs = positive(name, fs_hz)
+    if fs < LEAST_FS_HZ:
+        import logging
+
+        logging.getLogger("clsas").warning("%s=%g Hz: a sampling rate in kHz? clsas takes Hz (96 kHz is %s=96e3); "
+                                           "every time and delay is otherwise 1000x too long", name, fs, name)
+    return fs
+

@@ -110,3 +110,24 @@ def test_a_formation_option_typo_lists_the_valid_ones(scan):
     grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.6), 0.02)
     with pytest.raises(ValueError, match=r"unknown option\(s\) \['oversampel'\] for 'ffbp'; known: .*'oversample'"):
         clsas.reconstruct(scan, grid, backend="numpy", formation="ffbp", formation_options={"oversampel": 1.5})
+
+
+def test_a_chirp_in_khz_and_ms_and_a_rate_in_khz_are_named(caplog):
+    """lfm_chirp(20, 30, 5, fs) (kHz and ms by mistake) and superres(..., 96) (kHz): one warning each
+    that names the likely unit and the call that was meant."""
+    import clsas.sparse
+
+    with caplog.at_level(logging.WARNING, logger="clsas"):
+        clsas.lfm_chirp(20, 30, 5, 96e3)
+    assert any("lfm_chirp(20000, 30000, 0.005, fs_hz)" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    chirp = clsas.lfm_chirp(20e3, 30e3, 2e-3, 96e3)
+    x = np.zeros(600)
+    x[100:100 + chirp.size] = chirp
+    with caplog.at_level(logging.WARNING, logger="clsas"):
+        clsas.sparse.superres(x, chirp, 96, method="bpdn")
+    assert any("fs_hz=96 Hz: a sampling rate in kHz?" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="clsas"):
+        clsas.lfm_chirp(20e3, 30e3, 5e-3, 96e3)
+    assert not caplog.records

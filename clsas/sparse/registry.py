@@ -309,7 +309,7 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
 
     v.choice("method", method, tuple(SPARSE_METHODS))
     require_solver(method)
-    fs = v.positive("fs_hz", fs_hz)
+    fs = v.sampling_rate("fs_hz", fs_hz)
     x = v.array("signal", signal, ndim=1, allow_complex=True)
     if remove_dc:
         x = x - np.mean(x)
