@@ -37,13 +37,13 @@ def test_scale_bench_scaling_part(tmp_path, monkeypatch):
 
 
 def test_scale_flag_alone_or_with_a_number(monkeypatch, tmp_path):
-    from clsas.cli import main
+    from bench.__main__ import main
 
     calls = []
     monkeypatch.setattr(scale, "run_scale", lambda **kw: calls.append(kw) or {"paths": {}})
-    assert main(["bench", "--scale", "--scale-parts", "tiles", "--out", str(tmp_path), "-q"]) == 0
+    assert main(["--scale", "--scale-parts", "tiles", "--out", str(tmp_path), "-q"]) == 0
     assert calls == [{"full": False, "out_dir": str(tmp_path), "parts": ("tiles",), "status": calls[0]["status"]}]
-    assert main(["bench", "--scale", "--formation", "bp"]) == 2  # with --formation it takes a number
+    assert main(["--scale", "--formation", "bp"]) == 2  # with --formation it takes a number
 
 
 @pytest.mark.parametrize("enabled, group, expected", [("1\n", "/autogroup-7 nice 0\n", "on (/autogroup-7)"),
