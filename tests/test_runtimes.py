@@ -171,3 +171,24 @@ def test_a_build_error_names_the_compilers_words_on_its_first_line():
         cl.build(cl.get_queue().context, ("backproject.cl",), {"VEC": 4})
     first = str(err.value).splitlines()[0]
     assert "the compiler failed:" in first and "not_declared_here" in first
+
+
+def test_a_ci_run_with_no_device_that_builds_kernels_fails(tmp_path):
+    """CI=true and no OpenCL device (the system's ICD folder emptied, the pip runtime not registered,
+    PoCL's devices switched off): the test run stops with exit status 3 and one message saying so,
+    instead of skipping every kernel test; with CLSAS_BACKEND=numpy it runs and says so in the header."""
+    empty = tmp_path / "no-vendors"
+    empty.mkdir()
+    env = {**os.environ, "CI": "true", "CLSAS_PIP_RUNTIMES": "0", "OCL_ICD_VENDORS": str(empty),
+           "POCL_DEVICES": "nonexistent", "CLSAS_CACHE_DIR": str(tmp_path / "cache")}
+    env.pop("PYOPENCL_CTX", None)
+    env.pop("CLSAS_BACKEND", None)
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", str(ROOT / "tests" / "test_runtimes.py"),
+           "-k", "compiler_words"]
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT, timeout=300)
+    assert res.returncode == 3, res.stdout[-2000:] + res.stderr[-2000:]
+    assert "must test the OpenCL kernels" in res.stdout + res.stderr
+    res = subprocess.run([c for c in cmd if c != "-q"], capture_output=True, text=True,
+                         env={**env, "CLSAS_BACKEND": "numpy"}, cwd=ROOT, timeout=300)
+    assert res.returncode == 0, res.stdout[-2000:]
+    assert "clsas kernels: NOT run, NumPy twins only (CLSAS_BACKEND=numpy)" in res.stdout
