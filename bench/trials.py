@@ -1,5 +1,5 @@
 """The two-echo resolution task: draw a noisy profile of two echoes of the paper's chirp a
-given separation apart, run a method on it, score it. Used by the benchmark (bench/, clsas
+given separation apart, run a method on it, score it. Used by the benchmark (bench/, python -m
 bench) and the tests; a sweep is a list of plain dicts, so it can be run anywhere and compared
 row by row. The sparse methods run through :data:`clsas.sparse.SPARSE_METHODS`.
 
@@ -18,6 +18,7 @@ import numpy as np
 
 from clsas.sparse.atoms import Atom, Dictionary
 from clsas.sparse.metrics import Echoes, crb_delays, delay_error
+from clsas.sparse.paper import GRID_DELTAS, GRID_LAM_FRACS, GRID_METHODS, grid_cell, grid_problem
 
 __all__ = ["TwoEchoTask", "TASK_METHODS", "run_trial", "sweep", "summarise", "GRID_METHODS", "grid_problem",
            "grid_cell", "grid_sweep", "measured_like"]
@@ -216,43 +217,6 @@ def summarise(rows: list[dict]) -> list[dict]:
 
 
 # -- the paper's Delta x lam grid (Fig. 6): two shifted decaying exponentials ---------------------
-
-GRID_DELTAS = (0.0125, 0.025, 0.05, 0.1, 0.2)
-GRID_LAM_FRACS = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3)
-GRID_METHODS = ("bpdn", "cbp-taylor", "cbp-polar-socp", "cbp-polar")
-
-
-def grid_problem(alpha: float = 8.0, fs_hz: float = 1000.0, noise: float = 1e-4, seed: int = 4):
-    """(atom, signal, truth) of the paper's 1-D problem (Fig. 4 and 6)."""
-    from clsas.sparse.atoms import decaying_exponential
-
-    truth = Echoes([0.31, 0.47], [1.0, 0.8])
-    atom = Atom(decaying_exponential(alpha), fs_hz, 1000,
-                derivative=lambda t: np.where(t >= 0, (1 - alpha * t) * np.exp(-alpha * np.maximum(t, 0)), 0))
-    b = truth.signal(atom) + noise * np.random.default_rng(seed).normal(size=atom.n)
-    return atom, b, truth
-
-
-def grid_cell(method: str, delta_s: float, lam_frac: float) -> dict:
-    """One cell of the Delta x lam grid: eq. 5 error and run time of one method.
-
-    As in the paper, BPDN's answer is every active atom (exact, duality gap 1e-7), and the
-    convex CBPs' every echo above 1e-3 of the largest; no echo cap but refined CBP-Polar's 8.
-    """
-    from clsas.sparse import sparse_echoes
-
-    if method not in GRID_METHODS:
-        raise ValueError(f"method must be one of {GRID_METHODS}, got {method!r}")
-    atom, b, truth = grid_problem()
-    d = Dictionary(atom, delta_s, tau0_s=0.0, n_atoms=int(round(1.0 / delta_s)))
-    t = time.perf_counter()
-    opts = {"bpdn": {"group": False, "tol": 1e-7}}.get(method, {})
-    est = sparse_echoes(method, d, b, lam_frac=lam_frac, amplitudes="positive",
-                        max_echoes=8 if method == "cbp-polar" else d.k, **opts)
-    elapsed = time.perf_counter() - t
-    return {"method": method, "delta_s": delta_s, "lam_frac": lam_frac,
-            "error": float(delay_error(est, truth, b, atom).total), "time_s": elapsed}
-
 
 def grid_sweep(methods=GRID_METHODS, deltas=GRID_DELTAS, lam_fracs=GRID_LAM_FRACS, progress=None) -> list[dict]:
     """Every method at every (Delta, lam) cell, in a fixed order."""

@@ -25,13 +25,12 @@ from .dataset import Dataset
 from .geometry import VoxelGrid
 
 __all__ = ["MAX_RECORDINGS", "MIN_SHARE", "GridCheck", "check_grid_against_data", "echo_share_in_grid", "envelope",
-           "grid_delays", "likely_cause"]
+           "grid_delays", "likely_cause", "pulse_width_s"]
 
 log = logging.getLogger(__name__)
 
 MIN_SHARE = 0.2  # warn below this share of the echo energy in the grid's delays
 MAX_RECORDINGS = 64  # recordings the share is computed on, spread over the scan
-MAX_POINTS = 4096  # grid points the delays are taken at (the box's corners always)
 
 
 @dataclass(frozen=True)
@@ -43,25 +42,31 @@ class GridCheck:
     warnings: tuple[str, ...] = ()
 
 
-def _grid_points(grid: VoxelGrid, max_points: int = MAX_POINTS) -> np.ndarray:
-    """The grid's voxel centres, or (for a larger grid) its corners and ``max_points`` voxels drawn
-    at random, without forming the whole grid (a grid typed in millimetres may have 1e9 voxels)."""
-    axes = (np.asarray(grid.x_m), np.asarray(grid.y_m), np.asarray(grid.z_m))
-    if grid.size <= max_points:
-        return grid.points().reshape(-1, 3)
-    rng = np.random.default_rng(0)
-    corners = np.array(np.meshgrid(*[(ax[0], ax[-1]) for ax in axes], indexing="ij")).reshape(3, -1).T
-    drawn = np.stack([ax[rng.integers(0, len(ax), max_points)] for ax in axes], axis=1)
-    return np.vstack([corners, drawn])
-
-
 def grid_delays(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = None) -> np.ndarray:
-    """(n, 2) the least and greatest bistatic delay from each measurement (``rows``) to the grid, s."""
+    """(n, 2) bounds of the bistatic delay from each measurement (``rows``) to the grid's box, s:
+    at least the speaker's and the microphone's distances to the box, at most the farthest corner's
+    (a sum of distances is convex, so its largest value over a box is at a corner). No voxel is
+    formed: a grid typed in millimetres may hold 1e9 of them."""
     rows = np.arange(ds.n_meas) if rows is None else rows
-    pts = _grid_points(grid)
+    lo = np.array([min(ax[0], ax[-1]) for ax in (grid.x_m, grid.y_m, grid.z_m)])
+    hi = np.array([max(ax[0], ax[-1]) for ax in (grid.x_m, grid.y_m, grid.z_m)])
     tx, rx, c = ds.tx_positions[rows], ds.rx_positions[rows], ds.c_per_meas[rows]
-    d = (np.linalg.norm(pts[None] - tx[:, None], axis=2) + np.linalg.norm(pts[None] - rx[:, None], axis=2)) / c[:, None]
-    return np.c_[d.min(axis=1), d.max(axis=1)]
+
+    def to_box(p):
+        return np.linalg.norm(p - np.clip(p, lo, hi), axis=1)
+
+    corners = np.array(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij")).reshape(3, -1).T
+    far = (np.linalg.norm(corners[None] - tx[:, None], axis=2) + np.linalg.norm(corners[None] - rx[:, None], axis=2))
+    return np.c_[(to_box(tx) + to_box(rx)) / c, far.max(axis=1) / c]
+
+
+def pulse_width_s(ds: Dataset) -> float:
+    """The compressed pulse's width, about 1 / bandwidth (the band where the waveform's spectrum is
+    within 10 dB of its peak), s."""
+    spec = np.abs(np.fft.rfft(ds.waveform, 4 * len(ds.waveform)))
+    f = np.fft.rfftfreq(4 * len(ds.waveform), 1 / ds.fs_hz)
+    band = f[spec >= 10 ** (-10 / 20) * spec.max()]
+    return 1.0 / max(float(band.max() - band.min()), ds.fs_hz / len(ds.waveform))
 
 
 def envelope(ds: Dataset, rows: np.ndarray) -> np.ndarray:
@@ -84,7 +89,8 @@ def echo_share_in_grid(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = N
     direct = np.linalg.norm(ds.tx_positions[rows] - ds.rx_positions[rows], axis=1) / ds.c_per_meas[rows]
     after = t > (direct + 1.2 * len(ds.waveform) / ds.fs_hz)[:, None]
     gate = grid_delays(ds, grid, rows)
-    inside = (t >= gate[:, :1]) & (t <= gate[:, 1:])
+    pad = pulse_width_s(ds)  # an echo from a voxel spreads over the compressed pulse (a plane's gate is thin)
+    inside = (t >= gate[:, :1] - pad) & (t <= gate[:, 1:] + pad)
     energy = float((env[after] ** 2).sum())
     return float((env[after & inside] ** 2).sum() / energy) if energy > 0 else float("nan")
 
@@ -120,7 +126,8 @@ def check_grid_against_data(ds: Dataset, grid: VoxelGrid, *, where: str = "recon
     gate = grid_delays(ds, grid, rows)
     start = ds.t0_s[rows]
     end = start + ds.n_samples / ds.fs_hz
-    if not np.any((gate[:, 1] >= start) & (gate[:, 0] <= end)):
+    pad = pulse_width_s(ds)
+    if not np.any((gate[:, 1] + pad >= start) & (gate[:, 0] - pad <= end)):
         raise ValueError(f"grid: no voxel's echo delay ({gate.min() * 1e3:.4g} to {gate.max() * 1e3:.4g} ms) "
                          f"falls within the recordings ({start.min() * 1e3:.4g} to {end.max() * 1e3:.4g} ms): "
                          f"{likely_cause(ds, grid)}")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.trials import grid_cell, grid_problem
+from clsas.sparse.paper import grid_cell, grid_problem
 
 TRUTH = grid_problem()[2]
 DELTAS = (0.0125, 0.025, 0.05, 0.1, 0.2)
@@ -29,7 +29,7 @@ METHODS = {"BPDN": "bpdn", "CBP-Taylor": "cbp-taylor", "CBP-Polar (convex)": "cb
 
 def grid_errors(deltas=DELTAS, lam_fracs=LAM_FRACS):
     """{method: (len(deltas), len(lam_fracs)) eq. 5 errors}, and the run time per method
-    (the cells are computed by bench.trials.grid_cell, which the benchmark suite uses too)."""
+    (the cells are computed by clsas.sparse.paper.grid_cell, which the benchmark suite uses too)."""
     errs = {m: np.full((len(deltas), len(lam_fracs)), np.nan) for m in METHODS}
     times = dict.fromkeys(METHODS, 0.0)
     for i, delta in enumerate(deltas):

@@ -98,13 +98,13 @@ def test_a_command_never_replaces_a_file_unasked(tmp_path, capsys, command):
     scene = tmp_path / "scene.toml"
     scene.write_text(SCENE)
     target = {"simulate": tmp_path / "sim.h5", "preprocess": tmp_path / "pre.h5", "reconstruct": image,
-              "export": tmp_path / "x.npy", "inspect": tmp_path / "scan-inspect.png",
+              "export": tmp_path / "x.npy", "inspect": tmp_path / "look.png",
               "autofocus": tmp_path / "af.h5"}[command]
     argv = {"simulate": ["simulate", str(scene), str(target), "-q", "--backend", "numpy"],
             "preprocess": ["preprocess", str(scan), str(target), "--dc"],
             "reconstruct": ["reconstruct", str(scan), grid, "--spacing", "0.02", "--backend", "numpy", "-q"],
             "export": ["export", str(image), str(target)],
-            "inspect": ["inspect", str(scan), grid],
+            "inspect": ["inspect", str(scan), grid, "--png", str(target)],
             "autofocus": ["autofocus", str(scan), str(target), grid, "--spacing", "0.02", "--backend", "numpy",
                           "-q"]}[command]
     target.write_bytes(b"precious")

@@ -131,3 +131,24 @@ def test_a_chirp_in_khz_and_ms_and_a_rate_in_khz_are_named(caplog):
     with caplog.at_level(logging.WARNING, logger="clsas"):
         clsas.lfm_chirp(20e3, 30e3, 5e-3, 96e3)
     assert not caplog.records
+
+
+def test_a_plane_or_a_single_voxel_on_the_target_is_not_warned_about(scan):
+    """A grid of one plane, or one voxel, through the reflector: its delay gate is thin, but the
+    echo's compressed pulse is counted around it, so it holds the echo and nothing is said."""
+    plane = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.5, 0.5), 0.01)
+    voxel = clsas.VoxelGrid.from_bounds((0.02, 0.02), (-0.01, -0.01), (0.5, 0.5), 0.01)
+    for grid in (plane, voxel):
+        check = check_grid_against_data(scan, grid)
+        assert check.share > 0.5 and not check.warnings, (grid.shape, check)
+
+
+def test_the_delay_bounds_hold_every_voxel(scan):
+    from clsas.sanity import grid_delays
+
+    grid = clsas.VoxelGrid.from_bounds((-0.3, 0.2), (-0.08, 0.1), (0.2, 0.9), 0.05)
+    bounds = grid_delays(scan, grid)
+    pts = grid.points().reshape(-1, 3)
+    d = (np.linalg.norm(pts[None] - scan.tx_positions[:, None], axis=2)
+         + np.linalg.norm(pts[None] - scan.rx_positions[:, None], axis=2)) / scan.c_per_meas[:, None]
+    assert np.all(bounds[:, 0] <= d.min(axis=1) + 1e-12) and np.allclose(bounds[:, 1], d.max(axis=1))

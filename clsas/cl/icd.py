@@ -40,7 +40,12 @@ class Unregistered:
 def vendor_dirs() -> list[Path]:
     """Where the ICD loader looks: ``$OCL_ICD_VENDORS`` (a folder; for a value naming an ``.icd``
     file, that file's folder), else ``/etc/OpenCL/vendors``."""
+    from .runtimes import current
+
     env = os.environ.get("OCL_ICD_VENDORS", "").strip()
+    reg = current()
+    if reg is not None and reg.folder and env == reg.folder and reg.loader_folders:
+        return [Path(reg.loader_folders[0])]  # where the system registers drivers, not clsas's own folder
     if env:
         p = Path(env)
         return [p.parent if p.suffix == ".icd" else p]

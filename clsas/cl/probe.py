@@ -21,13 +21,15 @@ from .program import BuildError, override_source
 TOLERANCE = 1e-3  # relative to the peak: catches wrong code, not float32 rounding
 
 
-def _device(platform: str, name: str):
+def _device(platform: str, name: str, version: str | None = None):
+    """The device named so on the platform named so (and of that platform version, where given: two
+    PoCLs, PyPI's and the system's, carry the same platform name)."""
     for p in _cl().get_platforms():
-        if p.name == platform:
+        if p.name == platform and (version is None or p.version == version):
             for d in p.get_devices():
                 if d.name == name:
                     return d
-    raise LookupError(f"device {name!r} on {platform!r} not found")
+    raise LookupError(f"device {name!r} on {platform!r} ({version or 'any version'}) not found")
 
 
 def _plan_class(module: str, qualname: str):
@@ -41,7 +43,7 @@ def _plan_class(module: str, qualname: str):
 def run(spec: dict) -> dict:
     variants._IN_PROBE = True
     vec = int(spec["vec"])
-    device = _device(spec["platform"], spec["device"])
+    device = _device(spec["platform"], spec["device"], spec.get("platform_version"))
     queue = make_queue(device)
     with contextlib.ExitStack() as stack:
         for f, text in spec.get("sources", {}).items():

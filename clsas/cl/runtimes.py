@@ -24,10 +24,11 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Registration", "pip_runtimes", "register", "registration"]
+__all__ = ["Registration", "loader_folders", "pip_runtimes", "current", "register", "registration"]
 
 log = logging.getLogger("clsas.cl")
 
@@ -51,6 +52,7 @@ class Registration:
 
     runtimes: list[PipRuntime] = field(default_factory=list)
     folder: str = ""  # the OCL_ICD_VENDORS folder written ("" when none)
+    loader_folders: list[str] = field(default_factory=list)  # where the loader would have looked without it
     note: str = ""  # why nothing was registered, when nothing was
 
     def lines(self) -> list[str]:
@@ -103,21 +105,35 @@ def pip_runtimes() -> list[PipRuntime]:
     return found
 
 
-def _loader_folder() -> Path | None:
-    """The folder of ``.icd`` files the loader would read without us (None: a single file named)."""
+def loader_folders() -> list[Path] | None:
+    """The folders of ``.icd`` files the loader would read without clsas, or None where
+    ``OCL_ICD_VENDORS`` names one file. ``OCL_ICD_VENDORS`` (a folder) replaces the default, which
+    is ``$OPENCL_VENDOR_PATH`` or ``/etc/OpenCL/vendors``; the folder of this Python environment
+    and of an active conda environment are read too (a conda-built loader looks there)."""
     env = os.environ.get("OCL_ICD_VENDORS", "").strip()
-    if not env:
-        return Path("/etc/OpenCL/vendors")
-    p = Path(env)
-    return p if p.is_dir() else None
+    if env:
+        p = Path(env)
+        return [p] if p.is_dir() else None
+    folders = [Path(os.environ.get("OPENCL_VENDOR_PATH", "").strip() or "/etc/OpenCL/vendors")]
+    for prefix in (sys.prefix, os.environ.get("CONDA_PREFIX", "")):
+        if prefix:
+            folders.append(Path(prefix) / "etc" / "OpenCL" / "vendors")
+    return list(dict.fromkeys(folders))
 
 
 def _cache_root() -> Path:
     root = os.environ.get("CLSAS_CACHE_DIR")
-    if not root:
-        xdg = os.environ.get("XDG_CACHE_HOME")
-        root = str(Path(xdg) / "clsas") if xdg else str(Path.home() / ".cache" / "clsas")
-    return Path(root)
+    if root:
+        return Path(root)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    if xdg:
+        return Path(xdg) / "clsas"
+    try:
+        return Path.home() / ".cache" / "clsas"
+    except Exception:  # noqa: BLE001 - no home directory (an arbitrary uid in a container)
+        import tempfile
+
+        return Path(tempfile.gettempdir()) / f"clsas-{os.getuid() if hasattr(os, 'getuid') else 'user'}"
 
 
 def _write_folder(entries: dict[str, str]) -> Path:
@@ -159,23 +175,27 @@ def register() -> Registration:
     if not usable:
         reg.note = reg.note or "none installed"
         return reg
-    source = _loader_folder()
-    if source is None:
+    sources = loader_folders()
+    if sources is None:
         reg.note = f"OCL_ICD_VENDORS names one file ({os.environ['OCL_ICD_VENDORS']}); left as it is"
         return reg
+    reg.loader_folders = [str(f) for f in sources]
     entries: dict[str, str] = {}
     known = set()
-    try:
-        files = sorted(source.glob("*.icd")) if source.is_dir() else []
-    except OSError:
-        files = []
-    for f in files:
+    for folder in sources:
         try:
-            line = f.read_text().strip()
-        except (OSError, UnicodeDecodeError):
-            continue
-        if line:
-            entries[f.name] = line
+            files = sorted(folder.glob("*.icd")) if folder.is_dir() else []
+        except OSError:
+            files = []
+        for f in files:
+            try:
+                line = f.read_text().strip()
+            except (OSError, UnicodeDecodeError):
+                continue
+            if not line or line in entries.values() or (Path(line).is_absolute() and not Path(line).is_file()):
+                continue  # a driver named twice, or a library that is not there (the Intel wheel's placeholder)
+            name = f.name if f.name not in entries else f"{folder.name}-{len(entries)}-{f.name}"
+            entries[name] = line
             known.add(Path(line).name)
     for r in usable:
         name = Path(r.library).name
@@ -192,6 +212,11 @@ def register() -> Registration:
     reg.folder = str(folder)
     log.debug("OpenCL ICD folder %s (%d drivers)", folder, len(entries))
     return reg
+
+
+def current() -> Registration | None:
+    """What :func:`register` did in this process, or None where it has not run."""
+    return _REGISTRATION
 
 
 def registration() -> Registration:

@@ -209,7 +209,8 @@ def _run_probe(device: Any, name: str, vec: int) -> tuple[Verdict, bool]:
     """Run the variant in a child process; returns the verdict and whether it is definitive."""
     kspec = kernel_spec(name)
     spec = {
-        "platform": device.platform.name, "device": device.name, "kernel": name, "vec": vec,
+        "platform": device.platform.name, "platform_version": device.platform.version, "device": device.name,
+        "kernel": name, "vec": vec,
         "module": kspec.module, "qualname": kspec.qualname, "sources": {f: kernel_source(f) for f in kspec.sources},
     }
     env = dict(os.environ)

@@ -38,6 +38,8 @@ def output_files(args) -> list[Path]:
     out: list[Path] = []
     if cmd in ("simulate", "import", "preprocess", "autofocus", "export") and getattr(args, "out", None):
         out.append(Path(args.out))
+    if cmd == "export" and Path(args.out).suffix.lower() == ".npy":
+        out.append(Path(args.out).with_suffix(".json"))  # the .npy's scale and origin beside it
     if cmd == "autofocus" and getattr(args, "png", None):
         out.append(Path(args.png))
     if cmd == "reconstruct":
@@ -46,9 +48,8 @@ def output_files(args) -> list[Path]:
         if not tiled:  # a file formed in tiles is resumed where an earlier run stopped, not replaced
             out.append(image)
         out += ([image.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else [])
-    if cmd == "inspect":
-        data = Path(args.data)
-        out.append(Path(args.png) if args.png else data.with_name(data.stem + "-inspect.png"))
+    if cmd == "inspect" and args.png:  # (its default picture, <data>-inspect.png, is its own to redraw)
+        out.append(Path(args.png))
     return out
 
 
