@@ -10,7 +10,6 @@ from __future__ import annotations
 import functools
 import logging
 import os
-import sys
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,10 +24,9 @@ BACKENDS = ("auto", "opencl", "numpy")
 
 def _cl():
     """pyopencl, imported after the pip-installed CPU runtimes are registered (:mod:`.runtimes`)."""
-    if "pyopencl" not in sys.modules:
-        from .runtimes import register
+    from .runtimes import register
 
-        register()
+    register()  # once per process; the ICD loader reads its folder at the first platform query
     try:
         import pyopencl
     except ImportError as exc:  # pragma: no cover - pyopencl is a dependency
