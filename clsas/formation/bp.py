@@ -92,6 +92,7 @@ class Backprojector:
         self.beam_floor_db = v.finite("beam_floor_db", beam_floor_db)
         self.selection = _cl.select(backend, device)
         check_grid(grid, self.selection.kind, self.selection.cl_device, force=force)
+        self._force = force
         self._plan = None
 
     @property
@@ -102,8 +103,11 @@ class Backprojector:
     def _opencl_plan(self, n_meas: int, n_lags: int, beam_lut: int = 0):
         p = self._plan
         if p is None or p.n_meas != n_meas or p.n_lags < n_lags or p.beam_lut != beam_lut:
+            was = self.selection.kind
             self._plan, self.selection = self.selection.plan(
                 lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut))
+            if self.selection.kind != was:  # fell back to the twin: its memory is the host's, per voxel more
+                check_grid(self.grid, self.selection.kind, None, force=self._force)
         return self._plan
 
     def _weights(self, beams, fc_hz: float, c) -> BeamWeights | None:
