@@ -126,27 +126,18 @@ def slow_job_notice(method: str):
     return announce
 
 
-#: CBP-Taylor's time per recording, s, at a number of atoms (about one per sample of the gate
-#: plus a pulse each side): about 350 s at the README scene's 1470 (on a 2-core CPU). The
-#: time grows more slowly than the cube of the size (the atoms are short, so the problem is
-#: sparse); an exponent of 1.5 is assumed, and the first recording's measured time corrects it
-CONVEX_S_PER_RECORDING = {"cbp-taylor": (350.0, 1470), "cbp-polar-socp": (350.0, 1470)}
-CONVEX_EXPONENT = 1.5
-
-
 def estimated_sparse_s(ds, grid, method: str) -> float | None:
     """A rough time (s) for super-resolving every recording of ``ds`` on ``grid`` by a convex
-    (cvxpy) method, from the gates' lengths, before any solve; None for the other methods."""
-    import numpy as np
-
+    (cvxpy) method, from the gates' lengths, before any solve; None for the other methods
+    (:func:`clsas.sparse.registry.convex_estimate_s`)."""
     from clsas.rangegate import plan_reconstruction
+    from clsas.sparse.registry import CONVEX_S_PER_RECORDING, convex_estimate_s
 
     if method not in CONVEX_S_PER_RECORDING:
         return None
-    t_ref, k_ref = CONVEX_S_PER_RECORDING[method]
     gates = plan_reconstruction(ds, grid, []).gates_s
     k = (gates[:, 1] - gates[:, 0] + 2 * len(ds.waveform) / ds.fs_hz) * ds.fs_hz + 1  # atoms at one per sample
-    return float(np.sum(t_ref * (k / k_ref) ** CONVEX_EXPONENT))
+    return convex_estimate_s(method, k)
 
 
 def announce_slow_method(ds, grid, method: str) -> None:

@@ -13,6 +13,7 @@ in :func:`lam_noise` when neither is). ``max_echoes=None`` is
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 
@@ -131,6 +132,24 @@ SPARSE_METHODS.register("bpdn", _bpdn)
 SPARSE_METHODS.register("cbp-taylor", _cbp_taylor)
 SPARSE_METHODS.register("cbp-polar", _cbp_polar)
 SPARSE_METHODS.register("cbp-polar-socp", _cbp_polar_socp)
+
+
+#: a convex (cvxpy) method's time per recording, s, at a number of atoms (one per sample of the
+#: window plus a pulse each side): about 350 s at 1470 atoms on a 2-core CPU; the time grows
+#: about as the atoms' number to the power CONVEX_EXPONENT (the atoms are short: the problem is sparse)
+CONVEX_S_PER_RECORDING = {"cbp-taylor": (350.0, 1470), "cbp-polar-socp": (350.0, 1470)}
+CONVEX_EXPONENT = 1.5
+#: a call estimated to take longer than this is announced before it starts
+SLOW_CALL_S = 60.0
+
+
+def convex_estimate_s(method: str, n_atoms) -> float | None:
+    """A rough time (s) of a convex method's solve over ``n_atoms`` atoms (an array: one per
+    recording, summed); None for the methods that are not convex programs."""
+    if method not in CONVEX_S_PER_RECORDING:
+        return None
+    t_ref, k_ref = CONVEX_S_PER_RECORDING[method]
+    return float(np.sum(t_ref * (np.asarray(n_atoms, float) / k_ref) ** CONVEX_EXPONENT))
 
 
 #: the packages each method imports (the ``sparse`` extra); checked before any work
@@ -323,5 +342,10 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
     delta = 0.5 / fs if delta_s is None else v.positive("delta_s", delta_s)
     tau0 = -margin_s(atom, delta) if tau0_s is None else v.finite("tau0_s", tau0_s)
     d = Dictionary(atom, delta, tau0)
+    est = convex_estimate_s(method, d.k)
+    if est is not None and est > SLOW_CALL_S:
+        logging.getLogger(__name__).warning(
+            "superres: %s solves a convex program over %d atoms: roughly %.0f s on a 2-core CPU "
+            "(method='cbp-polar' or 'bpdn' take seconds)", method, d.k, est)
     return sparse_echoes(method, d, x, lam, lam_frac=lam_frac, amplitudes=amplitudes, max_echoes=max_echoes,
                          noise_sigma=noise_sigma, real_signal=real_signal, **options)
