@@ -274,6 +274,22 @@ class Limits:
         return "\n".join(lines)
 
 
+def _sampling_warnings(axes, need: float) -> list[str]:
+    """What a raster's stop spacing along each axis ((name, spacing, stops)) means for an image
+    whose stops must be ``need`` apart at most: grating lobes, or no cross-range resolution."""
+    warnings = []
+    for axis, d, n in axes:
+        if n > 1 and d > need:
+            warnings.append(
+                f"stops along {axis} are {d * 1e3:.1f} mm apart, {d / need:.1f}x the lambda/4 = "
+                f"{need * 1e3:.2f} mm needed: the aperture is undersampled and the image will "
+                "show grating lobes (ghost copies of each reflector)"
+            )
+        if n == 1:
+            warnings.append(f"a single stop along {axis}: no cross-range resolution along {axis}")
+    return warnings
+
+
 def resolution_limits(
     f_start_hz: float,
     f_stop_hz: float,
@@ -331,16 +347,7 @@ def resolution_limits(
     absorption = {
         f: float(air_absorption_db_per_m(f, temperature_c, humidity_pct)) for f in sorted({f1, f2})
     }
-    warnings = []
-    for axis, d, n in (("x", dx, nx), ("y", dy, ny)):
-        if n > 1 and d > need:
-            warnings.append(
-                f"stops along {axis} are {d * 1e3:.1f} mm apart, {d / need:.1f}x the lambda/4 = "
-                f"{need * 1e3:.2f} mm needed: the aperture is undersampled and the image will "
-                "show grating lobes (ghost copies of each reflector)"
-            )
-        if n == 1:
-            warnings.append(f"a single stop along {axis}: no cross-range resolution along {axis}")
+    warnings = _sampling_warnings((("x", dx, nx), ("y", dy, ny)), need)
     return Limits(
         c_mps=c,
         bandwidth_hz=band,
