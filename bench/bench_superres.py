@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 import clsas
+from bench.stats import cpu_name
 from bench.trials import TwoEchoTask, measured_like, summarise, sweep
 from clsas.sparse import Atom, Dictionary, bpdn, bpdn_cvxpy
 
@@ -203,7 +204,7 @@ def main_measured(n_recordings: int, out: Path) -> int:
     import os
 
     host = platform.node() or "host"
-    cpu = _cpu_name()
+    cpu = cpu_name()
     print(f"measured-like recordings: {n_recordings}, {cpu}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
           flush=True)
     rows = measured(n_recordings)
@@ -222,7 +223,7 @@ def main_kecho(trials: int, out: Path) -> int:
     from bench.kecho import k_markdown
 
     host = platform.node() or "host"
-    cpu = _cpu_name()
+    cpu = cpu_name()
     load = os.getloadavg()[0]
     print(f"K-echo table: {trials} profiles per cell, {cpu}, {os.cpu_count()} cores, load {load:.1f}", flush=True)
     t = time.perf_counter()
@@ -244,14 +245,6 @@ def main_kecho(trials: int, out: Path) -> int:
     return 0
 
 
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 if __name__ == "__main__":

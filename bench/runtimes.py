@@ -25,24 +25,17 @@ import argparse
 import datetime as dt
 import json
 import os
-import platform
 import re
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from bench.stats import cpu_name
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def _devices() -> list[dict]:
@@ -173,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write(json.dumps(child(args), default=str) + "\n")
         return 0
     devices = _devices()
-    res = {"date": dt.datetime.now().isoformat(timespec="seconds"), "cpu": _cpu_name(), "cores": os.cpu_count(),
+    res = {"date": dt.datetime.now().isoformat(timespec="seconds"), "cpu": cpu_name(), "cores": os.cpu_count(),
            "args": {k: v for k, v in vars(args).items() if k not in ("out", "child")}, "rows": [],
            "refused": [d for d in devices if not d["builds"]]}
     res["peer"] = _peer(args)

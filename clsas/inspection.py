@@ -128,7 +128,7 @@ def inspect_dataset(ds: Dataset, grid: VoxelGrid | None = None, *, min_in_gate: 
     gate, frac, bounds = None, float("nan"), None
     if grid is not None:
         gate = sanity.grid_delays(ds, grid)
-        frac = sanity.echo_share_in_grid(ds, grid)
+        frac = sanity.echo_share_in_grid(ds, grid, env=env)
         bounds = np.array([[ax[0], ax[-1]] for ax in (grid.x_m, grid.y_m, grid.z_m)])
         if np.isfinite(frac) and frac < min_in_gate:
             warnings.append(f"only {100 * frac:.0f} % of the echo energy after the direct sound falls in the grid's "

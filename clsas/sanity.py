@@ -80,11 +80,13 @@ def envelope(ds: Dataset, rows: np.ndarray) -> np.ndarray:
     return np.abs(np.fft.ifft(spec, axis=1))[:, : ds.n_samples] * 2
 
 
-def echo_share_in_grid(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = None) -> float:
+def echo_share_in_grid(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = None,
+                       env: np.ndarray | None = None) -> float:
     """The share of the echo energy after the direct sound whose delays fall inside the grid's
-    (NaN where there is none), on the recordings ``rows`` (default all)."""
+    (NaN where there is none), on the recordings ``rows`` (default all); ``env``: their
+    :func:`envelope`, where the caller has it already."""
     rows = np.arange(ds.n_meas) if rows is None else rows
-    env = envelope(ds, rows)
+    env = envelope(ds, rows) if env is None else env
     t = ds.t0_s[rows, None] + np.arange(ds.n_samples)[None, :] / ds.fs_hz
     direct = np.linalg.norm(ds.tx_positions[rows] - ds.rx_positions[rows], axis=1) / ds.c_per_meas[rows]
     after = t > (direct + 1.2 * len(ds.waveform) / ds.fs_hz)[:, None]

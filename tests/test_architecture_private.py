@@ -52,18 +52,23 @@ def _private(name: str) -> bool:
     return name.startswith("_") and not name.startswith("__")
 
 
+def _imported_module(node: ast.ImportFrom, name: str, is_init: bool) -> str:
+    """The absolute module a ``from ... import`` in module ``name`` (a package's ``__init__`` where
+    ``is_init``) names, its relative dots resolved."""
+    if not node.level:
+        return node.module or ""
+    base = name.split(".") if is_init else name.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
 def private_imports() -> list[tuple[str, int, str, str]]:
     """(file, line, imported module, private name) of every private import across packages."""
     found = []
     for rel, name, package, is_init, tree in _modules():
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom):
-                if node.level:
-                    base = name.split(".") if is_init else name.split(".")[:-1]
-                    base = base[: len(base) - (node.level - 1)]
-                    target = ".".join(base + ([node.module] if node.module else []))
-                else:
-                    target = node.module or ""
+                target = _imported_module(node, name, is_init)
                 pairs = [(target, a.name) for a in node.names]
             elif isinstance(node, ast.Import):
                 pairs = [(a.name.rsplit(".", 1)[0], a.name.rsplit(".", 1)[-1]) for a in node.names if "." in a.name]
@@ -188,12 +193,7 @@ def _imports():
             if isinstance(node, ast.Import):
                 targets = [a.name for a in node.names]
             elif isinstance(node, ast.ImportFrom):
-                if node.level:
-                    base = name.split(".") if is_init else name.split(".")[:-1]
-                    base = base[: len(base) - (node.level - 1)]
-                    mod = ".".join(base + ([node.module] if node.module else []))
-                else:
-                    mod = node.module or ""
+                mod = _imported_module(node, name, is_init)
                 targets = [f"{mod}.{a.name}" for a in node.names] if mod == "clsas" else [mod]
             else:
                 continue

@@ -257,16 +257,9 @@ def check_method_dependencies(method: str | None) -> None:
     instead of every recording falling back to the matched filter."""
     if not method or method == "bp":
         return  # (the sparse package is imported only where a sparse method is named)
-    from importlib.util import find_spec
+    from clsas.sparse.registry import require_solver
 
-    from clsas.sparse.registry import METHOD_NEEDS
-    from clsas.validate import install_hint
-
-    missing = [m for m in METHOD_NEEDS.get(method, ()) if find_spec(m) is None]
-    if missing:
-        raise ImportError(f"--method {method} needs {' and '.join(missing)} (the sparse extra), which is not "
-                          f"installed: {install_hint('sparse')}; or image with --method bp (or bpdn, which needs "
-                          "neither)")
+    require_solver(method, parameter="--method")
 
 
 def is_simulator(platform: str) -> bool:
