@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import validate as v
 from ..registry import Registry
-from .atoms import Dictionary, default_max_echoes
+from .atoms import Atom, Dictionary, default_max_echoes, margin_s
 from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import Echoes
@@ -372,8 +372,6 @@ def _superres_dictionary(atom_shape, fs: float, n_samples: int, amplitudes: str,
                          delta_s: float | None, tau0_s: float | None) -> Dictionary:
     """:func:`superres`'s dictionary: the pulse over ``n_samples`` (centred where ``remove_dc``) on
     a grid of ``delta_s`` (default half a sample) from ``tau0_s`` (default minus the pulse length)."""
-    from .atoms import Atom, margin_s
-
     atom = Atom(atom_shape, fs, n_samples, complex=amplitudes == "complex", centered=remove_dc)
     delta = 0.5 / fs if delta_s is None else v.positive("delta_s", delta_s)
     tau0 = -margin_s(atom, delta) if tau0_s is None else v.finite("tau0_s", tau0_s)
