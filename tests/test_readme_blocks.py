@@ -67,7 +67,8 @@ NOT_RUN = {
 
 def blocks() -> list[tuple[tuple[str, str, int], str]]:
     """((heading, language, index under the heading in its file), code) of every fenced block under a
-    ``##`` or ``###`` heading (a block that is in the README and again in a guide page counts once)."""
+    ``##`` or ``###`` heading (a block that is in the README and again in a guide page counts once;
+    an ``output`` block is what the block before it prints, which ``tests/test_docs.py`` checks)."""
     out: dict = {}
     for page in PAGES:
         heading, seen = "", {}
@@ -83,7 +84,7 @@ def blocks() -> list[tuple[tuple[str, str, int], str]]:
                 j = i + 1
                 while not lines[j].startswith("```"):
                     j += 1
-                if heading or page == README:
+                if lang != "output" and (heading or page == README):  # an output block belongs to the block before
                     key = (heading, lang, seen.get((heading, lang), 0))
                     out.setdefault(key, "\n".join(lines[i + 1: j]))
                     seen[(heading, lang)] = key[2] + 1
