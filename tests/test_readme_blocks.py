@@ -28,6 +28,8 @@ RUN_ELSEWHERE = {
     ("Volumes past memory and past one machine", "python", 0):
         "tests/test_docs.py (the large-volumes page, after its setup block)",
     ("Apodization: `formation_options={\"beam\": ...}`", "python", 0): "tests/test_docs.py (the beams page)",
+    ("Super-resolution (sparse recovery)", "python", 0):
+        "tests/test_docs.py (the super-resolution page, after its setup block; its output compared)",
     ("Your own data", "bash", 1): "tests/test_docs.py::test_example_prints_what_the_page_shows (the turntable "
                                   "example, its output against the page's)",
     ("Python API in ten lines", "python", 0):
@@ -48,8 +50,6 @@ RUN_HERE = {
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
                                      "test suite (what CI does)",
-    ("Super-resolution (sparse recovery)", "python", 0): "not yet run: a fragment (recording, chirp, dataset, "
-                                                         "grid come from the text around it)",
     ("Fast image formation", "bash", 0): "a synopsis with [optional] parts, not a command line",
     ("Autofocus: motion, sound speed and delay from the scan itself", "python", 0):
         "not yet run: a fragment (ds, grid from the text around it); autofocus is tested in test_autofocus.py",
