@@ -263,3 +263,14 @@ def test_output_block_tolerance_line(tmp_path):
     blocks = code_blocks(page)
     assert [(b[1], b[4].text if b[4] else None) for b in blocks] == [("python", "1.0"), ("python", None)]
     assert blocks[0][4].rtol == pytest.approx(0.05) and compare("1.0", "1.04", blocks[0][4].rtol) is None
+
+
+def test_consistency_help_states_the_rule_the_gate_uses(capsys):
+    """``--consistency``'s help gives the withdrawal threshold the gate applies."""
+    from clsas.cli import main
+    from clsas.focus.consistency_gate import REVERT_RATIO
+
+    with pytest.raises(SystemExit):
+        main(["autofocus", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert f"excess ratio over {REVERT_RATIO:g}" in text and "unexplained as before" not in text
