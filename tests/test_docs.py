@@ -166,6 +166,29 @@ def test_example_prints_what_the_page_shows(run, tmp_path):
         printed += proc.stdout
     why = compare(out.text, printed, out.rtol)
     assert why is None, f"{path.name}:{line}: {why}"
+    for written in sorted((tmp_path / "examples" / "out").glob("*.md")):
+        shipped, ran = _figures(ROOT / "examples" / "out" / written.name), _figures(written)
+        assert shipped.keys() == ran.keys(), f"examples/out/{written.name}: not the rows and columns the example writes"
+        wrong = [f"{key}: {why}" for key in ran if (why := compare(shipped[key], ran[key], out.rtol))]
+        assert not wrong, f"examples/out/{written.name} differs from what the example writes now:\n" + "\n".join(wrong)
+
+
+def _figures(md: Path) -> dict[tuple[str, str], str]:
+    """``(row, column) -> cell`` of the Markdown tables of an example's output file, without the
+    columns that hold run times or devices (they differ from run to run and machine to machine)."""
+    cells, header = {}, None
+    for row in md.read_text(encoding="utf-8").splitlines():
+        if not row.startswith("|") or set(row) <= set("|-: "):
+            header = None if not row.startswith("|") else header
+            continue
+        fields = [f.strip() for f in row.strip("|").split("|")]
+        if header is None:
+            header = fields
+            continue
+        for name, cell in zip(header[1:], fields[1:], strict=False):
+            if not re.search(r"time|\(s\)|device", name):
+                cells[(fields[0], name)] = cell
+    return cells
 
 
 def test_every_output_block_is_checked():
