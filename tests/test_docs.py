@@ -186,7 +186,7 @@ def _figures(md: Path) -> dict[tuple[str, str], str]:
             header = fields
             continue
         for name, cell in zip(header[1:], fields[1:], strict=False):
-            if not re.search(r"time|\(s\)|device", name):
+            if not re.search(r"time|device", name):
                 cells[(fields[0], name)] = cell
     return cells
 
