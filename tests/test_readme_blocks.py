@@ -32,6 +32,8 @@ RUN_ELSEWHERE = {
         "tests/test_docs.py (the super-resolution page, after its setup block; its output compared)",
     ("Your own data", "bash", 1): "tests/test_docs.py::test_example_prints_what_the_page_shows (the turntable "
                                   "example, its output against the page's)",
+    ("Super-resolution (sparse recovery)", "bash", 0):
+        "tests/test_docs.py::test_example_prints_what_the_page_shows (the fig4 example, its output against the page's)",
     ("Python API in ten lines", "python", 0):
         "tests/test_first_hour.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
