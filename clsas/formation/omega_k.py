@@ -89,7 +89,7 @@ from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import stolt
-from .opencl import StoltDepthsPlan, StoltPlan
+from .stolt_opencl import StoltDepthsPlan, StoltPlan
 from .planar import NotPlanarUniform, planar_aperture
 from .registry import FORMATIONS
 
