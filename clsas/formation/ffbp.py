@@ -122,7 +122,7 @@ def plan_tree(profiles: Profiles, grid: VoxelGrid, **options) -> Tree:
 
 
 # the last tree planned, and what it was planned for: formation="auto" plans a tree to cost
-# FFBP (clsas.formation.cost) and the formation then runs with the same request
+# FFBP (clsas.formation.auto.predict) and the formation then runs with the same request
 _LAST_TREE: list = []
 
 

@@ -89,11 +89,11 @@ from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import stolt
-from .stolt_opencl import StoltDepthsPlan, StoltPlan
 from .planar import NotPlanarUniform, planar_aperture
 from .registry import FORMATIONS
+from .stolt_opencl import StoltDepthsPlan, StoltPlan
 
-__all__ = ["form", "OPTIONS", "NotPlanarUniform"]
+__all__ = ["form", "OPTIONS", "NotPlanarUniform", "farthest_offsets", "plan_sizes", "steepest_sine"]
 
 log = logging.getLogger(__name__)
 
@@ -239,16 +239,16 @@ def _edge_window(kq: np.ndarray, edge: float, taper: float, window: str | None) 
     return 0.5 * (1 + np.cos(np.pi * ramp))
 
 
-def _farthest_offsets(g, pu, pv) -> tuple[float, float]:
+def farthest_offsets(g, pu, pv) -> tuple[float, float]:
     """The largest in-plane offsets ``(du, dv)``, m, between a voxel (axes ``pu``, ``pv``) and a stop
     of the lattice group ``g``."""
     (u0, u1), (v0, v1) = g.extent_uv
     return max(abs(pu[-1] - u0), abs(u1 - pu[0])), max(abs(pv[-1] - v0), abs(v1 - pv[0]))
 
 
-def _max_sine(g, pu, pv, depth_min) -> float:
+def steepest_sine(g, pu, pv, depth_min) -> float:
     """Sine of the steepest voxel-stop angle from the plane's normal."""
-    lat = math.hypot(*_farthest_offsets(g, pu, pv))
+    lat = math.hypot(*farthest_offsets(g, pu, pv))
     return lat / math.hypot(lat, depth_min)
 
 
@@ -445,7 +445,7 @@ def _layout(g, k, pu, pv, depth, o, k_top) -> dict:
     du, dv = g.spacing_uv
     z0, z1 = float(depth[0]), float(depth[-1])
     # look angles: every voxel-stop pair, plus a margin; the window falls from s1 to s2
-    s_geo = _max_sine(g, pu, pv, z0) if o["max_sine"] is None else o["max_sine"]
+    s_geo = steepest_sine(g, pu, pv, z0) if o["max_sine"] is None else o["max_sine"]
     s1 = min(s_geo + 0.05, 0.97)
     s2 = min(s1 + 0.1, 0.995)
     # aliased angles: U repeats of the periodic spectrum
@@ -548,7 +548,7 @@ def _stolt_columns(stolt_step, block, k, ku, kv, params, factors, workers) -> np
 def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **options) -> dict:
     """What :func:`form` would transform for ``profiles`` on ``grid``, without forming the image.
 
-    For the cost model of ``formation="auto"`` (:mod:`clsas.formation.cost`): the geometry is
+    For the cost model of ``formation="auto"`` (:mod:`clsas.formation.auto.predict`): the geometry is
     checked as :func:`form` checks it (:class:`NotPlanarUniform` or ``ValueError`` likewise), the
     band is estimated from at most ``rows`` evenly spread profiles.
 
