@@ -1,6 +1,6 @@
 """A fast formation's error measured, not predicted: exact bp on a sub-lattice of the grid.
 
-``formation="auto"`` predicts each formation's error (:mod:`clsas.formation.cost`), and the
+``formation="auto"`` predicts each formation's error (:mod:`.predict`), and the
 prediction is a model: on the formation family's requests ω-k's aliased share was off by up to
 10 dB either way. Where a prediction is close to the target, or where measuring costs little
 against the formation itself, auto forms the image and then measures its error here:
@@ -35,8 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
+from ...geometry import VoxelGrid
+from ...profiles import Profiles
 
 __all__ = ["CHECK_VOXELS", "MAX_STRIDE", "Check", "form_choice", "measure_error", "sublattice"]
 
@@ -59,7 +59,7 @@ class Check:
     time_s: float
 
     def as_dict(self) -> dict:
-        """JSON-friendly form (infinities as strings, as :meth:`clsas.formation.cost.Choice.as_dict`)."""
+        """JSON-friendly form (infinities as strings, as :meth:`.rules.Choice.as_dict`)."""
         def num(x: float):
             return x if math.isfinite(x) else ("inf" if x > 0 else "-inf")
 
@@ -101,7 +101,7 @@ def measure_error(profiles: Profiles, grid: VoxelGrid, values: np.ndarray, *, ba
     backend : str or clsas.cl.Selection, optional
         Where bp runs (as :func:`clsas.formation.form`).
     """
-    from . import form
+    from .. import form
 
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles, got {type(profiles).__name__}")
@@ -131,7 +131,7 @@ def measure_error(profiles: Profiles, grid: VoxelGrid, values: np.ndarray, *, ba
 
 def form_choice(profiles: Profiles, grid: VoxelGrid, choice, *, backend=None,
                 progress: Callable[[int, int], None] | None = None, force: bool = False) -> tuple[Any, dict]:
-    """Form what ``formation="auto"`` chose (:func:`clsas.formation.cost.choose`): its steps in turn,
+    """Form what ``formation="auto"`` chose (:func:`.choice.choose`): its steps in turn,
     each one that is to be measured checked by :func:`measure_error` against the target, until one is
     kept.
 
@@ -143,7 +143,7 @@ def form_choice(profiles: Profiles, grid: VoxelGrid, choice, *, backend=None,
         step measured, its formation, options, the :class:`Check` and whether it was kept. A step that
         missed the target is logged at WARNING with what is formed instead.
     """
-    from . import form
+    from .. import form
 
     steps = choice.steps or ((None, False),)
     record = choice.as_dict()

@@ -1,10 +1,10 @@
 """Which of ``formation="auto"``'s predictions it trusts, and what it forms and measures in turn.
 
-:func:`clsas.formation.cost.choose` ranks the formations by their predicted time and error; the
-rules here turn that ranking into :attr:`clsas.formation.cost.Choice.steps`: a formation
-predicted at most ``target - MARGIN_DB`` by a model it trusts is taken as it is; one predicted
-near the target, or by a model it does not trust (:attr:`clsas.formation.cost.Estimate.unpredicted`),
-is formed and its error measured (:mod:`clsas.formation.check`) where that pays.
+:func:`.choice.choose` ranks the formations by their predicted time and error (:mod:`.predict`);
+the rules here turn that ranking into :attr:`.rules.Choice.steps`: a formation predicted at most
+``target - MARGIN_DB`` by a model it trusts is taken as it is; one predicted near the target, or by
+a model it does not trust (:attr:`Estimate.unpredicted`), is formed and its error measured
+(:mod:`.measure`) where that pays.
 """
 
 from __future__ import annotations
@@ -12,15 +12,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
+from ...geometry import VoxelGrid
+from ...profiles import Profiles
 from .timing import _seconds
 
 __all__ = ["CHECK_ABOVE_DB", "CHECK_IF_UNDER", "CHECK_SHARE", "CHECK_UNPREDICTED_SHARE", "MARGIN_DB",
            "Estimate", "check_seconds"]
 
 MARGIN_DB = 3.0  # a formation is chosen only where its predicted error is this far under the target
-# Measuring instead of predicting (clsas.formation.check: exact bp on a sub-lattice, within 0.6 dB of the
+# Measuring instead of predicting (clsas.formation.auto.measure: exact bp on a sub-lattice, within 0.6 dB of the
 # whole grid's error on the 31 fit requests 500-530, where ω-k's prediction was off by -7 to +10 dB).
 # A formation predicted between the target less MARGIN_DB and the target plus CHECK_ABOVE_DB is formed
 # and measured where it and its check together take under CHECK_IF_UNDER of the best predicted to meet
@@ -47,7 +47,7 @@ class Estimate:
     error_db: float  # predicted error against bp, dB (-inf: exact)
     options: dict = field(default_factory=dict)  # formation options it would run with
     note: str = ""  # why it cannot run, or what the error estimate rests on
-    # the prediction is not trusted: taken only once its error is measured (clsas.formation.check)
+    # the prediction is not trusted: taken only once its error is measured (clsas.formation.auto.measure)
     unpredicted: bool = False
 
     @property
@@ -56,9 +56,9 @@ class Estimate:
 
 
 def check_seconds(profiles: Profiles, grid: VoxelGrid, selection, factors: dict) -> float:
-    """Predicted time of measuring a formed image's error (:func:`clsas.formation.check.measure_error`:
+    """Predicted time of measuring a formed image's error (:func:`.measure.measure_error`:
     bp on the grid's sub-lattice)."""
-    from .check import stride_for
+    from .measure import stride_for
 
     s = stride_for(grid.shape)
     n_sub = math.prod(-(-n // s) for n in grid.shape)  # at most this many voxels, whatever the offsets

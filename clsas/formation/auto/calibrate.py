@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["FORMS", "SIDES_FULL", "SIDES_QUICK", "best_time", "calibrate_auto", "calibration_case", "case_profiles",
-           "factors_of", "time_formations", "warm_up"]
+__all__ = ["FORMS", "MIN_SIDE", "SIDES_FULL", "SIDES_QUICK", "best_time", "calibrate_auto", "calibration_case",
+           "case_profiles", "factors_of", "time_formations", "warm_up"]
 
 log = logging.getLogger(__name__)
 
@@ -43,9 +43,9 @@ REPEAT_MAX = 7
 
 def calibration_case(n: int, seed: int = 0):
     """(dataset, grid) of the N x N-stop scan (see the module notes)."""
-    from ..geometry import Scene, VoxelGrid, raster_aperture
-    from ..signals import lfm_chirp
-    from ..simulation import simulate
+    from ...geometry import Scene, VoxelGrid, raster_aperture
+    from ...signals import lfm_chirp
+    from ...simulation import simulate
 
     side = PITCH * (n - 1)
     ap = raster_aperture(n, n, side, side)
@@ -64,8 +64,8 @@ def calibration_case(n: int, seed: int = 0):
 
 def case_profiles(ds, grid, selection=None):
     """The case's profiles over its grid's delay gate (matched filter)."""
-    from ..compression import compress
-    from ..rangegate import plan_reconstruction
+    from ...compression import compress
+    from ...rangegate import plan_reconstruction
 
     plan = plan_reconstruction(ds, grid, [])
     return compress(ds, gate_s=plan.gate_s, backend=selection)
@@ -73,7 +73,7 @@ def case_profiles(ds, grid, selection=None):
 
 def forget_tree() -> None:
     """Drop FFBP's remembered tree, so that its planning is part of the next timed call."""
-    from . import ffbp
+    from .. import ffbp
 
     ffbp._LAST_TREE.clear()
 
@@ -95,7 +95,7 @@ def best_time(fn: Callable[[], Any]) -> tuple[float, Any]:
 
 def warm_up(selection=None) -> None:
     """Build each formation's kernels on a small scan, outside any timing."""
-    from . import form
+    from .. import form
 
     ds, grid = calibration_case(12)
     prof = case_profiles(ds, grid, selection)
@@ -106,7 +106,8 @@ def warm_up(selection=None) -> None:
 def time_formations(prof, grid, selection, say: Callable[[str], None]) -> tuple[list[dict], dict]:
     """Each of :data:`FORMS` timed on ``prof`` onto ``grid``: rows (``formation``, ``time_s``,
     ``backend``, ``predicted_builtin_s``) and the images by formation."""
-    from . import cost, form
+    from .. import form
+    from .predict import predict_time
 
     rows, images = [], {}
     for f in FORMS:
@@ -114,7 +115,7 @@ def time_formations(prof, grid, selection, say: Callable[[str], None]) -> tuple[
         took, img = best_time(lambda f=f: form(prof, grid, f, backend=selection))
         images[f] = img
         rows.append({"formation": f, "time_s": took, "backend": img.backend,
-                     "predicted_builtin_s": cost.predict_time(f, prof, grid, selection, factors={})})
+                     "predicted_builtin_s": predict_time(f, prof, grid, selection, factors={})})
     return rows, images
 
 
@@ -139,7 +140,7 @@ def calibrate_auto(sides: Sequence[int] = SIDES_QUICK, *, backend: Any = None, d
     backend, device
         Where to measure, as :func:`clsas.reconstruct` takes them (default: ``auto``'s device).
     store : bool
-        Keep the factors for the device (:func:`clsas.formation.timing.calibration_path`), where
+        Keep the factors for the device (:func:`clsas.formation.auto.timing.calibration_path`), where
         ``formation="auto"`` reads them.
     status : callable(str), optional
         Progress lines naming the step.
@@ -150,8 +151,8 @@ def calibrate_auto(sides: Sequence[int] = SIDES_QUICK, *, backend: Any = None, d
         ``factors`` (formation -> measured / predicted time), ``rows`` (per side: the timings),
         ``device``, and ``path`` where stored.
     """
-    from .. import cl
-    from . import cost
+    from ... import cl
+    from .timing import store_calibration
 
     sides = tuple(sides)
     if not sides or not all(isinstance(n, int | np.integer) and not isinstance(n, bool) and n >= MIN_SIDE
@@ -171,7 +172,7 @@ def calibrate_auto(sides: Sequence[int] = SIDES_QUICK, *, backend: Any = None, d
     factors = factors_of(rows)
     out = {"factors": factors, "rows": per_side, "device": sel.device, "sides": list(sides)}
     if store and factors:
-        path = cost.store_calibration(factors, sel, detail={"sides": list(sides)})
+        path = store_calibration(factors, sel, detail={"sides": list(sides)})
         out["path"] = str(path)
         say(f"calibration: {', '.join(f'{k} x{x:.2f}' for k, x in factors.items())}, kept in {path}")
     return out

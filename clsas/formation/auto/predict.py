@@ -1,11 +1,12 @@
-"""``formation="auto"``: a cost and error model per formation, and the choice it makes.
+"""``formation="auto"``'s cost and error model: each formation's predicted time and error.
 
 For a request (profiles, grid, device), each formation gets a predicted run time and a
 predicted error against exact backprojection (complex error-to-signal over the grid, dB, as
-:func:`clsas.formation.error_to_signal_db` measures it); :func:`choose` takes the fastest
-whose predicted error is at most ``max_error_db - MARGIN_DB``, and says why. The seconds per unit
-of work, their scaling to a device and their calibration are in :mod:`clsas.formation.timing`; which
-predictions auto trusts, and what it forms and measures in turn, in :mod:`clsas.formation.trust`.
+:func:`clsas.formation.error_to_signal_db` measures it) (:func:`estimate`); :func:`.choice.choose`
+takes the fastest whose predicted error is at most ``max_error_db - MARGIN_DB``, and says why. The
+seconds per unit of work, their scaling to a device and the device's calibration factors are in
+:mod:`.timing`; which predictions auto trusts, and what it forms and measures in turn, in
+:mod:`.trust`.
 
 Time. Each formation's time is a sum of counted work times seconds per unit:
 
@@ -18,13 +19,13 @@ Time. Each formation's time is a sum of counted work times seconds per unit:
   per leaf), the merges (samples x factor x taps³ per level) and the last step (voxels x factor
   x taps³), sizes from :func:`clsas.formation.ffbp.plan_tree`.
 
-The built-in seconds per unit (:data:`BUILTIN`) were fitted on a quiet 2-core AMD EPYC VM (PoCL
+The built-in seconds per unit (:data:`.timing.BUILTIN`) were fitted on a quiet 2-core AMD EPYC VM (PoCL
 CPU device; see docs/guide/fast-formation.md) and are scaled to other devices by
 their compute units (kernels; a GPU's four times a CPU's); ω-k's host work by the host's cores
-over 2 to the power :data:`OMEGA_K_CORE_EXPONENT` (0.2: its FFTs gain little from many cores at
-these sizes). ``python -m bench`` measures the formations
+over 2 to the power :data:`.timing.OMEGA_K_CORE_EXPONENT` (0.2: its FFTs gain little from many cores at
+these sizes). ``clsas calibrate`` (:func:`.calibrate.calibrate_auto`) measures the formations
 on the device and stores one factor per formation (measured over predicted, the median over its
-cases) beside the kernel-variant verdicts (:func:`calibration_path`); :func:`choose` applies it.
+cases) beside the kernel-variant verdicts (:func:`.timing.calibration_path`); :func:`estimate` applies it.
 The model need only rank the formations: within a factor of two is enough where they differ by
 more. Sizing ω-k and planning an FFBP tree cost time themselves (0.03 s and 0.07 s at 64 x 64
 stops), lost where that formation is not chosen: each is done only where a lower bound of its time
@@ -47,39 +48,19 @@ the fastest that meets the target.
 
 from __future__ import annotations
 
-import logging
 import math
 import time
-from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
-from .timing import (
-    BUILTIN,
-    GPU_FIXED,
-    OMEGA_K_CORE_EXPONENT,
-    _device,
-    _seconds,
-    calibration_path,
-    load_calibration,
-    store_calibration,
-    work_bp,
-    work_ffbp,
-    work_omega_k,
-)
-from .trust import CHECK_ABOVE_DB, CHECK_IF_UNDER, MARGIN_DB, Estimate, _near, _safe, _steps, check_seconds
+from ...geometry import VoxelGrid
+from ...profiles import Profiles
+from .rules import DEFAULT_MAX_ERROR_DB, check_max_error_db
+from .timing import BUILTIN, _device, _seconds, load_calibration, work_bp, work_ffbp, work_omega_k
+from .trust import CHECK_IF_UNDER, MARGIN_DB, Estimate, _near, _safe, check_seconds
 
-__all__ = [
-    "BUILTIN", "DEFAULT_MAX_ERROR_DB", "GPU_FIXED", "MARGIN_DB", "OMEGA_K_CORE_EXPONENT", "Choice", "Estimate",
-    "alias_fraction", "calibration_path", "check_max_error_db", "check_seconds", "choose", "estimate",
-    "load_calibration", "predict_time", "store_calibration",
-]
+__all__ = ["alias_fraction", "estimate", "lattice_aliases", "predict_time"]
 
-log = logging.getLogger(__name__)
-
-DEFAULT_MAX_ERROR_DB = -30.0
 OMEGA_K_BASE_DB = -42.0
 # ... on lattices of at least OMEGA_K_FULL_SIDE stops a side (the crossover scans, 16-128); on fewer the
 # method's own error grows: on the planar requests of the formation family's fit seeds 500-599 that the
@@ -119,54 +100,13 @@ FFBP_FLOOR_GRID = 0.75
 OMEGA_K_SIZING_S = (1.5e-3, 8e-7)
 
 
-@dataclass(frozen=True)
-class Choice:
-    """What ``formation="auto"`` chose, and why (recorded in the image's provenance)."""
-
-    formation: str
-    options: dict
-    reason: str
-    max_error_db: float
-    model: str  # "built-in" or where the calibration came from
-    estimates: tuple[Estimate, ...]
-    # what auto forms, in turn: (estimate, measured?) pairs; the first one formed whose error is not
-    # measured, or is measured within the target, is kept (clsas.formation.check.form_choice)
-    steps: tuple[tuple[Estimate, bool], ...] = ()
-
-    def as_dict(self) -> dict:
-        """JSON-friendly form (infinities as strings)."""
-
-        def num(x: float):
-            if math.isnan(x):
-                return None
-            return x if math.isfinite(x) else ("inf" if x > 0 else "-inf")
-
-        def est(e: Estimate) -> dict:
-            return {**asdict(e), "time_s": num(e.time_s), "error_db": num(e.error_db)}
-
-        return {"formation": self.formation, "options": dict(self.options), "reason": self.reason,
-                "max_error_db": self.max_error_db, "model": self.model,
-                "estimates": [est(e) for e in self.estimates],
-                "steps": [{"formation": e.formation, "options": dict(e.options), "measured": m} for e, m in self.steps]}
-
-
-def check_max_error_db(max_error_db) -> float:
-    """``max_error_db`` validated: a finite number of dB below 0."""
-    if isinstance(max_error_db, bool) or not isinstance(max_error_db, int | float | np.floating | np.integer):
-        raise TypeError(f"max_error_db must be a number of dB (e.g. -30), got {type(max_error_db).__name__}")
-    val = float(max_error_db)
-    if not math.isfinite(val) or val >= 0:
-        raise ValueError(f"max_error_db must be a finite number of dB below 0 (e.g. -30), got {max_error_db!r}")
-    return val
-
-
 def _never_aliased(g, pu, pv, depth_min: float, k2_max: float) -> bool:
     """Whether no voxel-stop pair of the lattice group ``g`` is steep enough to be sampled aliased at the
     two-way wavenumber ``k2_max`` (the steepest ``|sin theta|`` per axis: at the nearest depth, the
     other axis' offset 0)."""
-    from .omega_k import _farthest_offsets
+    from ..omega_k import farthest_offsets
 
-    du, dv = _farthest_offsets(g, pu, pv)
+    du, dv = farthest_offsets(g, pu, pv)
     su, sv = du / math.hypot(du, depth_min), dv / math.hypot(dv, depth_min)
     return bool(k2_max * su * g.spacing_uv[0] <= np.pi and k2_max * sv * g.spacing_uv[1] <= np.pi)
 
@@ -228,7 +168,7 @@ def _omega_k_estimate(profiles, grid, selection, factors, options: dict | None =
 def _omega_k_sized(profiles, grid, selection, factors, options: dict | None = None) -> tuple[Estimate, float, float]:
     """:func:`_omega_k_estimate`, the aliased share it counted (RMS over the grid; 0 when upsampled) and
     the sine of the steepest voxel-stop angle."""
-    from .omega_k import _max_sine, plan_sizes
+    from ..omega_k import plan_sizes, steepest_sine
 
     options = dict(options or {})
     try:
@@ -236,7 +176,7 @@ def _omega_k_sized(profiles, grid, selection, factors, options: dict | None = No
     except ValueError as exc:  # NotPlanarUniform is one
         return Estimate("omega-k", math.inf, math.inf, options, note=str(exc).split(";")[0]), 0.0, 1.0
     pu, pv, depth = sizes["axes"]
-    sine = max(_max_sine(g, pu, pv, float(np.min(depth))) for g in sizes["aperture"].groups)
+    sine = max(steepest_sine(g, pu, pv, float(np.min(depth))) for g in sizes["aperture"].groups)
     side = min((n for g in sizes["aperture"].groups for n in g.shape if n > 1), default=OMEGA_K_FULL_SIDE)
     base = OMEGA_K_BASE_DB + OMEGA_K_DB_PER_STOP * max(0, OMEGA_K_FULL_SIDE - side)
     work = work_omega_k(sizes, _device(selection) is not None)
@@ -273,7 +213,7 @@ def _omega_k_estimates(profiles, grid, selection, factors, target_db: float, bes
 
 def _ffbp_candidates(n_meas: int) -> list[int]:
     """Tree depths to try: the default (leaves of 16 or more measurements) first, then one either side."""
-    from .ffbp_tree import default_depth, max_depth
+    from ..ffbp_tree import default_depth, max_depth
 
     d0 = default_depth(n_meas, 4)
     return [d for d in (d0, d0 - 1, d0 + 1) if 1 <= d <= max_depth(n_meas, 4)]
@@ -287,7 +227,7 @@ def _ffbp_estimates(profiles, grid, selection, factors, target_db: float, best_s
     its last step) is under ``PLAN_IF_UNDER`` times ``best_s``, and further
     depths only while the planning spent stays under a tenth of the best time so far.
     """
-    from .ffbp import plan_tree
+    from ..ffbp import plan_tree
 
     floor = (FFBP_FLOOR_FIXED_S + FFBP_FLOOR_GRID * _seconds("ffbp", {"grid": float(grid.size) * 4 * 4**3},
                                                               selection, factors)
@@ -348,76 +288,6 @@ def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_d
     return out
 
 
-def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float = DEFAULT_MAX_ERROR_DB,
-           formations=("bp", "omega-k", "ffbp")) -> Choice:
-    """The fastest formation whose predicted error is at most ``max_error_db - MARGIN_DB``, or one
-    predicted near the target whose error is then measured (:attr:`Choice.steps`).
-
-    Parameters
-    ----------
-    profiles : Profiles
-    grid : VoxelGrid
-    selection : clsas.cl.Selection, optional
-        Where the formations would run (None: the NumPy twins).
-    max_error_db : float
-        Error target against exact backprojection, dB (default -30).
-    formations : tuple of str
-        The formations to consider; ``"bp"`` is always among them (it meets any target).
-
-    Returns
-    -------
-    Choice
-        Logged at INFO with its reason.
-    """
-    if not isinstance(profiles, Profiles):
-        raise TypeError(f"profiles must be clsas.Profiles, got {type(profiles).__name__}")
-    if not isinstance(grid, VoxelGrid):
-        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    target = check_max_error_db(max_error_db)
-    formations = tuple(dict.fromkeys(("bp", *formations)))
-    factors = load_calibration(selection)
-    model = "calibrated on this device by python -m bench" if factors else "built-in (not calibrated on this device)"
-    ests = estimate(profiles, grid, selection, max_error_db=target, factors=factors, formations=formations)
-    fast = any(e.feasible and e.formation != "bp" and e.error_db <= target + CHECK_ABOVE_DB for e in ests)
-    steps = _steps(ests, target, check_seconds(profiles, grid, selection, factors) if fast else math.inf)
-    first, measured = steps[0]
-    bp = next(e for e in ests if e.formation == "bp")
-    others = "; ".join(f"{e.formation}{_opts(e.options)}: {_describe(e, target)}" for e in ests if e is not first)
-    if first.formation == "bp":
-        reason = f"bp (exact, predicted {bp.time_s:.3g} s) is the fastest that meets {target:g} dB; {others}"
-    else:
-        speedup = bp.time_s / first.time_s
-        if first.unpredicted and measured:
-            meets = "by a model not trusted here (some voxel-stop pairs aliased), to be measured"
-        elif first.error_db > target - MARGIN_DB:
-            meets = f"within {target:g} dB + {CHECK_ABOVE_DB:g} dB, to be measured"
-        else:
-            meets = f"<= {target:g} dB - {MARGIN_DB:g} dB margin"
-        then = "; measured on a sub-lattice, then " + ", else ".join(
-            f"{e.formation}{_opts(e.options)}" for e, _ in steps[1:]) if measured else ""
-        reason = (f"{first.formation}{_opts(first.options)}: predicted {first.time_s:.3g} s ({speedup:.1f}x "
-                  f"faster than bp) at {first.error_db:.0f} dB {meets}{then}; {others}")
-    log.info("formation auto: %s [cost model %s]", reason, model)
-    return Choice(first.formation, dict(first.options), reason, target, model, tuple(ests), steps)
-
-
-def _opts(options: dict) -> str:
-    return "" if not options else " (" + ", ".join(f"{k}={val}" for k, val in options.items()) + ")"
-
-
-def _describe(e: Estimate, target: float) -> str:
-    if not e.feasible:
-        return f"cannot run ({e.note})"
-    if math.isnan(e.error_db):
-        return e.note
-    err = "exact" if e.error_db == -math.inf else f"{e.error_db:.0f} dB"
-    if e.error_db > target - MARGIN_DB:
-        over = " (over the target)"
-    else:
-        over = " (aliased: not trusted unmeasured)" if e.unpredicted else ""
-    return f"{e.time_s:.3g} s, {err}{over}"
-
-
 def predict_time(formation: str, profiles: Profiles, grid: VoxelGrid, selection=None, options: dict | None = None,
                  factors: dict | None = None) -> float:
     """Predicted run time of ``formation`` with ``options`` (s); ``factors`` default to none (the built-in
@@ -427,12 +297,12 @@ def predict_time(formation: str, profiles: Profiles, grid: VoxelGrid, selection=
     if formation == "bp":
         return _seconds("bp", work_bp(profiles, grid), selection, factors)
     if formation == "omega-k":
-        from .omega_k import plan_sizes
+        from ..omega_k import plan_sizes
 
         work = work_omega_k(plan_sizes(profiles, grid, **options), _device(selection) is not None)
         return _seconds("omega-k", work, selection, factors)
     if formation == "ffbp":
-        from .ffbp import plan_tree
+        from ..ffbp import plan_tree
 
         t = time.perf_counter()
         tree = plan_tree(profiles, grid, **options)

@@ -1,10 +1,11 @@
-"""Seconds per unit of counted work, per formation and device, and their calibration.
+"""Seconds per unit of counted work, per formation and device: the time half of ``auto``'s model.
 
-The time half of ``formation="auto"``'s cost model (:mod:`clsas.formation.cost` counts each
-formation's work and predicts its error): :data:`BUILTIN` seconds per unit on the reference
-device, scaled to other devices by their compute units and host cores (:func:`_speed`), and the
-factors ``python -m bench`` measures on a device and stores beside the kernel-variant verdicts
-(:func:`calibration_path`, :func:`store_calibration`, :func:`load_calibration`).
+Each formation's work is counted (:func:`work_bp`, :func:`work_omega_k`, :func:`work_ffbp`) and
+priced at :data:`BUILTIN` seconds per unit on the reference device, scaled to other devices by
+their compute units and host cores (:func:`_speed`), times the factor per formation that the
+device's calibration measured (:mod:`.calibrate`), kept beside the kernel-variant verdicts
+(:func:`calibration_path`, :func:`store_calibration`, :func:`load_calibration`). The error half of
+the model is in :mod:`.predict`.
 """
 
 from __future__ import annotations
@@ -16,11 +17,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
+from ...geometry import VoxelGrid
+from ...profiles import Profiles
 
-__all__ = ["BUILTIN", "FORMAT", "GPU_FIXED", "calibration_path", "load_calibration", "store_calibration",
-           "work_bp", "work_ffbp", "work_omega_k"]
+__all__ = ["BUILTIN", "FORMAT", "GPU_FIXED", "OMEGA_K_CORE_EXPONENT", "calibration_path", "load_calibration",
+           "store_calibration", "work_bp", "work_ffbp", "work_omega_k"]
 
 # 2: a refit of the built-in model; 3: omega-k's work counts its bistatic terms; 4: a refit of bp and
 # FFBP; 5: omega-k's direct sum at the depths; 6: bp's fixed part split into a per-measurement term
@@ -57,13 +58,13 @@ OMEGA_K_CORE_EXPONENT = 0.2
 NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses
 
 
-# -- calibration ------------------------------------------------------------------------------
+# -- the device's calibration ------------------------------------------------------------------------------
 def _device_key(selection) -> tuple[str, dict]:
     import hashlib
     import platform
 
     if selection is not None and getattr(selection, "kind", "numpy") == "opencl":
-        from ..cl.variants import device_identity
+        from ...cl.variants import device_identity
 
         ident = device_identity(selection.queue.device)
     else:
@@ -75,7 +76,7 @@ def _device_key(selection) -> tuple[str, dict]:
 def calibration_path(selection=None) -> Path:
     """Where the calibration of ``selection``'s device is kept: ``formation_cost/<key>.json`` beside
     the kernel-variant verdicts (:func:`clsas.cl.variants.cache_dir`)."""
-    from ..cl.variants import cache_dir
+    from ...cl.variants import cache_dir
 
     return cache_dir().parent / "formation_cost" / f"{_device_key(selection)[0]}.json"
 
@@ -110,7 +111,7 @@ def _device(selection):
 
 
 def _on_gpu(selection) -> bool:
-    from ..cl import is_cpu
+    from ...cl import is_cpu
 
     dev = _device(selection)
     return dev is not None and not is_cpu(dev)
@@ -151,7 +152,7 @@ def work_bp(profiles: Profiles, grid: VoxelGrid) -> dict:
 def work_omega_k(sizes: dict, opencl: bool = True) -> dict:
     """Counted work of ω-k from :func:`clsas.formation.omega_k.plan_sizes` (the Stolt step's path as
     ω-k takes it on OpenCL, or on the NumPy twins where ``opencl`` is False)."""
-    from .stolt import depth_path, direct_work
+    from ..stolt import depth_path, direct_work
 
     n_fft, n_f, nz = sizes["n_fft"], sizes["n_f"], sizes["nz"]
     pu, pv, _ = sizes["axes"]
@@ -179,5 +180,3 @@ def work_ffbp(tree, grid: VoxelGrid, taps: int, plan_s: float) -> dict:
     return {"fixed": 1, "plan": plan_s, "leaf": leaves.samples * per_leaf, "merge": merge,
             "grid": float(grid.size) * tree.factor * taps**3}
 
-
-# -- errors -----------------------------------------------------------------------------------
