@@ -23,37 +23,30 @@ from ...profiles import Profiles
 __all__ = ["BUILTIN", "FORMAT", "GPU_FIXED", "OMEGA_K_CORE_EXPONENT", "calibration_path", "load_calibration",
            "store_calibration", "work_bp", "work_ffbp", "work_omega_k"]
 
-# 2: a refit of the built-in model; 3: omega-k's work counts its bistatic terms; 4: a refit of bp and
-# FFBP; 5: omega-k's direct sum at the depths; 6: bp's fixed part split into a per-measurement term
-# (a factor stored by an older format no longer applies)
+# the model's format: factors stored under another format are not used (its terms differ)
 FORMAT = 6
 
-# seconds per unit of counted work on the reference device (2 compute units, 2 host cores), fitted
-# on the quiet 2-core AMD EPYC VM with PoCL, load under 2 (a fit at load 12-14 over-predicted ω-k 5x,
-# bp 2.5x; see docs/guide/fast-formation.md). omega-k's Stolt and depth terms are per bistatic term
-# (the Stolt term also per cell of its 6-cell kernel); its fixed part (1.5 ms) and variable part
-# fitted on the crossover scans of bench/results/2026-11-27-formation-auto-vm-quiet-2.json, 16-128
-# stops a side. FFBP's variable terms scaled by its median measured over predicted (0.55) on the
-# crossover scans of bench/results/2026-11-28-formation-auto-vm-split-carrier-2.json. bp fitted by
-# non-negative least squares in relative error on 69 requests of the formation family's fit seeds
-# 500-579 (bench.formation_family, up to 3e8 pairs): 0.63 ms fixed, 5.6 us per measurement
-# (its records and profiles, host side) and 1.83e-9 per pair, measured / predicted 0.66-1.78 on those
-# requests (a 5 ms fixed part over-predicted bp up to 5x on scans it forms in 1-3 ms, and auto took
-# ω-k there at twice bp's time)
+# seconds per unit of counted work on the reference device (2 compute units, 2 host cores: a quiet
+# 2-core VM with PoCL; a fit under load over-predicts several times). omega-k's Stolt and depth terms
+# are per bistatic term (the Stolt term also per cell of its 6-cell kernel); omega-k and FFBP fitted
+# on the crossover scans of ``bench.crossover`` (16-128 stops a side); bp by non-negative least squares
+# in relative error on the formation family's fit seeds 500-579 (``bench.formation_family``, up to
+# 3e8 pairs): a fixed part, a per-measurement part (its records and profiles, host side) and a
+# per-pair part. The fits and their measured-over-predicted ratios are on the benchmarks page.
 BUILTIN: dict[str, dict[str, float]] = {
     "bp": {"fixed": 6.3e-4, "meas": 5.6e-6, "pairs": 1.83e-9},
     "omega-k": {"fixed": 1.5e-3, "delay": 2.3e-9, "lattice": 8e-10, "stolt": 3.8e-9, "depths": 8e-10, "out": 1.15e-9,
                 "direct": 2.1e-10},
     "ffbp": {"fixed": 5e-3, "leaf": 1.1e-9, "merge": 1.4e-9, "grid": 1.4e-9},
 }
-# bp's fixed part on a GPU: 1.5 ms (1.45-1.9 ms for the whole of bp's smallest cases on an H200
-# through NVIDIA's OpenCL, bench/results/2026-11-28-formation-gpu-h200.md); with a 5 ms fixed part
-# auto sized ω-k for scans bp forms in 2-5 ms, and the sizing alone doubled auto's time
+# bp's fixed part on a GPU: its smallest cases took 1.45-1.9 ms in all on an H200 through NVIDIA's
+# OpenCL (the GPU formation report in bench/results); a larger fixed part sizes ω-k for scans bp
+# forms in a few ms
 GPU_FIXED = {"bp": 1.5e-3}
 HOST_TERMS = ("fixed", "meas", "plan")  # work the host does, whatever the device
 REF_UNITS = 2  # compute units and host cores of the device BUILTIN was fitted on
 # ω-k's host work speeds up as (cores / REF_UNITS) ** this: 1.25-1.8x on a 16-core host against the
-# 2-core reference (8 ** 0.1-0.28), measured with a GPU doing bp (bench/results/2026-11-28-formation-gpu-h200.md)
+# 2-core reference (8 ** 0.1-0.28), measured with a GPU doing bp (the GPU formation report)
 OMEGA_K_CORE_EXPONENT = 0.2
 NUMPY_SLOWDOWN = {"bp": 25.0, "omega-k": 2.0, "ffbp": 10.0}  # the NumPy twins against PoCL: rough guesses
 
@@ -124,7 +117,7 @@ def _speed(selection, formation: str) -> float:
     if formation == "omega-k":
         # its FFTs use every host core (workers=os.cpu_count()) but at these sizes gain little from
         # them: on a 16-core host (8x the reference) ω-k ran 1.25-1.8x faster than on the reference,
-        # not 8x (bench/results/2026-11-28-formation-gpu-h200.md, runs 1-2); hence host ** 0.2
+        # not 8x (the GPU formation report in bench/results); hence host ** 0.2
         speed = host**OMEGA_K_CORE_EXPONENT
         return speed if dev is not None else speed / NUMPY_SLOWDOWN[formation]
     if dev is None:
