@@ -204,18 +204,41 @@ def test_a_worker_killed_mid_run_still_gives_the_same_image(scene):
         _kill_one_worker_mid_run(scene, client)
 
 
+HELD = "clsas-test-victim-holds-a-tile"
+
+
+def _hold_the_first_tile():
+    """Run on the victim worker: its first tile task says so (a cluster event) and never returns, so
+    that the kill lands while it holds a tile, and the run cannot end before the kill."""
+    import threading
+
+    import distributed
+
+    from clsas.tiling import dask as tiling_dask
+
+    def held(*args, **kwargs):
+        distributed.Event(HELD).set()
+        threading.Event().wait()
+
+    tiling_dask._tile_task = held  # the task is sent by name and found here, in this process
+
+
 def _kill_one_worker_mid_run(scene, client):
+    import distributed
+
     ds, grid, ref = scene
-    pids = client.run(os.getpid)
-    victim = sorted(pids.values())[0]
+    victim_addr, victim = min(client.run(os.getpid).items(), key=lambda item: item[1])
+    client.run(_hold_the_first_tile, workers=[victim_addr])
+    holds = distributed.Event(HELD, client=client)
     killed = []
 
     def kill_once(done, total):
         if done >= 1 and not killed:
+            assert holds.wait(timeout=120), "the victim worker never started a tile"
             os.kill(victim, signal.SIGKILL)
-            killed.append(victim)
+            killed.append(done)
 
     image = clsas.reconstruct(ds, grid, backend="numpy", client=client, tile_shape=(2, 17, 17), progress=kill_once)
-    assert killed, "the run ended before a worker could be killed"
+    assert killed, "no tile was done: the victim was never killed"  # its held tile came from another worker
     np.testing.assert_allclose(image.values, ref.values, rtol=0, atol=1e-12 * np.abs(ref.values).max())
     assert image.provenance["tiles"]["formed_now"] == image.provenance["tiles"]["count"]

@@ -4,11 +4,11 @@ pyserial as a serial port) and, where a JACK server runs, real PortAudio through
 import os
 import subprocess
 import sys
-import time
 
 import h5py
 import numpy as np
 import pytest
+from stepped_clock import SteppedClock
 
 import clsas
 from clsas import rig
@@ -96,17 +96,19 @@ def test_banner_after_boot_noise_and_alarm_lock(emulator, stage):
 
 
 def test_move_runs_then_idles_at_target_and_polls_at_most_5hz():
-    with GrblEmulator(time_scale=1.0, homing=False) as emu, GrblStage(emu.port, feed_mm_min=3000) as st:
+    clock = SteppedClock()  # the machine moves only as the test, or the stage's poll waits, step the clock
+    with GrblEmulator(homing=False, banner_delay_s=0.05, clock=clock) as emu, \
+            GrblStage(emu.port, feed_mm_min=3000, clock=clock) as st:
         st.unlock()
         st.command("G1 X-20 Y0 F3000")  # 20 mm at 50 mm/s: 0.4 s
-        time.sleep(0.15)
-        mid = st.status()
-        assert mid.state == "Run" and -18.0 < mid.position_mm[0] < -2.0  # the position advances
+        clock.advance(0.15)
+        assert st.status() == rig.Status("Run", (-7.5, 0.0, 0.0))  # the position advances with the clock
         emu.status_times.clear()
-        end = st.move_to(-40.0, -10.0)
+        end = st.move_to(-40.0, -10.0)  # queued behind the first: Idle at 0.4 + 22.4 mm / 50 mm/s
         assert end.state == "Idle" and end.position_mm[:2] == (-40.0, -10.0)
         gaps = np.diff(emu.status_times)
-        assert len(gaps) >= 2 and gaps.min() >= 0.19  # '?' no faster than 5 Hz
+        assert len(gaps) >= 3 and gaps.min() >= st.poll_s - 1e-9  # '?' no faster than 5 Hz
+        assert emu.status_times[-1] - emu.status_times[0] >= 0.4 + np.hypot(20, 10) / 50 - 0.15 - 1e-9
         assert "G21 G90" in emu.received and "G53 G1 X-40.000 Y-10.000 F3000" in emu.received
 
 
@@ -188,18 +190,19 @@ def test_alarm_stops_the_machine_part_way():
 
 
 def test_feed_hold_stops_motion():
-    with GrblEmulator(time_scale=1.0, homing=False) as emu, GrblStage(emu.port) as st:
+    clock = SteppedClock()
+    with GrblEmulator(homing=False, banner_delay_s=0.05, clock=clock) as emu, GrblStage(emu.port, clock=clock) as st:
         st.unlock()
-        st.command("G1 X-50 F3000")  # 1 s
-        time.sleep(0.2)
+        st.command("G1 X-50 F3000")  # 50 mm at 50 mm/s: 1 s
+        clock.advance(0.2)
         assert st.feed_hold()
-        time.sleep(0.05)
-        held = st.status()
-        time.sleep(0.2)
-        assert held.state == "Hold" and st.status().position_mm == held.position_mm
-        assert -50.0 < held.position_mm[0] < 0.0
+        held = st.status()  # the '?' follows the '!' on the line: the hold is in force
+        assert held == rig.Status("Hold", (-10.0, 0.0, 0.0))
+        clock.advance(0.5)
+        assert st.status() == held  # held: the clock moves, the carriage does not
         st.cycle_start()  # the rest of the move runs from where it was held
         assert st.wait_idle(5.0).position_mm == (-50.0, 0.0, 0.0)
+        assert emu.state == "Idle"
 
 
 def test_no_controller_on_the_port_says_so():
@@ -341,7 +344,7 @@ def _parameters(func, skip=()):
 
 def test_config_sections_are_the_constructors_arguments():
     cfg = rig.parse_rig_config(rig.SAMPLE_RIG_TOML)
-    assert set(cfg.stage) == _parameters(GrblStage.__init__)
+    assert set(cfg.stage) == _parameters(GrblStage.__init__, skip=("clock",))  # a time base, not a rig setting
     assert set(cfg.audio) == _parameters(rig.SoundDeviceIO.__init__)
     assert set(cfg.recorder) == _parameters(rig.Recorder.__init__, skip=("io", "waveform", "fs_hz", "n_samples"))
     st = rig.scan.stage_for(cfg)

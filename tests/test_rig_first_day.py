@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 import pytest
+from stepped_clock import SteppedClock
 
 from clsas import rig
 from clsas.rig import GrblEmulator, GrblStage
@@ -54,7 +55,9 @@ def test_feed_above_the_axis_rate_is_logged_on_connect(caplog):
 
 
 def test_emulator_caps_the_feed_at_the_axis_rate_as_grbl_does():
-    with GrblEmulator(time_scale=0.05, max_rate_mm_min=500) as emu, GrblStage(emu.port) as st:
+    clock = SteppedClock()  # each status line below is asked for while its move runs: the clock stands still
+    with GrblEmulator(time_scale=0.05, max_rate_mm_min=500, clock=clock) as emu, \
+            GrblStage(emu.port, clock=clock) as st:
         st.home()
         st.command("G53 G1 X-201 Y-1 F3000")
         line = _status_line(st)
@@ -66,6 +69,7 @@ def test_emulator_caps_the_feed_at_the_axis_rate_as_grbl_does():
         st.wait_idle(10.0)
         st.command("G53 G1 X-201 Y-201 F3000")  # the diagonal: each axis at 800 mm/min at most
         assert f"FS:{500 * np.sqrt(2):.0f}," in _status_line(st)
+        assert emu.state == "Run"
 
 
 def test_home_refused_without_homing_names_the_scan_table():
