@@ -15,8 +15,9 @@ pytest.importorskip("distributed", reason="the Dask tests need dask.distributed 
 
 def test_fit_exponent_recovers_a_power_law(rng):
     x = np.logspace(2, 5, 7)
-    t = 3e-9 * x**1.02 * rng.uniform(0.98, 1.02, x.size)
-    assert stats.fit_exponent(x, t) == pytest.approx(1.02, abs=0.02)
+    assert stats.fit_exponent(x, 3e-9 * x**1.5) == pytest.approx(1.5, abs=1e-12)
+    # +-2 % timing noise over three decades moves the slope by far less than the half-power it measures
+    assert stats.fit_exponent(x, 3e-9 * x**1.5 * rng.uniform(0.98, 1.02, x.size)) == pytest.approx(1.5, abs=0.01)
     with pytest.raises(ValueError, match="two distinct positive sizes"):
         stats.fit_exponent([10, 10], [1.0, 2.0])
     with pytest.raises(ValueError, match="repeats"):

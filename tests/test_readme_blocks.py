@@ -167,7 +167,11 @@ def test_command_line_scene_file(tmp_path):
 
     (tmp_path / "scene.toml").write_text(block("Command line", "toml"))
     cfg = load_config(tmp_path / "scene.toml")
-    assert cfg is not None
+    # each table of the block reached the scan it describes
+    assert (cfg.fs_hz, cfg.chirp["duration_s"], cfg.snr_db, cfg.waveform.shape) == (96000.0, 0.005, 20.0, (480,))
+    assert cfg.aperture.tx_positions.shape == (18 * 12, 3)
+    np.testing.assert_array_equal(cfg.scene.points_m, [[0.0, 0.0, 1.5]])
+    assert [w.reflectivity for w in cfg.scene.walls] == [0.9] and cfg.grid.shape == (101, 101, 61)
 
 
 def test_beams_table(tmp_path):
