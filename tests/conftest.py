@@ -1,7 +1,13 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import clsas
+
+#: the tests folder (helper kits such as grbl_kit.py live here) and the repository root
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
 
 
 def _opencl_reason() -> str | None:

@@ -7,7 +7,7 @@ starts with ``_`` (not a dunder), whether it is the imported name (``from clsas.
 _UNITS``, ``from clsas import _validate``) or a module on the path (``from clsas.validate import
 install_hint``).
 
-Run as a script to list what the rules find: ``python tests/test_architecture_private.py``.
+Run as a script to list what the rules find: ``python tests/unit/architecture/test_architecture_private.py``.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 PACKAGE = ROOT / "clsas"
 MAX_LINES = 80
 
@@ -169,7 +169,7 @@ def test_no_test_imports_a_private_name():
     """Tests use what the library and the benchmark package offer: no ``from clsas.x import _y`` or
     ``from bench.x import _y`` (a helper worth testing on its own gets a public name)."""
     found = []
-    for path in sorted((ROOT / "tests").glob("*.py")):
+    for path in sorted((ROOT / "tests").rglob("*.py")):
         tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] in ("clsas", "bench"):

@@ -220,7 +220,7 @@ def test_the_readme_scene_and_rig_files_are_shipped():
     from clsas import rig
     from clsas.scenes import parse_config
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     readme = _docs_text(root)
     block = readme.split("A scene file (this one is `examples/scene.toml`", 1)[1].split("```toml\n", 1)[1]
     block = block.split("```", 1)[0]
@@ -237,7 +237,7 @@ def test_fig4_errors_in_the_readme_are_what_the_example_gives(tmp_path):
     pytest.importorskip("nlopt")
     import re
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     res = subprocess.run([sys.executable, str(root / "examples" / "fig4_1d_recovery.py"), "--out", str(tmp_path)],
                          capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": _path(root)})
     assert res.returncode == 0, res.stderr
@@ -282,7 +282,7 @@ def test_the_readme_bench_figures_are_the_results_file():
     import json
     import re
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     readme = _docs_text(root)
     para = readme.split("Latest full run, with the C/OpenMP peer (", 1)[1].split("\n\n", 1)[0]
     stem = para.lstrip("[`").split(".*`", 1)[0]  # the guide links the results file: [`stem.*`](...)
@@ -350,7 +350,7 @@ def test_pictures_hold_no_marker_that_is_not_drawn_and_titles_fit(tmp_path):
 
 
 def test_bench_help_and_readme_agree_on_how_long_the_sets_take():
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     readme = _docs_text(root)
     quick = readme.split("python -m bench                     # the quick set, ", 1)[1].split(" on a", 1)[0]
     full = readme.split("python -m bench --full              # the full set, ", 1)[1].split(" on a", 1)[0]
@@ -369,7 +369,7 @@ def test_a_convex_method_over_a_minute_is_announced_before_any_work(scan, capsys
     from clsas.cli.common import announce_slow_method, estimated_sparse_s
     from clsas.scenes import parse_config, stored_grid_and_truth
 
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     cfg = parse_config((root / "examples" / "scene.toml").read_text())
     ds = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=20, seed=0, chirp=cfg.chirp)
     est = estimated_sparse_s(ds, cfg.grid, "cbp-taylor")

@@ -418,7 +418,7 @@ def _assert_equal_files(a, b):
         assert att_a[k] == att_b[k] or k == "clsas_version", k
 
 
-# alarms, resets, disconnects, audio errors and Ctrl-C: tests/test_rig_faults.py (emulator and real firmware)
+# alarms, resets, disconnects, audio errors and Ctrl-C: tests/hw/test_rig_faults.py (emulator and real firmware)
 FAULTS = [(kind, n) for kind in ("error", "drop-ok") for n in (1, 7, 12)]
 
 
@@ -702,7 +702,7 @@ def test_moving_off_a_limit_switch_turns_hard_limits_off_then_on():
 
 
 def test_hard_limit_then_jogging_off_retrips_as_on_the_real_firmware():
-    """As tests/test_grbl_real.py checks on GRBL 1.1h: the switch trips on the way onto it and off it."""
+    """As tests/hw/test_grbl_real.py checks on GRBL 1.1h: the switch trips on the way onto it and off it."""
     with GrblEmulator(time_scale=0.01, soft_limits=False, hard_limits=True) as emu, GrblStage(emu.port) as st:
         st.home()
         with pytest.raises(rig.GrblAlarm, match=r"ALARM:1 \(hard limit.*'\$21=0'"):
@@ -725,7 +725,7 @@ def test_hard_limit_then_jogging_off_retrips_as_on_the_real_firmware():
     (False, None, 0.3, 1, 1),
 ], ids=["uno", "uno-reset-crosses-boot", "uno-client-resets", "no-auto-reset", "no-auto-reset-auto"])
 def test_reset_on_open_banner_is_waited_for_and_a_second_one_dropped(board, client, wait_s, banners, ctrl_x):
-    """As tests/test_grbl_real.py checks on GRBL 1.1h behind the kit's --reset-on-open port."""
+    """As tests/hw/test_grbl_real.py checks on GRBL 1.1h behind the kit's --reset-on-open port."""
     with GrblEmulator(time_scale=1.0, banner_delay_s=0.6, homing_s=0.1, reset_on_open=board) as emu:
         with GrblStage(emu.port, reset_on_open=client, reset_wait_s=wait_s) as st:
             assert st.version == "Grbl 1.1h" and st.settings[130] == 1000

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 FENCE = re.compile(r"^(`{3,})\s*([\w+-]*)([^\n`]*)$")
 MARK = re.compile(r"^<!--\s*(no-run|slow)\s*:\s*(.*?)\s*-->\s*$")

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import needs_opencl, small_dataset
+from conftest import TESTS, needs_opencl, small_dataset
 
 import clsas
 from clsas import cl
@@ -19,8 +19,8 @@ BROKEN = "__kernel void backproject(__global float *x) { x[0] = not_declared; }\
 RENAMED = "__kernel void something_else(__global float *x) { x[0] = 1.0f; }\n"
 REAL_PROBE = variants._run_probe
 
-# the tests folder first, then what the caller had (an install by --target, say)
-_TESTS_PATH = os.pathsep.join(p for p in [os.path.dirname(__file__), os.environ.get("PYTHONPATH", "")] if p)
+# the tests folder (conftest.py) first, then what the caller had (an install by --target, say)
+_TESTS_PATH = os.pathsep.join(p for p in [str(TESTS), os.environ.get("PYTHONPATH", "")] if p)
 
 
 @pytest.fixture

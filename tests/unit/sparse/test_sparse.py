@@ -366,7 +366,7 @@ def _run_example(name, tmp_path, *extra):
     import sys
     from pathlib import Path
 
-    script = Path(__file__).parents[1] / "examples" / name
+    script = Path(__file__).resolve().parents[3] / "examples" / name
     argv = sys.argv
     sys.argv = [str(script), "--out", str(tmp_path), *extra]
     try:  # an example ends normally on success (the gallery runs it too) and exits non-zero on failure

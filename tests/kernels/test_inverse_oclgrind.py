@@ -1,5 +1,5 @@
 """kernels/project.cl (project, project_sum) runs clean under Oclgrind: no invalid or uninitialised
-access, no data race (the pattern of tests/test_oclgrind.py; this file is also the child script)."""
+access, no data race (the pattern of tests/kernels/test_oclgrind.py; this file is also the child script)."""
 
 import os
 import subprocess
@@ -34,7 +34,7 @@ CHECKS = [pytest.param({"OCLGRIND_DATA_RACES": "1"}, ["4", "8", "16"], id="memch
 @pytest.mark.parametrize("checks, vecs", CHECKS)
 def test_projector_runs_clean_under_oclgrind(checks, vecs):
     env = dict(os.environ, **checks)
-    root = str(Path(__file__).resolve().parents[1])
+    root = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     res = subprocess.run([sys.executable, __file__, *vecs], capture_output=True, text=True, env=env, timeout=900)
     report = res.stderr

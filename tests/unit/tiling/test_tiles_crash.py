@@ -18,7 +18,7 @@ import clsas
 
 pytestmark = pytest.mark.timeout(300)
 
-TESTS = Path(__file__).parent
+TESTS = Path(__file__).resolve().parents[2]  # conftest.py's folder
 TILE = (1, 9, 17)  # 21 tiles of one x-plane each
 
 # the writer: the scene of `scene` below, formed tile by tile into argv[1]; with argv[2] == "mid-tile"

@@ -7,11 +7,10 @@ import os
 import subprocess
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import BACKENDS, needs_opencl, small_dataset, width_or_skip
+from conftest import BACKENDS, ROOT, TESTS, needs_opencl, small_dataset, width_or_skip
 
 import clsas
 from clsas.beam import Beams, Cone, Piston, beam_weights, gate_level
@@ -209,8 +208,8 @@ def test_beam_projector_runs_clean_under_oclgrind():
     for checks in ({"OCLGRIND_DATA_RACES": "1"}, {"OCLGRIND_UNINITIALIZED": "1"}):
         for vec in (4, 8):
             env = dict(os.environ, **checks)
-            root = str(Path(__file__).resolve().parents[1])
-            env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+            paths = [str(ROOT), str(TESTS)]  # the child imports clsas and conftest.py
+            env["PYTHONPATH"] = os.pathsep.join([*paths, *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
             res = subprocess.run([sys.executable, __file__, str(vec)], capture_output=True, text=True, env=env,
                                  timeout=600)
             assert res.returncode == 0 and "oclgrind run ok" in res.stdout, f"{res.stdout}\n{res.stderr[-4000:]}"

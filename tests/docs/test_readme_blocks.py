@@ -5,7 +5,7 @@ A block is known by the ``##`` heading it sits under (the README's sections move
 ``docs/guide/*.md`` with their headings), its language and its place among that heading's blocks
 in its file; a new block fails ``test_every_block_is_run_or_excused`` until it is given a runner
 here (or a reason not to run it), so a snippet cannot drift from the code unnoticed. A guide
-page's own setup blocks, above its first ``##`` heading, are run by ``tests/test_docs.py``.
+page's own setup blocks, above its first ``##`` heading, are run by ``tests/docs/test_docs.py``.
 """
 
 import re
@@ -17,19 +17,19 @@ import pytest
 
 import clsas
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
 PAGES = [README, *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 
 # (heading, language, n-th block under it) -> where it is run
 RUN_ELSEWHERE = {
-    ("Your own data", "python", 1): "tests/test_docs.py (the own-data page in order: scan.h5 of its setup block "
+    ("Your own data", "python", 1): "tests/docs/test_docs.py (the own-data page in order: scan.h5 of its setup block "
                                     "through UFF and back)",
     ("Volumes past memory and past one machine", "python", 0):
-        "tests/test_docs.py (the large-volumes page, after its setup block)",
-    ("Apodization: `formation_options={\"beam\": ...}`", "python", 0): "tests/test_docs.py (the beams page)",
+        "tests/docs/test_docs.py (the large-volumes page, after its setup block)",
+    ("Apodization: `formation_options={\"beam\": ...}`", "python", 0): "tests/docs/test_docs.py (the beams page)",
     ("Python API in ten lines", "python", 0):
-        "tests/test_first_hour.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
+        "tests/scenarios/test_first_use_guards_and_light_import.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
 RUN_HERE = {
     ("Your own data", "python", 0): "test_your_own_data_python",
@@ -54,13 +54,14 @@ NOT_RUN = {
     ("Autofocus: motion, sound speed and delay from the scan itself", "bash", 0):
         "not yet run: needs scan.h5 from a real or emulated scan",
     ("Building and running a rig", "bash", 0): "runs a scan against the GRBL and audio emulators (about a "
-                                               "minute); tests/test_rig.py runs the same commands",
+                                               "minute); tests/hw/test_rig.py runs the same commands",
     ("Building and running a rig", "", 0): "a wiring diagram, not code",
     ("Building and running a rig", "toml", 0): "not yet run: a rig file excerpt (test_rig.py checks rig files)",
     ("How it is organised", "", 0): "a map of the source tree, not code",
     ("Benchmarks", "bash", 0): "runs the benchmark suite (minutes)",
     ("Volumes past memory and past one machine", "", 0): "command lines on a scan.h5 and a Dask scheduler of the "
-                                                         "reader's; tests/test_tiles.py runs --out and --max-memory",
+                                                         "reader's; tests/unit/tiling/test_tiles.py runs --out and "
+                                                         "--max-memory",
     ("Documentation", "bash", 0): "builds the documentation site (CI does it, with warnings as errors)",
 }
 

@@ -2,7 +2,7 @@
 
 The firmware is built from the kit in ``../shared/grbl-sim`` (or ``$CLSAS_GRBL_SIM``) with gcc
 and make (tests/grbl_kit.py, the ``grbl_exe`` fixture); without them, or without the kit, these
-tests skip and say why. The fault matrix on it is in tests/test_rig_faults.py.
+tests skip and say why. The fault matrix on it is in tests/hw/test_rig_faults.py.
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[3]
 PACKAGE = ROOT / "clsas"
 
 
@@ -157,9 +157,9 @@ def test_no_function_shadows_a_package():
 
 
 @pytest.mark.parametrize("marker, some_test", [
-    ("opencl", "test_backproject.py"),
-    ("oclgrind", "test_oclgrind.py"),
-    ("hw", "test_rig.py"),
+    ("opencl", "kernels/test_backproject.py"),
+    ("oclgrind", "kernels/test_oclgrind.py"),
+    ("hw", "hw/test_rig.py"),
 ])
 def test_markers_select_what_they_say(marker, some_test):
     if marker == "hw":  # test_rig.py skips as a whole without pyserial, and then nothing is selected

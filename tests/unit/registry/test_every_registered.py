@@ -16,7 +16,7 @@ it is tested here without a test file of its own:
 - importers: a folder in no format is not detected, and reading a missing path raises an error
   naming it.
 
-``test_a_new_entry_is_covered_by_the_same_checks`` shows it with toy entries (tests/test_registry.py's).
+``test_a_new_entry_is_covered_by_the_same_checks`` shows it with toy entries (tests/unit/registry/test_registry.py's).
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ def test_every_importer(name, tmp_path):
 
 
 def test_a_new_entry_is_covered_by_the_same_checks(toys, scan, tmp_path):  # noqa: F811 - the imported fixture
-    """The toy formation and importer of tests/test_registry.py, each registered by importing one
+    """The toy formation and importer of tests/unit/registry/test_registry.py, each registered by importing one
     module, are in the registries the cases above are generated from, and the same checks judge
     them: the toy formation's flat image has no peak at the reflector and it takes any option; the
     toy importer reads a missing path without an error. A well-behaved importer registered the

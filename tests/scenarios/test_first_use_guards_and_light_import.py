@@ -173,7 +173,7 @@ def test_install_hints_fit_a_source_checkout():
 def test_the_readme_python_api_in_ten_lines_runs_as_written(tmp_path, monkeypatch):
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     section = text.split("## Python API in ten lines", 1)[1]
     code = section.split("```python", 1)[1].split("```", 1)[0]
     monkeypatch.chdir(tmp_path)
