@@ -7,19 +7,8 @@ import sys
 from pathlib import Path
 
 import pytest
-
-DIAGNOSTICS = ("Invalid read", "Invalid write", "Uninitialized", "data race", "Data race", "Invalid access")
-
-
-def _oclgrind_available() -> str | None:
-    try:
-        import pyopencl as cl
-
-        names = [p.name for p in cl.get_platforms()]
-    except Exception as exc:  # noqa: BLE001 - no ICD loader or no platform
-        return f"no OpenCL platform ({exc})"
-    return None if any("Oclgrind" in n for n in names) else "Oclgrind not installed (pip install 'pyopencl[oclgrind]')"
-
+from conftest import OCLGRIND_DIAGNOSTICS as DIAGNOSTICS
+from conftest import oclgrind_missing as _oclgrind_available
 
 # The uninitialised-value plugin of Oclgrind keeps state between programs built in one process
 # (a second program gets false reports), so it checks one kernel file and one VEC per process.

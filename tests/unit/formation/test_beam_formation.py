@@ -76,7 +76,8 @@ def test_bp_beam_option_is_validated_by_name():
 
 @pytest.mark.oclgrind
 def test_beam_kernel_runs_clean_under_oclgrind():
-    from test_oclgrind import DIAGNOSTICS, _oclgrind_available
+    from conftest import OCLGRIND_DIAGNOSTICS as DIAGNOSTICS
+    from conftest import oclgrind_missing as _oclgrind_available
 
     why = _oclgrind_available()
     if why is not None:

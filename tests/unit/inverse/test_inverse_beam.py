@@ -200,7 +200,8 @@ def test_offgrid_point_model_carries_the_same_pair_weights(rng):
 @pytest.mark.oclgrind
 @pytest.mark.slow
 def test_beam_projector_runs_clean_under_oclgrind():
-    from test_oclgrind import DIAGNOSTICS, _oclgrind_available
+    from conftest import OCLGRIND_DIAGNOSTICS as DIAGNOSTICS
+    from conftest import oclgrind_missing as _oclgrind_available
 
     why = _oclgrind_available()
     if why is not None:

@@ -1,31 +1,9 @@
 import numpy as np
 import pytest
+from conftest import SCENE_TOML as SCENE
 
 import clsas
 from clsas.cli import main
-
-SCENE = """
-[chirp]
-f_start_hz = 20000.0
-f_stop_hz = 30000.0
-duration_s = 0.002
-fs_hz = 96000.0
-
-[aperture]
-nx = 9
-ny = 7
-width_m = 0.4
-height_m = 0.3
-
-[[points]]
-position_m = [0.02, -0.01, 0.6]
-
-[grid]
-x_m = [-0.1, 0.1]
-y_m = [-0.1, 0.1]
-z_m = [0.5, 0.7]
-spacing_m = 0.01
-"""
 
 
 def test_simulate_then_reconstruct(tmp_path, capsys):

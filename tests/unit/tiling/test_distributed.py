@@ -178,7 +178,7 @@ def test_a_worker_of_one_thread_gets_one_compute_unit(client):
 
 
 def test_scheduler_address_from_the_command_line(client, tmp_path, capsys):
-    from test_cli import SCENE
+    from conftest import SCENE_TOML as SCENE
 
     from clsas.cli import main
 

@@ -238,7 +238,7 @@ def test_fast_formations_tile_by_tile(scene, formation):
 
 
 def test_cli_reconstruct_out_of_core(tmp_path, capsys):
-    from test_cli import SCENE
+    from conftest import SCENE_TOML as SCENE
 
     from clsas.cli import main
 
