@@ -8,8 +8,9 @@ or ``PYOPENCL_CTX``. For each N it backprojects N³ voxels x M measurements, tim
 kernel (profiling events) and the whole call (wall, transfers included), and runs in the same
 process the NumPy twin, the Numba peer and the hand-vectorised C/OpenMP peer on the host's cores.
 It prints the roofline (:func:`bench.throughput.compute_bound`) and writes
-``<date>-bp-<device>.json`` and ``.md``. The H200 figures of 2026-11-28 came from this
-(``bench/results/2026-11-28-bp-gpu-h200*.json``).
+``<date>-bp-<device>.json`` and ``.md``. The H200 figures in
+``bench/results/2026-11-28-formation-gpu-h200.md`` came from this (its JSON files are in
+``git log -- bench/results``).
 """
 
 from __future__ import annotations

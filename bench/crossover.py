@@ -11,7 +11,7 @@ the grid and inside the well-sampled cone, the built-in cost model's prediction,
 that meets its error target. The load average is recorded before and after each N (the machine
 may be shared: the ratios are what count).
 
-The calibration of ``formation="auto"`` is :func:`clsas.formation.calibration.calibrate_auto`'s
+The calibration of ``formation="auto"`` is :func:`clsas.formation.auto.calibrate_auto`'s
 (``clsas calibrate``): per formation, the median over the rows of measured / predicted time,
 stored for the device; the table stores it too.
 """
@@ -25,8 +25,9 @@ import time
 import numpy as np
 
 import clsas
-from clsas.formation import cost, error_to_signal_db, form
-from clsas.formation.calibration import (
+from clsas.formation import error_to_signal_db, form
+from clsas.formation.auto import DEFAULT_MAX_ERROR_DB, choose, form_choice, store_calibration
+from clsas.formation.auto.calibrate import (
     FORMS,
     PITCH,
     SIDES_FULL,
@@ -40,7 +41,6 @@ from clsas.formation.calibration import (
     time_formations,
     warm_up,
 )
-from clsas.formation.check import form_choice
 
 from .stats import seconds
 
@@ -53,7 +53,7 @@ log = logging.getLogger(__name__)
 
 CROSSOVER_QUICK = SIDES_QUICK
 CROSSOVER_FULL = SIDES_FULL
-TARGET_DB = cost.DEFAULT_MAX_ERROR_DB
+TARGET_DB = DEFAULT_MAX_ERROR_DB
 # the scans, their profiles and the timing rule are those of auto's calibration (clsas calibrate)
 crossover_case = calibration_case
 profiles = case_profiles
@@ -112,7 +112,7 @@ def auto_row(prof, grid, ref, mask, rows: list[dict], target_db: float = TARGET_
     ``formation``, ``time_s``, ``error_all_db``; bp's error None) at the error target ``target_db``:
     its time over the best's is taken with the two timed in turn (:func:`_interleaved`)."""
     def run():
-        choice = cost.choose(prof, grid, clsas.cl.select(None), max_error_db=target_db)
+        choice = choose(prof, grid, clsas.cl.select(None), max_error_db=target_db)
         img, record = form_choice(prof, grid, choice)
         return record, img
 
@@ -168,7 +168,7 @@ def crossover(sides=CROSSOVER_QUICK, status=None, store: bool = True) -> dict:
     factors = calibrate(rows)
     out = {"sides": list(sides), "rows": rows, "calibration": factors, "target_db": TARGET_DB}
     if store and factors:
-        path = cost.store_calibration(factors, clsas.cl.select(None), detail={"sides": list(sides)})
+        path = store_calibration(factors, clsas.cl.select(None), detail={"sides": list(sides)})
         out["calibration_path"] = str(path)
         say(f"crossover: cost model calibrated ({', '.join(f'{k} x{x:.2f}' for k, x in factors.items())}), "
             f"kept in {path}")

@@ -16,7 +16,7 @@ Cases: ``demo`` (the demo's front scene: 18 x 12 stops over 1 m, the mannequin, 
 a few reflectors; ``scale`` shrinks both sides), ``circular`` (360 stops on a 1 m circle, a
 5 mm grid; ``scale`` < 1 thins both), ``beams`` (directional transducers over a flat surface at
 MHz in water, :func:`run_beams_case`; full set only).
-Every case also times ``auto`` (:func:`clsas.formation.cost.choose`, its choosing included) and
+Every case also times ``auto`` (:func:`clsas.formation.auto.choose`, its choosing included) and
 names the formation it took. The crossover table (:func:`crossover`, in :mod:`bench.crossover`)
 times bp, ω-k, FFBP and auto on dense planar scans of N x N stops (N = 16-64 quick, 16-128 full)
 onto grids that grow with N, and calibrates the cost model of ``formation="auto"`` on the device.
@@ -117,11 +117,17 @@ def _warm_up(formations) -> None:
             log.info("warm-up of %s: %s", name, exc)
 
 
+def _formations() -> list[str]:
+    """The registered formations that form an image themselves (auto, which picks one of them, is timed
+    by :func:`bench.crossover.auto_row`)."""
+    return [f for f in FORMATIONS if f != "auto"]
+
+
 def run_case(name: str, formations=None, scale: float = 1.0, status=None) -> dict:
     """Every formation on one case: time (the faster of two runs where one takes under 2 s; FFBP's
     remembered tree forgotten before each), error inside the cone and over the grid."""
     say = status or (lambda s: log.info("%s", s))
-    formations = list(formations or FORMATIONS)
+    formations = list(formations or _formations())
     if "bp" not in formations:
         formations = ["bp", *formations]
     ds, grid, what = make_case(name, scale)
@@ -213,7 +219,7 @@ def run_beams_case(n: int | None = None, status=None) -> dict:
 def scaling(formations=None, sides=(12, 16, 24, 32), bp_max_pairs: float = 2e9, status=None) -> dict:
     """Time of each formation on N x N stops and 2N x 2N x N voxels; fitted exponent in N."""
     say = status or (lambda s: log.info("%s", s))
-    formations = list(formations or FORMATIONS)
+    formations = list(formations or _formations())
     res = {}
     cases = {n: _planar(n, 2 * n, n) for n in sides}
     profs = {n: _profiles(*cases[n]) for n in sides}
@@ -242,7 +248,7 @@ def scaling(formations=None, sides=(12, 16, 24, 32), bp_max_pairs: float = 2e9, 
 
 def run(cases=CASES, formations=None, scale: float = 1.0, sides=(12, 16, 24, 32), status=None) -> dict:
     """The whole formation benchmark: every case, then the scaling."""
-    formations = list(formations or FORMATIONS)
+    formations = list(formations or _formations())
     for f in formations:
         if f not in FORMATIONS:
             raise ValueError(f"formation {f!r} is not registered; known: {', '.join(FORMATIONS)}")

@@ -2,7 +2,7 @@
 
     python -m bench.formation_auto_heldout [--out bench/results]
 
-The built-in cost model (:data:`clsas.formation.cost.BUILTIN`) was fitted on the crossover scans
+The built-in cost model (:data:`clsas.formation.auto.BUILTIN`) was fitted on the crossover scans
 of :mod:`bench.crossover` (N = 16-128 stops a side, seed 0). Here: N = 20, 40, 56, 80 with
 seeds 1001-1004 (one seed per size), every formation timed as the crossover times it, auto with
 its choosing; no device calibration is used (the cache is pointed at an empty folder).

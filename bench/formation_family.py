@@ -39,8 +39,8 @@ import numpy as np
 
 import clsas
 from clsas import validate as v
-from clsas.formation import cost, form
-from clsas.formation.check import form_choice
+from clsas.formation import form
+from clsas.formation.auto import DEFAULT_MAX_ERROR_DB, choose, form_choice, load_calibration
 
 from .crossover import _errors, _interleaved
 from .crossover import profiles as _profiles
@@ -58,7 +58,7 @@ HELD_OUT_SEEDS = tuple(range(1000, 1030))
 #: candidate was limited to angles under a sine of 0.75 (the crossover's 128 x 128 scan went over its
 #: target with it), the fourth after FFBP's lower bound was made one (it had passed over FFBP where it
 #: was faster), the fifth after auto began to measure a formation's error on a sub-lattice where its
-#: prediction was near the target (clsas.formation.check), the sixth after the review's fixes to it
+#: prediction was near the target (clsas.formation.auto.measure), the sixth after the review's fixes to it
 #: (a near candidate lowers FFBP's planning bound only where auto would try it; a flat grid's stride),
 #: the seventh after plain ω-k with any aliased voxel-stop pair was taken only measured, the eighth
 #: after that rule was kept to where the check costs at most as much as ω-k.
@@ -156,7 +156,7 @@ def family_request(seed: int, max_pairs: float = MAX_PAIRS):
     return ds, d["grid"], d["params"]
 
 
-def run_request(seed: int, *, target_db: float = cost.DEFAULT_MAX_ERROR_DB, max_pairs: float = MAX_PAIRS,
+def run_request(seed: int, *, target_db: float = DEFAULT_MAX_ERROR_DB, max_pairs: float = MAX_PAIRS,
                 say=None) -> dict:
     """Every formation and auto on the request of ``seed``: ``params`` plus ``rows`` (each formation's
     time and error over the grid against bp, or why it refused; auto's choice, time and error), and
@@ -176,10 +176,10 @@ def run_request(seed: int, *, target_db: float = cost.DEFAULT_MAX_ERROR_DB, max_
             row["rows"].append({"formation": f, "refused": str(exc)})
             continue
         fns[f] = lambda f=f: form(prof, grid, f)
-    images["auto"], choice = form_choice(prof, grid, cost.choose(prof, grid, sel, max_error_db=target_db))
+    images["auto"], choice = form_choice(prof, grid, choose(prof, grid, sel, max_error_db=target_db))
 
     def auto():
-        return form_choice(prof, grid, cost.choose(prof, grid, sel, max_error_db=target_db))[0]
+        return form_choice(prof, grid, choose(prof, grid, sel, max_error_db=target_db))[0]
 
     took = _interleaved({**fns, "auto": auto})
     ref = images["bp"]
@@ -201,7 +201,7 @@ def run_request(seed: int, *, target_db: float = cost.DEFAULT_MAX_ERROR_DB, max_
     return row
 
 
-def run_family(seeds, *, target_db: float = cost.DEFAULT_MAX_ERROR_DB, max_pairs: float = MAX_PAIRS,
+def run_family(seeds, *, target_db: float = DEFAULT_MAX_ERROR_DB, max_pairs: float = MAX_PAIRS,
                status=None) -> list[dict]:
     """:func:`run_request` for each seed (warmed up first); a request that raises is a row with its ``error``."""
     from .crossover import _warm_up
@@ -301,7 +301,7 @@ def _plot(rows: list[dict], path) -> None:
 
 
 def run_and_write(seed_set: str = "tuning", *, n_seeds: int | None = None, out_dir=None, plots: bool = True,
-                  target_db: float = cost.DEFAULT_MAX_ERROR_DB, status=None) -> dict:
+                  target_db: float = DEFAULT_MAX_ERROR_DB, status=None) -> dict:
     """The family on ``seed_set`` (a key of :data:`SEED_SETS`; the first ``n_seeds`` only),
     summarised and written to ``out_dir`` as ``<date>-formation-family-<set>.{json,md,png}``.
 
@@ -327,7 +327,7 @@ def run_and_write(seed_set: str = "tuning", *, n_seeds: int | None = None, out_d
         stem = out / f"{datetime.date.today().isoformat()}-formation-family-{seed_set}"
         sel = clsas.cl.select(None)
         host = {"machine": platform.machine(), "cpus": os.cpu_count(), "device": sel.device,
-                "calibration": cost.load_calibration(sel) or "built-in (not calibrated on this device)",
+                "calibration": load_calibration(sel) or "built-in (not calibrated on this device)",
                 "load": os.getloadavg()}
         stem.with_suffix(".json").write_text(json.dumps(jsonable({"seed_set": seed_set, "seeds": seeds, "host": host,
                                                                   "target_db": target_db, "summary": summary,

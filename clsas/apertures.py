@@ -43,19 +43,11 @@ def _ring_args(radius_m, center_m, height_m, mode, tx_offset_m, rx_offset_m, rx_
     return r, c, h, (-1.0 if mode == "turntable" else 1.0), txo, mic_offsets(rx_offset_m, rx_offsets_m)
 
 
-def circular_aperture(
-    n: int,
-    radius_m: float,
-    *,
-    center_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
-    height_m: float = 0.0,
-    start_deg: float = 0.0,
-    stop_deg: float | None = None,
-    mode: str = "turntable",
-    tx_offset_m: tuple[float, float, float] = TX_OFFSET_M,
-    rx_offset_m: tuple[float, float, float] | None = None,
-    rx_offsets_m: np.ndarray | None = None,
-) -> Aperture:
+def circular_aperture(n: int, radius_m: float, *, center_m: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                      height_m: float = 0.0, start_deg: float = 0.0, stop_deg: float | None = None,
+                      mode: str = "turntable", tx_offset_m: tuple[float, float, float] = TX_OFFSET_M,
+                      rx_offset_m: tuple[float, float, float] | None = None,
+                      rx_offsets_m: np.ndarray | None = None) -> Aperture:
     """Stops on a circle (or an arc of it) about the vertical axis through ``center_m``.
 
     The rotation axis is parallel to z (up) through ``center_m``; the rig stays at
@@ -108,6 +100,13 @@ def circular_aperture(
     n = v.positive_int("n", n)
     r, c, h, sign, txo, rxo = _ring_args(radius_m, center_m, height_m, mode, tx_offset_m, rx_offset_m,
                                          rx_offsets_m)
+    angles = _arc_angles(n, start_deg, stop_deg)
+    return _ring(np.deg2rad(sign * angles), r, np.full(n, h), c, txo, rxo)
+
+
+def _arc_angles(n: int, start_deg: float, stop_deg: float | None) -> np.ndarray:
+    """The ``n`` stops' angles, degrees: a full turn ``360 / n`` apart without its endpoint, or a
+    partial arc with both ends (see :func:`circular_aperture`)."""
     start = v.finite("start_deg", start_deg)
     span = 360.0 if stop_deg is None else v.finite("stop_deg", stop_deg) - start
     if abs(span) > 360.0 + 1e-9:
@@ -116,10 +115,8 @@ def circular_aperture(
     if n > 1 and span == 0:
         raise ValueError(f"stop_deg must differ from start_deg for n > 1 stops, both are {start:g}")
     if np.isclose(abs(span), 360.0):
-        angles = start + span * np.arange(n) / n
-    else:
-        angles = start + span * (np.arange(n) / (n - 1) if n > 1 else np.zeros(1))
-    return _ring(np.deg2rad(sign * angles), r, np.full(n, h), c, txo, rxo)
+        return start + span * np.arange(n) / n
+    return start + span * (np.arange(n) / (n - 1) if n > 1 else np.zeros(1))
 
 
 def helical_aperture(

@@ -290,17 +290,8 @@ def _sampling_warnings(axes, need: float) -> list[str]:
     return warnings
 
 
-def resolution_limits(
-    f_start_hz: float,
-    f_stop_hz: float,
-    width_m: float,
-    height_m: float,
-    nx: int,
-    ny: int,
-    range_m: float = 1.0,
-    temperature_c: float = 20.0,
-    humidity_pct: float = 50.0,
-) -> Limits:
+def resolution_limits(f_start_hz: float, f_stop_hz: float, width_m: float, height_m: float, nx: int, ny: int,
+                      range_m: float = 1.0, temperature_c: float = 20.0, humidity_pct: float = 50.0) -> Limits:
     """Resolution limits of a raster scan.
 
     Range resolution is ``c / (2 B)``; cross-range resolution is the two-way diffraction limit
@@ -327,27 +318,15 @@ def resolution_limits(
     >>> round(limits.range_resolution_m, 4)                # c / 2B, not the paper's 10 cm
     0.0172
     """
-    f1 = v.non_negative("f_start_hz", f_start_hz)
-    f2 = v.non_negative("f_stop_hz", f_stop_hz)
-    if f1 == f2:
-        raise ValueError("f_start_hz and f_stop_hz must differ (zero bandwidth)")
-    w = v.positive("width_m", width_m)
-    h = v.positive("height_m", height_m)
-    nx = v.positive_int("nx", nx)
-    ny = v.positive_int("ny", ny)
+    f1, f2 = _checked_band(f_start_hz, f_stop_hz)
+    w, h = v.positive("width_m", width_m), v.positive("height_m", height_m)
+    nx, ny = v.positive_int("nx", nx), v.positive_int("ny", ny)
     r = v.positive("range_m", range_m)
     c = speed_of_sound(temperature_c, humidity_pct)
-    band = abs(f2 - f1)
-    fc = (f1 + f2) / 2
+    band, fc = abs(f2 - f1), (f1 + f2) / 2
     lam_c = c / fc
-    lam_min = c / max(f1, f2)
-    dx = w / (nx - 1) if nx > 1 else np.inf
-    dy = h / (ny - 1) if ny > 1 else np.inf
-    need = lam_min / 4
-    absorption = {
-        f: float(air_absorption_db_per_m(f, temperature_c, humidity_pct)) for f in sorted({f1, f2})
-    }
-    warnings = _sampling_warnings((("x", dx, nx), ("y", dy, ny)), need)
+    dx, dy = _stop_spacing(w, nx), _stop_spacing(h, ny)
+    need = c / max(f1, f2) / 4  # a quarter of the shortest wavelength
     return Limits(
         c_mps=c,
         bandwidth_hz=band,
@@ -355,9 +334,24 @@ def resolution_limits(
         range_resolution_m=c / (2 * band),
         cross_range_resolution_m=(lam_c * r / (2 * w), lam_c * r / (2 * h)),
         range_m=r,
-        absorption_db_per_m=absorption,
+        absorption_db_per_m={f: float(air_absorption_db_per_m(f, temperature_c, humidity_pct))
+                             for f in sorted({f1, f2})},
         spacing_m=(float(dx), float(dy)),
         required_spacing_m=need,
         undersampling=(float(dx / need), float(dy / need)),
-        warnings=warnings,
+        warnings=_sampling_warnings((("x", dx, nx), ("y", dy, ny)), need),
     )
+
+
+def _checked_band(f_start_hz: float, f_stop_hz: float) -> tuple[float, float]:
+    """The chirp's start and stop frequencies checked (>= 0, a non-zero band), Hz."""
+    f1 = v.non_negative("f_start_hz", f_start_hz)
+    f2 = v.non_negative("f_stop_hz", f_stop_hz)
+    if f1 == f2:
+        raise ValueError("f_start_hz and f_stop_hz must differ (zero bandwidth)")
+    return f1, f2
+
+
+def _stop_spacing(extent_m: float, n: int) -> float:
+    """The spacing of ``n`` stops over ``extent_m``, m (inf for a single stop)."""
+    return extent_m / (n - 1) if n > 1 else np.inf

@@ -20,8 +20,8 @@ from . import cl, tiling
 from . import validate as v
 from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
-from .formation import FORMATIONS
-from .formation.cost import DEFAULT_MAX_ERROR_DB, Choice, check_max_error_db, choose
+from .formation import FORMATIONS, check_options, declared_options
+from .formation.auto import DEFAULT_MAX_ERROR_DB, check_max_error_db
 from .formation.guard import check_grid, checked_once
 from .geometry import VoxelGrid
 from .image import Image
@@ -81,10 +81,10 @@ def reconstruct(
     formation : str
         ``"auto"`` (default) or one of :data:`clsas.formation.FORMATIONS` (``"bp"``, exact; ``"omega-k"``;
         ``"ffbp"``). ``"auto"`` takes the fastest whose predicted error meets ``max_error_db``
-        (:func:`clsas.formation.cost.choose`; logged, kept in ``image.provenance["formation_auto"]``);
+        (:mod:`clsas.formation.auto`; logged, kept in ``image.provenance["formation_auto"]``);
         sparse methods, tiled requests and directional beams take ``"bp"``.
     formation_options : dict, optional
-        Passed to the formation (see its module); not with ``"auto"``.
+        Passed to the formation (see its module); ``"auto"`` takes none (its target is ``max_error_db``).
     out : str or Path, optional
         A chunked file (``.h5``/``.zarr``) formed tile by tile, read lazily; the same request resumes it.
     max_memory : float or str, optional
@@ -95,7 +95,8 @@ def reconstruct(
     tile_shape : (int, int, int), optional
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
     max_error_db : float
-        ``formation="auto"``'s largest error against exact bp (error-to-signal over the grid, dB).
+        ``formation="auto"``'s largest error against exact bp (error-to-signal over the grid, dB), given
+        to any formation that takes an error target.
     inverse : dict, optional
         Options of a model-based method (:data:`clsas.inverse.methods.INVERSE_OPTIONS`).
 
@@ -130,7 +131,7 @@ class Request:
     method: str
     compression: str
     sparse: dict
-    formation: str  # "auto" or a registered formation
+    formation: str  # a registered formation ("auto" among them)
     formation_options: dict
     selection: cl.Selection
     progress: Callable[[int, int], None] | None
@@ -170,52 +171,13 @@ def _reconstruct(dataset: Dataset | Profiles, req: Request) -> Image:
 
 
 def _image(dataset, prof: Profiles, req: Request) -> tuple[Image, str]:
-    """Stage: the image from the profiles (a model-based method, or the formation auto or the caller
-    chose), with the name of the step that formed it."""
+    """Stage: the image from the profiles (a model-based method, or the formation), with the name of
+    the step that formed it."""
     if _is_model(req.method):
         return _with_runtime(_model_based(dataset, prof, req), req.selection), req.method
-    formation, fopts, choice = _formation(prof, req)
-    if choice is not None and req.tiled is None:  # auto's steps in turn, each measured where it was to be
-        from .formation.check import form_choice
-
-        image, record = form_choice(prof, req.grid, choice, backend=req.selection, progress=req.progress,
-                                    force=req.force)
-        image, formation = replace(image, provenance={**image.provenance, "formation_auto": record}), \
-            record["formation"]
-    else:
-        image = _recorded(_form(prof, req, formation, fopts), choice)
+    image = _form(prof, req)
+    formation = image.provenance["formation"]  # the one that formed it (auto names the one it kept)
     return _with_runtime(image, req.selection), ("backproject" if formation == "bp" else formation)
-
-
-def _formation(prof: Profiles, req: Request) -> tuple[str, dict, Choice | None]:
-    """Stage: ``"auto"`` resolved to a registered formation and its options (with the Choice)."""
-    formation, fopts, method, grid, max_error_db = (req.formation, req.formation_options, req.method, req.grid,
-                                                    req.max_error_db)
-    if formation != "auto":
-        return formation, fopts, None
-    if method != "bp":
-        choice = Choice("bp", {}, f"bp: the {method} profiles are imaged by bp only (the fast formations do not match "
-                        "it on rendered pulses)", max_error_db, "rule", ())
-    elif req.tiled is not None:
-        choice = Choice("bp", {}, "bp: a grid formed in tiles is formed by bp (each tile equals the whole image's)",
-                        max_error_db, "rule", ())
-    elif getattr(prof, "beams", None) is not None and not prof.beams.is_omni:
-        choice = Choice("bp", {}, "bp: directional beams are applied exactly by bp only (FFBP interpolates "
-                        "beam-weighted sub-images, which need finer sampling, and cannot match bp's gate; "
-                        "omega-k's angular weighting differs from bp's beam gate by more than the target)",
-                        max_error_db, "rule", ())
-    else:
-        choice = choose(prof, grid, req.selection, max_error_db=max_error_db)
-        return choice.formation, dict(choice.options), choice
-    log.info("formation auto: %s", choice.reason)
-    return choice.formation, dict(choice.options), choice
-
-
-def _recorded(image: Image, choice: Choice | None) -> Image:
-    """The image with auto's choice and reason in its provenance (kept in the image file)."""
-    if choice is None:
-        return image
-    return replace(image, provenance={**image.provenance, "formation_auto": choice.as_dict()})
 
 
 def _model_based(dataset, prof: Profiles, req: Request) -> Image:
@@ -267,20 +229,13 @@ def _check_request(dataset, grid, method, compression, sparse, formation, format
     _check_inverse(method, inverse, formation)
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    if formation != "auto" and (not isinstance(formation, str) or formation not in FORMATIONS):
-        raise ValueError(f"formation must be 'auto' or one of {FORMATIONS.names()}, got {formation!r}")
+    FORMATIONS.check(formation)
     if formation_options is not None and not isinstance(formation_options, dict):
         raise TypeError(f"formation_options must be a dict, got {type(formation_options).__name__}")
     fopts = dict(formation_options or {})
-    if formation == "bp" and set(fopts) - {"beam", "beam_floor_db"}:
-        raise ValueError(f"formation_options: formation 'bp' takes beam, beam_floor_db, got {sorted(fopts)}")
-    if formation != "auto":
-        from .formation import check_options
-
-        check_options(formation, FORMATIONS[formation], fopts)
-    if formation == "auto" and fopts:
-        raise ValueError(f"formation_options: formation 'auto' takes none, got {sorted(fopts)} (name the "
-                         "formation whose options these are)")
+    if "max_error_db" in fopts:
+        raise ValueError("formation_options: max_error_db is reconstruct's own parameter (max_error_db=...)")
+    check_options(formation, FORMATIONS[formation], fopts)
     if isinstance(dataset, Profiles):
         if method != "bp":
             raise ValueError(f"method={method!r} needs the recordings (a Dataset); range profiles are imaged "
@@ -329,20 +284,33 @@ def _super_resolved(dataset: Dataset, plan: ReconstructionPlan, method: str, opt
     return prof, echoes, replace(plan, lags=prof.n_lags, notes=[*plan.notes, note])
 
 
-def _form(prof: Profiles, req: Request, formation: str, options: dict) -> Image:
+def _form(prof: Profiles, req: Request) -> Image:
     """Stage: the registered formation -> Image (its name recorded in the provenance); in tiles
     (:mod:`clsas.tiling`) where ``out``, ``max_memory``, ``client``, ``tile_shape`` or several
     devices were given."""
     from .formation import form
 
-    if req.tiled is not None:
-        image = tiling.form_tiled(prof, req.grid, formation, options, req.selection, req.tiled,
-                                  progress=req.progress, force=req.force)
-        provenance = {**image.provenance, "formation": formation}
-        if options:
-            provenance["formation_options"] = dict(options)
-        return replace(image, provenance=provenance)
-    return form(prof, req.grid, formation, backend=req.selection, progress=req.progress, force=req.force, **options)
+    formation, options = req.formation, _formation_options(req)
+    if req.tiled is None:
+        return form(prof, req.grid, formation, backend=req.selection, progress=req.progress, force=req.force,
+                    **options)
+    record = {}
+    for_tiles = getattr(FORMATIONS[formation], "for_tiles", None)  # a formation that forms by another (auto)
+    if for_tiles is not None:
+        formation, options, record = for_tiles(prof, req.grid, backend=req.selection, **options)
+    image = tiling.form_tiled(prof, req.grid, formation, options, req.selection, req.tiled,
+                              progress=req.progress, force=req.force)
+    provenance = {**image.provenance, "formation": formation, **record}
+    if options:
+        provenance["formation_options"] = dict(options)
+    return replace(image, provenance=provenance)
+
+
+def _formation_options(req: Request) -> dict:
+    """The request's formation options, with its error target where the formation takes one."""
+    if "max_error_db" in (declared_options(FORMATIONS[req.formation]) or ()):
+        return {**req.formation_options, "max_error_db": req.max_error_db}
+    return dict(req.formation_options)
 
 
 def _with_runtime(image: Image, selection: cl.Selection) -> Image:

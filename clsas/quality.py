@@ -248,15 +248,8 @@ def _describe(g: VoxelGrid) -> str:
             f"z [{b[2, 0]:g}, {b[2, 1]:g}] m")
 
 
-def compare(
-    a: Image | str | Path,
-    b: Image | str | Path,
-    *,
-    target_box: Box | None = None,
-    clutter_box: Box | None = None,
-    peaks: int = 3,
-    min_separation_m: float | None = None,
-) -> Comparison:
+def compare(a: Image | str | Path, b: Image | str | Path, *, target_box: Box | None = None,
+            clutter_box: Box | None = None, peaks: int = 3, min_separation_m: float | None = None) -> Comparison:
     """Compare two images on the same grid: correlation, peak offsets, target-to-clutter ratios.
 
     Parameters
@@ -294,40 +287,68 @@ def compare(
     >>> b = clsas.reconstruct(data, grid, formation="omega-k")
     >>> text = clsas.compare(a, b, target_box=((-0.03, 0.03), (-0.03, 0.03), (0.97, 1.03))).report()
     """
+    ia, ib = _images_on_one_grid(a, b)
+    k = v.positive_int("peaks", peaks)
+    sep = _peak_separation(ia.grid, min_separation_m)
+    va, vb = _nonzero_values(ia, ib)
+    corr, mcorr = _correlations(va, vb)
+    ma, mb = np.abs(va), np.abs(vb)
+    pts = ia.grid.points()
+    pa, pb = pts[int(np.argmax(ma))], pts[int(np.argmax(mb))]
+    matches = _match_peaks(ia, ib, k, sep)
+    tcr_a, tcr_b = _tcrs(ia, ib, target_box, clutter_box)
+    return Comparison(
+        correlation=min(corr, 1.0), magnitude_correlation=mcorr, peak_a_m=pa, peak_b_m=pb,
+        peak_offset_m=pb - pa, peak_ratio_db=float(20 * np.log10(mb.max() / ma.max())), matches=matches,
+        tcr_a_db=tcr_a, tcr_b_db=tcr_b, grid=ia.grid, target_box=target_box, clutter_box=clutter_box,
+    )
+
+
+def _images_on_one_grid(a: Image | str | Path, b: Image | str | Path) -> tuple[Image, Image]:
+    """:func:`compare`'s two images (read where they are paths), refused unless on the same grid."""
     ia, ib = _as_image("a", a), _as_image("b", b)
     if not same_grid(ia.grid, ib.grid):
         raise ValueError(f"a and b must be on the same grid: a is {_describe(ia.grid)}, b is "
                          f"{_describe(ib.grid)} (reconstruct both on one VoxelGrid)")
-    k = v.positive_int("peaks", peaks)
-    g = ia.grid
-    if min_separation_m is None:
-        flat = [d for d, n in zip(g.spacing(), g.shape, strict=True) if n > 1]
-        sep = 2.0 * max(flat) if flat else 0.0
-    else:
-        sep = v.non_negative("min_separation_m", min_separation_m)
+    return ia, ib
+
+
+def _peak_separation(g: VoxelGrid, min_separation_m: float | None) -> float:
+    """The distance within which a weaker peak is not counted, m: ``min_separation_m``, or by
+    default two voxels (the largest spacing of the grid's non-flat axes)."""
+    if min_separation_m is not None:
+        return v.non_negative("min_separation_m", min_separation_m)
+    flat = [d for d, n in zip(g.spacing(), g.shape, strict=True) if n > 1]
+    return 2.0 * max(flat) if flat else 0.0
+
+
+def _nonzero_values(ia: Image, ib: Image) -> tuple[np.ndarray, np.ndarray]:
+    """Both images' values as flat complex arrays, refused where one is zero everywhere."""
     va = np.asarray(ia.values, np.complex128).ravel()
     vb = np.asarray(ib.values, np.complex128).ravel()
     na, nb = np.linalg.norm(va), np.linalg.norm(vb)
     if na == 0 or nb == 0:
         raise ValueError(f"{'a' if na == 0 else 'b'} is zero everywhere: nothing to compare")
-    corr = float(abs(np.vdot(va, vb)) / (na * nb))
+    return va, vb
+
+
+def _correlations(va: np.ndarray, vb: np.ndarray) -> tuple[float, float]:
+    """The normalised complex correlation ``|<a, b>| / (|a| |b|)`` of two non-zero value arrays, and
+    the Pearson correlation of their magnitudes (NaN where one magnitude is constant)."""
+    corr = float(abs(np.vdot(va, vb)) / (np.linalg.norm(va) * np.linalg.norm(vb)))
     ma, mb = np.abs(va), np.abs(vb)
     da, db = ma - ma.mean(), mb - mb.mean()
     den = np.linalg.norm(da) * np.linalg.norm(db)
-    mcorr = float(da @ db / den) if den > 0 else float("nan")
-    pts = g.points()
-    pa, pb = pts[int(np.argmax(ma))], pts[int(np.argmax(mb))]
-    matches = _match_peaks(ia, ib, k, sep)
-    tcr_a = tcr_b = None
+    return corr, float(da @ db / den) if den > 0 else float("nan")
+
+
+def _tcrs(ia: Image, ib: Image, target_box: Box | None, clutter_box: Box | None) -> tuple[float | None, float | None]:
+    """Each image's target-to-clutter ratio, dB, where a target box is given (None, None otherwise)."""
     if target_box is not None:
-        tcr_a, tcr_b = tcr_db(ia, target_box, clutter_box), tcr_db(ib, target_box, clutter_box)
-    elif clutter_box is not None:
+        return tcr_db(ia, target_box, clutter_box), tcr_db(ib, target_box, clutter_box)
+    if clutter_box is not None:
         raise ValueError("clutter_box needs a target_box")
-    return Comparison(
-        correlation=min(corr, 1.0), magnitude_correlation=mcorr, peak_a_m=pa, peak_b_m=pb,
-        peak_offset_m=pb - pa, peak_ratio_db=float(20 * np.log10(mb.max() / ma.max())), matches=matches,
-        tcr_a_db=tcr_a, tcr_b_db=tcr_b, grid=g, target_box=target_box, clutter_box=clutter_box,
-    )
+    return None, None
 
 
 def _match_peaks(a: Image, b: Image, k: int, sep: float) -> list[PeakMatch]:

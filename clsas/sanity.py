@@ -24,8 +24,8 @@ import numpy as np
 from .dataset import Dataset
 from .geometry import VoxelGrid
 
-__all__ = ["MAX_RECORDINGS", "MIN_SHARE", "GridCheck", "check_grid_against_data", "echo_share_in_grid", "envelope",
-           "grid_delays", "likely_cause", "pulse_width_s"]
+__all__ = ["MAX_RECORDINGS", "MIN_SHARE", "GridCheck", "band_hz", "check_grid_against_data", "echo_share_in_grid",
+           "envelope", "grid_delays", "likely_cause", "pulse_width_s"]
 
 log = logging.getLogger(__name__)
 
@@ -60,13 +60,19 @@ def grid_delays(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = None) ->
     return np.c_[(to_box(tx) + to_box(rx)) / c, far.max(axis=1) / c]
 
 
-def pulse_width_s(ds: Dataset) -> float:
-    """The compressed pulse's width, about 1 / bandwidth (the band where the waveform's spectrum is
-    within 10 dB of its peak), s."""
+def band_hz(ds: Dataset) -> tuple[float, float]:
+    """The waveform's band: the lowest and highest frequency where its spectrum is within 10 dB
+    of its peak, Hz."""
     spec = np.abs(np.fft.rfft(ds.waveform, 4 * len(ds.waveform)))
     f = np.fft.rfftfreq(4 * len(ds.waveform), 1 / ds.fs_hz)
     band = f[spec >= 10 ** (-10 / 20) * spec.max()]
-    return 1.0 / max(float(band.max() - band.min()), ds.fs_hz / len(ds.waveform))
+    return float(band.min()), float(band.max())
+
+
+def pulse_width_s(ds: Dataset) -> float:
+    """The compressed pulse's width, about 1 / bandwidth (:func:`band_hz`), s."""
+    lo, hi = band_hz(ds)
+    return 1.0 / max(hi - lo, ds.fs_hz / len(ds.waveform))
 
 
 def envelope(ds: Dataset, rows: np.ndarray) -> np.ndarray:

@@ -79,7 +79,7 @@ def main() -> None:
     fig.savefig(out / "turntable.png", dpi=110)
     with open(out / "turntable.md", "w") as f:
         f.write(f"# Turntable scan, {args.pings} pings, grid {grid.shape[0]} x {grid.shape[1]}\n\n")
-        f.write("| stage | TCR in the target box (dB) | reconstruct (s) | device |\n|---|---|---|---|\n")
+        f.write("| stage | TCR in the target box (dB) | reconstruct time (s) | device |\n|---|---|---|---|\n")
         for label, tcr, dt, dev in rows:
             f.write(f"| {label} | {tcr:.1f} | {dt:.2f} | {dev} |\n")
         f.write("\nTCR is the peak inside the target box over the RMS outside it. As recorded, that peak is "

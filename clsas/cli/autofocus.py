@@ -6,6 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clsas.focus.consistency_gate import REVERT_RATIO
+
 from .common import add_device_options, check_grids_fit, grid_arg
 
 
@@ -30,9 +32,10 @@ def add_autofocus_options(sp) -> None:
     sp.add_argument("--max-iter", type=int, default=40, help="L-BFGS iterations per stage (default 40)")
     sp.add_argument("--consistency", type=int, default=0, metavar="N",
                     help="a last check that trusts no image: fit a target in the grid to the scan before and after "
-                    "the correction, N CGLS iterations each, and withdraw a correction that leaves the data as "
-                    "unexplained as before (clsas.focus.data_consistency; 30 is a good start; up to minutes on "
-                    "large grids; default 0: off)")
+                    "the correction, N CGLS iterations each, and withdraw a correction that leaves more of the "
+                    f"data unexplained than without it (excess ratio over {REVERT_RATIO:g}); one the data "
+                    "neither confirm nor contradict is kept, with a note (clsas.focus.data_consistency; 30 is a "
+                    "good start; up to minutes on large grids; default 0: off)")
 
 
 def check_consistency(args) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 
 def cmd_calibrate(args) -> int:
-    from clsas.formation.calibration import MIN_SIDE, SIDES_FULL, SIDES_QUICK, calibrate_auto
+    from clsas.formation.auto.calibrate import MIN_SIDE, SIDES_FULL, SIDES_QUICK, calibrate_auto
 
     sides = args.sides or (SIDES_FULL if args.full else SIDES_QUICK)
     bad = [n for n in sides if n < MIN_SIDE]

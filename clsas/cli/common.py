@@ -218,7 +218,7 @@ def formation_options(items: list[str] | None) -> dict:
 
 def reconstruct_image(ds, grid, args, progress=True):
     import clsas
-    from clsas.formation.cost import DEFAULT_MAX_ERROR_DB
+    from clsas.formation.auto import DEFAULT_MAX_ERROR_DB
 
     formation = getattr(args, "formation", "bp")
     options = formation_options(getattr(args, "formation_option", None)) or None

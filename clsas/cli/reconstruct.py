@@ -108,7 +108,7 @@ def _partial_scan(path) -> str:
 
 def add_parser(sub) -> None:
     from clsas.formation import FORMATIONS
-    from clsas.formation.cost import DEFAULT_MAX_ERROR_DB
+    from clsas.formation.auto import DEFAULT_MAX_ERROR_DB
     from clsas.pipeline import methods
 
     r = sub.add_parser("reconstruct", help="image a dataset file")
@@ -139,7 +139,7 @@ def add_parser(sub) -> None:
     r.add_argument("--box", help="target box x0,x1,y0,y1,z0,z1 in m: print the target-to-clutter ratio")
     r.add_argument("--preprocess", action="store_true",
                    help="preprocess first: the steps below, else the [preprocess] table of --config or the dataset")
-    r.add_argument("--formation", default="auto", choices=("auto", *FORMATIONS),
+    r.add_argument("--formation", default="auto", choices=FORMATIONS.names(),
                    help="how the profiles become an image: auto (default: the fastest whose predicted error meets "
                    "--max-error-db, said in the log and kept in the image file), bp (exact backprojection), omega-k "
                    "(planar uniform apertures, much faster), ... (see docs/guide/fast-formation.md)")

@@ -33,21 +33,10 @@ log = logging.getLogger(__name__)
 COMPRESSIONS: Registry[Callable[..., Profiles]] = Registry("compression", "method")
 
 
-def compress(
-    data: Dataset | np.ndarray,
-    waveform: np.ndarray | None = None,
-    fs_hz: float | None = None,
-    *,
-    method: str = "matched",
-    gate_s: tuple[float, float] | None = None,
-    t0_s: float | np.ndarray | None = None,
-    fc_hz: float | None = None,
-    chirp: dict | None = None,
-    lag_step: int | None = None,
-    algorithm: str = "auto",
-    backend: str | _cl.Selection | None = None,
-    device: Any = None,
-) -> Profiles:
+def compress(data: Dataset | np.ndarray, waveform: np.ndarray | None = None, fs_hz: float | None = None, *,
+             method: str = "matched", gate_s: tuple[float, float] | None = None, t0_s: float | np.ndarray | None = None,
+             fc_hz: float | None = None, chirp: dict | None = None, lag_step: int | None = None,
+             algorithm: str = "auto", backend: str | _cl.Selection | None = None, device: Any = None) -> Profiles:
     """Pulse-compress recordings into complex baseband range profiles.
 
     Parameters
@@ -92,27 +81,40 @@ def compress(
     Profiles
     """
     compression = COMPRESSIONS.choose(method)
+    signals, wave, fs, t0, chirp, positions = _checked_recordings(data, waveform, fs_hz, t0_s, chirp)
+    fc = _carrier(wave, fs, fc_hz)
+    gate = _gate(gate_s, t0, signals.shape[1], fs)
+    v.choice("algorithm", algorithm, ("auto", "fft", "direct"))
+    lag_step = _lag_step(lag_step, method, wave, fs, fc)
+    sel = _cl.select(backend, device)
+    t_start = time.perf_counter()
+    prof = compression(signals, wave, fs, t0, fc, gate, sel, lag_step=lag_step, algorithm=algorithm, chirp=chirp)
+    return replace(prof, timings_s={**prof.timings_s, "compress": time.perf_counter() - t_start}, **positions)
+
+
+def _checked_recordings(data, waveform, fs_hz, t0_s, chirp):
+    """(signals (n_meas, n_samples) floats, waveform, fs, t0 per measurement, chirp, positions):
+    the arguments, a Dataset's own where not given, checked."""
     signals, waveform, fs_hz, t0_s, chirp, positions = _inputs(data, waveform, fs_hz, t0_s, chirp)
     signals = v.array("signals", signals, ndim=2, dtype=None)
     if not np.issubdtype(signals.dtype, np.floating):
         signals = signals.astype(np.float64)
     fs = v.positive("fs_hz", fs_hz)
     wave = v.array("waveform", waveform, ndim=1)
-    n_meas, n_samples = signals.shape
-    t0 = np.broadcast_to(np.asarray(0.0 if t0_s is None else t0_s, float), (n_meas,)).copy()
+    t0 = np.broadcast_to(np.asarray(0.0 if t0_s is None else t0_s, float), (len(signals),)).copy()
     v.array("t0_s", t0)
-    fc = _carrier(wave, fs, fc_hz)
-    gate = _gate(gate_s, t0, n_samples, fs)
-    v.choice("algorithm", algorithm, ("auto", "fft", "direct"))
+    return signals, wave, fs, t0, chirp, positions
+
+
+def _lag_step(lag_step: int | None, method: str, wave: np.ndarray, fs: float, fc: float) -> int:
+    """``lag_step`` checked (a power of two), else :func:`profile_decimation`'s for the matched
+    filter and 1 for the other compressions."""
     if lag_step is None:
         lag_step = profile_decimation(wave, fs, fc) if method == "matched" else 1
     lag_step = v.positive_int("lag_step", lag_step)
     if lag_step & (lag_step - 1):
         raise ValueError(f"lag_step must be a power of two, got {lag_step}")
-    sel = _cl.select(backend, device)
-    t_start = time.perf_counter()
-    prof = compression(signals, wave, fs, t0, fc, gate, sel, lag_step=lag_step, algorithm=algorithm, chirp=chirp)
-    return replace(prof, timings_s={**prof.timings_s, "compress": time.perf_counter() - t_start}, **positions)
+    return lag_step
 
 
 def _inputs(data, waveform, fs_hz, t0_s, chirp):

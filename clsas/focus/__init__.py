@@ -22,7 +22,7 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    the reference), unwrapped in time and fitted in the hand's band, the points picked again
    after each pass (:mod:`.points`). *Determined* where the points are still coherent after it
    (isolated points, not the speckle of a surface); applied only where the disjoint
-   sub-apertures' images agree better by :data:`.motion_steps.POINTS_GAIN`; else the other
+   sub-apertures' images agree better by :data:`.motion_steps.MOTION_GAIN`; else the other
    motion steps named run (``"track"`` in the bench). Where ``"track"`` is named it runs after
    ``"points"`` passes too, and its correction replaces the points' where it passes its own
    decision and the sub-apertures agree better after it (on a surface the strong points are
@@ -33,7 +33,8 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    basis of stop time (the hand's 0.2-5 Hz band) plus the tilt, constant and tilt then set to
    zero (:mod:`.track`). *Determined* where the even and the odd stops, tracked apart, give the
    same path within ``track_tolerance_m``, or the target's two sides, tracked apart with every
-   stop, within :data:`.track_step.REGION_TOLERANCE_M`; applied only where the check on positions passes
+   stop, within :data:`.track_step.REGION_TOLERANCE_M`; applied only where the sub-apertures' images
+   agree better by :data:`.motion_steps.MOTION_GAIN` and the check on positions passes
    (:func:`.track_step.where_check`: the brightest points of disjoint sub-apertures must not
    lie farther apart after it, and the image's brightest point moves only where they agree);
 6. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
@@ -42,6 +43,10 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
 7. ``"temperature"``: the sharpest air temperature of each half of the stops (the motion
    applied), within the thermometer's ± ``temperature_range_c``; applied only where their
    uncertainty is within ``temperature_tolerance_c`` and neither is at the search's edge.
+
+Every scalar estimate (the delay, the per-stop timing, the temperature) is then applied only
+where it differs from the stated value by more than its uncertainty allows and changes the
+delays enough to matter (:mod:`.significance`); an error-free scan keeps its stated values.
 
 :data:`FOCUS_METHODS` (direct, phase, temperature) is not the default: on held-out scenes the focus steps
 made a third of the scenes worse (see docs/guide/autofocus.md). The whole

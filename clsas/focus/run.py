@@ -21,6 +21,7 @@ from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, motion_basis, optimise_los, stops_of
 from .report import AutofocusReport, ParameterEstimate
+from .significance import delay_floor_s, delay_spread_s, judge
 from .split import agreement, magnitude_correlation, split_halves
 from .steps import _bounded_search, _los_path, _record
 
@@ -78,6 +79,7 @@ class _Focus:
         self.temp0, self.per_stop_delay = temp0, per_stop_delay
         self.c_stated = ds.c_per_meas
         self.direct = None
+        self.direct_use = "none"  # what of the direct sound's t0 is applied: "none", "median" or "per_stop"
         self.halves = None
         self.extra_delay = 0.0  # a global delay determined without the direct sound, s
         self.grid, self.consistency_iter = engine.grid, 0
@@ -112,8 +114,10 @@ class _Focus:
         ds = self.ds
         if self.direct is None:
             return ds.t0_s + self.extra_delay
+        if self.direct_use == "none":
+            return ds.t0_s.copy()
         t0 = self.direct.t0_s(c, ds.t0_s)
-        if not self.per_stop_delay:
+        if self.direct_use == "median":
             t0 = ds.t0_s + float(np.median(t0 - ds.t0_s))
         return t0
 
@@ -147,22 +151,38 @@ class _Focus:
     def delay_parameters(self, search: bool, max_delay_s: float, tolerance_s: float) -> None:
         """The group delay and per-stop timing: from the direct sound, else (``search``) the
         two halves' sharpest delays where they agree, else not determined (0)."""
-        ds, rep = self.ds, self.rep
+        rep = self.rep
         gd = ParameterEstimate("group_delay", "s", 0.0, float("nan"), False, False,
                                "no direct sound: a delay mostly shifts the image in range, which no focus "
                                "metric sees; left at 0")
         timing = ParameterEstimate("timing", "s RMS", 0.0, float("nan"), False, False, "no direct sound")
         if self.direct is not None:
-            diff = (ds.t0_s - self.direct.t0_s(self.c_stated, ds.t0_s))[self.direct.detected]
-            mad = 1.4826 * float(np.median(np.abs(diff - np.median(diff))))
-            gd = ParameterEstimate("group_delay", "s", float(np.median(diff)), mad / np.sqrt(len(diff)), True,
-                                   False, "direct sound's arrival per recording, median (at the stated c)")
-            timing = ParameterEstimate("timing", "s RMS", mad, float("nan"), self.per_stop_delay, False,
-                                       "each recording's own direct arrival" if self.per_stop_delay
-                                       else "per_stop_delay=False: the median delay only")
+            gd, timing = self._direct_delays()
         elif search and max_delay_s > 0 and self.halves is not None:
             gd = self._delay_search(max_delay_s, tolerance_s)
         rep.parameters["group_delay"], rep.parameters["timing"] = gd, timing
+
+    def _direct_delays(self) -> tuple[ParameterEstimate, ParameterEstimate]:
+        """The group delay (the recordings' median) and the timing (their scatter) from the direct
+        sound's arrivals, each applied only where :func:`.significance.judge` says so; sets
+        ``direct_use`` accordingly."""
+        ds, floor = self.ds, delay_floor_s(self.ds)
+        diff = (ds.t0_s - self.direct.t0_s(self.c_stated, ds.t0_s))[self.direct.detected]
+        median = float(np.median(diff))
+        mad = 1.4826 * float(np.median(np.abs(diff - median)))
+        sigma = mad / np.sqrt(len(diff))
+        v_gd = judge(median * 1e6, sigma * 1e6, len(diff) - 1, abs(median), floor, "us")
+        gd = ParameterEstimate("group_delay", "s", median, sigma, v_gd.apply, False,
+                               f"direct sound's arrival per recording, median (at the stated c); {v_gd.why}")
+        if not self.per_stop_delay:
+            timing = ParameterEstimate("timing", "s RMS", mad, float("nan"), False, False,
+                                       "per_stop_delay=False: the median delay only")
+        else:
+            v_t = judge(mad * 1e6, float("nan"), 1, mad, floor, "us")
+            timing = ParameterEstimate("timing", "s RMS", mad, float("nan"), v_t.apply, False,
+                                       f"each recording's own direct arrival, their scatter; {v_t.why}")
+        self.direct_use = "per_stop" if timing.determined else "median" if gd.determined else "none"
+        return gd, timing
 
     def _delay_search(self, max_delay_s: float, tolerance_s: float) -> ParameterEstimate:
         t = time.perf_counter()
@@ -171,16 +191,21 @@ class _Focus:
                                  -max_delay_s, max_delay_s, step=max_delay_s / 10, tol=2e-7)[0] for h in self.halves]
         ag = agreement(found[0], found[1], -max_delay_s, max_delay_s, tolerance_s)
         self.rep.stages.append({"step": "delay", "halves_s": list(ag["halves"]), "time_s": time.perf_counter() - t})
-        how = (f"no direct sound: sharpest delay of the two halves {found[0] * 1e6:+.1f} and {found[1] * 1e6:+.1f} us"
-               + ("" if ag["determined"] else "; they disagree (or sit at the edge of the hardware range): not "
-                  "determined, left at 0"))
+        how = f"no direct sound: sharpest delay of the two halves {found[0] * 1e6:+.1f} and {found[1] * 1e6:+.1f} us"
+        if not ag["determined"]:
+            how += "; they disagree (or sit at the edge of the hardware range): not determined, left at 0"
+        else:
+            verdict = judge(ag["estimate"] * 1e6, ag["uncertainty"] * 1e6, 1, abs(ag["estimate"]),
+                            delay_floor_s(self.ds), "us")
+            ag["determined"] = verdict.apply
+            how += "; " + verdict.why + ("" if verdict.apply else ": left at 0")
         if ag["determined"]:
             self.extra_delay = ag["estimate"]  # a shift dd reads the profile dd later: t0 + dd
         return ParameterEstimate("group_delay", "s", -ag["estimate"], ag["uncertainty"], ag["determined"], False, how)
 
     def temperature(self, range_c: float, tolerance_c: float, move) -> float:
-        """The temperature offset the two halves' sharpest images agree on, °C (0 where they do
-        not, or where either sits at the edge of the search: not determined, stated kept)."""
+        """The temperature offset the two halves' sharpest images agree on, °C, where it is beyond
+        its uncertainty and changes the image (:func:`.significance.judge`); else 0 (stated kept)."""
         t = time.perf_counter()
 
         def f_temp(dt, h):
@@ -194,18 +219,9 @@ class _Focus:
         ag["uncertainty"] /= np.sqrt(2)
         how = (f"sharpest image of each half at {found[0]:+.2f} and {found[1]:+.2f} C from the stated "
                f"(search +-{range_c:g} C, the thermometer's stated uncertainty)")
-        if ag["determined"]:  # the estimate: the whole aperture's sharpest, near the halves' mean
-            lo, hi = ag["estimate"] - 4 * ag["uncertainty"] - 0.1, ag["estimate"] + 4 * ag["uncertainty"] + 0.1
-
-            def f_whole(dt):
-                c = self.c_at(dt)
-                return self.image_metric(self.t0_at(c) - self.ds.t0_s, c, "temperature",
-                                         self.ds.tx_positions + move, self.ds.rx_positions + move)
-
-            ag["estimate"] = _bounded_search(f_whole, max(lo, -range_c), min(hi, range_c), step=(hi - lo) / 4,
-                                             tol=0.01)[0]
-            how += f"; the whole aperture's sharpest at {ag['estimate']:+.2f} C"
-        if not ag["determined"]:
+        if ag["determined"]:
+            how += self._temperature_whole(ag, range_c, move)
+        else:
             how += ("; at the edge of the search" if ag["at_edge"] else
                     f"; uncertainty over {tolerance_c:g} C") + ": not determined, stated kept"
         self.rep.parameters["temperature"] = ParameterEstimate("temperature", "C offset", ag["estimate"],
@@ -214,6 +230,25 @@ class _Focus:
                                 "time_s": time.perf_counter() - t})
         log.info("autofocus temperature: %s", how)
         return ag["estimate"] if ag["determined"] else 0.0
+
+    def _temperature_whole(self, ag: dict, range_c: float, move) -> str:
+        """Where the halves agree: the whole aperture's sharpest offset near their mean (into
+        ``ag["estimate"]``), then judged (``ag["determined"]``); the words for the report."""
+        lo, hi = ag["estimate"] - 4 * ag["uncertainty"] - 0.1, ag["estimate"] + 4 * ag["uncertainty"] + 0.1
+
+        def f_whole(dt):
+            c = self.c_at(dt)
+            return self.image_metric(self.t0_at(c) - self.ds.t0_s, c, "temperature",
+                                     self.ds.tx_positions + move, self.ds.rx_positions + move)
+
+        ag["estimate"] = _bounded_search(f_whole, max(lo, -range_c), min(hi, range_c), step=(hi - lo) / 4,
+                                         tol=0.01)[0]
+        c_new = self.c_at(ag["estimate"])
+        effect = delay_spread_s(self.ds, self.grid, self.t0_at(c_new), c_new)
+        verdict = judge(ag["estimate"], ag["uncertainty"], 1, effect, delay_floor_s(self.ds), "C")
+        ag["determined"] = verdict.apply
+        return (f"; the whole aperture's sharpest at {ag['estimate']:+.2f} C; " + verdict.why
+                + ("" if verdict.apply else ": stated kept"))
 
     def motion(self, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, smooth_start,
                pga_options, margin) -> tuple[np.ndarray, bool]:

@@ -7,9 +7,14 @@ formation is measured against. The fast ones trade a stated error for run time:
   (:mod:`clsas.formation.omega_k`);
 - ``"ffbp"``: 3-D fast factorized backprojection for any trajectory (:mod:`clsas.formation.ffbp`).
 
+``"auto"`` (:mod:`clsas.formation.auto`) forms by the fastest of them whose error meets a target.
+
 Each formation is a function ``form(profiles, grid, *, backend, device, progress, force, **options)
 -> Image`` that registers itself in :data:`FORMATIONS` (a :class:`clsas.registry.Registry`) where it is
-defined; this package imports each formation module once (one line each, below).
+defined; this package imports each formation module once (one line each, below). A formation
+declares its options as keyword-only parameters (:func:`declared_options`), and :func:`form`
+refuses any other before work (:func:`check_options`). One that forms by another registered
+formation (``auto``) records that one as ``provenance["formation"]``.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import numpy as np
 
 from ..geometry import VoxelGrid
 from ..profiles import Profiles
-from . import bp, ffbp, omega_k  # noqa: F401 - each registers its formation
+from . import auto, bp, ffbp, omega_k  # noqa: F401 - each registers its formation
 from .registry import FORMATIONS
 
 __all__ = ["FORMATIONS", "check_options", "declared_options", "error_to_signal_db", "form"]
@@ -40,6 +45,8 @@ def form(profiles: Profiles, grid: VoxelGrid, formation: str = "bp", *, backend:
     fn = FORMATIONS.choose(formation)
     check_options(formation, fn, options)
     image = fn(profiles, grid, backend=backend, device=device, progress=progress, force=force, **options)
+    if "formation" in image.provenance:  # formed by another registered formation, which it names
+        return image
     provenance = {**image.provenance, "formation": formation}
     if options:
         provenance["formation_options"] = dict(options)

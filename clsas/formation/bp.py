@@ -23,7 +23,7 @@ from .registry import FORMATIONS
 
 __all__ = ["Backprojector", "backproject", "form", "BP_OPTIONS"]
 
-BP_OPTIONS = ("beam", "beam_floor_db")
+BP_OPTIONS = ("beam", "beam_floor_db")  # the options the formation declares
 
 log = logging.getLogger(__name__)
 
@@ -221,9 +221,8 @@ def backproject(
 
 @FORMATIONS.register("bp")
 def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
-         progress: Callable[[int, int], None] | None = None, force: bool = False, **options) -> Image:
-    """The ``"bp"`` formation: :class:`Backprojector`; options ``beam`` and ``beam_floor_db``."""
-    unknown = set(options) - set(BP_OPTIONS)
-    if unknown:
-        raise ValueError(f"formation_options: formation 'bp' takes {', '.join(BP_OPTIONS)}, got {sorted(unknown)}")
-    return Backprojector(grid, backend=backend, device=device, force=force, **options)(profiles, progress=progress)
+         progress: Callable[[int, int], None] | None = None, force: bool = False, beam: str | None = None,
+         beam_floor_db: float = -12.0) -> Image:
+    """The ``"bp"`` formation: :class:`Backprojector` with its options ``beam`` and ``beam_floor_db``."""
+    bp = Backprojector(grid, backend=backend, device=device, force=force, beam=beam, beam_floor_db=beam_floor_db)
+    return bp(profiles, progress=progress)

@@ -122,7 +122,7 @@ def plan_tree(profiles: Profiles, grid: VoxelGrid, **options) -> Tree:
 
 
 # the last tree planned, and what it was planned for: formation="auto" plans a tree to cost
-# FFBP (clsas.formation.cost) and the formation then runs with the same request
+# FFBP (clsas.formation.auto.predict) and the formation then runs with the same request
 _LAST_TREE: list = []
 
 
@@ -247,12 +247,10 @@ def form(
     grid : VoxelGrid
         Must lie in front of the aperture: within 72 degrees of each sub-aperture's line of
         sight to the grid's centre (else a ``ValueError`` names ``formation='bp'``).
-    backend : {"auto", "opencl", "numpy"} or clsas.cl.Selection, optional
-        As :func:`clsas.backproject`; the NumPy path works alone. ``"auto"`` (or a Selection
-        that asked for it) falls back to it with one warning when a kernel will not build,
-        ``"opencl"`` raises :class:`clsas.cl.BuildError`.
-    device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
-        None with a Selection.
+    backend, device
+        As :func:`clsas.backproject` (``device`` None with a Selection); the NumPy path works alone.
+        ``"auto"`` (or a Selection that asked for it) falls back to it with one warning when a kernel
+        will not build, ``"opencl"`` raises :class:`clsas.cl.BuildError`.
     progress : callable(done, total), optional
         Called after each level (leaves, each merge, the final interpolation).
     force : bool
@@ -272,11 +270,9 @@ def form(
         ``"lsq"``: weights with the least squared error over the band the sub-images are
         sampled for (at twice the Nyquist rate, 4 taps err by -30 dB at worst against
         Lagrange's -19 dB, for the same cost); ``"lagrange"``: the polynomial through the taps.
-    band_hz : (f_lo, f_hi), optional
-        The frequencies the profiles hold, carrier included. Default: estimated from their
-        spectrum, all but ``band_tail`` of the energy.
-    band_tail : float
-        Energy fraction left outside the estimated band (default 1e-4).
+    band_hz, band_tail
+        The frequencies the profiles hold, ``(f_lo, f_hi)`` with the carrier included; default:
+        estimated from their spectrum, all but ``band_tail`` (1e-4) of the energy.
     beam, beam_floor_db
         As :func:`clsas.backproject`, applied at the leaves, but ``"weighted"`` by default with beams.
 
@@ -297,18 +293,32 @@ def form(
     sel = _cl.select(backend, device)
     check_grid(grid, sel.kind, sel.cl_device, force=force)
     t_start = time.perf_counter()
-    tree = _tree(data, dtau, fc, tx, rx, c, grid, opts)
+    tree = _planned_tree(data, dtau, fc, tx, rx, c, grid, opts, sel, force, weights)
     timings = {"ffbp_plan": time.perf_counter() - t_start}
+    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings, weights)
+    timings["ffbp"] = time.perf_counter() - t_start
+    return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
+                 provenance={"ffbp": _record(opts, tree, mode, beam_floor_db)})
+
+
+def _planned_tree(data, dtau, fc, tx, rx, c, grid: VoxelGrid, opts: dict, sel: _cl.Selection, force: bool,
+                  weights) -> Tree:
+    """The tree for this request, checked before any sub-image is formed (its memory on the device,
+    the beams' sampling) and described in the log."""
+    tree = _tree(data, dtau, fc, tx, rx, c, grid, opts)
     _check_memory(tree, grid, sel.kind, sel.cl_device, force)
     _check_beam_sampling(tree, weights, opts["oversample"])
     for line in tree.describe().splitlines():
         log.info("ffbp: %s", line)
-    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings, weights)
-    timings["ffbp"] = time.perf_counter() - t_start
-    provenance = {"ffbp": {k: opts[k] for k in OPTIONS if k != "band_hz"} | {"beam": mode, "beam_floor_db": float(
-        beam_floor_db), "band_hz": list(tree.band_hz), "samples_per_level": [lev.samples for lev in tree.levels]}}
-    return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
-                 provenance=provenance)
+    return tree
+
+
+def _record(opts: dict, tree: Tree, beam: str, beam_floor_db: float) -> dict:
+    """What the image's provenance keeps: the options used (depth resolved), the beam, the band the
+    tree was sampled for and the samples per level."""
+    used = {k: opts[k] for k in OPTIONS if k != "band_hz"}
+    return used | {"beam": beam, "beam_floor_db": float(beam_floor_db), "band_hz": list(tree.band_hz),
+                   "samples_per_level": [lev.samples for lev in tree.levels]}
 
 
 def _check_types(profiles, grid) -> None:

@@ -74,6 +74,7 @@ a voxel at aliased angles, which ω-k leaves out unless ``upsample`` asks for th
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import os
@@ -89,19 +90,14 @@ from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import stolt
-from .opencl import StoltDepthsPlan, StoltPlan
 from .planar import NotPlanarUniform, planar_aperture
 from .registry import FORMATIONS
+from .stolt_opencl import StoltDepthsPlan, StoltPlan
 
-__all__ = ["form", "OPTIONS", "NotPlanarUniform"]
+__all__ = ["form", "OPTIONS", "NotPlanarUniform", "farthest_offsets", "plan_sizes", "steepest_sine"]
 
 log = logging.getLogger(__name__)
 
-OPTIONS = {
-    "pad_time": 1.5, "pad": None, "window": None, "taper": 0.1, "upsample": 1, "bistatic": True,
-    "phase_tol": 1e-2, "band_tol": 1e-2, "kernel_width": 4, "tol_m": None, "workers": None, "chunk": 8192,
-    "max_sine": None, "beam": None, "beam_floor_db": -12.0, "depths": "auto",
-}
 DEPTHS = ("auto", "direct", "spread")
 
 
@@ -239,16 +235,16 @@ def _edge_window(kq: np.ndarray, edge: float, taper: float, window: str | None) 
     return 0.5 * (1 + np.cos(np.pi * ramp))
 
 
-def _farthest_offsets(g, pu, pv) -> tuple[float, float]:
+def farthest_offsets(g, pu, pv) -> tuple[float, float]:
     """The largest in-plane offsets ``(du, dv)``, m, between a voxel (axes ``pu``, ``pv``) and a stop
     of the lattice group ``g``."""
     (u0, u1), (v0, v1) = g.extent_uv
     return max(abs(pu[-1] - u0), abs(u1 - pu[0])), max(abs(pv[-1] - v0), abs(v1 - pv[0]))
 
 
-def _max_sine(g, pu, pv, depth_min) -> float:
+def steepest_sine(g, pu, pv, depth_min) -> float:
     """Sine of the steepest voxel-stop angle from the plane's normal."""
-    lat = math.hypot(*_farthest_offsets(g, pu, pv))
+    lat = math.hypot(*farthest_offsets(g, pu, pv))
     return lat / math.hypot(lat, depth_min)
 
 
@@ -276,8 +272,12 @@ def _n_cells(n_z: int, width: int) -> int:
 # -- the formation ---------------------------------------------------------------------------
 @FORMATIONS.register("omega-k")
 def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
-         progress=None, force: bool = False, **options) -> Image:
-    """ω-k image of ``profiles`` on ``grid`` (see the module notes for the method and options).
+         progress=None, force: bool = False, pad_time: float = 1.5, pad: float | None = None,
+         window: str | None = None, taper: float = 0.1, upsample: int | str = 1, bistatic: bool = True,
+         phase_tol: float = 1e-2, band_tol: float = 1e-2, kernel_width: int = 4, tol_m: float | None = None,
+         workers: int | None = None, chunk: int = 8192, max_sine: float | None = None, beam: str | None = None,
+         beam_floor_db: float = -12.0, depths: str = "auto") -> Image:
+    """ω-k image of ``profiles`` on ``grid`` (see the module notes for the method and its steps).
 
     Parameters
     ----------
@@ -297,64 +297,119 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     force : bool
         Accepted for the registry's interface (ω-k allocates about 16 bytes per voxel, times
         a few, and no more).
-    **options
-        ``pad_time`` (delay FFT zero padding, default 1.5), ``pad`` (spatial zero padding factor,
-        default from the geometry), ``window`` (None or "hann"), ``taper`` (band-edge fraction,
-        0.1), ``upsample`` (1, an integer or "auto"), ``bistatic`` (True), ``phase_tol`` (rad,
-        1e-2), ``band_tol`` (1e-2), ``max_sine`` (the steepest look angle's sine to keep,
-        default from the geometry), ``kernel_width`` (4), ``tol_m`` (lattice and plane
-        tolerance, m; default a hundredth of the wavelength at 1.5 times the carrier), ``workers`` (FFT
-        threads), ``chunk`` (columns per Stolt launch), ``depths`` ("auto", "direct" or "spread":
-        how the Stolt sum reaches the depths, step 4).
+    pad_time, pad : float
+        Zero padding of the delay FFT and the spatial one (each >= 1; ``pad`` None: from the geometry).
+    window, taper
+        ``"hann"``: a Hann window over the whole spatial band; None: the band's outer ``taper``
+        (in [0, 1)) of each spatial-frequency axis under a raised cosine.
+    upsample : int or "auto"
+        The periodic spectrum repeated this many times along each axis (forms the aliased angles);
+        ``"auto"``: enough for every voxel-stop angle.
+    bistatic, phase_tol
+        Compensate the speaker-microphone offset to ``phase_tol`` rad (False: the midpoint approximation).
+    band_tol : float
+        The band kept: frequency samples with at least ``band_tol**2`` of the strongest's energy.
+    kernel_width, chunk, depths
+        Cells of the spreading kernel (2-16), spatial-frequency columns per Stolt launch, and how the
+        Stolt sum reaches the depths: ``"auto"``, ``"direct"`` or ``"spread"`` (step 4).
+    tol_m, workers, max_sine : optional
+        Lattice and plane tolerance, m (default a hundredth of the wavelength at 1.5 times the
+        carrier); FFT threads (default all cores); the steepest look angle's sine kept (default
+        from the geometry).
+    beam, beam_floor_db
+        The transducers' beams as plane-wave weights (see the module notes).
 
     Returns
     -------
     Image
         complex64 values on ``grid``; ``image.provenance["omega_k"]`` records what was used.
     """
+    _check_types(profiles, grid)
+    o = _options({"pad_time": pad_time, "pad": pad, "window": window, "taper": taper, "upsample": upsample,
+                  "bistatic": bistatic, "phase_tol": phase_tol, "band_tol": band_tol, "kernel_width": kernel_width,
+                  "tol_m": tol_m, "workers": workers, "chunk": chunk, "max_sine": max_sine, "beam": beam,
+                  "beam_floor_db": beam_floor_db, "depths": depths})
+    arrays = profiles.arrays(np.complex128)
+    t_start = time.perf_counter()
+    tol = _tolerance(o, arrays)  # the geometry first: a refusal costs nothing
+    ap = _aperture(profiles, grid, o, tol)
+    if isinstance(ap, Image):  # a 2-D line scan, imaged by the 2-D Stolt step
+        return ap
+    return _form_planar(arrays, grid, ap, o, tol, (backend, device), progress, t_start)
+
+
+# the options form declares, with their defaults (what _options checks and fills in)
+OPTIONS = {p.name: p.default for p in inspect.signature(form).parameters.values()
+           if p.kind is inspect.Parameter.KEYWORD_ONLY and p.name not in ("backend", "device", "progress", "force")}
+
+
+def _check_types(profiles, grid) -> None:
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    o = _options(options)
-    workers = o["workers"] or os.cpu_count() or 1
-    data, tau0, dtau, fc, tx, rx, c = profiles.arrays(np.complex128)
-    t_start = time.perf_counter()
-    # the geometry first (a refusal costs nothing); the tolerance is a hundredth of the
-    # wavelength at 1.5 times the carrier (the band's top, about)
+
+
+def _tolerance(o: dict, arrays) -> float:
+    """The lattice and plane tolerance, m: the ``tol_m`` option, else a hundredth of the wavelength
+    at 1.5 times the carrier (the band's top, about)."""
+    if o["tol_m"] is not None:
+        return o["tol_m"]
+    data, tau0, dtau, fc, tx, rx, c = arrays
     f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
-    tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
-    ap = _aperture(profiles, grid, o, tol)
-    if isinstance(ap, Image):  # a 2-D line scan, imaged by the 2-D Stolt step
-        return ap
+    return float(np.min(c)) / f_hi / 100
+
+
+def _grid_axes(grid: VoxelGrid, ap, tol: float):
+    """(pu, pv, depth): the grid's lattice axes in the aperture's order and its planes' distances from
+    the aperture's plane, m (refused where one lies on it)."""
     axes = [grid.x_m, grid.y_m, grid.z_m]
     pu, pv, pw = (axes[i] for i in ap.perm)
     depth = np.abs(pw - ap.w_m)
     if depth.min() < 4 * tol:
         raise ValueError(f"grid: a voxel plane lies {depth.min():.3g} m from the aperture's plane; omega-k "
                          "needs the grid off the plane")
+    return pu, pv, depth
+
+
+def _form_planar(arrays, grid: VoxelGrid, ap, o: dict, tol: float, where: tuple, progress, t_start: float) -> Image:
+    """Steps 1-6 for a planar aperture: the spectra, the Stolt step per lattice, onto the grid
+    (``where``: the backend and device the Stolt step runs on)."""
+    data, tau0, dtau, fc, tx, rx, c = arrays
+    workers = o["workers"] or os.cpu_count() or 1
+    pu, pv, depth = _grid_axes(grid, ap, tol)
     spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
     k = 4 * np.pi * f / c_ref
     flip = depth[0] > depth[-1]
     depth_inc = depth[::-1] if flip else depth
-    path, runner, sel = _stolt_step(o, backend, device, ap, k, depth_inc)
+    path, runner, sel = _stolt_step(o, *where, ap, k, depth_inc)
     t_setup = time.perf_counter() - t_start
-    values = np.zeros((len(pu), len(pv), len(pw)), np.complex64)
-    info = {"groups": len(ap.groups), "n_f": len(f), "band_hz": (float(f.min()), float(f.max())), "lattices": []}
-    info["depths"], t_stolt = path, 0.0
-    for g in ap.groups:
-        img, ginfo, dt_stolt = _form_group(g, spec[g.index], k, pu, pv, depth_inc, o, workers, (path, runner),
-                                           4 * np.pi * f_top / c_ref, progress)
-        values += img[:, :, ::-1] if flip else img
-        info["lattices"].append(ginfo)
-        t_stolt += dt_stolt
+    info = {"groups": len(ap.groups), "n_f": len(f), "band_hz": (float(f.min()), float(f.max())), "lattices": [],
+            "depths": path}
+    values, t_stolt = _form_lattices(ap, spec, k, (pu, pv, depth_inc), flip, o, workers, (path, runner),
+                                     4 * np.pi * f_top / c_ref, progress, info["lattices"])
     values = np.transpose(values, np.argsort(ap.perm))
     if o["upsample"] == 1:
         info["cone_fraction"] = _warn_outside_cone(ap, grid, f_top, c_ref, o["angular"])
-    total = time.perf_counter() - t_start
-    timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": total}
+    timings = {"omega_k_setup": t_setup, "stolt": t_stolt, "omega_k": time.perf_counter() - t_start}
     info["backend"] = sel.kind
     return Image(values, grid, "bp", sel.kind, sel.device, timings, provenance={"omega_k": info})
+
+
+def _form_lattices(ap, spec, k, axes, flip: bool, o: dict, workers: int, stolt_step, k_top: float, progress,
+                   records: list) -> tuple[np.ndarray, float]:
+    """Each lattice group's image, summed, depths in the grid's order: (values in the aperture's axis
+    order, the Stolt step's seconds); each group's record appended to ``records``."""
+    pu, pv, depth_inc = axes
+    values = np.zeros((len(pu), len(pv), len(depth_inc)), np.complex64)
+    t_stolt = 0.0
+    for g in ap.groups:
+        img, ginfo, dt_stolt = _form_group(g, spec[g.index], k, pu, pv, depth_inc, o, workers, stolt_step, k_top,
+                                           progress)
+        values += img[:, :, ::-1] if flip else img
+        records.append(ginfo)
+        t_stolt += dt_stolt
+    return values, t_stolt
 
 
 def _aperture(profiles: Profiles, grid: VoxelGrid, o: dict, tol: float):
@@ -445,7 +500,7 @@ def _layout(g, k, pu, pv, depth, o, k_top) -> dict:
     du, dv = g.spacing_uv
     z0, z1 = float(depth[0]), float(depth[-1])
     # look angles: every voxel-stop pair, plus a margin; the window falls from s1 to s2
-    s_geo = _max_sine(g, pu, pv, z0) if o["max_sine"] is None else o["max_sine"]
+    s_geo = steepest_sine(g, pu, pv, z0) if o["max_sine"] is None else o["max_sine"]
     s1 = min(s_geo + 0.05, 0.97)
     s2 = min(s1 + 0.1, 0.995)
     # aliased angles: U repeats of the periodic spectrum
@@ -548,7 +603,7 @@ def _stolt_columns(stolt_step, block, k, ku, kv, params, factors, workers) -> np
 def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **options) -> dict:
     """What :func:`form` would transform for ``profiles`` on ``grid``, without forming the image.
 
-    For the cost model of ``formation="auto"`` (:mod:`clsas.formation.cost`): the geometry is
+    For the cost model of ``formation="auto"`` (:mod:`clsas.formation.auto.predict`): the geometry is
     checked as :func:`form` checks it (:class:`NotPlanarUniform` or ``ValueError`` likewise), the
     band is estimated from at most ``rows`` evenly spread profiles.
 
@@ -566,16 +621,11 @@ def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **option
     import scipy.fft
 
     o = _options(options)
-    data, tau0, dtau, fc, tx, rx, c = profiles.arrays()
-    f_hi = 1.5 * fc if fc > 0 else 0.25 / dtau
-    tol = o["tol_m"] if o["tol_m"] is not None else float(np.min(c)) / f_hi / 100
+    arrays = profiles.arrays()
+    data, tau0, dtau, fc, tx, rx, c = arrays
+    tol = _tolerance(o, arrays)
     ap = planar_aperture(tx, rx, grid, tol)
-    axes = [grid.x_m, grid.y_m, grid.z_m]
-    pu, pv, pw = (axes[i] for i in ap.perm)
-    depth = np.abs(pw - ap.w_m)
-    if depth.min() < 4 * tol:
-        raise ValueError(f"grid: a voxel plane lies {depth.min():.3g} m from the aperture's plane; omega-k "
-                         "needs the grid off the plane")
+    pu, pv, depth = _grid_axes(grid, ap, tol)
     n_meas, n_lags = data.shape
     pick = np.unique(np.linspace(0, n_meas - 1, min(n_meas, int(rows))).astype(int))
     c_arr = np.broadcast_to(np.asarray(c, float), (n_meas,))

@@ -110,11 +110,9 @@ def is_airsas(folder: str | Path) -> bool:
     return folder.is_dir() and all(_find(folder, n) is not None for n in ("coordinates.csv", "sysparams.csv"))
 
 
-def import_airsas(
-    folder: str | Path, *, background: str | Path | None = None, waveform: str = "chirp",
-    waveform_index: int | None = None, microphones: str = "first", angle_sign: float = 1.0,
-    zero_angle_deg: float = 0.0, radius_m: float | None = None,
-) -> Dataset:
+def import_airsas(folder: str | Path, *, background: str | Path | None = None, waveform: str = "chirp",
+                  waveform_index: int | None = None, microphones: str = "first", angle_sign: float = 1.0,
+                  zero_angle_deg: float = 0.0, radius_m: float | None = None) -> Dataset:
     """Read an AirSAS scan folder into a :class:`~clsas.Dataset` (layout: :mod:`clsas.io.airsas`).
 
     Parameters
@@ -161,35 +159,51 @@ def import_airsas(
     """
     folder = Path(folder)
     _check_options(folder, waveform, microphones, angle_sign, zero_angle_deg, radius_m)
-
     sys_path = _need(folder, "SysParams.csv")
     sysp, fs, gd, center, speaker = _system(sys_path)
     coord_path = _need(folder, "Coordinates.csv")
     pings, index = _pings_of_waveform(coord_path, waveform_index)
     recs, names, n_ch = _read_flights(folder, coord_path, pings, microphones)
-    mics = np.array([[_param(sysp, sys_path, f"mic{k + 1} {a}") for a in "xyz"] for k in range(n_ch)])
-
-    a = np.deg2rad(pings["angle_deg"] + zero_angle_deg) * angle_sign
-    tx, rx = _bistatic_pairs(speaker, mics, center, a, pings["height_m"], radius_m, sys_path)
-    temperature = np.repeat(pings["temp_c"], n_ch)
-
+    tx, rx = _ping_positions(sysp, sys_path, speaker, center, pings, n_ch, angle_sign, zero_angle_deg, radius_m)
     wave, chirp = _waveform(folder, waveform, index, fs)
-    prov: dict[str, Any] = {
-        "step": "import", "source": str(folder), "format": "airsas", "pings": int(len(pings["flight"])),
-        "microphones": int(n_ch), "fs_hz": fs, "group_delay_samples": gd, "waveform": waveform,
-        "waveform_index": int(index), "angle_sign": int(angle_sign), "zero_angle_deg": float(zero_angle_deg),
-        "radius_m": radius_m, "angle_deg": [float(pings["angle_deg"].min()), float(pings["angle_deg"].max())],
-        "center_m": center.tolist(), **({"background": str(background)} if background is not None else {})}
+    prov = _provenance(folder, pings, n_ch, fs, gd, center, background, waveform=waveform, waveform_index=int(index),
+                       angle_sign=int(angle_sign), zero_angle_deg=float(zero_angle_deg), radius_m=radius_m)
     ds = _dataset(folder, stack_padded(recs, names, str(folder)), tx, rx, fs, wave, np.full(len(recs), -gd / fs),
-                  temperature, chirp, prov)
+                  np.repeat(pings["temp_c"], n_ch), chirp, prov)
     if background is not None:
-        bg = import_airsas(background, waveform=waveform, waveform_index=waveform_index,
-                           microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg,
-                           radius_m=radius_m)
-        ds = ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
+        ds = _with_background(ds, folder, background, waveform=waveform, waveform_index=waveform_index,
+                              microphones=microphones, angle_sign=angle_sign, zero_angle_deg=zero_angle_deg,
+                              radius_m=radius_m)
     log.info("imported AirSAS %s: %d pings x %d microphone(s), %d samples at %g Hz; c_mps from the logged temperature, "
              "%s", folder, len(pings["flight"]), n_ch, ds.n_samples, fs, ds.provenance[-1]["c_mps_source"])
     return ds
+
+
+def _with_background(ds: Dataset, folder: Path, background: str | Path, **read) -> Dataset:
+    """``ds`` with the empty-scene scan in ``background`` read as the scan was (``read``: the
+    arguments of :func:`import_airsas`) and aligned ping by ping."""
+    bg = import_airsas(background, **read)
+    return ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
+
+
+def _ping_positions(sysp: dict, sys_path: Path, speaker: np.ndarray, center: np.ndarray, pings: dict, n_ch: int,
+                    angle_sign: float, zero_angle_deg: float, radius_m: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """The speaker's and the first ``n_ch`` microphones' positions (``SysParams.csv``) turned by
+    each ping's turntable angle into the target's frame: ``(tx (n, 3), rx (n, 3))`` m, ping-major."""
+    mics = np.array([[_param(sysp, sys_path, f"mic{k + 1} {a}") for a in "xyz"] for k in range(n_ch)])
+    a = np.deg2rad(pings["angle_deg"] + zero_angle_deg) * angle_sign
+    return _bistatic_pairs(speaker, mics, center, a, pings["height_m"], radius_m, sys_path)
+
+
+def _provenance(folder: Path, pings: dict, n_ch: int, fs: float, gd: float, center: np.ndarray,
+                background: str | Path | None, **options) -> dict[str, Any]:
+    """The import's provenance entry: the scan, its rig's numbers and the reading ``options``
+    (waveform, waveform_index, angle_sign, zero_angle_deg, radius_m)."""
+    return {
+        "step": "import", "source": str(folder), "format": "airsas", "pings": int(len(pings["flight"])),
+        "microphones": int(n_ch), "fs_hz": fs, "group_delay_samples": gd, **options,
+        "angle_deg": [float(pings["angle_deg"].min()), float(pings["angle_deg"].max())],
+        "center_m": center.tolist(), **({"background": str(background)} if background is not None else {})}
 
 
 def _system(sys_path: Path) -> tuple[dict, float, float, np.ndarray, np.ndarray]:

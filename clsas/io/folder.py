@@ -205,36 +205,60 @@ def import_folder(
     table = folder / (positions if positions is not None else cfg["recording"].get("positions", "positions.csv"))
     rows = _read_positions(table)
     meas, loop, fs = _recordings_and_rate(folder, table, rows, cfg, cfg_path, fs_hz)
-    lengths = {len(m.samples) for m in meas}
-    sig = stack_padded([m.samples for m in meas], [m.name for m in meas], str(table))
-
+    sig, padded = _signals(meas, table)
     wave, chirp, wave_src = _waveform(folder, waveform, cfg, cfg_path, fs)
     gd = _group_delay(group_delay_samples, cfg, cfg_path, fs)
-    src = [rows[m.row] for m in meas]
-    t0, temperature, humidity, c, stamps = _per_measurement(table, src, cfg, gd / fs)
-
-    prov: dict[str, Any] = {
-        "step": "import", "source": str(folder), "format": "folder", "positions": table.name, "files": len(rows),
-        "fs_hz": fs, "waveform": wave_src, "group_delay_samples": gd, "padded": len(lengths) > 1,
-        "settings": None if cfg_path is None else cfg_path.name,
-        **({"background": str(background)} if background is not None else {})}
-    loopback = _rows(loop, sig.shape[1]) if loop else None
-    try:
-        ds = Dataset(
-            signals=sig,
-            tx_positions=np.array([r.tx for r in src]),
-            rx_positions=np.array([rows[m.row].rx[m.channel] for m in meas]),
-            fs_hz=fs, waveform=wave, t0_s=t0, c_mps=c, temperature_c=temperature, humidity_pct=humidity,
-            timestamps=stamps, loopback=loopback, chirp=chirp, config=cfg_text, provenance=[prov],
-        )
-    except ValueError as exc:  # e.g. a humidity above 100 %: say where it came from
-        raise ValueError(f"{table}: {exc}") from None
+    air = _per_measurement(table, [rows[m.row] for m in meas], cfg, gd / fs)
+    prov = _provenance(folder, table, len(rows), fs, wave_src, gd, padded, cfg_path, background)
+    ds = _dataset(table, rows, meas, sig, loop, air, fs_hz=fs, waveform=wave, chirp=chirp, config=cfg_text,
+                  provenance=[prov])
     if background is not None:
-        bg = import_folder(background, positions=positions, waveform=wave, fs_hz=fs, settings=settings,
-                           group_delay_samples=gd)
-        ds = ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
+        ds = _with_background(ds, folder, background, positions=positions, waveform=wave, fs_hz=fs,
+                              settings=settings, group_delay_samples=gd)
     log.info("imported %s: %d measurements x %d samples at %g Hz", folder, ds.n_meas, ds.n_samples, fs)
     return ds
+
+
+def _signals(meas: list[_Meas], table: Path) -> tuple[np.ndarray, bool]:
+    """(n_meas, n_samples) the recordings, zero-padded at the end to the longest, and whether any was."""
+    padded = len({len(m.samples) for m in meas}) > 1
+    return stack_padded([m.samples for m in meas], [m.name for m in meas], str(table)), padded
+
+
+def _with_background(ds: Dataset, folder: Path, background: str | Path, **read) -> Dataset:
+    """``ds`` with the empty-scene scan in ``background`` read as the scan was (``read``: the
+    arguments of :func:`import_folder`) and checked stop for stop."""
+    bg = import_folder(background, **read)
+    return ds.replace(background=attach_background(ds, bg, str(folder), str(background)))
+
+
+def _provenance(folder: Path, table: Path, n_files: int, fs: float, wave_src: str, gd: float, padded: bool,
+                cfg_path: Path | None, background: str | Path | None) -> dict[str, Any]:
+    """The import's provenance entry: where the scan came from and what was assumed in reading it."""
+    return {
+        "step": "import", "source": str(folder), "format": "folder", "positions": table.name, "files": n_files,
+        "fs_hz": fs, "waveform": wave_src, "group_delay_samples": gd, "padded": padded,
+        "settings": None if cfg_path is None else cfg_path.name,
+        **({"background": str(background)} if background is not None else {})}
+
+
+def _dataset(table: Path, rows: list[_Row], meas: list[_Meas], signals: np.ndarray, loop: list[np.ndarray],
+             air: tuple, **fields) -> Dataset:
+    """The :class:`~clsas.Dataset` of the measurements ``meas`` (positions from their ``rows``, the
+    per-measurement ``air`` of :func:`_per_measurement`, the loopback takes ``loop``) and ``fields``;
+    a value the Dataset refuses (e.g. a humidity above 100 %) is reported with the table it came from."""
+    t0, temperature, humidity, c, stamps = air
+    loopback = _rows(loop, signals.shape[1]) if loop else None
+    try:
+        return Dataset(
+            signals=signals,
+            tx_positions=np.array([rows[m.row].tx for m in meas]),
+            rx_positions=np.array([rows[m.row].rx[m.channel] for m in meas]),
+            t0_s=t0, c_mps=c, temperature_c=temperature, humidity_pct=humidity, timestamps=stamps,
+            loopback=loopback, **fields,
+        )
+    except ValueError as exc:
+        raise ValueError(f"{table}: {exc}") from None
 
 
 @dataclass

@@ -134,18 +134,9 @@ def _restart_if_empty(out: Path) -> None:
         out.unlink()
 
 
-def acquire(
-    config: RigConfig,
-    out: str | Path,
-    *,
-    resume: bool = False,
-    simulate: bool | str = False,
-    faults: Faults | None = None,
-    audio_io=None,
-    stage: GrblStage | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    resume_hint: str | None = None,
-) -> ScanResult:
+def acquire(config: RigConfig, out: str | Path, *, resume: bool = False, simulate: bool | str = False,
+            faults: Faults | None = None, audio_io=None, stage: GrblStage | None = None,
+            progress: Callable[[int, int], None] | None = None, resume_hint: str | None = None) -> ScanResult:
     """Run the scan described by ``config`` and write it to ``out``, one stop at a time.
 
     The parts are :func:`stage_for`, :func:`audio_for` and :func:`recorder_for`,
@@ -187,23 +178,16 @@ def acquire(
     hint = resume_hint or f"resume with clsas.rig.acquire(config, {str(out)!r}, resume=True)"
     _restart_if_empty(out)
     sim_stage, sim_audio = _checked_request(config, out, resume, simulate, faults, stage)
-    resuming = resume and out.exists()
-    air = _stored_air(out) if resuming else config.read_air()
-    recorder = recorder_for(config, audio_io if audio_io is not None else audio_for(config, sim_audio, air))
-    store = store_for(config, out, resuming, air)
+    recorder, store = _recorder_and_store(config, out, resume and out.exists(), audio_io, sim_audio)
     start_done = store.stops_done
     time_scale = float(config.simulate.get("time_scale", 0.01))
     emulator = None
     t_start = time.monotonic()
     try:
         if start_done >= config.n_stops:
-            log.info("%s already holds all %d stops", out, config.n_stops)
-            store.close(complete=True)
-            return ScanResult(out, config.n_stops, start_done, 0, 0.0, 0)
+            return _already_complete(config, store, out)
         if stage is None:
-            if sim_stage:
-                travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
-                emulator = GrblEmulator(faults=faults or Faults(), time_scale=time_scale, travel_mm=travel).start()
+            emulator = _started_emulator(config, faults, time_scale) if sim_stage else None
             stage = stage_for(config, emulator.port if emulator else None)
         retried = _run_safely(config, stage, recorder, store, out, hint, progress,
                               settle_s=config.settle_s * (time_scale if sim_stage else 1.0))
@@ -213,6 +197,30 @@ def acquire(
         store.close()
     done = config.n_stops
     return ScanResult(out, config.n_stops, done, done - start_done, time.monotonic() - t_start, retried)
+
+
+def _recorder_and_store(config: RigConfig, out: Path, resuming: bool, audio_io, sim_audio: bool
+                        ) -> tuple[Recorder, ScanFile]:
+    """The recorder (through ``audio_io``, else the configured or simulated audio) and the scan
+    file (``out`` reopened where ``resuming``, else created), both in the air of the stored scan
+    when resuming, else the air the configuration reads."""
+    air = _stored_air(out) if resuming else config.read_air()
+    recorder = recorder_for(config, audio_io if audio_io is not None else audio_for(config, sim_audio, air))
+    return recorder, store_for(config, out, resuming, air)
+
+
+def _already_complete(config: RigConfig, store: ScanFile, out: Path) -> ScanResult:
+    """The result of resuming a file that holds every stop: it is marked complete, nothing is recorded."""
+    log.info("%s already holds all %d stops", out, config.n_stops)
+    done = store.stops_done
+    store.close(complete=True)
+    return ScanResult(out, config.n_stops, done, 0, 0.0, 0)
+
+
+def _started_emulator(config: RigConfig, faults: Faults | None, time_scale: float) -> GrblEmulator:
+    """A GRBL emulator on a pseudo-terminal, its travel the work area's (and 100 mm in z), injecting ``faults``."""
+    travel = (*(max(-lo, hi - lo) for lo, hi in config.work_area_mm), 100.0)
+    return GrblEmulator(faults=faults or Faults(), time_scale=time_scale, travel_mm=travel).start()
 
 
 def _checked_request(config: RigConfig, out: Path, resume: bool, simulate, faults, stage) -> tuple[bool, bool]:

@@ -22,24 +22,13 @@ __all__ = ["detect_echoes"]
 def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "complex", *, lam: float,
                   false_alarm: float = 0.01, max_echoes: int = 32, bounds_s: tuple[float, float] | None = None,
                   polish_steps: int = 3, real_signal: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Least-squares amplitudes at ``delays_s`` (polished), then the echo count by
-    likelihood-ratio tests.
-
-    Every fit takes up to ``polish_steps`` Gauss-Newton steps on the delays (each echo's atom
-    and its derivative atom fitted together, the delay moved by their ratio, at most a quarter
-    of the matched filter's half-power half-width per step), then the amplitudes by least
-    squares (NNLS for ``"positive"``): a grid delay a tenth of a sample off leaves a strong
-    echo's residual above a weak echo's, and the additions would explain it by spurious echoes.
+    """Least-squares amplitudes at ``delays_s`` (polished), then the echo count by likelihood-ratio tests.
 
     The score ``n log(RSS / n) + t K`` (``n`` the noise's real degrees of freedom, ``K`` echoes, ``t`` =
-    :func:`clsas.sparse.noise.echo_threshold` over the bounds' span at ``false_alarm``; the RSS
-    counted no lower than a quarter of the noise RSS that ``lam`` stands for) is lowered one
-    echo at a time: echoes whose removal lowers it are dropped (the one that lowers it most
-    first); then an echo is added at the grid delay where the residual correlates most with an
-    atom, away from every echo kept (more than the matched filter's half-power half-width),
-    while that lowers it, up to ``max_echoes``; then the drops are tried again. An echo is
-    thus kept only while its own likelihood ratio against the noise passes the test at the
-    stated rate.
+    :func:`clsas.sparse.noise.echo_threshold` over the bounds' span at ``false_alarm``) is lowered
+    one echo at a time: drops, then additions where the residual correlates most with an atom away
+    from every echo kept, up to ``max_echoes``, then drops again. An echo is thus kept only while
+    its own likelihood ratio against the noise passes the test at the stated rate.
 
     Parameters
     ----------
@@ -51,7 +40,8 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
         The echoes' delays to start from, s (e.g. BPDN's grouped echoes).
     amplitudes : {"positive", "real", "complex"}
     lam : float
-        The lam the delays were found at (sets the RSS floor), in ``b``'s units.
+        The lam the delays were found at, in ``b``'s units: the RSS is counted no lower than
+        a quarter of the noise RSS that it stands for.
     false_alarm : float
         Chance per profile that pure noise adds an echo, in (0, 1).
     max_echoes : int
@@ -59,8 +49,10 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
     bounds_s : (float, float), optional
         Delays searched for additions, s; default the dictionary's span.
     polish_steps : int
-        Gauss-Newton steps on the delays per fit (0: the delays stay where they are given,
-        the additions on the grid).
+        Gauss-Newton steps on the delays per fit, before the amplitudes' least squares (NNLS for
+        ``"positive"``): a grid delay a tenth of a sample off leaves a strong echo's residual above
+        a weak echo's, which the additions would explain by spurious echoes (0: the delays stay
+        where they are given, the additions on the grid).
     real_signal : bool
         ``b`` (complex amplitudes) is the analytic signal of a real recording: every fit is of
         its real part, as :func:`clsas.sparse.refined.cbp_polar_refined` does (exact for echoes
@@ -71,8 +63,26 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
     delays_s, amplitudes : (K,) arrays
         Sorted delays (s) and their least-squares amplitudes (``b``'s units).
     info : dict
-        ``order_threshold``, the ``dropped`` and ``added`` counts, the final ``rss``.
+        ``order_threshold``, the ``dropped`` and ``added`` counts, the final ``rss``, the noise's
+        ``colour_factor``.
     """
+    b, taus, lam, max_echoes, real = _checked_inputs(dictionary, b, delays_s, amplitudes, lam, max_echoes,
+                                                     polish_steps, real_signal)
+    lo, hi = delay_bounds(dictionary, bounds_s)
+    t = echo_threshold(dictionary.atom, hi - lo, amplitudes, false_alarm=false_alarm)
+    order = _Detector(dictionary, b, amplitudes, real, lam, (lo, hi), t, polish_steps)
+    taus, a, rss, n_drop, added = order.search(taus, max_echoes)
+    kappa = order.colour_noise(taus, rss)
+    if added or kappa < 1:  # the score changed with the noise's degrees of freedom: drop again
+        taus, a, rss, _, more = order.drop(taus, a, rss, order.score(rss, len(taus)))
+        n_drop += more
+    return taus, a, {"order_threshold": t, "dropped": n_drop, "added": added, "rss": rss, "colour_factor": kappa}
+
+
+def _checked_inputs(dictionary: Dictionary, b, delays_s, amplitudes: str, lam: float, max_echoes: int,
+                    polish_steps: int, real_signal: bool) -> tuple[np.ndarray, np.ndarray, float, int, bool]:
+    """:func:`detect_echoes`'s inputs checked: ``(b, delays, lam, max_echoes, real)``, ``real``
+    where the fits are of ``b``'s real part."""
     v.choice("amplitudes", amplitudes, MODES)
     b = _check(dictionary, b, amplitudes)
     taus = v.array("delays_s", np.asarray(delays_s, float).reshape(-1), ndim=1)
@@ -82,23 +92,7 @@ def detect_echoes(dictionary: Dictionary, b, delays_s, amplitudes: str = "comple
         raise ValueError(f"polish_steps must be an integer >= 0, got {polish_steps!r}")
     if not isinstance(real_signal, (bool, np.bool_)):
         raise TypeError(f"real_signal must be True or False, got {real_signal!r}")
-    real = bool(real_signal) and amplitudes == "complex"
-    lo, hi = delay_bounds(dictionary, bounds_s)
-    t = echo_threshold(dictionary.atom, hi - lo, amplitudes, false_alarm=false_alarm)
-    order = _Detector(dictionary, b, amplitudes, real, lam, (lo, hi), t, polish_steps)
-    fitted = order.fit(taus)
-    cur = order.score(fitted[2], len(fitted[0]))
-    *fitted, cur, n_drop = order.drop(*fitted, cur)
-    *fitted, cur, added = order.add(*fitted, cur, max_echoes)
-    taus, a, rss = fitted
-    # noise coloured into the atoms' band, read from what the model leaves (CBP-Polar's rule)
-    kappa = colour_factor(dictionary, b, dictionary.atom.matrix(taus), rss, order.n_real, amplitudes)
-    order.n_dof = kappa * order.n_real
-    cur = order.score(rss, len(taus))
-    if added or kappa < 1:
-        taus, a, rss, cur, more = order.drop(taus, a, rss, cur)
-        n_drop += more
-    return taus, a, {"order_threshold": t, "dropped": n_drop, "added": added, "rss": rss, "colour_factor": kappa}
+    return b, taus, lam, max_echoes, bool(real_signal) and amplitudes == "complex"
 
 
 class _Detector:
@@ -124,6 +118,9 @@ class _Detector:
         self.in_bounds = (dictionary.taus >= self.lo) & (dictionary.taus <= self.hi)
 
     def polish(self, ts: np.ndarray) -> np.ndarray:
+        """Up to ``polish_steps`` Gauss-Newton steps on the delays ``ts``: each echo's atom and
+        its derivative atom fitted together, the delay moved by their ratio, at most a quarter of
+        the matched filter's half-power half-width per step."""
         atom = self.atom
         for _ in range(self.polish_steps):
             A, D = atom.matrix(ts, fast=True), atom.dmatrix(ts, fast=True)
@@ -147,6 +144,22 @@ class _Detector:
     def score(self, rss: float, k: int) -> float:
         return self.n_dof * np.log(max(rss, self.floor) / self.n_real) + self.t * k
 
+    def search(self, taus: np.ndarray, max_echoes: int):
+        """The order search from the delays ``taus``: drops, then additions up to ``max_echoes``;
+        returns the fit ``(taus, amplitudes, rss)`` and the numbers dropped and added."""
+        fitted = self.fit(taus)
+        cur = self.score(fitted[2], len(fitted[0]))
+        *fitted, cur, n_drop = self.drop(*fitted, cur)
+        *fitted, cur, added = self.add(*fitted, cur, max_echoes)
+        return *fitted, n_drop, added
+
+    def colour_noise(self, taus: np.ndarray, rss: float) -> float:
+        """The noise coloured into the atoms' band, read from what the model at ``taus`` leaves
+        (CBP-Polar's rule): sets the score's degrees of freedom and returns the colour factor."""
+        kappa = colour_factor(self.dictionary, self.b, self.atom.matrix(taus), rss, self.n_real, self.amplitudes)
+        self.n_dof = kappa * self.n_real
+        return kappa
+
     def drop(self, ts, a, rss, cur):
         """Drop the echo whose removal lowers the score most, while one does; returns the fit,
         its score and the number dropped."""
@@ -161,9 +174,9 @@ class _Detector:
         return ts, a, rss, cur, dropped
 
     def add(self, taus, a, rss, cur, max_echoes: int):
-        """Add an echo where the residual correlates most with an atom, away from every echo
-        kept, while that lowers the score, up to ``max_echoes``; returns the fit, its score and
-        the number added."""
+        """Add an echo at the grid delay where the residual correlates most with an atom, away
+        from every echo kept (more than the matched filter's half-power half-width), while that
+        lowers the score, up to ``max_echoes``; returns the fit, its score and the number added."""
         grid, b = self.dictionary.taus, self.b
         added = 0
         while len(taus) < max_echoes:

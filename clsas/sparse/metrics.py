@@ -96,7 +96,7 @@ def delay_error(estimate: Echoes, truth: Echoes, signal=None, atom=None, *, tol_
     """The paper's error (eq. 5) with the optimal (Hungarian) matching of estimated to true delays.
 
     ``signal`` (the measured b) and ``atom`` give the fit term ||b - b~||^2; without them it is 0.
-    One without the other is refused (it used to drop the fit term silently).
+    One without the other is refused.
     When the counts differ, each unmatched echo adds ``(window_s |a|)^2``, the delay term of an
     echo placed a whole window away (``window_s`` defaults to the atom's window, else the span
     of all delays). ``success`` needs every true echo matched within ``tol_s`` and no extra one.
@@ -135,36 +135,54 @@ def delay_error(estimate: Echoes, truth: Echoes, signal=None, atom=None, *, tol_
     >>> bool(clsas.delay_error(echoes, truth, tol_s=0.25 / 10e3).success)
     True
     """
-    if (signal is None) != (atom is None):
-        given, missing = ("signal", "atom") if atom is None else ("atom", "signal")
-        raise ValueError(f"delay_error: {given} was given without {missing}; the fit term ||b - b~||^2 needs "
-                         "both (the measured signal and the atom that models it), or neither")
+    _refuse_one_of_signal_and_atom(signal, atom)
     est_t, tru_t = estimate.delays_s, truth.delays_s
-    if window_s is None:
-        if atom is not None:
-            window_s = atom.n / atom.fs
-        else:
-            allt = np.r_[est_t, tru_t]
-            window_s = float(np.ptp(allt)) if allt.size else 0.0
-    pairs = []
-    if len(est_t) and len(tru_t):
-        cost = np.abs(est_t[:, None] - tru_t[None, :])
-        rows, cols = scipy.optimize.linear_sum_assignment(cost)
-        pairs = list(zip(rows.tolist(), cols.tolist(), strict=True))
+    window_s = _count_window(window_s, atom, est_t, tru_t)
+    pairs = _optimal_pairs(est_t, tru_t)
     d = np.array([est_t[i] - tru_t[j] for i, j in pairs])
     delay_term = float(sum((abs(est_t[i] - tru_t[j]) * abs(estimate.amplitudes[i])) ** 2 for i, j in pairs))
-    un_est = set(range(len(est_t))) - {i for i, _ in pairs}
-    un_tru = set(range(len(tru_t))) - {j for _, j in pairs}
-    penalty = float(sum((window_s * abs(estimate.amplitudes[i])) ** 2 for i in un_est)
-                    + sum((window_s * abs(truth.amplitudes[j])) ** 2 for j in un_tru))
+    penalty = _count_penalty(estimate, truth, pairs, window_s)
     fit = 0.0
     if signal is not None and atom is not None:
-        b = np.asarray(signal)
-        fit = float(np.sum(np.abs(b - estimate.signal(atom)) ** 2))
+        fit = float(np.sum(np.abs(np.asarray(signal) - estimate.signal(atom)) ** 2))
     tol = np.inf if tol_s is None else v.positive("tol_s", tol_s)
     success = (len(est_t) == len(tru_t)) and bool(np.all(np.abs(d) <= tol)) if len(tru_t) else len(est_t) == 0
     rmse = float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
     return DelayError(delay_term + fit + penalty, delay_term, fit, penalty, pairs, d, success, rmse)
+
+
+def _refuse_one_of_signal_and_atom(signal, atom) -> None:
+    """The fit term needs both the measured signal and the atom, or neither."""
+    if (signal is None) != (atom is None):
+        given, missing = ("signal", "atom") if atom is None else ("atom", "signal")
+        raise ValueError(f"delay_error: {given} was given without {missing}; the fit term ||b - b~||^2 needs "
+                         "both (the measured signal and the atom that models it), or neither")
+
+
+def _count_window(window_s: float | None, atom, est_t: np.ndarray, tru_t: np.ndarray) -> float:
+    """The window of the count penalty, s: ``window_s``, else the atom's window, else the span of all delays."""
+    if window_s is not None:
+        return window_s
+    if atom is not None:
+        return atom.n / atom.fs
+    allt = np.r_[est_t, tru_t]
+    return float(np.ptp(allt)) if allt.size else 0.0
+
+
+def _optimal_pairs(est_t: np.ndarray, tru_t: np.ndarray) -> list[tuple[int, int]]:
+    """``(estimate, truth)`` index pairs of the matching with the least total delay difference (Hungarian)."""
+    if not (len(est_t) and len(tru_t)):
+        return []
+    rows, cols = scipy.optimize.linear_sum_assignment(np.abs(est_t[:, None] - tru_t[None, :]))
+    return list(zip(rows.tolist(), cols.tolist(), strict=True))
+
+
+def _count_penalty(estimate: Echoes, truth: Echoes, pairs: list, window_s: float) -> float:
+    """``(window_s |a|)^2`` summed over the echoes of either list left unmatched by ``pairs``."""
+    un_est = set(range(len(estimate.delays_s))) - {i for i, _ in pairs}
+    un_tru = set(range(len(truth.delays_s))) - {j for _, j in pairs}
+    return float(sum((window_s * abs(estimate.amplitudes[i])) ** 2 for i in un_est)
+                 + sum((window_s * abs(truth.amplitudes[j])) ** 2 for j in un_tru))
 
 
 def crb_delays(atom, delays_s, amplitudes, noise_sigma: float) -> np.ndarray:

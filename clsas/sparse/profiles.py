@@ -136,9 +136,8 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
     gates_s : (n_meas, 2) array
         Delays after the transmit start to search, per measurement, s.
     method : {"bpdn", "cbp-taylor", "cbp-polar"}
-        Complex amplitudes (echoes have unknown phase): BPDN on the grid, one echo per run
-        of neighbouring atoms; CBP-Taylor in its complex form (``|c_i|, |d_i| <= t_i``);
-        CBP-Polar refined by nlopt.
+        A sparse method (:data:`clsas.sparse.SPARSE_METHODS`), with complex amplitudes (echoes
+        have unknown phase).
     delta_s : float, optional
         Dictionary spacing; default one sample.
     lam, lam_frac : float, optional
@@ -182,27 +181,36 @@ def superres_profiles(dataset: Dataset, gates_s: np.ndarray, method: str = "cbp-
         reason in ``status``, no echoes, and its matched-filter profile in the rows.
     """
     SPARSE_METHODS.check(method)
-    fs = dataset.fs_hz
-    wave = dataset.waveform  # the profiles' centre frequency and render width
+    fs, wave = dataset.fs_hz, dataset.waveform  # the profiles' centre frequency and render width
     heard = _atom_waveform(dataset, pulse)  # the atom's waveform
     gates, delta, guard, max_echoes, options = _checked(dataset, gates_s, heard, method, delta_s, guard_s,
                                                         max_echoes, lam, lam_frac, method_options)
     fc = center_frequency(wave, fs)
     width = v.positive("render_width_s", _render_width(wave, fs) if render_width_s is None else render_width_s)
-    # the common delay grid of the rendered profiles: every gate, and room for a pulse's tails
-    dtau = width / 4
-    lo, hi = float(gates[:, 0].min()) - 4 * width, float(gates[:, 1].max()) + 4 * width
-    grid = lo + dtau * np.arange(int(np.ceil((hi - lo) / dtau)) + 1)
+    lo, dtau, grid = _render_grid(gates, width)
     job = _Recordings(dataset, gates, heard, method, delta, guard, lam, lam_frac, max_echoes, options, absorption,
                       fc, grid)
     t_start = time.perf_counter()
     data, echoes = job.all(progress, client)
     _summarise(method, echoes, dataset.n_meas, time.perf_counter() - t_start)
     _render(data, echoes, grid, lo, dtau, width, fc)
-    prof = Profiles(data, np.full(dataset.n_meas, lo), dtau, fc, method, "numpy",
+    return _profiles(dataset, data, lo, dtau, fc, method, time.perf_counter() - t_start), echoes
+
+
+def _render_grid(gates: np.ndarray, width: float) -> tuple[float, float, np.ndarray]:
+    """The common delay grid of the rendered profiles, s: every gate, and room for a pulse's
+    tails, in steps of a quarter of the render ``width``; ``(start, step, grid)``."""
+    dtau = width / 4
+    lo, hi = float(gates[:, 0].min()) - 4 * width, float(gates[:, 1].max()) + 4 * width
+    return lo, dtau, lo + dtau * np.arange(int(np.ceil((hi - lo) / dtau)) + 1)
+
+
+def _profiles(dataset: Dataset, data: np.ndarray, lo: float, dtau: float, fc: float, method: str,
+              time_s: float) -> Profiles:
+    """The rendered rows ``data`` as the dataset's profiles (every row from delay ``lo``, step ``dtau``, s)."""
+    return Profiles(data, np.full(dataset.n_meas, lo), dtau, fc, method, "numpy",
                     tx_positions=dataset.tx_positions, rx_positions=dataset.rx_positions, c_mps=dataset.c_mps,
-                    timings_s={"superres": time.perf_counter() - t_start}, beams=dataset.beams)
-    return prof, echoes
+                    timings_s={"superres": time_s}, beams=dataset.beams)
 
 
 def _checked(dataset: Dataset, gates_s, heard: np.ndarray, method: str, delta_s, guard_s, max_echoes, lam,

@@ -1,7 +1,7 @@
 """CBP-Polar refined: BPDN finds the support, then nlopt moves each echo continuously while the
-amplitudes are refit (variable projection), splitting, merging and pruning echoes by the
-Bayesian information criterion. Every delay it tries stays inside the bounds it is given (the
-recording's gate), however the data look."""
+amplitudes are refit (variable projection), splitting, merging and pruning echoes by a
+likelihood-ratio test at a stated false-alarm rate. Every delay it tries stays inside the bounds
+it is given (the recording's gate), however the data look."""
 
 from __future__ import annotations
 
@@ -49,28 +49,21 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
        within ``bounds_s`` (default the dictionary's span), the amplitudes are the
        least-squares (or NNLS) fit for the delays.
     3. Model order by a likelihood-ratio test at a stated false-alarm rate: the score
-       n log(RSS / n) + t K (n the noise's real degrees of freedom, :func:`real_dof`;
-       ``n log(RSS0 / RSS1)`` is twice the log likelihood ratio of two fits with the noise
-       variance unknown) with ``t`` the level
-       that the best of one more echo anywhere in the bounds exceeds on pure noise with
-       probability ``false_alarm`` (:func:`clsas.sparse.noise.echo_threshold`, the Rice
-       formula over the bounds' span). So an echo is added only where its likelihood ratio
-       passes that test and kept only while it still does. The three echoes whose pulses
-       leave the most residual energy are tried split in two about themselves (exhaustive
-       pair search), and one echo is tried added where the residual correlates most with
-       an atom, up to ``max_echoes``; then each echo is tried removed (the three that cost
-       the least with only the amplitudes refit are refit in full); echoes below
-       ``rel_threshold`` of the largest are pruned. Before the backward pass the test's ``n``
-       is scaled by :func:`clsas.sparse.noise.colour_factor` (at most 1), read from what the
-       forward search leaves: noise coloured into the atoms' band inflates every spurious
-       echo's likelihood ratio, and this takes the inflation back. (A BIC penalty, p log n_e per echo on the
-       samples one pulse covers, was used before: 17.9 for complex amplitudes whatever the
-       span, about a 1.3 % rate on a 3.1 ms gate and 0.6 % on a 1.5 ms one, 10.5 for real
-       ones, about 40 % on 1.3 ms.)
-       Neighbouring delays stay at least 1/16 of the matched filter's half-power half-width
-       apart; a trial fit that fails is skipped, and so is one whose echoes hold more than four
-       times the signal's energy (cancelling pairs). The score counts no residual below a quarter
-       of the noise RSS that ``lam`` stands for (a noise-free signal is not fitted down to rounding errors).
+       n log(RSS / n) + t K (n the noise's real degrees of freedom, :func:`real_dof`; ``n log(RSS0 /
+       RSS1)`` is twice the log likelihood ratio of two fits with the noise variance unknown) with
+       ``t`` the level that the best of one more echo anywhere in the bounds exceeds on pure noise
+       with probability ``false_alarm`` (:func:`clsas.sparse.noise.echo_threshold`, the Rice formula
+       over the bounds' span). So an echo is added only where its likelihood ratio passes that test
+       and kept only while it still does. The three echoes whose pulses leave the most residual
+       energy are tried split in two about themselves (exhaustive pair search), and one echo is
+       tried added where the residual correlates most with an atom, up to ``max_echoes``; then each
+       echo is tried removed (the three that cost the least with only the amplitudes refit are refit
+       in full); echoes below ``rel_threshold`` of the largest are pruned. Before the backward pass
+       the test's ``n`` is scaled by :func:`clsas.sparse.noise.colour_factor` (at most 1), read from
+       what the forward search leaves: noise coloured into the atoms' band inflates every spurious
+       echo's likelihood ratio, and this takes the inflation back. The score counts no residual
+       below a quarter of the noise RSS that ``lam`` stands for (a noise-free signal is not fitted
+       down to rounding errors).
 
     ``max_echoes`` defaults to :func:`clsas.sparse.atoms.default_max_echoes` (two per pulse
     length over the span); ``capped`` on the result says that the seeds were more than it or
@@ -86,43 +79,48 @@ def cbp_polar_refined(dictionary: Dictionary, b, lam=None, *, lam_frac=None, amp
     """
     t_start = time.perf_counter()
     b = _check(dictionary, b, amplitudes)
-    atom = dictionary.atom
     max_echoes = default_max_echoes(dictionary) if max_echoes is None else v.positive_int("max_echoes", max_echoes)
     t_lo, t_hi = delay_bounds(dictionary, bounds_s)
     # each echo must pass a likelihood-ratio test at the stated false-alarm rate (validated up front)
-    penalty = echo_threshold(atom, t_hi - t_lo, amplitudes, false_alarm=false_alarm)
-    if lam is None and lam_frac is None:
-        lam = lam_noise(dictionary, b, amplitudes)
-    # the seed only needs the support: a loose gap is enough
-    seed = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=1e-3, max_inner=5000,
-                real_signal=real_signal)
-    half = mainlobe_s(atom)
-    delays, _, weight = group_atoms(dictionary, seed.x, rel_threshold=rel_threshold)
-    capped = len(delays) > max_echoes
-    taus0 = np.sort(delays[np.argsort(weight)[::-1][:max_echoes]])
-    info = {"lam": seed.lam, "seed_echoes": len(delays), "bpdn_time_s": seed.time_s, "max_echoes": max_echoes,
+    penalty = echo_threshold(dictionary.atom, t_hi - t_lo, amplitudes, false_alarm=false_alarm)
+    seed, taus0, n_seeds = _bpdn_seeds(dictionary, b, lam, lam_frac, amplitudes, real_signal, rel_threshold,
+                                       max_echoes)
+    info = {"lam": seed.lam, "seed_echoes": n_seeds, "bpdn_time_s": seed.time_s, "max_echoes": max_echoes,
             "bounds_s": (t_lo, t_hi), "order_threshold": penalty}
     if not len(taus0):
         return Echoes([], [], "cbp-polar", "optimal", 0, time.perf_counter() - t_start, info)
-    search = _OrderSearch(dictionary, b, amplitudes, real_signal, (t_lo, t_hi), penalty, half,
+    search = _OrderSearch(dictionary, b, amplitudes, real_signal, (t_lo, t_hi), penalty, mainlobe_s(dictionary.atom),
                           rss_floor(dictionary, seed.lam, amplitudes))
     info["rss_floor"] = search.floor
-    fitted = search.drop_cancelling(search.fit(taus0))
-    fitted, capped = search.forward(fitted, max_echoes, capped)
-    info["colour_factor"] = search.recolour(fitted)
-    fitted = search.prune(search.backward(fitted), rel_threshold)
-    taus, a, rss, status = fitted
+    (taus, a, rss, status), capped, info["colour_factor"] = search.run(taus0, max_echoes, n_seeds > max_echoes,
+                                                                       rel_threshold)
     if not (np.all(np.isfinite(taus)) and np.all(np.isfinite(a))):
         raise FloatingPointError("cbp-polar: non-finite result")
     info.update(rss=rss, score=search.score_of(rss, len(taus)), evaluations=search.vp.evals)
     return Echoes(taus, a, "cbp-polar", status, search.vp.evals, time.perf_counter() - t_start, info, capped=capped)
 
 
+def _bpdn_seeds(dictionary: Dictionary, b: np.ndarray, lam, lam_frac, amplitudes: str, real_signal: bool,
+                rel_threshold: float, max_echoes: int):
+    """BPDN's answer on the grid (lam: given, else :func:`lam_noise`), the sorted delays of the
+    ``max_echoes`` strongest runs of neighbouring active atoms (one echo each), and the number of runs."""
+    if lam is None and lam_frac is None:
+        lam = lam_noise(dictionary, b, amplitudes)
+    # the seed only needs the support: a loose gap is enough
+    seed = bpdn(dictionary, b, lam, lam_frac=lam_frac, amplitudes=amplitudes, tol=1e-3, max_inner=5000,
+                real_signal=real_signal)
+    delays, _, weight = group_atoms(dictionary, seed.x, rel_threshold=rel_threshold)
+    return seed, np.sort(delays[np.argsort(weight)[::-1][:max_echoes]]), len(delays)
+
+
 class _OrderSearch:
     """The model-order search of :func:`cbp_polar_refined` on one profile ``b``: the full and the
     amplitude-only fits, the order test's score, and its stages (cancelling seeds dropped, the
     forward search, the test rescaled for coloured noise, the backward pass, the pruning). A fit
-    is the tuple ``(taus, amplitudes, rss, status)`` of :meth:`VarPro.fit`."""
+    is the tuple ``(taus, amplitudes, rss, status)`` of :meth:`VarPro.fit`. Neighbouring delays
+    stay at least 1/16 of the matched filter's half-power half-width apart; a trial fit that fails
+    is skipped, and so is one whose echoes hold more than four times the signal's energy
+    (cancelling pairs)."""
 
     def __init__(self, dictionary: Dictionary, b: np.ndarray, amplitudes: str, real_signal: bool,
                  bounds: tuple[float, float], penalty: float, half: float, floor: float):
@@ -138,6 +136,15 @@ class _OrderSearch:
         self.n_dof = float(self.n_real)  # the order test's degrees of freedom: n_real, less for coloured noise
         self.op = ShiftOperator(dictionary)
         self.in_bounds = (dictionary.taus >= self.t_lo) & (dictionary.taus <= self.t_hi)
+
+    def run(self, taus0: np.ndarray, max_echoes: int, capped: bool, rel_threshold: float):
+        """The stages from the seeds ``taus0``: the fit without cancelling seeds, the forward
+        search (``capped``: set where it reaches ``max_echoes``), the test rescaled for coloured
+        noise, the backward pass and the pruning; returns the fit, ``capped`` and the colour factor."""
+        fitted = self.drop_cancelling(self.fit(taus0))
+        fitted, capped = self.forward(fitted, max_echoes, capped)
+        kappa = self.recolour(fitted)
+        return self.prune(self.backward(fitted), rel_threshold), capped, kappa
 
     def score_of(self, rss: float, k: int) -> float:
         return self.n_dof * np.log(max(rss, self.floor) / self.n_real) + self.penalty * k

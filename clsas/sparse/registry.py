@@ -21,7 +21,7 @@ import numpy as np
 
 from .. import validate as v
 from ..registry import Registry
-from .atoms import Dictionary, default_max_echoes
+from .atoms import Atom, Dictionary, default_max_echoes, margin_s
 from .bpdn import ShiftOperator, _check, bpdn, group_atoms, lam_max
 from .cbp import cbp_polar, cbp_taylor
 from .metrics import Echoes
@@ -229,6 +229,26 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
         at which its order test admits an echo that is not there, default 0.01).
     """
     t_start = time.perf_counter()
+    max_echoes, lam, lam_frac = _checked_choices(method, max_echoes, lam, lam_frac, noise_sigma)
+    b = _checked_signal(dictionary, b, amplitudes, real_signal)
+    scale = float(np.max(np.abs(b), initial=0.0))
+    if scale == 0.0:
+        return _nothing(method, "zero input", t_start, {"lam_max": 0.0})
+    if np.all(b == b[0]):
+        return _nothing(method, "constant input", t_start, {})
+    bn = b / scale
+    lam_n, lmax = _unit_lam(dictionary, bn, scale, amplitudes, lam, lam_frac, noise_sigma)
+    if lam_n >= lmax or (lam_frac is not None and lam_frac >= 1):
+        return _nothing(method, "lam >= lam_max", t_start, {"lam": lam_n * scale, "lam_max": lmax * scale})
+    if real_signal:
+        options["real_signal"] = True
+    e = SPARSE_METHODS[method](dictionary, bn, lam_n, None, amplitudes, max_echoes=max_echoes, **options)
+    return _rescaled(e, scale)
+
+
+def _checked_choices(method: str, max_echoes, lam, lam_frac, noise_sigma):
+    """:func:`sparse_echoes`'s method, echo cap and lam (at most one of ``lam``, ``lam_frac`` and
+    ``noise_sigma``) checked: ``(max_echoes, lam, lam_frac)``."""
     v.choice("method", method, tuple(SPARSE_METHODS))
     if max_echoes is not None:
         max_echoes = v.positive_int("max_echoes", max_echoes)
@@ -238,30 +258,29 @@ def sparse_echoes(method: str, dictionary: Dictionary, b, lam: float | None = No
     lam_frac = None if lam_frac is None else v.non_negative("lam_frac", lam_frac)
     if noise_sigma is not None and (lam is not None or lam_frac is not None):
         raise ValueError("noise_sigma sets lam: give it instead of lam and lam_frac, not with them")
+    return max_echoes, lam, lam_frac
+
+
+def _checked_signal(dictionary: Dictionary, b, amplitudes: str, real_signal: bool) -> np.ndarray:
+    """``b`` checked against the dictionary and the amplitude model (complex where ``real_signal``)."""
     b = _check(dictionary, b, amplitudes)
     if real_signal and (amplitudes != "complex" or not np.iscomplexobj(b)):
         raise ValueError("real_signal=True needs amplitudes='complex' and b the analytic signal (complex)")
-    scale = float(np.max(np.abs(b), initial=0.0))
-    if scale == 0.0:
-        return _nothing(method, "zero input", t_start, {"lam_max": 0.0})
-    if np.all(b == b[0]):
-        return _nothing(method, "constant input", t_start, {})
-    bn = b / scale
+    return b
+
+
+def _unit_lam(dictionary: Dictionary, bn: np.ndarray, scale: float, amplitudes: str, lam, lam_frac,
+              noise_sigma) -> tuple[float, float]:
+    """lam and lam_max for ``bn = b / scale``: lam from ``lam_frac`` of lam_max, ``lam``, the
+    noise threshold at ``noise_sigma``, or else the noise level estimated from ``bn``."""
     lmax = lam_max(ShiftOperator(dictionary), bn, amplitudes)
     if lam_frac is not None:
-        lam_n = lam_frac * lmax
-    elif lam is not None:
-        lam_n = lam / scale
-    elif noise_sigma is not None:
-        lam_n = noise_lam(dictionary, noise_sigma / scale, amplitudes)
-    else:
-        lam_n = lam_noise(dictionary, bn, amplitudes)
-    if lam_n >= lmax or (lam_frac is not None and lam_frac >= 1):
-        return _nothing(method, "lam >= lam_max", t_start, {"lam": lam_n * scale, "lam_max": lmax * scale})
-    if real_signal:
-        options["real_signal"] = True
-    e = SPARSE_METHODS[method](dictionary, bn, lam_n, None, amplitudes, max_echoes=max_echoes, **options)
-    return _rescaled(e, scale)
+        return lam_frac * lmax, lmax
+    if lam is not None:
+        return lam / scale, lmax
+    if noise_sigma is not None:
+        return noise_lam(dictionary, noise_sigma / scale, amplitudes), lmax
+    return lam_noise(dictionary, bn, amplitudes), lmax
 
 
 def succeeded(echoes: Echoes) -> bool:
@@ -323,13 +342,21 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
     >>> [round(d * fs) for d in echoes.delays_s]          # delays in samples
     [100, 106]
     """
-    from ..signals import analytic
-    from .atoms import Atom, margin_s
-
     v.choice("method", method, tuple(SPARSE_METHODS))
     require_solver(method)
     fs = v.sampling_rate("fs_hz", fs_hz)
-    x = v.array("signal", signal, ndim=1, allow_complex=True)
+    x, real_signal = _signal_to_fit(v.array("signal", signal, ndim=1, allow_complex=True), amplitudes, remove_dc)
+    d = _superres_dictionary(atom_shape, fs, len(x), amplitudes, remove_dc, delta_s, tau0_s)
+    _announce_slow_solve(method, d)
+    return sparse_echoes(method, d, x, lam, lam_frac=lam_frac, amplitudes=amplitudes, max_echoes=max_echoes,
+                         noise_sigma=noise_sigma, real_signal=real_signal, **options)
+
+
+def _signal_to_fit(x: np.ndarray, amplitudes: str, remove_dc: bool) -> tuple[np.ndarray, bool]:
+    """The signal :func:`superres` fits (its mean removed where ``remove_dc``; a real recording
+    with complex amplitudes turned into its analytic signal), and whether it was real."""
+    from ..signals import analytic
+
     if remove_dc:
         x = x - np.mean(x)
     real_signal = amplitudes == "complex" and not np.iscomplexobj(x)
@@ -338,14 +365,23 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
         x = analytic(x / peak) * peak if peak > 0 else x.astype(complex)
     if amplitudes != "complex" and np.iscomplexobj(x):
         raise ValueError("signal is complex: use amplitudes='complex'")
-    atom = Atom(atom_shape, fs, len(x), complex=amplitudes == "complex", centered=remove_dc)
+    return x, real_signal
+
+
+def _superres_dictionary(atom_shape, fs: float, n_samples: int, amplitudes: str, remove_dc: bool,
+                         delta_s: float | None, tau0_s: float | None) -> Dictionary:
+    """:func:`superres`'s dictionary: the pulse over ``n_samples`` (centred where ``remove_dc``) on
+    a grid of ``delta_s`` (default half a sample) from ``tau0_s`` (default minus the pulse length)."""
+    atom = Atom(atom_shape, fs, n_samples, complex=amplitudes == "complex", centered=remove_dc)
     delta = 0.5 / fs if delta_s is None else v.positive("delta_s", delta_s)
     tau0 = -margin_s(atom, delta) if tau0_s is None else v.finite("tau0_s", tau0_s)
-    d = Dictionary(atom, delta, tau0)
+    return Dictionary(atom, delta, tau0)
+
+
+def _announce_slow_solve(method: str, d: Dictionary) -> None:
+    """A warning before a convex solve estimated to take longer than :data:`SLOW_CALL_S`."""
     est = convex_estimate_s(method, d.k)
     if est is not None and est > SLOW_CALL_S:
         logging.getLogger(__name__).warning(
             "superres: %s solves a convex program over %d atoms: roughly %.0f s on a 2-core CPU "
             "(method='cbp-polar' or 'bpdn' take seconds)", method, d.k, est)
-    return sparse_echoes(method, d, x, lam, lam_frac=lam_frac, amplitudes=amplitudes, max_echoes=max_echoes,
-                         noise_sigma=noise_sigma, real_signal=real_signal, **options)

@@ -188,7 +188,7 @@ def write_pages(outdir: Path) -> list[str]:
     outdir.mkdir(parents=True)
     stems: dict[str, list[Path]] = {}
     for path in sorted(RESULTS.glob("*")):
-        if path.suffix in (".json", ".md", ".png"):
+        if path.suffix in (".json", ".md", ".png") and path.name != "README.md":  # README: the folder's note
             stems.setdefault(path.name[: -len(path.suffix)], []).append(path)
     rows = []
     for stem in sorted(stems, reverse=True):

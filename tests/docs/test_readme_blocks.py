@@ -28,6 +28,13 @@ RUN_ELSEWHERE = {
     ("Volumes past memory and past one machine", "python", 0):
         "tests/docs/test_docs.py (the large-volumes page, after its setup block)",
     ("Apodization: `formation_options={\"beam\": ...}`", "python", 0): "tests/docs/test_docs.py (the beams page)",
+    ("Super-resolution (sparse recovery)", "python", 0):
+        "tests/docs/test_docs.py (the super-resolution page, after its setup block; its output compared)",
+    ("Your own data", "bash", 1): "tests/docs/test_docs.py::test_example_prints_what_the_page_shows (the turntable "
+                                  "example, its output against the page's)",
+    ("Super-resolution (sparse recovery)", "bash", 0):
+        "tests/docs/test_docs.py::test_example_prints_what_the_page_shows (the fig4 example, its output against "
+        "the page's)",
     ("Python API in ten lines", "python", 0):
         "tests/scenarios/test_first_use_guards_and_light_import.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
@@ -46,8 +53,6 @@ RUN_HERE = {
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
                                      "test suite (what CI does)",
-    ("Super-resolution (sparse recovery)", "python", 0): "not yet run: a fragment (recording, chirp, dataset, "
-                                                         "grid come from the text around it)",
     ("Fast image formation", "bash", 0): "a synopsis with [optional] parts, not a command line",
     ("Autofocus: motion, sound speed and delay from the scan itself", "python", 0):
         "not yet run: a fragment (ds, grid from the text around it); autofocus is tested in test_autofocus.py",
@@ -68,7 +73,8 @@ NOT_RUN = {
 
 def blocks() -> list[tuple[tuple[str, str, int], str]]:
     """((heading, language, index under the heading in its file), code) of every fenced block under a
-    ``##`` or ``###`` heading (a block that is in the README and again in a guide page counts once)."""
+    ``##`` or ``###`` heading (a block that is in the README and again in a guide page counts once;
+    an ``output`` block is what the block before it prints, which ``tests/docs/test_docs.py`` checks)."""
     out: dict = {}
     for page in PAGES:
         heading, seen = "", {}
@@ -84,7 +90,7 @@ def blocks() -> list[tuple[tuple[str, str, int], str]]:
                 j = i + 1
                 while not lines[j].startswith("```"):
                     j += 1
-                if heading or page == README:
+                if lang != "output" and (heading or page == README):  # an output block belongs to the block before
                     key = (heading, lang, seen.get((heading, lang), 0))
                     out.setdefault(key, "\n".join(lines[i + 1: j]))
                     seen[(heading, lang)] = key[2] + 1
@@ -129,6 +135,28 @@ def test_your_own_data_python(airsas_folders):
         assert np.min(np.linalg.norm(found - t, axis=1)) < 0.006
     assert clsas.tcr_db(image, ((-0.07, 0.07), (-0.11, 0.11), None)) > 15
     assert [p["step"] for p in env["ds"].provenance][-3:] == ["background", "common", "blank_direct"]
+
+
+def test_your_own_data_python_prints_what_the_page_shows(monkeypatch, capsys):
+    """The AirSAS block on the public scans prints the figure the page shows. Set
+    ``CLSAS_AIRSAS_DATA`` to a copy of ``airsas_deconv_pipeline/airsas_data`` of
+    github.com/awreed/CSAS_Deconvolution_INR (the folders ``small_features_cutout_20k`` and
+    ``bg_20k``); without it the test skips (the download stays outside the repository)."""
+    import os
+
+    from doc_output import compare
+    from test_docs import code_blocks
+
+    data = os.environ.get("CLSAS_AIRSAS_DATA", "")
+    if not data or not (Path(data) / "small_features_cutout_20k").is_dir():
+        pytest.skip("CLSAS_AIRSAS_DATA does not name the AirSAS data folder (small_features_cutout_20k, bg_20k)")
+    code = block("Your own data", "python")
+    shown = next(out for _, lang, _, c, out in code_blocks(ROOT / "docs" / "guide" / "own-data.md")
+                 if lang == "python" and c.rstrip("\n") == code.rstrip("\n"))
+    monkeypatch.chdir(data)
+    exec(compile(code, "own-data.md (Your own data)", "exec"), {})  # noqa: S102
+    why = compare(shown.text, capsys.readouterr().out, shown.rtol)
+    assert why is None, why
 
 
 def test_your_own_data_command_line(airsas_folders, capsys):

@@ -17,7 +17,7 @@ from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 from clsas.focus.opencl import FocusGradientPlan
 from clsas.formation.bp_opencl import BackprojectPlan
 from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
-from clsas.formation.opencl import StoltDepthsPlan, StoltPlan
+from clsas.formation.stolt_opencl import StoltDepthsPlan, StoltPlan
 
 FS = 96e3
 

@@ -222,7 +222,8 @@ FORMATION_KERNELS = [("bp", "backproject"), ("omega-k", "stolt_spread"), ("omega
 
 
 def test_every_registered_formation_is_covered():
-    assert {f for f, _ in FORMATION_KERNELS} == set(FORMATIONS)
+    # auto builds no kernel of its own: it forms by one of the others
+    assert {f for f, _ in FORMATION_KERNELS} == set(FORMATIONS) - {"auto"}
 
 
 @pytest.mark.parametrize("formation, kernel", FORMATION_KERNELS)

@@ -4,7 +4,7 @@ import pytest
 
 import clsas
 from bench import crossover as cx
-from clsas.formation import cost
+from clsas.formation.auto import load_calibration
 
 
 def test_crossover_table_times_every_formation_and_auto(tmp_path, monkeypatch):
@@ -19,7 +19,7 @@ def test_crossover_table_times_every_formation_and_auto(tmp_path, monkeypatch):
     for r in row["rows"][1:3]:
         assert r["predicted_builtin_s"] > 0 and r["error_all_db"] < 0
     assert set(res["calibration"]) == {"bp", "omega-k", "ffbp"}
-    assert cost.load_calibration(clsas.cl.select(None)) == pytest.approx(res["calibration"])
+    assert load_calibration(clsas.cl.select(None)) == pytest.approx(res["calibration"])
     md = "\n".join(cx.markdown(res))
     assert "| 8 | 64 |" in md and "Calibration" in md
 
@@ -126,7 +126,7 @@ def test_clsas_calibrate_measures_and_keeps_autos_factors(tmp_path, monkeypatch,
     """``clsas calibrate`` (the library's, not the benchmark's): each formation's measured over
     predicted time on this device, kept where formation='auto' reads it; --dry-run keeps nothing."""
     from clsas.cli import main
-    from clsas.formation import calibration, cost
+    from clsas.formation.auto import calibrate as calibration
 
     monkeypatch.setenv("CLSAS_CACHE_DIR", str(tmp_path))
     assert main(["calibrate", "--sides", "8", "--dry-run", "-q"]) == 0
@@ -134,7 +134,7 @@ def test_clsas_calibrate_measures_and_keeps_autos_factors(tmp_path, monkeypatch,
     assert "not kept" in out and not any(tmp_path.rglob("formation_cost/*.json"))
     res = calibration.calibrate_auto((8,), status=lambda s: None)
     assert set(res["factors"]) == set(calibration.FORMS) and all(f > 0 for f in res["factors"].values())
-    assert cost.load_calibration(clsas.cl.select(None)) == pytest.approx(res["factors"])
+    assert load_calibration(clsas.cl.select(None)) == pytest.approx(res["factors"])
     with pytest.raises(ValueError, match="sides"):
         calibration.calibrate_auto((4,))
     assert main(["calibrate", "--sides", "4"]) == 2

@@ -44,8 +44,11 @@ def test_an_undetermined_temperature_is_left_alone():
     assert rep.temperature_offset_c == 0.0 and rep.temperature_c == pytest.approx(20.0)
     assert out.temperature_c == ds.temperature_c  # unchanged, not pushed to a search bound
     assert "not determined" in t.how
-    # the direct sound still gives the delay (none here): determined, applied where the check passed
-    assert rep.parameters["group_delay"].determined
+    # the direct sound still measures the delay: none was added, so its estimate (the temperature
+    # error's sub-microsecond change of the direct path's time) is too small to apply
+    gd = rep.parameters["group_delay"]
+    assert abs(gd.estimate) < 2e-6 and not gd.determined and not gd.applied
+    assert "too small to change the image" in gd.how and np.array_equal(out.t0_s, ds.t0_s)
 
 
 def test_sharpness_over_fit_returns_the_input_with_a_note():

@@ -1,4 +1,4 @@
-"""``formation="auto"`` (clsas/formation/cost.py): what it may choose, what it records, its calibration.
+"""``formation="auto"`` (clsas/formation/auto/): what it may choose, what it records, its calibration.
 
 No test here asserts a time: the cost model is steered with calibration factors where a test
 needs a given formation to be the fastest.
@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.formation import cost, error_to_signal_db, form
+from clsas.formation import auto, error_to_signal_db, form
+from clsas.formation.auto import predict, timing
 from clsas.formation.omega_k import plan_sizes
 from clsas.formation.planar import well_sampled_cone
 
@@ -58,9 +59,9 @@ def test_max_error_db_is_checked_by_name(dense):
 
 def test_alias_fraction_zero_at_quarter_wavelength_and_large_when_undersampled(dense):
     _, grid, prof = dense
-    assert cost.alias_fraction(plan_sizes(prof, grid)).max() == 0.0
+    assert auto.alias_fraction(plan_sizes(prof, grid)).max() == 0.0
     ds, grid2 = _planar(6, 0.03, 0.1)  # stops 2.6 lambda apart at 30 kHz
-    frac = cost.alias_fraction(plan_sizes(clsas.compress(ds, backend="numpy"), grid2))
+    frac = auto.alias_fraction(plan_sizes(clsas.compress(ds, backend="numpy"), grid2))
     # every stop that sees a voxel off its own axis by more than asin(lambda / 4d) is aliased
     assert frac.mean() > 0.5
 
@@ -68,10 +69,10 @@ def test_alias_fraction_zero_at_quarter_wavelength_and_large_when_undersampled(d
 def test_auto_never_takes_omega_k_where_its_error_is_over_the_target(cache):
     ds, grid = _planar(6, 0.03, 0.1)
     prof = clsas.compress(ds, backend="numpy")
-    cost.store_calibration({"omega-k": 1e-6, "ffbp": 1e6})  # omega-k would be by far the fastest
-    choice = cost.choose(prof, grid, None)
+    auto.store_calibration({"omega-k": 1e-6, "ffbp": 1e6})  # omega-k would be by far the fastest
+    choice = auto.choose(prof, grid, None)
     ok = next(e for e in choice.estimates if e.formation == "omega-k")
-    assert ok.error_db > -30 - cost.MARGIN_DB
+    assert ok.error_db > -30 - auto.MARGIN_DB
     assert choice.formation == "bp"
     assert "omega-k" in choice.reason and "over the target" in choice.reason
 
@@ -81,8 +82,8 @@ def test_auto_refuses_omega_k_on_a_circle_and_says_why(cache):
     w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
     ds = clsas.simulate(clsas.Scene(np.array([[0.02, 0.0, 0.0]])), ap, w, FS, chirp=CHIRP)
     grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.05, 0.05), (-0.01, 0.01), 0.01)
-    cost.store_calibration({"bp": 1e3, "omega-k": 1e-6})
-    choice = cost.choose(clsas.compress(ds, backend="numpy"), grid, None)
+    auto.store_calibration({"bp": 1e3, "omega-k": 1e-6})
+    choice = auto.choose(clsas.compress(ds, backend="numpy"), grid, None)
     ok = next(e for e in choice.estimates if e.formation == "omega-k")
     assert not ok.feasible and "planar" in ok.note
     assert choice.formation in ("bp", "ffbp")
@@ -90,20 +91,20 @@ def test_auto_refuses_omega_k_on_a_circle_and_says_why(cache):
 
 def test_auto_takes_omega_k_where_it_is_fastest_and_stays_under_the_target(dense, cache):
     ds, grid, prof = dense
-    cost.store_calibration({"bp": 1e3, "ffbp": 1e3})  # bp and FFBP made slow: omega-k must win
+    auto.store_calibration({"bp": 1e3, "ffbp": 1e3})  # bp and FFBP made slow: omega-k must win
     img = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-30)
-    auto = img.provenance["formation_auto"]
-    assert img.provenance["formation"] == auto["formation"] == "omega-k"
-    assert "omega-k" in auto["reason"] and "calibrated" in auto["model"]
+    record = img.provenance["formation_auto"]
+    assert img.provenance["formation"] == record["formation"] == "omega-k"
+    assert "omega-k" in record["reason"] and "calibrated" in record["model"]
     ref = form(prof, grid, "bp", backend="numpy")
     cone = well_sampled_cone(ds.tx_positions, ds.rx_positions, grid, 30e3, float(np.mean(ds.c_mps)))
     assert cone.mean() > 0.9
     assert error_to_signal_db(img, ref) <= -30
     # a target the model cannot promise for omega-k (-42 dB, 3 dB margin): bp, or FFBP oversampled enough
     img = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-40)
-    auto = img.provenance["formation_auto"]
-    assert auto["formation"] != "omega-k"
-    if auto["formation"] == "ffbp":
+    record = img.provenance["formation_auto"]
+    assert record["formation"] != "omega-k"
+    if record["formation"] == "ffbp":
         assert error_to_signal_db(img, ref) <= -40
 
 
@@ -119,17 +120,18 @@ def test_auto_choice_is_kept_in_the_image_file(dense, cache, tmp_path):
 
 
 def test_calibration_round_trip_and_bad_files(cache):
-    assert cost.load_calibration() == {}
-    path = cost.store_calibration({"bp": 2.0, "omega-k": 0.5}, detail={"cases": 3})
+    assert auto.load_calibration() == {}
+    path = auto.store_calibration({"bp": 2.0, "omega-k": 0.5}, detail={"cases": 3})
     assert path.is_file() and path.parent.name == "formation_cost"
-    assert cost.load_calibration() == {"bp": 2.0, "omega-k": 0.5}
+    assert auto.load_calibration() == {"bp": 2.0, "omega-k": 0.5}
     path.write_text("{not json")
-    assert cost.load_calibration() == {}
+    assert auto.load_calibration() == {}
 
 
 def test_ffbp_error_model_grows_with_depth_and_falls_with_oversampling():
-    assert cost.FFBP_BASE_DB[2.0] + 20 * math.log10(5) > cost.FFBP_BASE_DB[2.0] + 20 * math.log10(3)
-    assert sorted(cost.FFBP_BASE_DB.values(), reverse=True) == [cost.FFBP_BASE_DB[o] for o in cost.FFBP_CANDIDATES]
+    assert predict.FFBP_BASE_DB[2.0] + 20 * math.log10(5) > predict.FFBP_BASE_DB[2.0] + 20 * math.log10(3)
+    base = predict.FFBP_BASE_DB
+    assert sorted(base.values(), reverse=True) == [base[o] for o in predict.FFBP_CANDIDATES]
 
 
 def test_plan_sizes_count_what_omega_k_transforms(dense):
@@ -168,7 +170,7 @@ def test_alias_fraction_counts_the_share_of_frequencies_above_each_pairs_limit()
 
     ds, grid = _planar(10, 0.03, 0.03)  # 30 mm stops: aliased at 30 kHz off the normal
     sizes = plan_sizes(clsas.compress(ds, backend="numpy"), grid)
-    got = cost.alias_fraction(sizes, n_vox=5, n_stops=25, n_freq=6)
+    got = auto.alias_fraction(sizes, n_vox=5, n_stops=25, n_freq=6)
     pu, pv, depth = sizes["axes"]
 
     def sub(a):
@@ -205,22 +207,22 @@ def test_device_kinds_in_the_cost_model(dense, cache, monkeypatch):
     ds, grid, prof = dense
     sizes = plan_sizes(prof, grid)
     cpu2, gpu = _fake_selection("CPU", 2), _fake_selection("GPU", 132)
-    work = cost.work_omega_k(sizes)
+    work = timing.work_omega_k(sizes)
     monkeypatch.setattr("os.cpu_count", lambda: 16)
-    t16 = cost._seconds("omega-k", work, cpu2, {})
+    t16 = timing._seconds("omega-k", work, cpu2, {})
     monkeypatch.setattr("os.cpu_count", lambda: 2)
-    t2 = cost._seconds("omega-k", work, cpu2, {})
-    fixed = cost.BUILTIN["omega-k"]["fixed"]
-    assert (t2 - fixed) / (t16 - fixed) == pytest.approx(8**cost.OMEGA_K_CORE_EXPONENT)
-    assert 1.2 < 8**cost.OMEGA_K_CORE_EXPONENT < 2
-    assert cost._seconds("bp", {"fixed": 1, "pairs": 0}, gpu, {}) == pytest.approx(cost.GPU_FIXED["bp"])
-    assert cost._seconds("bp", {"fixed": 1, "pairs": 0}, cpu2, {}) == pytest.approx(cost.BUILTIN["bp"]["fixed"])
+    t2 = timing._seconds("omega-k", work, cpu2, {})
+    fixed = timing.BUILTIN["omega-k"]["fixed"]
+    assert (t2 - fixed) / (t16 - fixed) == pytest.approx(8**timing.OMEGA_K_CORE_EXPONENT)
+    assert 1.2 < 8**timing.OMEGA_K_CORE_EXPONENT < 2
+    assert timing._seconds("bp", {"fixed": 1, "pairs": 0}, gpu, {}) == pytest.approx(timing.GPU_FIXED["bp"])
+    assert timing._seconds("bp", {"fixed": 1, "pairs": 0}, cpu2, {}) == pytest.approx(timing.BUILTIN["bp"]["fixed"])
     ds, grid = _planar(12, 0.0028, 0.015)  # a scan PoCL's fixed part would have had sized for omega-k
     prof = clsas.compress(ds, backend="numpy")
-    ests = {e.formation: e for e in cost.estimate(prof, grid, gpu)}
+    ests = {e.formation: e for e in auto.estimate(prof, grid, gpu)}
     assert ests["bp"].time_s < ests["omega-k"].time_s and "not sized" in ests["omega-k"].note
-    monkeypatch.setitem(cost.GPU_FIXED, "bp", 1e-2)  # with a slow enough bp, omega-k is worth sizing
-    assert "not sized" not in {e.formation: e for e in cost.estimate(prof, grid, gpu)}["omega-k"].note
+    monkeypatch.setitem(timing.GPU_FIXED, "bp", 1e-2)  # with a slow enough bp, omega-k is worth sizing
+    assert "not sized" not in {e.formation: e for e in auto.estimate(prof, grid, gpu)}["omega-k"].note
 
 
 def test_omega_k_on_few_stops_a_side_is_predicted_worse_and_left_to_bp():
@@ -230,15 +232,15 @@ def test_omega_k_on_few_stops_a_side_is_predicted_worse_and_left_to_bp():
     err = {}
     for n in (9, 12, 16, 24):
         ds, grid = _planar(n, 0.0028, 0.01)
-        est = cost._omega_k_estimate(clsas.compress(ds, backend="numpy"), grid, None, {})
+        est = predict._omega_k_estimate(clsas.compress(ds, backend="numpy"), grid, None, {})
         err[n] = est.error_db
         assert f"({n} stops on the lattice's shorter side)" in est.note
     assert err[9] > -30 and err[9] > err[12] > err[16]
-    assert err[16] == pytest.approx(err[24]) == pytest.approx(cost.OMEGA_K_BASE_DB, abs=0.5)
+    assert err[16] == pytest.approx(err[24]) == pytest.approx(predict.OMEGA_K_BASE_DB, abs=0.5)
     ds, grid = _planar(9, 0.0028, 0.01)
     prof = clsas.compress(ds, backend="numpy")  # bp made slow enough that omega-k is sized
-    ests = {e.formation: e for e in cost.estimate(prof, grid, None, factors={"bp": 1e3})}
-    assert ests["omega-k"].error_db > cost.DEFAULT_MAX_ERROR_DB - cost.MARGIN_DB
+    ests = {e.formation: e for e in auto.estimate(prof, grid, None, factors={"bp": 1e3})}
+    assert ests["omega-k"].error_db > auto.DEFAULT_MAX_ERROR_DB - auto.MARGIN_DB
 
 
 def test_alias_fraction_skips_the_sum_where_no_pair_can_alias(dense, monkeypatch):
@@ -251,10 +253,10 @@ def test_alias_fraction_skips_the_sum_where_no_pair_can_alias(dense, monkeypatch
     coarse_ds, coarse_grid = _planar(12, 0.02, 0.04)
     zero = []
     for sizes in (plan_sizes(prof, grid), plan_sizes(clsas.compress(coarse_ds, backend="numpy"), coarse_grid)):
-        quick = cost.alias_fraction(sizes)
+        quick = auto.alias_fraction(sizes)
         zero.append(not quick.any())
-        monkeypatch.setattr(cost, "_never_aliased", lambda *a: False)
-        full = cost.alias_fraction(sizes)
+        monkeypatch.setattr(predict, "_never_aliased", lambda *a: False)
+        full = auto.alias_fraction(sizes)
         monkeypatch.undo()
         assert np.allclose(quick, full)
     assert zero == [True, False]  # the dense lattice (lambda/4) never aliases; the coarse (20 mm) does
@@ -266,16 +268,16 @@ def test_auto_weighs_omega_k_with_its_aliased_angles_formed():
     of its own; what it chooses runs as chosen and meets the target."""
     ds, grid = _planar(20, 0.012, 0.05, spacing=0.004)
     prof = clsas.compress(ds, backend="numpy")
-    ests = cost.estimate(prof, grid, None, factors={"bp": 1e3})
+    ests = auto.estimate(prof, grid, None, factors={"bp": 1e3})
     oks = [e for e in ests if e.formation == "omega-k"]
     assert [e.options for e in oks] == [{}, {"upsample": "auto"}]
     plain, up = oks
-    assert plain.error_db > cost.DEFAULT_MAX_ERROR_DB - cost.MARGIN_DB > up.error_db
+    assert plain.error_db > auto.DEFAULT_MAX_ERROR_DB - auto.MARGIN_DB > up.error_db
     assert "lattice 2x as fine" in up.note or "lattice 3x as fine" in up.note
     assert up.time_s > plain.time_s
     img = form(prof, grid, "omega-k", backend="numpy", **up.options)
     ref = form(prof, grid, "bp", backend="numpy")
-    assert error_to_signal_db(img.values, ref.values) <= cost.DEFAULT_MAX_ERROR_DB
+    assert error_to_signal_db(img.values, ref.values) <= auto.DEFAULT_MAX_ERROR_DB
 
 
 def test_omega_k_upsampled_is_not_weighed_past_its_steepest_angle(monkeypatch):
@@ -283,7 +285,7 @@ def test_omega_k_upsampled_is_not_weighed_past_its_steepest_angle(monkeypatch):
     128 x 128-stop crossover scan: -27 dB predicted -36), so auto does not weigh it there, and says so."""
     ds, grid = _planar(20, 0.012, 0.05, spacing=0.004)
     prof = clsas.compress(ds, backend="numpy")
-    monkeypatch.setattr(cost, "OMEGA_K_UP_MAX_SINE", 0.05)
-    oks = [e for e in cost.estimate(prof, grid, None, factors={"bp": 1e3}) if e.formation == "omega-k"]
+    monkeypatch.setattr(predict, "OMEGA_K_UP_MAX_SINE", 0.05)
+    oks = [e for e in auto.estimate(prof, grid, None, factors={"bp": 1e3}) if e.formation == "omega-k"]
     assert oks[1].options == {"upsample": "auto"} and not oks[1].feasible
     assert "past a sine of 0.05" in oks[1].note

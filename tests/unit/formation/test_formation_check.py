@@ -1,5 +1,5 @@
 """``formation="auto"`` measures a fast formation's error where its prediction is not enough
-(clsas/formation/check.py): exact bp on a sub-lattice of the grid, and the steps auto takes in turn.
+(clsas/formation/auto/measure.py): exact bp on a sub-lattice of the grid, and the steps auto takes in turn.
 
 No test here asserts a time: which steps are measured is steered through the estimates given.
 """
@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.formation import check, cost, error_to_signal_db, form
+from clsas.formation import error_to_signal_db, form
+from clsas.formation.auto import choice, predict, rules, trust
+from clsas.formation.auto import measure as check
 
 FS = 96e3
 
@@ -89,7 +91,7 @@ def test_measure_error_checks_its_inputs(scan):
 
 def _choice(steps, target):
     ests = tuple(e for e, _ in steps)
-    return cost.Choice(steps[0][0].formation, dict(steps[0][0].options), "test", target, "test", ests, tuple(steps))
+    return rules.Choice(steps[0][0].formation, dict(steps[0][0].options), "test", target, "test", ests, tuple(steps))
 
 
 def test_a_step_that_misses_the_target_gives_way(scan, caplog):
@@ -97,8 +99,8 @@ def test_a_step_that_misses_the_target_gives_way(scan, caplog):
     at WARNING, and records the measurement; at -1 dB it keeps FFBP."""
     _, grid, prof, ref = scan
     opts = {"oversample": 1.5, "range_oversample": 1.5}
-    steps = [(cost.Estimate("ffbp", 1.0, -40.0, opts), True), (cost.Estimate("bp", 2.0, -math.inf), False)]
-    with caplog.at_level(logging.WARNING, logger="clsas.formation.check"):
+    steps = [(trust.Estimate("ffbp", 1.0, -40.0, opts), True), (trust.Estimate("bp", 2.0, -math.inf), False)]
+    with caplog.at_level(logging.WARNING, logger="clsas.formation.auto.measure"):
         img, rec = check.form_choice(prof, grid, _choice(steps, -200.0), backend="numpy")
     assert rec["formation"] == "bp" and np.allclose(img.values, ref)
     assert [c["kept"] for c in rec["checks"]] == [False] and rec["checks"][0]["formation"] == "ffbp"
@@ -112,16 +114,16 @@ def test_steps_measure_a_near_prediction_only_where_it_pays():
     """A formation predicted just over the target's margin is tried first (measured) only where it
     and its check take under CHECK_IF_UNDER of the best safe one; a safe fast formation is measured
     where its check costs at most CHECK_SHARE of it; the steps end at the first unmeasured one."""
-    bp = cost.Estimate("bp", 10.0, -math.inf)
-    near = cost.Estimate("omega-k", 1.0, -31.0)
-    safe = cost.Estimate("omega-k", 6.0, -39.0, {"upsample": "auto"})
-    far = cost.Estimate("ffbp", 0.5, -20.0)
-    steps = cost._steps([bp, near, safe, far], -30.0, check_s=0.5)
+    bp = trust.Estimate("bp", 10.0, -math.inf)
+    near = trust.Estimate("omega-k", 1.0, -31.0)
+    safe = trust.Estimate("omega-k", 6.0, -39.0, {"upsample": "auto"})
+    far = trust.Estimate("ffbp", 0.5, -20.0)
+    steps = trust._steps([bp, near, safe, far], -30.0, check_s=0.5)
     assert [(e.formation, e.options, m) for e, m in steps] == [
         ("omega-k", {}, True), ("omega-k", {"upsample": "auto"}, True), ("bp", {}, False)]
-    steps = cost._steps([bp, near, safe, far], -30.0, check_s=2.5)  # 1 + 2.5 > 0.5 x 6; 2.5 > 0.1 x 6
+    steps = trust._steps([bp, near, safe, far], -30.0, check_s=2.5)  # 1 + 2.5 > 0.5 x 6; 2.5 > 0.1 x 6
     assert [(e.formation, m) for e, m in steps] == [("omega-k", False)]
-    steps = cost._steps([bp, far], -30.0, check_s=0.1)
+    steps = trust._steps([bp, far], -30.0, check_s=0.1)
     assert [(e.formation, m) for e, m in steps] == [("bp", False)]
 
 
@@ -129,13 +131,13 @@ def test_reconstruct_records_what_was_measured(scan, monkeypatch):
     """Through clsas.reconstruct: auto's record in the image's provenance lists its steps and
     checks; where the first step is measured and kept, that formation is the image's."""
     ds, grid, prof, _ = scan
-    real = cost._steps
+    real = trust._steps
 
     def measure_first(ests, target, check_s):  # whatever the model says, measure a fast formation first
         fast = next(e for e in ests if e.formation != "bp" and e.feasible)
         return ((fast, True),) + real(ests, target, check_s)
 
-    monkeypatch.setattr(cost, "_steps", measure_first)
+    monkeypatch.setattr(choice, "_steps", measure_first)
     img = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-1.0)
     rec = img.provenance["formation_auto"]
     assert rec["steps"][0]["measured"] and rec["checks"] and rec["checks"][0]["kept"]
@@ -153,13 +155,13 @@ def test_command_line_prints_the_measurement(tmp_path, capsys, monkeypatch):
                      '[grid]\nx_m = [-0.03, 0.03]\ny_m = [-0.03, 0.03]\nz_m = [0.46, 0.58]\nspacing_m = 0.005\n')
     data = tmp_path / "scan.h5"
     assert main(["simulate", str(scene), str(data), "-q", "--backend", "numpy"]) == 0
-    real = cost._steps
+    real = trust._steps
 
     def measure_first(ests, target, check_s):
         fast = next(e for e in ests if e.formation != "bp" and e.feasible)
         return ((fast, True),) + real(ests, target, check_s)
 
-    monkeypatch.setattr(cost, "_steps", measure_first)
+    monkeypatch.setattr(choice, "_steps", measure_first)
     assert main(["reconstruct", str(data), "-q", "--backend", "numpy", "--max-error-db", "-1"]) == 0
     out = capsys.readouterr().out
     assert f"voxels (a stride of 1): {rec_db(tmp_path)}" in out and ": kept" in out
@@ -201,8 +203,8 @@ def test_a_step_with_nan_gives_way(scan, monkeypatch):
         return img.__class__(**{**img.__dict__, "values": values})
 
     monkeypatch.setattr(formation, "form", broken)
-    steps = [(cost.Estimate("ffbp", 1.0, -40.0, {"oversample": 1.5, "range_oversample": 1.5}), True),
-             (cost.Estimate("bp", 2.0, -math.inf), False)]
+    steps = [(trust.Estimate("ffbp", 1.0, -40.0, {"oversample": 1.5, "range_oversample": 1.5}), True),
+             (trust.Estimate("bp", 2.0, -math.inf), False)]
     img, rec = check.form_choice(prof, grid, _choice(steps, -1.0), backend="numpy")
     assert rec["formation"] == "bp" and np.allclose(img.values, ref)
     assert rec["checks"][0]["error_db"] == "inf" and not rec["checks"][0]["kept"]
@@ -212,17 +214,17 @@ def test_an_unpredicted_formation_is_taken_only_measured():
     """Plain ω-k with aliased voxel-stop pairs is not taken on its prediction where its check costs
     at most as much as it (CHECK_UNPREDICTED_SHARE): it is formed and measured first where that pays,
     else the safe formation is taken; where the check would cost more, the prediction is trusted."""
-    bp = cost.Estimate("bp", 10.0, -math.inf)
-    wk = cost.Estimate("omega-k", 1.0, -42.0, unpredicted=True)
-    steps = cost._steps([bp, wk], -30.0, check_s=0.5)
+    bp = trust.Estimate("bp", 10.0, -math.inf)
+    wk = trust.Estimate("omega-k", 1.0, -42.0, unpredicted=True)
+    steps = trust._steps([bp, wk], -30.0, check_s=0.5)
     assert [(e.formation, m) for e, m in steps] == [("omega-k", True), ("bp", False)]
-    wk4 = cost.Estimate("omega-k", 4.0, -42.0, unpredicted=True)
-    steps = cost._steps([bp, wk4], -30.0, check_s=3.0)  # 4 + 3 > 0.5 x 10: not worth measuring
+    wk4 = trust.Estimate("omega-k", 4.0, -42.0, unpredicted=True)
+    steps = trust._steps([bp, wk4], -30.0, check_s=3.0)  # 4 + 3 > 0.5 x 10: not worth measuring
     assert [(e.formation, m) for e, m in steps] == [("bp", False)]
-    steps = cost._steps([bp, wk], -30.0, check_s=6.0)  # the check costs 6x ω-k: its prediction is trusted
+    steps = trust._steps([bp, wk], -30.0, check_s=6.0)  # the check costs 6x ω-k: its prediction is trusted
     assert [(e.formation, m) for e, m in steps] == [("omega-k", False)]
-    over = cost.Estimate("omega-k", 1.0, -20.0, unpredicted=True)  # predicted over the target: not tried
-    assert [(e.formation, m) for e, m in cost._steps([bp, over], -30.0, check_s=0.5)] == [("bp", False)]
+    over = trust.Estimate("omega-k", 1.0, -20.0, unpredicted=True)  # predicted over the target: not tried
+    assert [(e.formation, m) for e, m in trust._steps([bp, over], -30.0, check_s=0.5)] == [("bp", False)]
 
 
 def test_omega_k_on_an_aliased_lattice_is_unpredicted():
@@ -237,5 +239,5 @@ def test_omega_k_on_an_aliased_lattice_is_unpredicted():
         ap = clsas.raster_aperture(16, 16, 15 * pitch, 15 * pitch)
         ds = clsas.simulate(clsas.Scene(pts), ap, w, FS, snr_db=40, chirp=chirp, seed=1)
         prof = clsas.compress(ds, backend="numpy")
-        est = cost._omega_k_estimate(prof, grid, None, {})
-        assert est.unpredicted is aliased is cost.lattice_aliases(plan_sizes(prof, grid))
+        est = predict._omega_k_estimate(prof, grid, None, {})
+        assert est.unpredicted is aliased is predict.lattice_aliases(plan_sizes(prof, grid))

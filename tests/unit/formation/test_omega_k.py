@@ -224,7 +224,7 @@ def test_options_and_inputs_are_checked(scan):
 @needs_opencl
 def test_stolt_kernel_equals_its_twin():
     from clsas import cl
-    from clsas.formation.opencl import StoltPlan
+    from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
     plan = StoltPlan(queue=cl.get_queue())
@@ -246,7 +246,7 @@ def test_stolt_kernel_equals_its_twin_at_every_width(vec, cells):
     # last work-item (37 columns), evanescent and windowed samples and folded positions; the
     # spreading kernel at 6 cells and at omega-k's default 4
     from clsas import cl
-    from clsas.formation.opencl import StoltPlan
+    from clsas.formation.stolt_opencl import StoltPlan
 
     width_or_skip("stolt_spread", vec)
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
@@ -319,8 +319,8 @@ def test_formation_benchmark_writes_its_table(tmp_path):
 
 def test_stolt_interpolation_equals_the_direct_sum():
     # spreading + FFT + de-apodisation against the non-uniform DFT it stands for, term by term
-    from clsas.formation.opencl import StoltPlan
     from clsas.formation.stolt import columns_to_depths, stolt_strengths
+    from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
     n_z = p.n_cells // 2
@@ -337,8 +337,8 @@ def test_stolt_interpolation_equals_the_direct_sum():
 @pytest.mark.parametrize("n_z", [1, 6, 11, 12], ids=lambda n: f"nz{n}")
 def test_terms_to_depths_is_the_weighted_sum_of_columns_to_depths(n_z):
     # omega-k's fused step: the terms weighted per depth and summed, in the cells' precision
-    from clsas.formation.opencl import StoltPlan
     from clsas.formation.stolt import columns_to_depths, terms_to_depths
+    from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
     cells = spread(spec, k, ku, kv, p)
@@ -395,8 +395,8 @@ def test_planar_aperture_is_remembered_by_content_and_shared_read_only():
 
 
 def test_terms_to_depths_leaves_its_cells_and_refuses_more_depths_than_cells():
-    from clsas.formation.opencl import StoltPlan
     from clsas.formation.stolt import terms_to_depths
+    from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
     cells = spread(spec, k, ku, kv, p)
@@ -432,8 +432,8 @@ def _depth_factors(p, n_z, seed=7):
 def test_direct_sum_equals_the_spread_path(n_z):
     # the twin of stolt_depths against spread + FFT + de-apodisation + terms (which approximate the
     # same sum; a wide kernel makes that approximation tight)
-    from clsas.formation.opencl import StoltPlan
     from clsas.formation.stolt import direct, terms_to_depths
+    from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
     p = dataclasses.replace(p, n_cells=max(2 * n_z, 24), width=10)
@@ -449,8 +449,8 @@ def test_direct_sum_of_one_plane_wave_analytic():
     # one column at normal incidence (ku = kv = 0: kz = k), one frequency, no baseline: the sum is
     # d 2 pi / k (1 + i / (k zref)) exp(i k z) at each depth z = zc + (l - n_z // 2) dz
     from clsas import cl
-    from clsas.formation.opencl import StoltDepthsPlan
     from clsas.formation.stolt import StoltParams, direct
+    from clsas.formation.stolt_opencl import StoltDepthsPlan
 
     kk, d, n_z = 900.0, 0.3 - 0.2j, 45
     p = StoltParams(dz_m=0.005, zc_m=0.8, zref_m=0.75, baseline_uv=(0.0, 0.0), n_cells=96, width=4, n_terms=1,
@@ -471,8 +471,8 @@ def test_stolt_depths_kernel_equals_its_twin_at_every_width(vec):
     # samples, negative frequencies, three terms; 40 depths (two runs of rotations, the second
     # partial) and 5 (one short run); a second, larger call reuses the plan
     from clsas import cl
-    from clsas.formation.opencl import StoltDepthsPlan
     from clsas.formation.stolt import direct
+    from clsas.formation.stolt_opencl import StoltDepthsPlan
 
     width_or_skip("stolt_depths", vec)
     spec, k, ku, kv, p = StoltDepthsPlan.selftest_inputs()
