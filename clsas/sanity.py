@@ -90,14 +90,18 @@ def echo_share_in_grid(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = N
                        env: np.ndarray | None = None) -> float:
     """The share of the echo energy after the direct sound whose delays fall inside the grid's
     (NaN where there is none), on the recordings ``rows`` (default all); ``env``: their
-    :func:`envelope`, where the caller has it already."""
+    :func:`envelope`, where the caller has it already.
+
+    The direct sound and its range sidelobes (a chirp's length and a fifth after its arrival) are
+    left out, except where the grid's own delays begin earlier: a target closer than half a
+    chirp's length of sound still counts."""
     rows = np.arange(ds.n_meas) if rows is None else rows
     env = envelope(ds, rows) if env is None else env
     t = ds.t0_s[rows, None] + np.arange(ds.n_samples)[None, :] / ds.fs_hz
     direct = np.linalg.norm(ds.tx_positions[rows] - ds.rx_positions[rows], axis=1) / ds.c_per_meas[rows]
-    after = t > (direct + 1.2 * len(ds.waveform) / ds.fs_hz)[:, None]
     gate = grid_delays(ds, grid, rows)
     pad = pulse_width_s(ds)  # an echo from a voxel spreads over the compressed pulse (a plane's gate is thin)
+    after = t > np.minimum(direct + 1.2 * len(ds.waveform) / ds.fs_hz, gate[:, 0] - pad)[:, None]
     inside = (t >= gate[:, :1] - pad) & (t <= gate[:, 1:] + pad)
     energy = float((env[after] ** 2).sum())
     return float((env[after & inside] ** 2).sum() / energy) if energy > 0 else float("nan")
