@@ -27,7 +27,7 @@ AMPS = [1.0, 0.6, 0.8, 0.3, 1.0]
 
 
 def profile(pulse, seed: int, n: int = 1000) -> np.ndarray:
-    """The stress suite's long profile (tests/test_sparse_stress.py's ``_long_profile``)."""
+    """The stress suite's long profile (tests/unit/sparse/test_sparse_stress.py's ``_long_profile``)."""
     x = np.zeros(n)
     spec = np.fft.rfft(pulse, 4 * n)
     f = np.fft.rfftfreq(4 * n, 1 / FS)

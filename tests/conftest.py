@@ -1,7 +1,13 @@
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import clsas
+
+#: the tests folder (helper kits such as grbl_kit.py live here) and the repository root
+TESTS = Path(__file__).resolve().parent
+ROOT = TESTS.parent
 
 
 def _opencl_reason() -> str | None:
@@ -59,6 +65,45 @@ def pytest_sessionstart(session):
         pytest.exit(f"this run must test the OpenCL kernels (CI=true or CLSAS_REQUIRE_OPENCL=1) but no OpenCL "
                     f"device builds them: {OPENCL_MISSING}", returncode=3)
 
+
+OCLGRIND_DIAGNOSTICS = ("Invalid read", "Invalid write", "Uninitialized", "data race", "Data race",
+                        "Invalid access")
+
+
+def oclgrind_missing() -> str | None:
+    """Why kernels cannot run under Oclgrind here (None: its OpenCL platform is installed)."""
+    try:
+        import pyopencl as cl
+
+        names = [p.name for p in cl.get_platforms()]
+    except Exception as exc:  # noqa: BLE001 - no ICD loader or no platform
+        return f"no OpenCL platform ({exc})"
+    return None if any("Oclgrind" in n for n in names) else "Oclgrind not installed (pip install 'pyopencl[oclgrind]')"
+
+
+# a small scene file: one point in front of a 9 x 7 raster, a 21 x 21 x 21 grid around it
+SCENE_TOML = """
+[chirp]
+f_start_hz = 20000.0
+f_stop_hz = 30000.0
+duration_s = 0.002
+fs_hz = 96000.0
+
+[aperture]
+nx = 9
+ny = 7
+width_m = 0.4
+height_m = 0.3
+
+[[points]]
+position_m = [0.02, -0.01, 0.6]
+
+[grid]
+x_m = [-0.1, 0.1]
+y_m = [-0.1, 0.1]
+z_m = [0.5, 0.7]
+spacing_m = 0.01
+"""
 
 BACKENDS = [
     pytest.param("numpy", id="numpy"),

@@ -4,7 +4,7 @@ UFF (the UltraSound ToolBox's format, version 0.0.1 as USTB writes it and as the
 ``pyuff-ustb`` package reads it) keeps a scan as one ``uff.channel_data`` object: a probe of
 fixed elements, a sequence of transmitted waves, and the recordings as an array
 ``[time x channel x wave x frame]``. This reader and the writer (:mod:`clsas.io.uff_export`)
-use h5py alone; ``tests/test_uff.py`` checks both against ``pyuff-ustb``.
+use h5py alone; ``tests/unit/io/test_uff.py`` checks both against ``pyuff-ustb``.
 
 Layout
 ------

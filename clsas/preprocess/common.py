@@ -29,7 +29,7 @@ def remove_common(ds: Dataset, statistic: str = "mean") -> Dataset:
     every recording. On a turntable that is a reflector on the axis (its range never changes)
     and the rotation-invariant part of a target centred on it (a disc, a ring about the axis);
     on a planar scan of a target in front of the aperture, the target's echo changes slowly
-    from stop to stop, so much of it is shared and subtracted (``tests/test_preprocess_common.py``
+    from stop to stop, so much of it is shared and subtracted (``tests/unit/preprocess/test_preprocess_common.py``
     measures both). Use it for turntable scans and rigs where the target moves; not for a
     planar scan of a static scene.
 

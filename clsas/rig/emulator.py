@@ -21,6 +21,7 @@ import select
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -104,6 +105,11 @@ class GrblEmulator:
     reset_on_open : like an Arduino Uno, the controller reboots whenever its port is opened
         (position lost, banner after ``banner_delay_s``); False: it runs on across opens and
         says nothing until spoken to, like a board without auto-reset.
+    clock : the time base of motion, homing and dwells: an object with ``monotonic()`` and
+        ``sleep(seconds)``, the :mod:`time` module by default. A clock that moves only when told
+        (shared with :class:`clsas.rig.GrblStage`) makes the machine step on command: a move
+        advances exactly as far as the clock is moved. The serial line's own waits (the boot,
+        a client that does not read) stay on real time.
     """
 
     faults: Faults = field(default_factory=Faults)
@@ -120,11 +126,12 @@ class GrblEmulator:
     work_offset_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
     seek_rate_mm_min: float = 500.0
     reset_on_open: bool = True
+    clock: Any = time
 
     def __post_init__(self) -> None:
         self.received: list[str] = []  # every line received, for the tests
         self.written: dict[int, float] = {}  # settings written with $N=value
-        self.status_times: list[float] = []  # when each '?' arrived (monotonic s)
+        self.status_times: list[float] = []  # when each '?' arrived (s, on the clock)
         self.banners = 0  # start-up banners sent (boots and soft resets)
         self.ctrl_x = 0  # soft resets (Ctrl-X) received
         self.moves = 0
@@ -178,13 +185,13 @@ class GrblEmulator:
     @property
     def position_mm(self) -> np.ndarray:
         with self._lock:
-            self._advance(time.monotonic())
+            self._advance(self.clock.monotonic())
             return self._pos.copy()
 
     @property
     def state(self) -> str:
         with self._lock:
-            self._advance(time.monotonic())
+            self._advance(self.clock.monotonic())
             return self._state
 
     # -- I/O -----------------------------------------------------------------------------------
@@ -221,7 +228,7 @@ class GrblEmulator:
             except (OSError, ValueError):
                 break
             with self._lock:
-                self._advance(time.monotonic())
+                self._advance(self.clock.monotonic())
             if not connected:
                 data = b""
                 if ready:
@@ -267,9 +274,9 @@ class GrblEmulator:
     def _byte(self, byte: int) -> None:
         ch = bytes([byte])
         if ch == b"?":
-            self.status_times.append(time.monotonic())
+            self.status_times.append(self.clock.monotonic())
             with self._lock:
-                self._advance(time.monotonic())
+                self._advance(self.clock.monotonic())
                 x, y, z = self._pos if self.report_mpos else self._pos - np.asarray(self.work_offset_mm)
                 state = "Hold:0" if self._state == "Hold" else self._state
                 feed = self._queue[0].rate if self._state == "Run" and self._queue else 0
@@ -277,7 +284,7 @@ class GrblEmulator:
             self._send(f"<{state}|{kind}:{x:.3f},{y:.3f},{z:.3f}|FS:{feed:.0f},0>")
         elif ch == b"!":
             with self._lock:
-                self._advance(time.monotonic())
+                self._advance(self.clock.monotonic())
                 if self._state == "Run":
                     self._hold_now()
         elif ch == b"~":
@@ -285,7 +292,7 @@ class GrblEmulator:
                 if self._state == "Hold":
                     self._state = "Run" if self._queue else "Idle"
                     if self._queue:
-                        self._queue[0].t_start = time.monotonic()
+                        self._queue[0].t_start = self.clock.monotonic()
         elif ch == b"\x18":
             self.ctrl_x += 1
             with self._lock:
@@ -350,7 +357,7 @@ class GrblEmulator:
     def press_reset(self) -> None:
         """The controller's reset button: a soft reset as if Ctrl-X had come from the port."""
         with self._lock:
-            self._advance(time.monotonic())
+            self._advance(self.clock.monotonic())
             self._soft_reset()
 
     def disconnect(self) -> None:
@@ -409,14 +416,14 @@ class GrblEmulator:
             self._feed = vals["F"]
         if motion == 4:
             with self._lock:
-                self._advance(time.monotonic())
+                self._advance(self.clock.monotonic())
                 busy = bool(self._queue)
             while busy and not self._closed:  # a dwell waits for the planner to empty
-                time.sleep(0.005)
+                self.clock.sleep(0.005)
                 with self._lock:
-                    self._advance(time.monotonic())
+                    self._advance(self.clock.monotonic())
                     busy = bool(self._queue) and self._state != "Alarm"
-            time.sleep(vals.get("P", 0.0) * self.time_scale)
+            self.clock.sleep(vals.get("P", 0.0) * self.time_scale)
             return self._send("ok")
         if motion is None:
             return self._send("ok")
@@ -457,8 +464,10 @@ class GrblEmulator:
             if self.hard_limits and np.any(target > 0):  # the carriage reaches a home switch at 0
                 hit = [(0.0 - last[i]) / (target[i] - last[i]) for i in range(3) if target[i] > 0 >= last[i]]
                 alarm_at = min([*hit, *([] if alarm_at is None else [alarm_at])], default=0.0)
+            # a move queued behind none starts now; the next ones where the one before ends (_advance)
             self._queue.append(_Move(last.copy(), target, dist / rate * 60.0 * self.time_scale if dist else 0.0,
-                                     alarm_at=alarm_at, reset_at=0.5 if f.reset_at_move == n else None, rate=rate))
+                                     alarm_at=alarm_at, reset_at=0.5 if f.reset_at_move == n else None, rate=rate,
+                                     t_start=None if self._queue else self.clock.monotonic()))
             if self._state == "Idle":
                 self._state = "Run"
         if f.drop_ok_at_move == n:
@@ -482,7 +491,7 @@ class GrblEmulator:
                 return self._send("error:5")
             with self._lock:
                 self._state = "Home"
-            time.sleep(self.homing_s * self.time_scale)
+            self.clock.sleep(self.homing_s * self.time_scale)
             with self._lock:
                 self._pos = -self.pulloff_mm * np.ones(3)
                 self._on_switch = False

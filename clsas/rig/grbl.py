@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import Any
 
 import numpy as np
 
@@ -70,6 +71,10 @@ class GrblStage(GrblLink):
         reset crossing the boot) are read and dropped, not taken for an answer.
     position_tol_mm : float
         How close the reported position must come to the target.
+    clock : object with ``monotonic()`` and ``sleep(seconds)``
+        The time base of homing and of a move's polling and deadline: the :mod:`time` module by
+        default; a clock shared with :class:`clsas.rig.GrblEmulator` that moves only when told
+        makes a move's polls land at known times. Waits for a line on the port stay on real time.
     """
 
     def __init__(
@@ -86,6 +91,7 @@ class GrblStage(GrblLink):
         reset_wait_s: float = 2.5,
         reset_on_open: bool | None = None,
         position_tol_mm: float = 0.02,
+        clock: Any = time,
     ) -> None:
         super().__init__(port, baudrate=baudrate, timeout_s=timeout_s, reset_wait_s=reset_wait_s,
                          reset_on_open=reset_on_open)
@@ -102,6 +108,9 @@ class GrblStage(GrblLink):
             raise ValueError(f"poll_hz must be at most 5 (GRBL's advice for '?' polling), got {poll_hz}")
         self.poll_s = 1.0 / poll_hz
         self.position_tol_mm = v.positive("position_tol_mm", position_tol_mm)
+        if not (callable(getattr(clock, "monotonic", None)) and callable(getattr(clock, "sleep", None))):
+            raise TypeError(f"clock must have monotonic() and sleep(seconds), as the time module has, got {clock!r}")
+        self.clock = clock
 
     def _check_settings(self) -> None:
         """Refuse settings the scan cannot work with, naming the setting."""
@@ -186,9 +195,9 @@ class GrblStage(GrblLink):
         if self.settings.get(22, 1) == 0:
             raise StageRefused("[scan] home = true but homing is disabled in GRBL ($22=0): enable it with "
                                "'$22=1' (with limit switches fitted), or set home = false in the [scan] table")
-        t0 = time.monotonic()
+        t0 = self.clock.monotonic()
         self.command("$H", timeout_s=self.home_timeout())
-        log.info("homed in %.1f s", time.monotonic() - t0)
+        log.info("homed in %.1f s", self.clock.monotonic() - t0)
         self.command("G21 G90")
         return self.wait_idle(self.home_timeout())
 
@@ -241,7 +250,7 @@ class GrblStage(GrblLink):
         word = "G0" if self.feed_mm_min is None else "G1"
         feed = "" if self.feed_mm_min is None else f" F{self.feed_mm_min:.0f}"
         now = self.status()  # where the move starts (idle between moves), else the worst case
-        self._polled_at = time.monotonic()
+        self._polled_at = self.clock.monotonic()
         start = now.position_mm[:2] if now.state == "Idle" else self._farthest_corner(x_mm, y_mm)
         timeout = self.move_timeout(start, (x_mm, y_mm))
         log.debug("move to (%.3f, %.3f) mm: %s s planned, timeout %.1f s", x_mm, y_mm,
@@ -256,10 +265,11 @@ class GrblStage(GrblLink):
 
     def wait_idle(self, timeout_s: float) -> Status:
         """Poll ``?`` at ``poll_hz`` until the state is ``Idle``."""
-        deadline = time.monotonic() + timeout_s
-        time.sleep(max(0.0, self.poll_s - (time.monotonic() - getattr(self, "_polled_at", -np.inf))))
+        clock = self.clock
+        deadline = clock.monotonic() + timeout_s
+        clock.sleep(max(0.0, self.poll_s - (clock.monotonic() - getattr(self, "_polled_at", -np.inf))))
         while True:
-            t = time.monotonic()
+            t = clock.monotonic()
             st = self.status()
             if st.state == "Idle":
                 return st
@@ -267,4 +277,4 @@ class GrblStage(GrblLink):
                 raise StageError("GRBL is in the Alarm state (an earlier alarm was not cleared)")
             if t > deadline:
                 raise StageTimeout(f"the stage did not reach Idle within {timeout_s:g} s (state {st.state})")
-            time.sleep(max(0.0, self.poll_s - (time.monotonic() - t)))
+            clock.sleep(max(0.0, self.poll_s - (clock.monotonic() - t)))

@@ -13,7 +13,7 @@ Crash safety (HDF5): every chunk of ``values`` is allocated when the file is mad
 written), so writing a tile changes no HDF5 metadata, only the tile's own bytes and then its
 byte in ``tiles_done``. A process killed at any moment of a tile (mid-write included) leaves a
 file that opens, whose marked tiles are whole, and the run started again forms the unmarked
-tiles and only those (``tests/test_tiles_crash.py`` kills a writer process mid-run).
+tiles and only those (``tests/unit/tiling/test_tiles_crash.py`` kills a writer process mid-run).
 
 A ``.zarr`` store (Zarr v3, :class:`ZarrTileFile`) holds the same arrays, with the attributes as
 JSON; a tile is marked after its values too, but whether a kill mid-write leaves the store
