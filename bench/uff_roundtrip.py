@@ -47,7 +47,7 @@ def main() -> int:
                  "measurements": ds.n_meas, "samples": ds.n_samples}
     with tempfile.TemporaryDirectory() as tmp:
         h5, uff = Path(tmp, "scan.h5"), Path(tmp, "scan.uff")
-        ds.save(h5)
+        ds.save(h5, overwrite=True)
         t = time.perf_counter()
         clsas.io.export_uff(ds, uff)
         out["export_s"] = time.perf_counter() - t

@@ -225,19 +225,29 @@ class Dataset:
             beams=None if self.beams is None else self.beams.subset(index),
         )
 
-    def save(self, path: str | Path) -> Path:
-        """Write the dataset to an HDF5 file (see the guide, docs/guide/files.md, "Dataset file")."""
+    def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
+        """Write the dataset to an HDF5 file (see the guide, docs/guide/files.md, "Dataset file").
+
+        An existing file is refused (``FileExistsError`` naming it) unless ``overwrite=True``."""
         import h5py
 
         from .version import __version__
 
-        path = Path(path)
+        path = refuse_existing(path, overwrite, "Dataset.save")
         with h5py.File(path, "w") as f:
             _write_arrays(f, self)
             f.attrs.update(_attrs(self, __version__))
             _write_truth(f, self.truth)
             _write_beams(f, self.beams)
         return path
+
+
+def refuse_existing(path: str | Path, overwrite: bool, where: str) -> Path:
+    """``path`` as a Path; ``FileExistsError`` naming it where it exists and ``overwrite`` is False."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise FileExistsError(f"{path} exists ({where}: pass overwrite=True to replace it)")
+    return path
 
 
 def _humidity_assumed(provenance: list) -> bool:

@@ -222,15 +222,18 @@ class Image:
         prov.update(self.provenance)
         return prov
 
-    def save(self, path: str | Path) -> Path:
+    def save(self, path: str | Path, *, overwrite: bool = False) -> Path:
         """Write the image to HDF5; see :mod:`clsas.image` for the layout.
 
         Readable with plain h5py and with ``xarray.open_dataset(path, engine="h5netcdf")``, which
         gets the coordinates ``x_m``, ``y_m``, ``z_m`` (metres) from the HDF5 dimension scales.
+        An existing file is refused (``FileExistsError`` naming it) unless ``overwrite=True``.
         """
         import h5py
 
-        path = Path(path)
+        from .dataset import refuse_existing
+
+        path = refuse_existing(path, overwrite, "Image.save")
         with h5py.File(path, "w") as f:
             scales = write_axes(f, self.grid)
             if self.lazy:

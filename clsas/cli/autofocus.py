@@ -94,7 +94,7 @@ def cmd_autofocus(args) -> int:
     grid = grid_arg(args.grid, args.spacing, stored_grid)
     check_grids_fit([grid], args)  # before the minutes of focusing, not at the first image
     out, rep = run_autofocus(ds, grid, args)
-    out.save(args.out)
+    out.save(args.out, overwrite=True)  # checked against --overwrite before any work
     print(f"wrote {args.out}" + ("" if rep.improved else " (the input, unchanged: nothing passed the check)"))
     if ds.truth:
         from clsas.focus import score

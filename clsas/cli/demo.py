@@ -25,9 +25,9 @@ def cmd_demo(args) -> int:
         t = time.perf_counter()
         ds = simulate_scene(cfg, not args.quiet)
         t_sim = time.perf_counter() - t
-        ds.save(out / f"{name}.h5")
+        ds.save(out / f"{name}.h5", overwrite=True)  # the demo's own folder, rewritten each run
         image = reconstruct_image(ds, cfg.grid, args, not args.quiet)
-        image.save(out / f"{name}-image.h5")
+        image.save(out / f"{name}-image.h5", overwrite=True)
         truth = cfg.scene.image_sources()[0]
         label = "mannequin in front" if name == "front" else "mannequin around the corner (mirror image)"
         mip_png(image, out / f"{name}.png", truth, f"{label}: {ds.n_meas} stops, 20-30 kHz, {image.device}",

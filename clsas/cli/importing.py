@@ -21,7 +21,7 @@ def cmd_import(args) -> int:
             raise ValueError("--radius-m is for the airsas format")
         opts["radius_m"] = args.radius_m
     ds = clsas.io.import_scan(args.source, format=fmt, background=args.background, **opts)
-    ds.save(args.out)
+    ds.save(args.out, overwrite=True)  # checked against --overwrite before any work
     print(f"imported {args.source} ({fmt}): {ds.n_meas} measurements x {ds.n_samples} samples "
           f"at {ds.fs_hz:g} Hz")
     ch = ds.chirp

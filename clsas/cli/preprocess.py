@@ -126,7 +126,7 @@ def cmd_preprocess(args) -> int:
     if not source:
         raise ValueError("nothing to do: give steps (--dc, --bandpass, --background, --common, --blank-direct, "
                          "--group-delay-samples) or a [preprocess] table (--config, or stored in the dataset)")
-    out.save(args.out)
+    out.save(args.out, overwrite=True)  # checked against --overwrite before any work
     steps = out.provenance[len(ds.provenance):]
     print(f"preprocessed {args.data} ({ds.n_meas} measurements) with the steps from {source}:")
     for st in steps:

@@ -43,7 +43,7 @@ def cmd_reconstruct(args) -> int:
     else:
         image = reconstruct_image(ds, grid, args, not args.quiet)
         image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
-        image.save(out)
+        image.save(out, overwrite=True)  # checked against --overwrite before any work
     if args.verbose and image.plan is not None:
         print(image.plan.describe())
     peaks = image.peaks(args.peaks, min_separation_m=0.03)

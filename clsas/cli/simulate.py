@@ -10,7 +10,7 @@ def cmd_simulate(args) -> int:
 
     cfg = load_config(args.scene)
     ds = simulate_scene(cfg, not args.quiet)
-    ds.save(args.out)
+    ds.save(args.out, overwrite=True)  # checked against --overwrite before any work
     print(f"wrote {args.out}: {ds.n_meas} measurements x {ds.n_samples} samples at {ds.fs_hz:g} Hz")
     return 0
 

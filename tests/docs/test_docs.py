@@ -42,7 +42,7 @@ API = ["lfm_chirp", "analytic", "raster_aperture", "circular_aperture", "helical
        "cl.Selection", "registry.Registry", "preprocess.apply"]
 SLOW_API: set[str] = set()
 # pages whose blocks do not yet all show their output: there a block without an output block may print
-OUTPUTS_PENDING = {"autofocus.md": "being rewritten; the rewrite adds its blocks' outputs"}
+OUTPUTS_PENDING: dict[str, str] = {}
 # python blocks that show their output but cannot run here (a download): (page, a line of the block) -> the test
 OUTPUT_CHECKED_ELSEWHERE = {
     ("own-data.md", 'ds = clsas.io.import_airsas("small_features_cutout_20k", background="bg_20k")'):

@@ -35,6 +35,9 @@ RUN_ELSEWHERE = {
     ("Super-resolution (sparse recovery)", "bash", 0):
         "tests/docs/test_docs.py::test_example_prints_what_the_page_shows (the fig4 example, its output against "
         "the page's)",
+    **{(heading, "python", 0): "tests/docs/test_docs.py (the autofocus page in order; its outputs compared)"
+       for heading in ("A hand-held scan", "Run it and read the report", "When an estimate is applied",
+                       "A last check that trusts no image: data consistency")},
     ("Python API in ten lines", "python", 0):
         "tests/scenarios/test_first_use_guards_and_light_import.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
@@ -47,17 +50,12 @@ RUN_HERE = {
     ("Fast image formation", "python", 0): "test_fragments_on_a_small_scan",
     ("Fast image formation", "python", 1): "test_fragments_on_a_small_scan",
     ("Extending clsas: one module and one line", "python", 0): "test_extending_registers_a_formation",
-    ("Does the scan determine its motion? Data consistency (thirteenth session)", "python", 0):
-        "test_data_consistency_fragment",
+    ("On the command line", "bash", 0): "test_autofocus_command_line",
 }
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
                                      "test suite (what CI does)",
     ("Fast image formation", "bash", 0): "a synopsis with [optional] parts, not a command line",
-    ("Autofocus: motion, sound speed and delay from the scan itself", "python", 0):
-        "not yet run: a fragment (ds, grid from the text around it); autofocus is tested in test_autofocus.py",
-    ("Autofocus: motion, sound speed and delay from the scan itself", "bash", 0):
-        "not yet run: needs scan.h5 from a real or emulated scan",
     ("Building and running a rig", "bash", 0): "runs a scan against the GRBL and audio emulators (about a "
                                                "minute); tests/hw/test_rig.py runs the same commands",
     ("Building and running a rig", "", 0): "a wiring diagram, not code",
@@ -227,17 +225,23 @@ def test_fragments_on_a_small_scan():
         assert env["image"].values.shape == grid.shape
 
 
-def test_data_consistency_fragment(capsys):
-    """The data-consistency fragment, with ``ds`` and ``grid`` a small scan of one point."""
-    fs = 96e3
-    chirp = clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.1)
-    ds = clsas.simulate(clsas.Scene(np.array([[0.0, 0.0, 0.6]])), clsas.raster_aperture(6, 6, 0.2, 0.2), chirp, fs,
-                        snr_db=30)
-    grid = clsas.VoxelGrid.from_bounds((-0.03, 0.03), (-0.03, 0.03), (0.58, 0.62), 0.006)
-    env = {"clsas": clsas, "ds": ds, "grid": grid}
-    code = block("Does the scan determine its motion? Data consistency (thirteenth session)", "python")
-    exec(compile(code, "autofocus.md (data consistency)", "exec"), env)  # noqa: S102
-    assert env["c"].iterations <= 30 and "data consistency:" in capsys.readouterr().out
+@pytest.mark.slow
+def test_autofocus_command_line(tmp_path, monkeypatch):
+    """The autofocus page's command lines on its own scan (its setup block), saved as scan.h5."""
+    from clsas.cli import main
+
+    env: dict = {}
+    exec(compile(block("A hand-held scan", "python"), "autofocus.md (setup)", "exec"), env)  # noqa: S102
+    monkeypatch.chdir(tmp_path)
+    env["ds"].save("scan.h5")
+    for line in block("On the command line", "bash").splitlines():
+        argv = shlex.split(line.split("#")[0])
+        assert argv[0] == "clsas"
+        assert main(argv[1:]) == 0, line
+    assert (tmp_path / "fixed.h5").exists() and (tmp_path / "before_after.png").exists()
+    assert (tmp_path / "fixed.png").exists()
+    steps = [p["step"] for p in clsas.load(tmp_path / "fixed.h5").provenance]
+    assert steps[-1] == "autofocus"
 
 
 def test_extending_registers_a_formation():

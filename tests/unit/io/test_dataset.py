@@ -62,3 +62,20 @@ def test_dataset_rejects_bad_input(change, match):
 def test_load_missing_file(tmp_path):
     with pytest.raises(FileNotFoundError):
         clsas.load(tmp_path / "nothing.h5")
+
+
+def test_save_refuses_an_existing_file_unless_told(tmp_path):
+    """Dataset.save and Image.save never replace a file silently: FileExistsError naming it, or
+    overwrite=True."""
+    ds = clsas.Dataset(np.zeros((1, 100)), np.zeros((1, 3)), np.full((1, 3), 0.04), 96e3, np.ones(10))
+    path = ds.save(tmp_path / "scan.h5")
+    with pytest.raises(FileExistsError, match=r"scan\.h5 exists \(Dataset\.save: pass overwrite=True"):
+        ds.save(path)
+    ds.replace(config="second").save(path, overwrite=True)
+    assert clsas.load(path).config == "second"
+    grid = clsas.VoxelGrid.from_bounds((-0.01, 0.01), (-0.01, 0.01), (0.5, 0.52), 0.01)
+    image = clsas.Image(np.zeros(grid.shape, np.complex64), grid)
+    image.save(tmp_path / "image.h5")
+    with pytest.raises(FileExistsError, match=r"image\.h5 exists \(Image\.save"):
+        image.save(tmp_path / "image.h5")
+    image.save(tmp_path / "image.h5", overwrite=True)
