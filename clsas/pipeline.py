@@ -73,13 +73,8 @@ def reconstruct(
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, or a list of them, optional
         The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one); a list spreads tiles.
     progress : callable(Progress), optional
-        Called with a :class:`clsas.progress.Progress` record (``stage``, ``done``, ``total``,
-        ``stages``, ``step``): each stage of ``stages`` (every stage this call runs, in order:
-        ``"compress (matched)"`` or ``"super-resolve (bpdn)"``, then ``"backproject"``,
-        ``"form (omega-k)"``, ``"form (auto)"`` or ``"solve (ls)"``, with ``" in tiles"`` where the
-        grid is formed in tiles) is announced when it starts (``done=0``, ``total=None``), then
-        counts its work (measurements, columns, levels, tiles or iterations). A callable of two
-        positional arguments, ``progress(done, total)``, receives the counts alone, as before.
+        Called with :class:`clsas.Progress` records naming the stage running; the first announces every
+        stage of the call, in order (:mod:`clsas.progress`). ``progress(done, total)`` gets the counts alone.
     sparse : dict, optional
         Options of the sparse step (:func:`clsas.sparse.profiles.superres_profiles`). A recording whose
         recovery fails is imaged by its matched filter (``image.echoes[m].fallback``, one warning).

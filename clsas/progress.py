@@ -1,11 +1,14 @@
 """Progress reports that name their stage: :class:`Progress`, and the :class:`Reporter` that sends them.
 
-A call that runs in stages (:func:`clsas.reconstruct`: compression or the sparse step, then the
-formation or the solve) reports to its ``progress`` callback with :class:`Progress` records. Every
-record carries the names of all the stages the call will run, in order, so the first one
-announces them; each stage is announced when it starts (``done=0``, ``total=None``), then reports
-its own counts (``done`` of ``total``: measurements, columns, levels, tiles or iterations, as the
-stage counts them).
+A call that runs in stages (:func:`clsas.reconstruct`) reports to its ``progress`` callback with
+:class:`Progress` records. Every record carries the names of all the stages the call will run, in
+order, so the first one announces them; each stage is announced when it starts (``done=0``,
+``total=None``), then reports its own counts (``done`` of ``total``: measurements, columns, levels,
+tiles or iterations, as the stage counts them). ``reconstruct``'s stages are the profiles
+(``"compress (matched)"``, ``"compress (fmcw)"`` or a sparse method's ``"super-resolve (bpdn)"``;
+none for :class:`clsas.Profiles` given), then the image: ``"backproject"``, ``"form (omega-k)"``,
+``"form (ffbp)"``, ``"form (auto)"`` (``"backproject"`` where ``auto`` takes bp by rule) with
+``" in tiles"`` where the grid is formed in tiles, or a model-based method's ``"solve (ls)"``.
 
 A callback that takes two positional arguments, ``progress(done, total)``, is still called that
 way: with each stage's own counts and no stage names, as before records existed.
