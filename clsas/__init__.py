@@ -16,6 +16,7 @@ from .image import Image
 from .physics import air_absorption_db_per_m, resolution_limits, speed_of_sound
 from .pipeline import reconstruct
 from .profiles import Profiles
+from .progress import Progress
 from .quality import compare, tcr_db
 from .rangegate import ReconstructionPlan
 from .signals import analytic, lfm_chirp
@@ -23,7 +24,7 @@ from .simulation import simulate
 from .version import __version__  # noqa: F401 - clsas.__version__
 
 __all__ = [
-    "Aperture", "Backprojector", "Dataset", "Image", "Profiles", "ReconstructionPlan", "Scene", "VoxelGrid",
+    "Aperture", "Backprojector", "Dataset", "Image", "Profiles", "Progress", "ReconstructionPlan", "Scene", "VoxelGrid",
     "Wall", "air_absorption_db_per_m", "analytic", "backproject", "compress", "lfm_chirp",
     "load", "raster_aperture", "reconstruct", "resolution_limits", "simulate", "speed_of_sound",
 ]

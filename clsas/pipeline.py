@@ -21,11 +21,12 @@ from . import validate as v
 from .compression import COMPRESSIONS, compress
 from .dataset import Dataset
 from .formation import FORMATIONS, check_options, declared_options
-from .formation.auto import DEFAULT_MAX_ERROR_DB, check_max_error_db
+from .formation.auto import DEFAULT_MAX_ERROR_DB, check_max_error_db, rule_reason
 from .formation.guard import check_grid, checked_once
 from .geometry import VoxelGrid
 from .image import Image
 from .profiles import Profiles
+from .progress import Progress, Reporter
 from .rangegate import ReconstructionPlan, plan_reconstruction
 from .sanity import check_grid_against_data
 
@@ -45,7 +46,7 @@ def methods() -> tuple[str, ...]:
 
 def reconstruct(
     dataset: Dataset | Profiles, grid: VoxelGrid, method: str = "bp", *, compression: str = "matched",
-    backend: str | None = None, device: Any = None, progress: Callable[[int, int], None] | None = None,
+    backend: str | None = None, device: Any = None, progress: Callable[[Progress], None] | None = None,
     sparse: dict | None = None, force: bool = False, formation: str = "auto", formation_options: dict | None = None,
     out: str | Path | None = None, max_memory: float | str | None = None, client: Any = None,
     tile_shape: tuple[int, int, int] | None = None, max_error_db: float = DEFAULT_MAX_ERROR_DB,
@@ -71,8 +72,9 @@ def reconstruct(
         kernels build, else the NumPy twins with one warning; ``"opencl"`` raises instead.
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, or a list of them, optional
         The OpenCL device (default: ``PYOPENCL_CTX``, else the preferred one); a list spreads tiles.
-    progress : callable(done, total), optional
-        Measurements backprojected; tiles formed when the grid is formed in tiles.
+    progress : callable(Progress), optional
+        Called with :class:`clsas.Progress` records naming the stage running; the first announces every
+        stage of the call, in order (:mod:`clsas.progress`). ``progress(done, total)`` gets the counts alone.
     sparse : dict, optional
         Options of the sparse step (:func:`clsas.sparse.profiles.superres_profiles`). A recording whose
         recovery fails is imaged by its matched filter (``image.echoes[m].fallback``, one warning).
@@ -134,11 +136,12 @@ class Request:
     formation: str  # a registered formation ("auto" among them)
     formation_options: dict
     selection: cl.Selection
-    progress: Callable[[int, int], None] | None
+    progress: Reporter  # the caller's callback, told the stages below
     force: bool
     tiled: tiling.TiledRequest | None
     max_error_db: float
     inverse: dict | None
+    stages: tuple[str, ...]  # what the request runs, in order, as its progress reports name them
 
 
 def _request(dataset, grid, method, *, compression, backend, device, progress, sparse, force, formation,
@@ -148,8 +151,35 @@ def _request(dataset, grid, method, *, compression, backend, device, progress, s
     max_error_db = check_max_error_db(max_error_db)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
+    stages = _stages(dataset, method, compression, formation, tiled is not None)
     return Request(grid, method, compression, dict(sparse or {}), formation, fopts, _selection(backend, device, tiled),
-                   progress, bool(force), tiled, max_error_db, inverse)
+                   Reporter(progress, stages), bool(force), tiled, max_error_db, inverse, stages)
+
+
+def _stages(dataset, method: str, compression: str, formation: str, tiled: bool) -> tuple[str, ...]:
+    """The stages a request runs, in order, by the names its progress reports carry."""
+    if _is_model(method):
+        return (f"compress ({compression})", f"solve ({method})")
+    if isinstance(dataset, Profiles):
+        return (_formation_stage(formation, dataset.method, tiled, dataset.beams),)
+    made_by = compression if method == "bp" else method  # what makes the profiles the formation forms
+    first = f"compress ({compression})" if method == "bp" else f"super-resolve ({method})"
+    return (first, _formation_stage(formation, made_by, tiled, dataset.beams))
+
+
+def _formation_stage(formation: str, made_by: str, tiled: bool, beams) -> str:
+    """The formation stage's name: ``"auto"`` named by the formation it takes by rule, where a rule
+    takes one (:func:`clsas.formation.auto.rule_reason`)."""
+    if formation == "auto" and rule_reason(made_by, tiled=tiled, beams=beams) is not None:
+        formation = "bp"
+    name = "backproject" if formation == "bp" else f"form ({formation})"
+    return f"{name} in tiles" if tiled else name
+
+
+def _counting(req: Request, stage: str) -> Callable[[int, int], None] | None:
+    """Announce ``stage``; the ``(done, total)`` callable it counts through."""
+    req.progress.start(stage)
+    return req.progress.counter(stage)
 
 
 def _reconstruct(dataset: Dataset | Profiles, req: Request) -> Image:
@@ -161,9 +191,12 @@ def _reconstruct(dataset: Dataset | Profiles, req: Request) -> Image:
                        timings_s={**image.timings_s, "total": time.perf_counter() - t_start})
     plan = plan_reconstruction(dataset, req.grid)
     if req.method == "bp" or _is_model(req.method):
+        req.progress.start(req.stages[0])
         prof, echoes, plan = _compressed(dataset, plan, req.compression, req.selection)
+        req.progress.finished(req.stages[0])
     else:
-        prof, echoes, plan = _super_resolved(dataset, plan, req.method, req.sparse, req.progress, req.tiled)
+        progress = _counting(req, req.stages[0])
+        prof, echoes, plan = _super_resolved(dataset, plan, req.method, req.sparse, progress, req.tiled)
     image, step = _image(dataset, prof, req)
     plan = _with_kernels(plan, (f"compress ({req.compression})", prof.backend), (step, image.backend))
     return _finish(image, req.tiled, method=req.method, plan=plan, echoes=echoes,
@@ -187,7 +220,8 @@ def _model_based(dataset, prof: Profiles, req: Request) -> Image:
     if req.tiled is not None:
         raise ValueError(f"method={req.method!r} is not formed in tiles: out, max_memory, client, tile_shape and "
                          "several devices are for the other methods")
-    return model_reconstruct(req.method, dataset, prof, req.grid, req.selection, req.progress, req.inverse)
+    progress = _counting(req, req.stages[-1])
+    return model_reconstruct(req.method, dataset, prof, req.grid, req.selection, progress, req.inverse)
 
 
 def _check_inverse(method: str, inverse: dict | None, formation: str) -> None:
@@ -291,15 +325,16 @@ def _form(prof: Profiles, req: Request) -> Image:
     from .formation import form
 
     formation, options = req.formation, _formation_options(req)
+    progress = _counting(req, req.stages[-1])
     if req.tiled is None:
-        return form(prof, req.grid, formation, backend=req.selection, progress=req.progress, force=req.force,
+        return form(prof, req.grid, formation, backend=req.selection, progress=progress, force=req.force,
                     **options)
     record = {}
     for_tiles = getattr(FORMATIONS[formation], "for_tiles", None)  # a formation that forms by another (auto)
     if for_tiles is not None:
         formation, options, record = for_tiles(prof, req.grid, backend=req.selection, **options)
     image = tiling.form_tiled(prof, req.grid, formation, options, req.selection, req.tiled,
-                              progress=req.progress, force=req.force)
+                              progress=progress, force=req.force)
     provenance = {**image.provenance, "formation": formation, **record}
     if options:
         provenance["formation_options"] = dict(options)

@@ -72,43 +72,54 @@ SLOW_JOB_S = 60.0
 
 
 @contextmanager
-def progress_bar(desc: str | tuple[str, ...], total: int, enabled: bool = True, announce=None):
-    """A progress bar (on stderr) named for the step it measures.
+def progress_bar(desc: str, total: int, enabled: bool = True):
+    """A progress bar (on stderr) named ``desc``, for a callback ``(done, total)``."""
+    from tqdm import tqdm
 
-    ``desc`` may name several steps that report through the same callback one after the other
-    (a sparse method super-resolves every recording, then backprojects): the bar takes the next
-    name when the count starts again. ``announce(step, elapsed_s, done, total)`` is called once
-    per step, after its first report, to warn of a long job.
+    with tqdm(total=total, desc=desc, unit="stop", disable=not enabled, leave=False) as bar:
+        def update(done: int, _total: int) -> None:
+            if bar.total != _total:
+                bar.total = _total
+            bar.update(done - bar.n)
+
+        yield update
+
+
+def stage_label(report) -> str:
+    """What the bar says for a :class:`clsas.Progress` report: ``step k of n: <stage>``."""
+    return f"step {report.step} of {len(report.stages)}: {report.stage}"
+
+
+@contextmanager
+def stage_bar(enabled: bool = True, announce=None):
+    """A progress bar (on stderr) for a call that reports :class:`clsas.Progress` records
+    (:func:`clsas.reconstruct`): named by :func:`stage_label` after the stage reporting, and
+    started again at each stage. ``announce(stage, elapsed_s, done, total)`` is called once per
+    stage, after its first count, to warn of a long job.
     """
     import time
 
     from tqdm import tqdm
 
-    steps = (desc,) if isinstance(desc, str) else tuple(desc)
-    state = {"step": 0, "t0": time.perf_counter(), "announced": set()}
-    with tqdm(total=total, desc=steps[0], unit="stop", disable=not enabled, leave=False) as bar:
-        def update(done: int, _total: int) -> None:
-            n, n_total = state.get("n", 0), state.get("total", total)
-            restarted = done < n or n >= n_total  # the step before finished: this is the next one
-            if restarted and state["step"] < len(steps) - 1:  # the next step reports through the same callback
-                state["step"] += 1
-                state["t0"] = time.perf_counter()
-                bar.set_description_str(steps[state["step"]])
-                bar.reset(total=_total)
-            if bar.total != _total:  # a formation counts its own steps (ω-k: spatial-frequency columns)
-                bar.total = _total
-            bar.update(done - bar.n)
-            state["n"], state["total"] = done, _total
-            step = state["step"]
-            if announce is not None and done > 0 and step not in state["announced"]:
-                state["announced"].add(step)
-                announce(steps[step], time.perf_counter() - state["t0"], done, _total)
+    state = {"stage": None, "t0": time.perf_counter(), "announced": set()}
+    with tqdm(total=None, desc="", disable=not enabled, leave=False) as bar:
+        def update(report) -> None:
+            if report.stage != state["stage"]:
+                state["stage"], state["t0"] = report.stage, time.perf_counter()
+                bar.set_description_str(stage_label(report))
+                bar.reset(total=report.total)
+            if report.total is not None and bar.total != report.total:  # a stage counts in its own unit
+                bar.total = report.total
+            bar.update(report.done - bar.n)
+            if announce is not None and report.done > 0 and report.stage not in state["announced"]:
+                state["announced"].add(report.stage)
+                announce(report.stage, time.perf_counter() - state["t0"], report.done, report.total)
 
         yield update
 
 
 def slow_job_notice(method: str):
-    """An ``announce`` for :func:`progress_bar`: after the first recording of a sparse method,
+    """An ``announce`` for :func:`stage_bar`: after the first recording of a sparse method,
     the estimated time of the whole job on stderr when it is over :data:`SLOW_JOB_S`, with the
     faster methods."""
     import sys
@@ -217,26 +228,19 @@ def formation_options(items: list[str] | None) -> dict:
 
 
 def reconstruct_image(ds, grid, args, progress=True):
+    """``ds`` imaged on ``grid`` with the command's flags, its progress on stderr named by the
+    stages the pipeline reports."""
     import clsas
     from clsas.formation.auto import DEFAULT_MAX_ERROR_DB
 
-    formation = getattr(args, "formation", "bp")
-    options = formation_options(getattr(args, "formation_option", None)) or None
     method = getattr(args, "method", "bp")
-    if formation == "auto" and method != "bp":
-        formation = "bp"  # what auto takes for the sparse methods' profiles
-    form = "backproject" if formation == "bp" else f"form ({formation})"
-    from clsas.inverse import MODEL_METHODS
-
-    steps = ((form,) if method == "bp" else (f"solve ({method}, iterations)",) if method in MODEL_METHODS
-             else (f"super-resolve ({method})", form))
     announce_slow_method(ds, grid, method)
-    with progress_bar(steps, ds.n_meas, progress, announce=slow_job_notice(method)) as cb:
+    with stage_bar(progress, announce=slow_job_notice(method)) as cb:
         return clsas.reconstruct(ds, grid, method=method,
                                  compression=getattr(args, "compression", "matched"),
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
-                                 force=getattr(args, "force", False), formation=formation,
-                                 formation_options=options,
+                                 force=getattr(args, "force", False), formation=getattr(args, "formation", "bp"),
+                                 formation_options=formation_options(getattr(args, "formation_option", None)) or None,
                                  max_error_db=getattr(args, "max_error_db", DEFAULT_MAX_ERROR_DB))
 
 

@@ -84,9 +84,9 @@ def _reconstruct_tiled(ds, grid, args, out: Path):
     """``--max-memory`` / ``--scheduler``: the grid formed tile by tile into ``out`` (resumable)."""
     import clsas
 
-    from .common import formation_options, progress_bar
+    from .common import formation_options, stage_bar
 
-    with progress_bar("tiles", 1, not args.quiet) as cb:
+    with stage_bar(not args.quiet) as cb:
         return clsas.reconstruct(ds, grid, method=args.method, compression=args.compression, backend=args.backend,
                                  device=args.device, progress=cb, force=args.force, formation=args.formation,
                                  formation_options=formation_options(args.formation_option) or None, out=out,

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from clsas.cli import COMMANDS, build_parser, main
-from clsas.cli.common import progress_bar, slow_job_notice
+from clsas.cli.common import slow_job_notice, stage_bar, stage_label
 
 SCENE = """
 [chirp]
@@ -151,13 +151,43 @@ def test_progress_names_each_step_it_measures(scan, tmp_path, capsys):
     assert "super-resolve (bpdn)" in err and "backproject" in err
 
 
-def test_progress_bar_switches_name_when_the_count_starts_again():
-    seen = []
-    with progress_bar(("super-resolve (cbp-taylor)", "backproject"), 3, enabled=False,
-                      announce=lambda step, *a: seen.append(step)) as cb:
-        for i in (1, 2, 3, 1, 2, 3):
-            cb(i, 3)
-    assert seen == ["super-resolve (cbp-taylor)", "backproject"]
+@pytest.mark.parametrize("flags,stages", [
+    (["--formation", "bp"], ("compress (matched)", "backproject")),
+    (["--method", "bpdn"], ("super-resolve (bpdn)", "backproject")),
+    ([], ("compress (matched)", "form (auto)")),
+], ids=["bp", "sparse", "auto"])
+def test_the_bar_names_the_stages_the_pipeline_announced(scan, tmp_path, capsys, monkeypatch, flags, stages):
+    import clsas
+
+    if "bpdn" in flags:
+        pytest.importorskip("scipy.optimize")
+    announced, reconstruct = [], clsas.reconstruct
+
+    def spy(*a, progress, **kw):  # what the pipeline told the CLI's callback
+        def told(report):
+            announced.append(report.stages)
+            progress(report)
+        return reconstruct(*a, progress=told, **kw)
+
+    monkeypatch.setattr(clsas, "reconstruct", spy)
+    assert main(["reconstruct", str(scan), "--backend", "numpy", "--out", str(tmp_path / "i.h5"), *flags]) == 0
+    assert set(announced) == {stages}
+    err = capsys.readouterr().err
+    for k, stage in enumerate(stages, 1):
+        assert f"step {k} of {len(stages)}: {stage}" in err
+
+
+def test_the_stage_bar_announces_each_stage_once_after_its_first_count():
+    from clsas.progress import Progress
+
+    stages, seen = ("super-resolve (cbp-taylor)", "backproject"), []
+    with stage_bar(enabled=False, announce=lambda stage, *a: seen.append((stage, *a[1:]))) as cb:
+        for stage in stages:
+            cb(Progress(stage, 0, None, stages))
+            for i in (1, 2, 3):
+                cb(Progress(stage, i, 3, stages))
+    assert seen == [("super-resolve (cbp-taylor)", 1, 3), ("backproject", 1, 3)]
+    assert stage_label(Progress("backproject", 2, 3, stages)) == "step 2 of 2: backproject"
 
 
 def test_a_job_over_a_minute_is_announced_with_the_faster_methods(capsys):

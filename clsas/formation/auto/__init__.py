@@ -33,14 +33,14 @@ from .calibrate import calibrate_auto
 from .choice import choose, resolve
 from .measure import Check, form_choice, measure_error
 from .predict import alias_fraction, estimate, predict_time
-from .rules import DEFAULT_MAX_ERROR_DB, Choice, by_rule, check_max_error_db
+from .rules import DEFAULT_MAX_ERROR_DB, Choice, by_rule, check_max_error_db, rule_reason
 from .timing import BUILTIN, calibration_path, load_calibration, store_calibration
 from .trust import MARGIN_DB, Estimate
 
 __all__ = [
     "BUILTIN", "DEFAULT_MAX_ERROR_DB", "MARGIN_DB", "Check", "Choice", "Estimate", "alias_fraction", "by_rule",
     "calibrate_auto", "calibration_path", "check_max_error_db", "choose", "estimate", "form", "form_choice",
-    "load_calibration", "measure_error", "predict_time", "resolve", "store_calibration",
+    "load_calibration", "measure_error", "predict_time", "resolve", "rule_reason", "store_calibration",
 ]
 
 

@@ -26,7 +26,7 @@ import numpy as np
 from ...profiles import Profiles
 from .trust import Estimate
 
-__all__ = ["DEFAULT_MAX_ERROR_DB", "Choice", "by_rule", "check_max_error_db"]
+__all__ = ["DEFAULT_MAX_ERROR_DB", "Choice", "by_rule", "check_max_error_db", "rule_reason"]
 
 log = logging.getLogger(__name__)
 
@@ -86,22 +86,34 @@ def by_rule(profiles: Profiles, max_error_db: float, *, tiled: bool = False) -> 
     tiled : bool
         Whether the grid is formed in tiles.
     """
-    reason = _rule(profiles, tiled)
+    reason = rule_reason(profiles.method, tiled=tiled, beams=getattr(profiles, "beams", None))
     if reason is None:
         return None
     log.info("formation auto: %s", reason)
     return Choice("bp", {}, reason, check_max_error_db(max_error_db), "rule", ())
 
 
-def _rule(profiles: Profiles, tiled: bool) -> str | None:
+def rule_reason(method: str, *, tiled: bool = False, beams=None) -> str | None:
+    """Why exact backprojection is taken by rule (see the module notes), before any profile is
+    formed, else None.
+
+    Parameters
+    ----------
+    method : str
+        What makes the profiles: a compression (``"matched"``, ``"fmcw"``) or a sparse method.
+    tiled : bool
+        Whether the grid is formed in tiles.
+    beams : clsas.beam.Beams or None
+        The dataset's beams (None: omnidirectional).
+    """
     from ...sparse import SPARSE_METHODS  # imported when auto forms, not by `import clsas`
 
-    if profiles.method in SPARSE_METHODS:
-        return (f"bp: the {profiles.method} profiles are imaged by bp only (the fast formations do not match it on "
+    if method in SPARSE_METHODS:
+        return (f"bp: the {method} profiles are imaged by bp only (the fast formations do not match it on "
                 "rendered pulses)")
     if tiled:
         return "bp: a grid formed in tiles is formed by bp (each tile equals the whole image's)"
-    if getattr(profiles, "beams", None) is not None and not profiles.beams.is_omni:
+    if beams is not None and not beams.is_omni:
         return ("bp: directional beams are applied exactly by bp only (FFBP interpolates beam-weighted sub-images, "
                 "which need finer sampling, and cannot match bp's gate; omega-k's angular weighting differs from "
                 "bp's beam gate by more than the target)")
