@@ -73,6 +73,8 @@ class Profiles:
     timings_s: dict = field(default_factory=dict)
     device: str = ""
     beams: Any = None  # clsas.beam.Beams of the dataset (None: omnidirectional)
+    # clsas.cl.DeviceRows: ``data`` as the OpenCL compression left it on the device (None: host only)
+    on_device: Any = field(default=None, compare=False, repr=False)
 
     @property
     def n_meas(self) -> int:

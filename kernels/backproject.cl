@@ -19,7 +19,15 @@
  *
  * Needs common.cl. Each work-item owns VEC consecutive voxels of the flattened grid
  * (C order, z fastest), so a single plane costs a plane; voxels past n_vox are padding.
- * Measurements are processed in chunks [m_begin, m_end); the host accumulates chunks. */
+ * Measurements are processed in chunks [m_begin, m_end); the host accumulates chunks. The
+ * image is two float planes, or with -DCOMPLEX_IMAGE one interleaved complex array. */
+
+#ifdef COMPLEX_IMAGE /* the image as one interleaved complex array (re, im), read back as complex64 */
+#define IMAGE_ARGS __global float *image /* (n_vox_padded, 2) complex image, (re, im) per voxel */
+#else /* the image as two planes */
+#define IMAGE_ARGS __global float *image_re, /* (n_vox_padded,) real part of the image */ \
+                   __global float *image_im  /* (n_vox_padded,) imaginary part of the image */
+#endif
 
 #ifndef BEAM_WEIGHT /* built without beam.cl: omnidirectional */
 #define BEAM_ARGS
@@ -43,8 +51,7 @@ __kernel void backproject(
     const int m_begin,               /* first measurement of this chunk                       */
     const int m_end,                 /* one past the last measurement of this chunk           */
     const int accumulate,            /* 0: overwrite the image, 1: add to it                  */
-    __global float *image_re,        /* (n_vox_padded,) real part of the image                */
-    __global float *image_im         /* (n_vox_padded,) imaginary part of the image           */
+    IMAGE_ARGS                       /* the image: two planes, or complex with -DCOMPLEX_IMAGE */
     BEAM_ARGS)                       /* beam.cl: the beam's buffers with -DBEAM, else nothing */
 {
     const int v0 = get_global_id(0) * VEC;
@@ -82,10 +89,28 @@ __kernel void backproject(
         acc_re += re * c - im * s;
         acc_im += re * s + im * c;
     }
+#ifdef COMPLEX_IMAGE
+    lanes_f out_re, out_im;
+    out_re.v = acc_re;
+    out_im.v = acc_im;
+    __global float *out = image + 2 * (size_t)v0;
+    if (accumulate) {
+        for (int l = 0; l < VEC; ++l) {
+            out[2 * l] += out_re.s[l];
+            out[2 * l + 1] += out_im.s[l];
+        }
+    } else {
+        for (int l = 0; l < VEC; ++l) {
+            out[2 * l] = out_re.s[l];
+            out[2 * l + 1] = out_im.s[l];
+        }
+    }
+#else
     if (accumulate) {
         acc_re += vloadV(0, image_re + v0);
         acc_im += vloadV(0, image_im + v0);
     }
     vstoreV(acc_re, 0, image_re + v0);
     vstoreV(acc_im, 0, image_im + v0);
+#endif
 }

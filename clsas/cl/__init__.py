@@ -42,7 +42,7 @@ from .device import (
     select,
 )
 from .fission import copy_seconds, sub_device_queue
-from .plan import Plan
+from .plan import DeviceRows, Plan
 from .program import BuildError, build, kernel, kernel_source, override_source
 from .variants import (
     KERNELS,
@@ -59,7 +59,8 @@ from .variants import (
 )
 
 __all__ = [
-    "BACKENDS", "BuildError", "DeviceRow", "KERNELS", "KernelSpec", "OpenCLUnavailable", "Plan", "Selection",
+    "BACKENDS", "BuildError", "DeviceRow", "DeviceRows", "KERNELS", "KernelSpec", "OpenCLUnavailable", "Plan",
+    "Selection",
     "Verdict", "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend",
     "describe", "device_info", "Health", "health", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source",
     "kernel_spec",

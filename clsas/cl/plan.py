@@ -22,7 +22,36 @@ from .device import _cl, describe, get_queue
 from .program import kernel
 from .variants import choose, register_kernel
 
-__all__ = ["Plan"]
+__all__ = ["DeviceRows", "Plan"]
+
+
+class DeviceRows:
+    """Rows a plan left on the device for the next plan on the same queue: ``n_rows`` rows of
+    ``n_cols`` complex64 values, ``stride`` values apart, in ``buffer``; and the host copy read
+    from them (``host``, read-only). Valid while the plan that wrote them has not been called
+    again (:meth:`valid`): a plan reuses its buffers from call to call. Holds the buffer, not
+    the plan (whose other buffers go when it does). A pickled copy (sent to another process)
+    holds nothing and is never valid."""
+
+    def __init__(self, plan: Plan, buffer: Any, n_rows: int, n_cols: int, stride: int, host: np.ndarray):
+        self.buffer, self.queue = buffer, plan.queue
+        self.n_rows, self.n_cols, self.stride = int(n_rows), int(n_cols), int(stride)
+        self.host = host
+        self._calls, self._generation = plan._calls, plan._calls[0]
+
+    def valid(self, queue: Any, host: np.ndarray) -> bool:
+        """Whether the rows still hold ``host`` (the very array read from them, unchanged since:
+        it is read-only) and may be read by a kernel enqueued on ``queue`` (in order after them)."""
+        return (self.buffer is not None and self._calls[0] == self._generation and host is self.host
+                and not host.flags.writeable and queue is self.queue)
+
+    def __getstate__(self) -> dict:
+        return {}
+
+    def __setstate__(self, state: dict) -> None:
+        self.buffer = self.queue = self.host = None
+        self.n_rows = self.n_cols = self.stride = 0
+        self._calls, self._generation = [0], -1
 
 
 class Plan:
@@ -54,6 +83,7 @@ class Plan:
         self.vec = choose(self.queue, self.KERNEL, vec)
         self.kernel = kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), "VEC": self.vec})
         self.last_kernel_s = 0.0
+        self._calls = [0]  # calls begun (:meth:`begin`), shared with the DeviceRows this plan made
         self._events: list = []
 
     def defines(self) -> dict[str, Any]:
@@ -99,8 +129,10 @@ class Plan:
 
     # -- launches ------------------------------------------------------------------------
     def begin(self) -> None:
-        """Start a call: the kernel time of the next :meth:`read` covers launches from here."""
+        """Start a call: the kernel time of the next :meth:`read` covers launches from here (and
+        rows an earlier call left on the device, :class:`DeviceRows`, are no longer valid)."""
         self._events = []
+        self._calls[0] += 1
 
     def launch(self, global_size: tuple[int, ...], *args: Any, local_size: tuple[int, ...] | None = None) -> Any:
         evt = self.kernel(self.queue, global_size, local_size, *args)

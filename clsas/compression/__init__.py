@@ -218,7 +218,8 @@ def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm, chirp=No
         log.info("matched filter on OpenCL: %s algorithm, VEC=%d", algorithm, plan.vec)
     else:
         out = twin.matched_filter(signals, ref_conj, lag_read, n_lags, rot, rot0, d)
-    return Profiles(out, t0 + lag0 / fs, d / fs, fc, "matched", sel.kind, timings_s=timings, device=sel.device)
+    return Profiles(out, t0 + lag0 / fs, d / fs, fc, "matched", sel.kind, timings_s=timings, device=sel.device,
+                    on_device=None if plan is None else plan.rows)
 
 
 def choose_algorithm(device: Any, n_meas: int, n_lags: int, n_ref: int, layout: FftLayout) -> str:
@@ -291,4 +292,5 @@ def _fmcw(signals, wave, fs, t0, fc, gate, sel, lag_step=1, algorithm="auto", ch
     else:
         out = twin.fmcw_dechirp(signals, ref, slope, fs, taus, rvp)
     tau0 = np.full(signals.shape[0], taus[0])
-    return Profiles(out, tau0, 1 / fs, fc, "fmcw", sel.kind, timings_s=timings, device=sel.device)
+    return Profiles(out, tau0, 1 / fs, fc, "fmcw", sel.kind, timings_s=timings, device=sel.device,
+                    on_device=None if plan is None else plan.rows)

@@ -2,14 +2,16 @@
 
 Each plan's ``selftest(queue, vec)`` runs it on a small input against its NumPy twin and
 returns the error relative to the peak; the device layer runs it in a child process to
-verify a kernel variant before it is used (:mod:`clsas.cl.variants`).
+verify a kernel variant before it is used (:mod:`clsas.cl.variants`). A call returns the
+profiles read back (read-only) and leaves them on the device as well, :attr:`rows`
+(:class:`clsas.cl.DeviceRows`), for the next plan on the same queue (backprojection).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ..cl import Plan
+from ..cl import DeviceRows, Plan
 from . import numpy as twin
 from .layout import fft_layout
 
@@ -36,13 +38,17 @@ class _RowPlan(Plan):
         self.n_meas, self.n_samples, self.n_lags = n_meas, n_samples, n_lags
         self.stride = -(-n_lags // self.vec) * self.vec
         self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
-        self.d_out = self.alloc(8 * n_meas * self.stride, "w")
+        self.d_out = self.alloc(8 * n_meas * self.stride, "rw")
+        self.rows: DeviceRows | None = None
 
     def _run(self, signals: np.ndarray, args: list) -> np.ndarray:
         self.begin()
         self.write(self.d_sig, signals, np.float32)
         self.launch((self.stride // self.vec, self.n_meas), self.d_sig, np.int32(self.n_samples), *args, self.d_out)
-        return self.read(self.d_out, (self.n_meas, self.stride), np.complex64)[:, : self.n_lags]
+        out = self.read(self.d_out, (self.n_meas, self.stride), np.complex64)[:, : self.n_lags]
+        out.flags.writeable = False
+        self.rows = DeviceRows(self, self.d_out, self.n_meas, self.n_lags, self.stride, out)
+        return out
 
 
 class MatchedFilterPlan(_RowPlan):
@@ -129,7 +135,8 @@ class FftMatchedPlan(Plan):
         self.items = max(1, min(-(-n_meas // self.vec), max_scratch_bytes // per_item))
         self.d_work = self.alloc(self.items * per_item)
         self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
-        self.d_out = self.alloc(8 * n_meas * self.n_lags, "w")
+        self.d_out = self.alloc(8 * n_meas * self.n_lags, "rw")
+        self.rows: DeviceRows | None = None
         self.d_tw, self.d_spec, self.d_post = (self.upload(a, np.complex64)
                                                for a in (layout.twiddles, layout.spec, layout.post))
         self.d_rot0 = self.upload(rot0, np.complex64)
@@ -147,7 +154,10 @@ class FftMatchedPlan(Plan):
                 self.d_tw, np.int32(lay.bin0), self.d_spec, np.int32(lay.idx0), np.int32(self.n_lags),
                 self.d_post, self.d_rot0, self.d_work, np.int32(self.n_lags), self.d_out,
             )
-        return self.read(self.d_out, (self.n_meas, self.n_lags), np.complex64)
+        out = self.read(self.d_out, (self.n_meas, self.n_lags), np.complex64)
+        out.flags.writeable = False
+        self.rows = DeviceRows(self, self.d_out, self.n_meas, self.n_lags, self.n_lags, out)
+        return out
 
     @classmethod
     def selftest(cls, queue, vec: int) -> float:

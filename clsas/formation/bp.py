@@ -61,6 +61,12 @@ class Backprojector:
     beam_floor_db : float
         The two-way level of ``beam="limited"``, dB (default -12: each transducer's -6 dB
         beam when speaker and microphone are together).
+    resident : bool
+        On OpenCL, keep the data on the device (default): profiles that the OpenCL compression
+        left there (``profiles.on_device``, still holding ``profiles.data``) go to the carrier
+        records kernel (kernels/records.cl) and then to bp without a trip through the host, and
+        the image is read back once as complex64. False: the step-by-step path (records made
+        on the host and written, the image read as two planes and joined), kept for comparison.
 
     Examples
     --------
@@ -81,7 +87,7 @@ class Backprojector:
 
     def __init__(self, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
                  chunk: int | None = None, force: bool = False, beam: str | None = None,
-                 beam_floor_db: float = -12.0):
+                 beam_floor_db: float = -12.0, resident: bool = True):
         if not isinstance(grid, VoxelGrid):
             raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
         if chunk is not None:
@@ -90,6 +96,9 @@ class Backprojector:
         self.chunk = chunk
         self.beam = None if beam is None else v.choice("beam", beam, BEAM_MODES)
         self.beam_floor_db = v.finite("beam_floor_db", beam_floor_db)
+        if not isinstance(resident, bool):
+            raise TypeError(f"resident must be True or False, got {resident!r}")
+        self.resident = resident
         self.selection = _cl.select(backend, device)
         check_grid(grid, self.selection.kind, self.selection.cl_device, force=force)
         self._force = force
@@ -105,7 +114,8 @@ class Backprojector:
         if p is None or p.n_meas != n_meas or p.n_lags < n_lags or p.beam_lut != beam_lut:
             was = self.selection.kind
             self._plan, self.selection = self.selection.plan(
-                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut))
+                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut,
+                                          complex_image=self.resident))
             if self.selection.kind != was:  # fell back to the twin: its memory is the host's, per voxel more
                 check_grid(self.grid, self.selection.kind, None, force=self._force)
         return self._plan
@@ -150,7 +160,11 @@ class Backprojector:
         timings = {}
         lut = 0 if weights is None else weights.luts.shape[1]
         plan = self._opencl_plan(n, data.shape[1], lut) if self.selection.opencl else None
-        if plan is not None:
+        rows = profiles.on_device
+        if plan is not None and self.resident and rows is not None and rows.valid(plan.queue, profiles.data):
+            values = plan.from_device(rows, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
+            timings["backproject_kernel"] = plan.last_kernel_s
+        elif plan is not None:
             values = plan(data, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
             timings["backproject_kernel"] = plan.last_kernel_s
         else:

@@ -8,6 +8,15 @@ import numpy as np
 
 from ..cl import Plan
 from ..geometry import VoxelGrid
+from .bp_numpy import (  # noqa: F401 - the twins of records.cl, imported from here by the projector
+    MAX_CYCLES_PER_SAMPLE,
+    carrier_factors,
+    carrier_records,
+    carrier_rotation,
+    upsample,
+    upsample_adjoint,
+    upsample_factor,
+)
 
 
 class BeamPlan(Plan):
@@ -54,72 +63,6 @@ class BeamPlan(Plan):
         self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
 
 
-# fc dtau, carrier cycles per profile sample, up to which backproject.cl's sub-sample rotation
-# (a polynomial for |angle| <= 0.6 pi) holds; coarser profiles are upsampled first
-MAX_CYCLES_PER_SAMPLE = 0.6
-
-
-def upsample_factor(fc_hz: float, dtau_s: float) -> int:
-    """The smallest integer factor that brings a profile to :data:`MAX_CYCLES_PER_SAMPLE` or less."""
-    return max(1, int(np.ceil(abs(fc_hz) * dtau_s / MAX_CYCLES_PER_SAMPLE - 1e-9)))
-
-
-def upsample(prof: np.ndarray, up: int) -> np.ndarray:
-    """(n, L) profiles -> (n, (L - 1) up + 1) by linear interpolation between their samples
-    (their linear interpolation is unchanged)."""
-    n, L = prof.shape
-    fine = np.zeros((n, (L - 1) * up + 1), prof.dtype)
-    for i in range(up):
-        fine[:, i : (L - 1) * up : up] = (1 - i / up) * prof[:, :-1] + (i / up) * prof[:, 1:]
-    fine[:, -1] = prof[:, -1]
-    return fine
-
-
-def upsample_adjoint(fine: np.ndarray, up: int) -> np.ndarray:
-    """The adjoint of :func:`upsample`: (n, (L - 1) up + 1) -> (n, L)."""
-    n = fine.shape[0]
-    L = (fine.shape[1] - 1) // up + 1
-    out = np.zeros((n, L), fine.dtype)
-    out[:, -1] = fine[:, -1]
-    for i in range(up):
-        part = fine[:, i : (L - 1) * up : up]
-        out[:, :-1] += (1 - i / up) * part
-        out[:, 1:] += (i / up) * part
-    return out
-
-
-def carrier_rotation(n_records: int, tau0_s, dtau_s: float, fc_hz: float) -> np.ndarray:
-    """(n_meas, n_records) complex64: ``exp(j 2 pi fc dtau (k + 1/2 + tau0_m / dtau))``, the
-    carrier at the middle of record k (computed in double precision, reduced to a turn)."""
-    cycles = fc_hz * dtau_s
-    k = np.arange(n_records)
-    s0 = np.asarray(tau0_s, float) / dtau_s
-    return (np.exp(2j * np.pi * np.mod(cycles * (k + 0.5), 1.0)).astype(np.complex64)[None, :]
-            * np.exp(2j * np.pi * np.mod(cycles * s0, 1.0)).astype(np.complex64)[:, None])
-
-
-def carrier_records(data: np.ndarray, n_lags: int, tau0_s, dtau_s: float, fc_hz: float):
-    """The profiles as kernels/backproject.cl reads them: record k of measurement m holds samples
-    k and k + 1, both rotated by :func:`carrier_rotation`, so that the kernel's carrier is the
-    sub-sample rotation only.
-
-    ``data`` (n_meas, <= n_lags) is zero-padded to ``n_lags`` samples. Where ``fc dtau`` exceeds
-    :data:`MAX_CYCLES_PER_SAMPLE` the profile is first upsampled (:func:`upsample`). Returns
-    ``(records (n_meas, n_lags', 2) complex64, dtau', phi = 2 pi fc dtau')``.
-    """
-    n_meas = data.shape[0]
-    prof = np.zeros((n_meas, n_lags), np.complex64)
-    prof[:, : data.shape[1]] = data
-    up = upsample_factor(fc_hz, dtau_s)
-    if up > 1:
-        prof, dtau_s = upsample(prof, up), dtau_s / up
-    rot = carrier_rotation(prof.shape[1], tau0_s, dtau_s, fc_hz)
-    pairs = np.zeros((n_meas, prof.shape[1], 2), np.complex64)  # p[n_lags] = 0
-    np.multiply(prof, rot, out=pairs[:, :, 0])
-    np.multiply(prof[:, 1:], rot[:, :-1], out=pairs[:, :-1, 1])
-    return pairs, dtau_s, 2 * np.pi * fc_hz * dtau_s
-
-
 def selftest_beam_weights(rng, mode: str, n_meas: int = 3):
     """The beams the beam selftests use: a piston speaker tilted per measurement (drawn from
     ``rng``) and a cone microphone, for ``n_meas`` measurements (the bp selftest scene's 3) at
@@ -131,19 +74,74 @@ def selftest_beam_weights(rng, mode: str, n_meas: int = 3):
     return beam_weights(beams, mode, 25e3, 343.0, -12.0)
 
 
+class RecordsPlan(Plan):
+    """kernels/records.cl: the carrier records of ``n_meas`` profiles of ``n_lags`` samples,
+    upsampled ``up`` times, made on the device (the twin: :func:`carrier_records`)."""
+
+    KERNEL = "carrier_records"
+    SOURCES = ("records.cl",)
+
+    def __init__(self, n_meas: int, n_lags: int, up: int, queue=None, vec=None):
+        super().__init__(queue, vec)
+        self.n_meas, self.n_lags, self.up = int(n_meas), max(2, int(n_lags)), int(up)
+        self.n_rec = (self.n_lags - 1) * self.up + 1
+        self.d_pairs = self.alloc(16 * self.n_meas * self.n_rec)
+        self.d_rot0 = self.alloc(8 * self.n_meas, "r")
+        self.d_rot, self._cycles = None, None
+
+    def enqueue(self, d_prof, stride: int, n_data: int, tau0_s, dtau_s: float, fc_hz: float):
+        """Launch on profiles already on the device (``d_prof``: (n_meas, stride) complex64,
+        ``n_data`` <= n_lags samples of each row used) at lag step ``dtau_s``; returns
+        ``(event, dtau / up, phi)``, the records in :attr:`d_pairs`."""
+        if not 1 <= n_data <= self.n_lags or stride < n_data:
+            raise ValueError(f"n_data must be in [1, {self.n_lags}] and at most stride={stride}, got {n_data}")
+        fine = dtau_s / self.up
+        rot, rot0 = carrier_factors(self.n_rec, tau0_s, fine, fc_hz)
+        if self._cycles != fc_hz * fine:  # the per-record factor depends on the shape and fc dtau only
+            self.d_rot, self._cycles = self.upload(rot, np.complex64), fc_hz * fine
+        self.write(self.d_rot0, rot0, np.complex64)
+        evt = self.launch((-(-self.n_rec // self.vec), self.n_meas), d_prof, np.int32(stride), np.int32(n_data),
+                          np.int32(self.up), np.int32(self.n_rec), self.d_rot, self.d_rot0, self.d_pairs)
+        return evt, fine, 2 * np.pi * fc_hz * fine
+
+    def __call__(self, data: np.ndarray, tau0_s, dtau_s: float, fc_hz: float):
+        """:func:`carrier_records` of host profiles (uploaded, made, read back): ``(records
+        (n_meas, n_rec, 2) complex64, dtau / up, phi)``."""
+        self.begin()
+        d_prof = self.upload(data, np.complex64)
+        _, fine, phi = self.enqueue(d_prof, data.shape[1], data.shape[1], tau0_s, dtau_s, fc_hz)
+        return self.read(self.d_pairs, (self.n_meas, self.n_rec, 2), np.complex64), fine, phi
+
+    @classmethod
+    def selftest(cls, queue, vec: int) -> float:
+        """Profiles shorter than the records' window (zero-padded), upsampled 4 times and not at
+        all, against :func:`carrier_records`; error relative to the peak."""
+        _, prof, tau0, fs, *_ = selftest_scene()
+        err = 0.0
+        for dtau in (1 / fs, 8 / fs):  # fc dtau 0.26 and 2.08 at 25 kHz: not upsampled, 4 x upsampled
+            want, *_ = carrier_records(prof[:, :37], 40, tau0, dtau, 25e3)
+            plan = cls(3, 40, upsample_factor(25e3, dtau), queue=queue, vec=vec)
+            got, *_ = plan(prof[:, :37], tau0, dtau, 25e3)
+            err = max(err, float(np.abs(got - want).max() / np.abs(want).max()))
+        return err
+
+
 class BackprojectPlan(BeamPlan):
     """Compiled kernel and device buffers for one grid and profile shape.
 
     Measurements go through the kernel in chunks of ``chunk`` (bounded launches, profiles of
-    a chunk stay in cache); the image accumulates on the device.
+    a chunk stay in cache); the image accumulates on the device. With ``complex_image`` the
+    kernel writes the image as one complex array (``-DCOMPLEX_IMAGE``), read back once as
+    complex64; without, as two float planes the host joins.
     """
 
     KERNEL = "backproject"
     SOURCES = ("common.cl", "beam.cl", "backproject.cl")
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
-                 beam_lut: int = 0):
+                 beam_lut: int = 0, complex_image: bool = False):
         self.beam_lut = int(beam_lut)  # samples per beam table; 0: omnidirectional (no -DBEAM)
+        self.complex_image = bool(complex_image)
         super().__init__(queue, vec)
         self.grid, self.n_meas, self.n_lags = grid, n_meas, max(2, n_lags)
         self.n_vox = grid.size
@@ -153,9 +151,13 @@ class BackprojectPlan(BeamPlan):
         self.d_tx = self.alloc(16 * n_meas, "r")
         self.d_rx = self.alloc(16 * n_meas, "r")
         self.d_s0 = self.alloc(4 * n_meas, "r")
-        self.d_re = self.alloc(4 * self.n_pad)
-        self.d_im = self.alloc(4 * self.n_pad)
+        self.d_image = (self.alloc(8 * self.n_pad),) if self.complex_image else \
+            (self.alloc(4 * self.n_pad), self.alloc(4 * self.n_pad))
         self.alloc_beam(n_meas)
+        self.records: RecordsPlan | None = None  # made on the first call on device profiles
+
+    def defines(self) -> dict:
+        return {**super().defines(), **({"COMPLEX_IMAGE": 1} if self.complex_image else {})}
 
     def __call__(
         self,
@@ -169,33 +171,62 @@ class BackprojectPlan(BeamPlan):
         progress: Callable[[int, int], None] | None = None,
         beam=None,
     ) -> np.ndarray:
-        """Backproject; same arguments as the NumPy twin (grid fixed). Returns (n_vox,) complex64."""
+        """Backproject; same arguments as the NumPy twin (grid fixed). Returns (n_vox,) complex64.
+        The carrier records are made on the host (:func:`carrier_records`) and written."""
         pairs, dtau_s, phi = carrier_records(data, self.n_lags, tau0_s, dtau_s, fc_hz)
         n_lags = pairs.shape[1]
         if n_lags != self.n_lags_dev:  # upsampled (fc dtau > MAX_CYCLES_PER_SAMPLE): a larger buffer
             self.d_prof, self.n_lags_dev = self.alloc(pairs.nbytes, "r"), n_lags
         self.begin()
         self.write(self.d_prof, pairs, np.complex64)
+        return self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps, progress,
+                          beam)
+
+    def from_device(self, rows, tau0_s, dtau_s: float, fc_hz: float, tx_positions, rx_positions, c_mps,
+                    progress: Callable[[int, int], None] | None = None, beam=None) -> np.ndarray:
+        """Backproject profiles another plan left on this queue's device (:class:`clsas.cl.DeviceRows`,
+        ``n_meas`` rows of at most ``n_lags`` samples): the carrier records are made there
+        (:class:`RecordsPlan`) and the bp kernel reads them; nothing but the geometry and one
+        value per measurement goes to the device. Returns (n_vox,) complex64."""
+        if rows.n_rows != self.n_meas or rows.n_cols > self.n_lags:
+            raise ValueError(f"rows: {rows.n_rows} rows of {rows.n_cols} samples do not fit a plan for "
+                             f"{self.n_meas} profiles of at most {self.n_lags}")
+        up = upsample_factor(fc_hz, dtau_s)
+        rec = self.records
+        if rec is None or rec.up != up:
+            rec = self.records = RecordsPlan(self.n_meas, self.n_lags, up, queue=self.queue)
+        self.begin()
+        evt, fine, phi = rec.enqueue(rows.buffer, rows.stride, rows.n_cols, tau0_s, dtau_s, fc_hz)
+        self._events.append(evt)
+        return self._form(rec.d_pairs, rec.n_rec, tau0_s, fine, phi, tx_positions, rx_positions, c_mps, progress,
+                          beam)
+
+    def _form(self, d_pairs, n_lags: int, tau0_s, dtau_s: float, phi: float, tx_positions, rx_positions, c_mps,
+              progress, beam) -> np.ndarray:
+        """The bp kernel over every chunk of measurements on records ``d_pairs`` (n_meas, n_lags)
+        at lag step ``dtau_s``, and the image read back."""
         self.write_geometry(tau0_s, dtau_s, tx_positions, rx_positions, c_mps)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)
         fixed = (
-            self.d_prof, np.int32(n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
+            d_pairs, np.int32(n_lags), self.d_tx, self.d_rx, self.d_s0, origin, step,
             np.int32(g.shape[1]), np.int32(g.shape[2]), np.float32(phi),
         )
         beam_args = self.beam_args(beam)
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
             evt = self.launch(
-                (self.n_pad // self.vec,), *fixed, np.int32(m0), np.int32(m1), np.int32(m0 > 0), self.d_re, self.d_im,
+                (self.n_pad // self.vec,), *fixed, np.int32(m0), np.int32(m1), np.int32(m0 > 0), *self.d_image,
                 *beam_args,
             )
             if progress is not None:
                 evt.wait()
                 progress(m1, self.n_meas)
-        re = self.read(self.d_re, (self.n_pad,), np.float32)
-        im = self.read(self.d_im, (self.n_pad,), np.float32)
+        if self.complex_image:
+            return self.read(self.d_image[0], (self.n_pad,), np.complex64)[: self.n_vox]
+        re = self.read(self.d_image[0], (self.n_pad,), np.float32)
+        im = self.read(self.d_image[1], (self.n_pad,), np.float32)
         out = np.empty(self.n_vox, np.complex64)  # filled in place: 5x faster than re + 1j * im, cast
         out.real, out.imag = re[: self.n_vox], im[: self.n_vox]
         return out

@@ -1,0 +1,191 @@
+"""kernels/records.cl (the carrier records bp reads, made on the device) against its twin
+(clsas.formation.bp_numpy.carrier_records) and analytically; the resident path (compression ->
+records -> bp on device buffers, the image read once as complex64) against the step-by-step one."""
+
+import numpy as np
+import pytest
+from conftest import TOL, needs_opencl, small_dataset, width_or_skip
+
+import clsas
+from clsas.formation.bp_numpy import carrier_records, upsample, upsample_factor
+
+FS = 96e3
+FC = 25e3
+
+
+def _profiles(rng, n_meas, n_data):
+    return (rng.normal(size=(n_meas, n_data)) + 1j * rng.normal(size=(n_meas, n_data))).astype(np.complex64)
+
+
+@pytest.mark.parametrize("up", [1, 2, 3, 5])
+def test_twin_upsamples_then_rotates(rng, up):
+    """The twin's records are the upsampled profile's samples j and j + 1 times the carrier at the
+    middle of record j (the definition in records.cl), the last record's second sample zero."""
+    n_meas, n_lags = 4, 30
+    dtau = up * 0.5 / FC  # fc dtau = 0.5 up: upsample_factor gives up (1 for up = 1)
+    assert upsample_factor(FC, dtau) == up
+    data = _profiles(rng, n_meas, n_lags - 3)
+    tau0 = rng.uniform(1e-3, 2e-3, n_meas)
+    pairs, fine, phi = carrier_records(data, n_lags, tau0, dtau, FC)
+    padded = np.zeros((n_meas, n_lags), complex)
+    padded[:, : data.shape[1]] = data
+    fine_prof = upsample(padded, up) if up > 1 else padded
+    j = np.arange(fine_prof.shape[1])
+    rot = np.exp(2j * np.pi * FC * (tau0[:, None] + (j + 0.5) * fine))
+    assert fine == pytest.approx(dtau / up) and phi == pytest.approx(2 * np.pi * FC * dtau / up)
+    np.testing.assert_allclose(pairs[:, :, 0], fine_prof * rot, atol=2e-5 * np.abs(data).max())
+    np.testing.assert_allclose(pairs[:, :-1, 1], fine_prof[:, 1:] * rot[:, :-1], atol=2e-5 * np.abs(data).max())
+    assert np.all(pairs[:, -1, 1] == 0)
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+@pytest.mark.parametrize("up", [1, 2, 4, 7], ids=lambda u: f"up{u}")
+def test_records_kernel_equals_twin_at_every_width(rng, vec, up):
+    """Rows shorter than the window (zero-padded), a row stride wider than the data (as the
+    direct matched filter leaves them), records not a multiple of VEC."""
+    from clsas import cl
+    from clsas.formation.bp_opencl import RecordsPlan
+
+    width_or_skip("carrier_records", vec)
+    n_meas, n_lags, n_data, stride = 2 * vec + 3, 53, 47, 56
+    dtau = up * 0.55 / FC
+    assert upsample_factor(FC, dtau) == up
+    data = _profiles(rng, n_meas, n_data)
+    tau0 = rng.uniform(1e-3, 9e-3, n_meas)
+    want, w_fine, w_phi = carrier_records(data, n_lags, tau0, dtau, FC)
+    plan = RecordsPlan(n_meas, n_lags, up, queue=cl.get_queue(), vec=vec)
+    assert plan.vec == vec and plan.n_rec == want.shape[1] and plan.n_rec % vec
+    wide = np.zeros((n_meas, stride), np.complex64)
+    wide[:, :n_data] = data
+    d_prof = plan.upload(wide, np.complex64)
+    plan.begin()
+    _, fine, phi = plan.enqueue(d_prof, stride, n_data, tau0, dtau, FC)
+    got = plan.read(plan.d_pairs, want.shape, np.complex64)
+    assert (fine, phi) == pytest.approx((w_fine, w_phi))
+    assert np.abs(got - want).max() / np.abs(want).max() < 1e-6
+    got2, *_ = plan(data, tau0, dtau, FC)  # the host-profile call: the same records
+    assert np.abs(got2 - want).max() / np.abs(want).max() < 1e-6
+
+
+@needs_opencl
+def test_records_kernel_analytic():
+    """A constant profile upsampled stays constant, a ramp stays a ramp; the records' phase is
+    the carrier at the middle of each record, 2 pi fc (tau0 + (j + 1/2) dtau / up)."""
+    from clsas.formation.bp_opencl import RecordsPlan
+
+    n_lags, up = 20, 4
+    dtau = 2.1 / FC  # fc dtau = 2.1: 4 x
+    assert upsample_factor(FC, dtau) == up
+    tau0 = np.array([1.234e-3, 5.678e-3])
+    data = np.stack([np.ones(n_lags), np.arange(n_lags)]).astype(np.complex64)
+    pairs, fine, _ = RecordsPlan(2, n_lags, up)(data, tau0, dtau, FC)
+    n_rec = (n_lags - 1) * up + 1
+    j = np.arange(n_rec)
+    carrier = np.exp(2j * np.pi * FC * (tau0[:, None] + (j + 0.5) * dtau / up))
+    level = np.stack([np.ones(n_rec), j / up])  # the constant, and the ramp at the fine samples
+    np.testing.assert_allclose(pairs[:, :, 0], level * carrier, atol=2e-5 * n_lags)
+    np.testing.assert_allclose(pairs[:, :-1, 1], (level[:, 1:]) * carrier[:, :-1], atol=2e-5 * n_lags)
+    assert np.all(pairs[:, -1, 1] == 0) and fine == pytest.approx(dtau / up)
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+def test_complex_image_equals_two_planes(vec):
+    """bp's image written as one complex array (-DCOMPLEX_IMAGE) equals the two planes joined,
+    over several chunks, to the last bit."""
+    from clsas import cl
+    from clsas.formation.bp_opencl import BackprojectPlan, selftest_scene
+
+    width_or_skip("backproject", vec)
+    grid, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
+    args = (prof, tau0, 1 / fs, FC, tx, rx, c)
+    q = cl.get_queue()
+    planes = BackprojectPlan(grid, 3, 40, queue=q, vec=vec, chunk=2)(*args)
+    joined = BackprojectPlan(grid, 3, 40, queue=q, vec=vec, chunk=2, complex_image=True)(*args)
+    assert joined.dtype == np.complex64 and np.array_equal(planes, joined)
+
+
+def _scan():
+    ds = small_dataset([[0.02, -0.03, 0.6], [-0.05, 0.04, 0.7]], nx=7, ny=6)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.55, 0.75), 0.01)
+    return ds, grid
+
+
+@needs_opencl
+@pytest.mark.parametrize("algorithm", ["fft", "direct"])
+@pytest.mark.parametrize("lag_step", [1, 4], ids=lambda d: f"step{d}")
+def test_resident_equals_step_by_step_per_step(algorithm, lag_step):
+    """Each step of the resident path against the step-by-step one on a small scene: the profiles
+    it leaves on the device are those read back; the records made from them on the device are
+    the host's; the image formed from them equals the step-by-step image (bp's tolerance)."""
+    from clsas.formation.bp import Backprojector
+    from clsas.formation.bp_opencl import BackprojectPlan
+
+    ds, grid = _scan()
+    prof = clsas.compress(ds, backend="opencl", algorithm=algorithm, lag_step=lag_step)
+    rows = prof.on_device
+    assert rows is not None and rows.n_cols == prof.n_lags and not prof.data.flags.writeable
+    back = np.empty((rows.n_rows, rows.stride), np.complex64)
+    import pyopencl as pcl
+
+    pcl.enqueue_copy(rows.queue, back, rows.buffer)
+    assert np.array_equal(back[:, : rows.n_cols], prof.data)  # step 1: compression's output, on the device
+    plan = BackprojectPlan(grid, prof.n_meas, prof.n_lags, queue=rows.queue, complex_image=True)
+    assert rows.valid(plan.queue, prof.data)
+    resident = plan.from_device(rows, prof.tau0_s, prof.dtau_s, prof.fc_hz, prof.tx_positions, prof.rx_positions,
+                                prof.c_mps)
+    want_rec, *_ = carrier_records(prof.data, prof.n_lags, prof.tau0_s, prof.dtau_s, prof.fc_hz)
+    got_rec = plan.read(plan.records.d_pairs, want_rec.shape, np.complex64)
+    assert np.abs(got_rec - want_rec).max() / np.abs(want_rec).max() < 1e-6  # step 2: the records
+    step = Backprojector(grid, backend="opencl", resident=False)(prof).values.ravel()
+    assert np.abs(resident - step).max() / np.abs(step).max() < TOL["backproject"]  # step 3: the image
+    image = Backprojector(grid, backend="opencl")(prof)  # the default takes the resident path
+    assert np.abs(image.values.ravel() - step).max() / np.abs(step).max() < TOL["backproject"]
+
+
+@needs_opencl
+def test_reconstruct_takes_the_resident_path_and_equals_step_by_step(monkeypatch):
+    """``reconstruct`` with bp on OpenCL forms from the profiles compression left on the device;
+    its image equals the step-by-step one (and the NumPy twin's within bp's tolerance)."""
+    from clsas.formation.bp import Backprojector
+    from clsas.formation.bp_opencl import BackprojectPlan
+
+    ds, grid = _scan()
+    calls = []
+    real = BackprojectPlan.from_device
+    monkeypatch.setattr(BackprojectPlan, "from_device", lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
+    image = clsas.reconstruct(ds, grid, backend="opencl", formation="bp")
+    assert calls, "reconstruct did not take the resident path"
+    prof = clsas.compress(ds, backend="opencl", gate_s=image.plan.gate_s)
+    step = Backprojector(grid, backend="opencl", resident=False)(prof).values
+    twin = clsas.reconstruct(ds, grid, backend="numpy", formation="bp").values
+    for want in (step, twin):
+        assert np.abs(image.values - want).max() / np.abs(want).max() < TOL["backproject"]
+
+
+@needs_opencl
+def test_stale_rows_are_not_read():
+    """Profiles whose device rows were overwritten by a later call of the same plan, whose data
+    was replaced, or which were pickled, go the host way (and still give the right image)."""
+    import pickle
+    from dataclasses import replace
+
+    from clsas.compression.opencl import MatchedFilterPlan
+
+    ds, grid = _scan()
+    prof = clsas.compress(ds, backend="opencl", algorithm="direct")
+    rows = prof.on_device
+    from clsas import cl
+
+    q = cl.get_queue()
+    assert rows.valid(q, prof.data)
+    assert not rows.valid(q, prof.data.copy())  # another array
+    assert not replace(prof, data=prof.data.copy()).on_device.valid(q, prof.data.copy())
+    assert not pickle.loads(pickle.dumps(rows)).valid(q, prof.data)
+    plan = MatchedFilterPlan(2, 50, np.ones(4), 0, 10, np.ones(10), np.ones(2), queue=q)
+    plan(np.zeros((2, 50)))
+    rows2 = plan.rows
+    assert rows2.valid(q, rows2.host)
+    plan(np.zeros((2, 50)))  # the same plan again: its buffer holds the new rows
+    assert not rows2.valid(q, rows2.host) and plan.rows.valid(q, plan.rows.host)
