@@ -163,7 +163,8 @@ class Backprojector:
         rows = profiles.on_device
         if plan is not None and self.resident and rows is not None and rows.valid(plan.queue, profiles.data):
             values = plan.from_device(rows, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
-            timings["backproject_kernel"] = plan.last_kernel_s
+            timings["records_kernel"] = plan.last_records_s
+            timings["backproject_kernel"] = plan.last_kernel_s - plan.last_records_s
         elif plan is not None:
             values = plan(data, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
             timings["backproject_kernel"] = plan.last_kernel_s

@@ -155,6 +155,7 @@ class BackprojectPlan(BeamPlan):
             (self.alloc(4 * self.n_pad), self.alloc(4 * self.n_pad))
         self.alloc_beam(n_meas)
         self.records: RecordsPlan | None = None  # made on the first call on device profiles
+        self.last_records_s = 0.0  # kernel time of the last call's records (:meth:`from_device`), s
 
     def defines(self) -> dict:
         return {**super().defines(), **({"COMPLEX_IMAGE": 1} if self.complex_image else {})}
@@ -187,7 +188,8 @@ class BackprojectPlan(BeamPlan):
         """Backproject profiles another plan left on this queue's device (:class:`clsas.cl.DeviceRows`,
         ``n_meas`` rows of at most ``n_lags`` samples): the carrier records are made there
         (:class:`RecordsPlan`) and the bp kernel reads them; nothing but the geometry and one
-        value per measurement goes to the device. Returns (n_vox,) complex64."""
+        value per measurement goes to the device. Returns (n_vox,) complex64; ``last_kernel_s``
+        covers both kernels, ``last_records_s`` the records'."""
         if rows.n_rows != self.n_meas or rows.n_cols > self.n_lags:
             raise ValueError(f"rows: {rows.n_rows} rows of {rows.n_cols} samples do not fit a plan for "
                              f"{self.n_meas} profiles of at most {self.n_lags}")
@@ -198,8 +200,10 @@ class BackprojectPlan(BeamPlan):
         self.begin()
         evt, fine, phi = rec.enqueue(rows.buffer, rows.stride, rows.n_cols, tau0_s, dtau_s, fc_hz)
         self._events.append(evt)
-        return self._form(rec.d_pairs, rec.n_rec, tau0_s, fine, phi, tx_positions, rx_positions, c_mps, progress,
-                          beam)
+        image = self._form(rec.d_pairs, rec.n_rec, tau0_s, fine, phi, tx_positions, rx_positions, c_mps, progress,
+                           beam)
+        self.last_records_s = self.seconds(evt)  # part of last_kernel_s
+        return image
 
     def _form(self, d_pairs, n_lags: int, tau0_s, dtau_s: float, phi: float, tx_positions, rx_positions, c_mps,
               progress, beam) -> np.ndarray:
