@@ -42,7 +42,7 @@ from .device import (
     select,
 )
 from .fission import copy_seconds, sub_device_queue
-from .plan import DeviceRows, Plan
+from .plan import DeviceRows, Plan, release_reused, reused
 from .program import BuildError, build, kernel, kernel_source, override_source
 from .variants import (
     KERNELS,
@@ -64,7 +64,8 @@ __all__ = [
     "Verdict", "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend",
     "describe", "device_info", "Health", "health", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source",
     "kernel_spec",
-    "copy_seconds", "list_devices", "override_source", "register_kernel", "resolve_backend", "runtime_record", "select",
+    "copy_seconds", "list_devices", "override_source", "register_kernel", "release_reused", "resolve_backend",
+    "reused", "runtime_record", "select",
     "sub_device_queue",
 ]
 

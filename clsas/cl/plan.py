@@ -13,8 +13,9 @@ from profiling events.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any, ClassVar
+import threading
+from collections.abc import Callable, Sequence
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
@@ -22,7 +23,38 @@ from .device import _cl, describe, get_queue
 from .program import kernel
 from .variants import choose, register_kernel
 
-__all__ = ["DeviceRows", "Plan"]
+P = TypeVar("P")
+
+__all__ = ["DeviceRows", "Plan", "release_reused", "reused"]
+
+# (thread, queue, kind) -> (key, plan): the last plan of each kind built through :func:`reused`
+_REUSED: dict[tuple, tuple] = {}
+
+
+def reused(queue: Any, kind: str, key: tuple, factory: Callable[[Any], P]) -> P:
+    """The plan ``factory(queue)`` builds, reused from the last call with the same ``kind`` and
+    ``key`` (the shapes and tables it is built for) on this queue in this thread.
+
+    One plan of each kind is kept per queue and thread (a different key replaces it, freeing
+    its buffers), so calls with the same shapes skip the allocations and the table uploads;
+    a plan is never shared between threads. Its rows left on the device for the previous call
+    (:class:`DeviceRows`) become invalid at the next call, as for any plan.
+    """
+    slot = (threading.get_ident(), id(queue), kind)
+    held = _REUSED.get(slot)
+    if held is not None and held[0] == key and held[1].queue is queue:
+        return held[1]
+    _REUSED.pop(slot, None)  # the old plan's buffers go before the new ones are allocated
+    plan = factory(queue)
+    _REUSED[slot] = (key, plan)
+    return plan
+
+
+def release_reused() -> int:
+    """Drop every plan :func:`reused` keeps (their device memory goes with them); returns how many."""
+    n = len(_REUSED)
+    _REUSED.clear()
+    return n
 
 
 class DeviceRows:

@@ -22,7 +22,7 @@ from ..registry import Registry
 from ..signals import analytic
 from . import numpy as twin
 from .layout import FftLayout, fft_layout
-from .opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from .opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan, layout_key, table_key
 
 __all__ = ["COMPRESSIONS", "Profiles", "compress", "center_frequency", "profile_decimation"]
 
@@ -207,12 +207,17 @@ def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm, chirp=No
             layout = fft_layout(ref_a, fs, fc, 0, signals.shape[1], lag_read, d, n_lags, rot)
         if algorithm == "auto":
             algorithm = choose_algorithm(sel.cl_device, n_meas, n_lags, n_ref, layout)
+        n_in = signals.shape[1]
         if algorithm == "fft":
-            plan, sel = sel.plan(lambda q: FftMatchedPlan(n_meas, signals.shape[1], layout, rot0, queue=q))
+            key = (n_meas, n_in, layout_key(layout))
+            plan, sel = sel.plan(lambda q: _cl.reused(q, "matched_fft", key, lambda q: FftMatchedPlan(
+                n_meas, n_in, layout, rot0, queue=q)))
         else:
-            plan, sel = sel.plan(lambda q: MatchedFilterPlan(n_meas, signals.shape[1], ref_conj, lag_read, n_lags,
-                                                             rot, rot0, d, queue=q))
+            key = table_key(n_meas, n_in, ref_conj, lag_read, n_lags, rot, d)
+            plan, sel = sel.plan(lambda q: _cl.reused(q, "matched_filter", key, lambda q: MatchedFilterPlan(
+                n_meas, n_in, ref_conj, lag_read, n_lags, rot, rot0, d, queue=q)))
     if plan is not None:
+        plan.set_rot0(rot0)  # a plan reused from an earlier call was built with its t0
         out = plan(signals)
         timings["compress_kernel"] = plan.last_kernel_s
         log.info("matched filter on OpenCL: %s algorithm, VEC=%d", algorithm, plan.vec)
@@ -285,7 +290,9 @@ def _fmcw(signals, wave, fs, t0, fc, gate, sel, lag_step=1, algorithm="auto", ch
     rvp = np.exp(2j * np.pi * (((f1 + slope * t_c - fc) * taus - 0.5 * slope * taus**2) % 1.0))
     log.info("fmcw: %d delays from %.3f to %.3f ms, %d samples mixed", n_lags, 1e3 * taus[0], 1e3 * taus[-1], n_mix)
     timings = {}
-    plan, sel = sel.plan(lambda q: FmcwPlan(signals.shape[0], n_samples, ref, slope, fs, taus, rvp, queue=q))
+    key = table_key(signals.shape[0], n_samples, ref, slope, fs, taus, rvp)
+    plan, sel = sel.plan(lambda q: _cl.reused(q, "fmcw_dechirp", key, lambda q: FmcwPlan(
+        signals.shape[0], n_samples, ref, slope, fs, taus, rvp, queue=q)))
     if plan is not None:
         out = plan(signals)
         timings["compress_kernel"] = plan.last_kernel_s

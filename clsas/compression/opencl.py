@@ -9,6 +9,8 @@ profiles read back (read-only) and leaves them on the device as well, :attr:`row
 
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from ..cl import DeviceRows, Plan
@@ -24,6 +26,25 @@ def _selftest_inputs(rows: int = 3, n: int = 120):
     rng = np.random.default_rng(7)
     wave = lfm_chirp(20e3, 30e3, 0.4e-3, _FS, taper=0.1)
     return rng, analytic(wave), rng.normal(size=(rows, n))
+
+
+def table_key(*parts) -> tuple:
+    """A key for :func:`clsas.cl.reused` from a plan's constructor arguments: arrays by shape,
+    dtype and a digest of their bytes, everything else as it is."""
+    out = []
+    for p in parts:
+        if isinstance(p, np.ndarray):
+            a = np.ascontiguousarray(p)
+            out.append((a.shape, a.dtype.str, hashlib.sha1(a.tobytes()).hexdigest()))
+        else:
+            out.append(p)
+    return tuple(out)
+
+
+def layout_key(layout) -> tuple:
+    """:func:`table_key` of an :class:`~clsas.compression.layout.FftLayout`'s sizes and tables."""
+    return table_key(layout.s_lo, layout.n_in, layout.log2_n, layout.log2_nd, layout.bin0, layout.idx0,
+                     layout.n_lags, layout.twiddles, layout.spec, layout.post)
 
 
 def _rel_err(got, want) -> float:
@@ -61,11 +82,15 @@ class MatchedFilterPlan(_RowPlan):
         super().__init__(n_meas, n_samples, n_lags, queue, vec)
         rot_p = np.zeros(self.stride, np.complex64)
         rot_p[:n_lags] = rot[:n_lags]
+        self.d_rot0 = self.upload(rot0, np.complex64)
         self.args = [
             self.upload(ref_conj, np.complex64), np.int32(len(ref_conj)), np.int32(lag0), np.int32(lag_step),
-            np.int32(n_lags), self.upload(rot_p, np.complex64), self.upload(rot0, np.complex64),
-            np.int32(self.stride),
+            np.int32(n_lags), self.upload(rot_p, np.complex64), self.d_rot0, np.int32(self.stride),
         ]
+
+    def set_rot0(self, rot0: np.ndarray) -> None:
+        """The per-recording rotation of the next calls ((n_meas,) complex), written in place."""
+        self.write(self.d_rot0, rot0, np.complex64)
 
     def __call__(self, signals: np.ndarray) -> np.ndarray:
         return self._run(signals, self.args)
@@ -140,6 +165,10 @@ class FftMatchedPlan(Plan):
         self.d_tw, self.d_spec, self.d_post = (self.upload(a, np.complex64)
                                                for a in (layout.twiddles, layout.spec, layout.post))
         self.d_rot0 = self.upload(rot0, np.complex64)
+
+    def set_rot0(self, rot0: np.ndarray) -> None:
+        """The per-recording rotation of the next calls ((n_meas,) complex), written in place."""
+        self.write(self.d_rot0, rot0, np.complex64)
 
     def __call__(self, signals: np.ndarray) -> np.ndarray:
         lay = self.layout

@@ -113,9 +113,12 @@ class Backprojector:
         p = self._plan
         if p is None or p.n_meas != n_meas or p.n_lags < n_lags or p.beam_lut != beam_lut:
             was = self.selection.kind
-            self._plan, self.selection = self.selection.plan(
-                lambda q: BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut,
-                                          complex_image=self.resident))
+            g = self.grid
+            key = (g.x_m.tobytes(), g.y_m.tobytes(), g.z_m.tobytes(), n_meas, n_lags, self.chunk, beam_lut,
+                   self.resident)
+            self._plan, self.selection = self.selection.plan(lambda q: _cl.reused(q, "backproject", key, lambda q:
+                BackprojectPlan(g, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut,
+                                complex_image=self.resident)))
             if self.selection.kind != was:  # fell back to the twin: its memory is the host's, per voxel more
                 check_grid(self.grid, self.selection.kind, None, force=self._force)
         return self._plan

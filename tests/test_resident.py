@@ -189,3 +189,31 @@ def test_stale_rows_are_not_read():
     assert rows2.valid(q, rows2.host)
     plan(np.zeros((2, 50)))  # the same plan again: its buffer holds the new rows
     assert not rows2.valid(q, rows2.host) and plan.rows.valid(q, plan.rows.host)
+
+
+@needs_opencl
+def test_plans_are_reused_across_calls_with_the_same_shapes():
+    """A second compression and bp of the same shapes reuse the first call's plans (no new
+    buffers, no new uploads) and still apply what changed between the calls: a compression with
+    another t0 equals its twin, not the first call's profiles."""
+    from clsas import cl
+    from clsas.formation.bp import Backprojector
+
+    ds, grid = _scan()
+    cl.release_reused()
+    first = clsas.compress(ds, backend="opencl", algorithm="fft")
+    shifted = clsas.Dataset(ds.signals, ds.tx_positions, ds.rx_positions, ds.fs_hz, ds.waveform,
+                            t0_s=np.asarray(ds.t0_s) + 3e-5, c_mps=ds.c_mps)
+    second = clsas.compress(shifted, backend="opencl", algorithm="fft")
+    assert first.on_device.buffer is second.on_device.buffer  # the same plan's output buffer
+    assert not first.on_device.valid(second.on_device.queue, first.data)  # overwritten by the second call
+    want = clsas.compress(shifted, backend="numpy")
+    assert np.abs(second.data - want.data).max() / np.abs(want.data).max() < TOL["compress_fft"]
+    a = Backprojector(grid, backend="opencl")
+    b = Backprojector(grid, backend="opencl")
+    img_a, img_b = a(second), b(second)
+    assert a._plan is b._plan and np.array_equal(img_a.values, img_b.values)
+    step = Backprojector(grid, backend="opencl", resident=False)
+    step(second)
+    assert step._plan is not a._plan  # the step-by-step path keeps a plan of its own kind
+    assert cl.release_reused() >= 2
