@@ -120,7 +120,7 @@ def test_resident_equals_step_by_step_per_step(algorithm, lag_step):
     it leaves on the device are those read back; the records made from them on the device are
     the host's; the image formed from them equals the step-by-step image (bp's tolerance)."""
     from clsas.formation.bp import Backprojector
-    from clsas.formation.bp_opencl import BackprojectPlan
+    from clsas.formation.bp_opencl import BackprojectPlan, RecordsPlan
 
     ds, grid = _scan()
     prof = clsas.compress(ds, backend="opencl", algorithm=algorithm, lag_step=lag_step)
@@ -133,10 +133,11 @@ def test_resident_equals_step_by_step_per_step(algorithm, lag_step):
     assert np.array_equal(back[:, : rows.n_cols], prof.data)  # step 1: compression's output, on the device
     plan = BackprojectPlan(grid, prof.n_meas, prof.n_lags, queue=rows.queue, complex_image=True)
     assert rows.valid(plan.queue, prof.data)
-    resident = plan.from_device(rows, prof.tau0_s, prof.dtau_s, prof.fc_hz, prof.tx_positions, prof.rx_positions,
-                                prof.c_mps)
+    records = RecordsPlan(prof.n_meas, prof.n_lags, upsample_factor(prof.fc_hz, prof.dtau_s), queue=rows.queue)
+    resident = plan.from_device(rows, records, prof.tau0_s, prof.dtau_s, prof.fc_hz, prof.tx_positions,
+                                prof.rx_positions, prof.c_mps)
     want_rec, *_ = carrier_records(prof.data, prof.n_lags, prof.tau0_s, prof.dtau_s, prof.fc_hz)
-    got_rec = plan.read(plan.records.d_pairs, want_rec.shape, np.complex64)
+    got_rec = records.read(records.d_pairs, want_rec.shape, np.complex64)
     assert np.abs(got_rec - want_rec).max() / np.abs(want_rec).max() < 1e-6  # step 2: the records
     step = Backprojector(grid, backend="opencl", resident=False)(prof).values.ravel()
     assert np.abs(resident - step).max() / np.abs(step).max() < TOL["backproject"]  # step 3: the image

@@ -20,27 +20,29 @@ from typing import Any, ClassVar, TypeVar
 import numpy as np
 
 from .device import _cl, describe, get_queue
-from .program import kernel
-from .variants import choose, register_kernel
+from .program import kernel, sources_hash
+from .variants import choose, kernel_spec, register_kernel
 
 P = TypeVar("P")
 
 __all__ = ["DeviceRows", "Plan", "release_reused", "reused"]
 
-# (thread, queue, kind) -> (key, plan): the last plan of each kind built through :func:`reused`
+# (thread, queue, kernel) -> (key, plan): the last plan of each kernel built through :func:`reused`
 _REUSED: dict[tuple, tuple] = {}
 
 
-def reused(queue: Any, kind: str, key: tuple, factory: Callable[[Any], P]) -> P:
-    """The plan ``factory(queue)`` builds, reused from the last call with the same ``kind`` and
-    ``key`` (the shapes and tables it is built for) on this queue in this thread.
+def reused(queue: Any, kernel: str, key: tuple, factory: Callable[[Any], P]) -> P:
+    """The plan ``factory(queue)`` builds for the registered ``kernel``, reused from the last call
+    with the same ``key`` (the shapes and tables it is built for) and the same kernel sources on
+    this queue in this thread.
 
-    One plan of each kind is kept per queue and thread (a different key replaces it, freeing
-    its buffers), so calls with the same shapes skip the allocations and the table uploads;
-    a plan is never shared between threads. Its rows left on the device for the previous call
+    One plan per kernel is kept per queue and thread (a different key replaces it, freeing its
+    buffers), so calls with the same shapes skip the allocations and the table uploads; a plan
+    is never shared between threads. Its rows left on the device for the previous call
     (:class:`DeviceRows`) become invalid at the next call, as for any plan.
     """
-    slot = (threading.get_ident(), id(queue), kind)
+    slot = (threading.get_ident(), id(queue), kernel)
+    key = (key, sources_hash(kernel_spec(kernel).sources))  # a source override builds anew
     held = _REUSED.get(slot)
     if held is not None and held[0] == key and held[1].queue is queue:
         return held[1]

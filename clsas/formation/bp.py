@@ -17,7 +17,7 @@ from ..geometry import VoxelGrid
 from ..image import Image
 from ..profiles import Profiles
 from . import bp_numpy as twin
-from .bp_opencl import BackprojectPlan
+from .bp_opencl import BackprojectPlan, RecordsPlan, upsample_factor
 from .guard import check_grid
 from .registry import FORMATIONS
 
@@ -123,6 +123,12 @@ class Backprojector:
                 check_grid(self.grid, self.selection.kind, None, force=self._force)
         return self._plan
 
+    def _records_plan(self, n_meas: int, n_lags: int, up: int):
+        """The carrier-records plan of the resident path (None where it fell back to the twin)."""
+        records, self.selection = self.selection.plan(lambda q: _cl.reused(
+            q, "carrier_records", (n_meas, n_lags, up), lambda q: RecordsPlan(n_meas, n_lags, up, queue=q)))
+        return records
+
     def _weights(self, beams, fc_hz: float, c) -> BeamWeights | None:
         """The pair weights of this Backprojector's ``beam`` mode for ``beams`` (None: none)."""
         if beams is not None and not isinstance(beams, Beams):
@@ -164,8 +170,12 @@ class Backprojector:
         lut = 0 if weights is None else weights.luts.shape[1]
         plan = self._opencl_plan(n, data.shape[1], lut) if self.selection.opencl else None
         rows = profiles.on_device
+        records = None
         if plan is not None and self.resident and rows is not None and rows.valid(plan.queue, profiles.data):
-            values = plan.from_device(rows, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
+            records = self._records_plan(n, plan.n_lags, upsample_factor(fc, dtau))
+            plan = None if records is None else plan  # None: the records kernel fell back to the twin
+        if records is not None:
+            values = plan.from_device(rows, records, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
             timings["records_kernel"] = plan.last_records_s
             timings["backproject_kernel"] = plan.last_kernel_s - plan.last_records_s
         elif plan is not None:

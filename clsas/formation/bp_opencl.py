@@ -154,7 +154,6 @@ class BackprojectPlan(BeamPlan):
         self.d_image = (self.alloc(8 * self.n_pad),) if self.complex_image else \
             (self.alloc(4 * self.n_pad), self.alloc(4 * self.n_pad))
         self.alloc_beam(n_meas)
-        self.records: RecordsPlan | None = None  # made on the first call on device profiles
         self.last_records_s = 0.0  # kernel time of the last call's records (:meth:`from_device`), s
 
     def defines(self) -> dict:
@@ -183,25 +182,27 @@ class BackprojectPlan(BeamPlan):
         return self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps, progress,
                           beam)
 
-    def from_device(self, rows, tau0_s, dtau_s: float, fc_hz: float, tx_positions, rx_positions, c_mps,
-                    progress: Callable[[int, int], None] | None = None, beam=None) -> np.ndarray:
+    def from_device(self, rows, records: RecordsPlan, tau0_s, dtau_s: float, fc_hz: float, tx_positions,
+                    rx_positions, c_mps, progress: Callable[[int, int], None] | None = None,
+                    beam=None) -> np.ndarray:
         """Backproject profiles another plan left on this queue's device (:class:`clsas.cl.DeviceRows`,
-        ``n_meas`` rows of at most ``n_lags`` samples): the carrier records are made there
-        (:class:`RecordsPlan`) and the bp kernel reads them; nothing but the geometry and one
-        value per measurement goes to the device. Returns (n_vox,) complex64; ``last_kernel_s``
-        covers both kernels, ``last_records_s`` the records'."""
+        ``n_meas`` rows of at most ``n_lags`` samples): ``records`` (a :class:`RecordsPlan` for
+        this plan's profiles, upsampled by :func:`upsample_factor`) makes the carrier records there
+        and the bp kernel reads them; nothing but the geometry and one value per measurement goes
+        to the device. Returns (n_vox,) complex64; ``last_kernel_s`` covers both kernels,
+        ``last_records_s`` the records'."""
         if rows.n_rows != self.n_meas or rows.n_cols > self.n_lags:
             raise ValueError(f"rows: {rows.n_rows} rows of {rows.n_cols} samples do not fit a plan for "
                              f"{self.n_meas} profiles of at most {self.n_lags}")
         up = upsample_factor(fc_hz, dtau_s)
-        rec = self.records
-        if rec is None or rec.up != up:
-            rec = self.records = RecordsPlan(self.n_meas, self.n_lags, up, queue=self.queue)
+        if (records.n_meas, records.n_lags, records.up) != (self.n_meas, self.n_lags, up):
+            raise ValueError(f"records: a plan for {records.n_meas} x {records.n_lags} upsampled {records.up} x, "
+                             f"these profiles need {self.n_meas} x {self.n_lags} upsampled {up} x")
         self.begin()
-        evt, fine, phi = rec.enqueue(rows.buffer, rows.stride, rows.n_cols, tau0_s, dtau_s, fc_hz)
+        evt, fine, phi = records.enqueue(rows.buffer, rows.stride, rows.n_cols, tau0_s, dtau_s, fc_hz)
         self._events.append(evt)
-        image = self._form(rec.d_pairs, rec.n_rec, tau0_s, fine, phi, tx_positions, rx_positions, c_mps, progress,
-                           beam)
+        image = self._form(records.d_pairs, records.n_rec, tau0_s, fine, phi, tx_positions, rx_positions, c_mps,
+                           progress, beam)
         self.last_records_s = self.seconds(evt)  # part of last_kernel_s
         return image
 

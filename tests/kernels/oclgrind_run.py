@@ -78,8 +78,8 @@ def check_records(queue, rng, vec):
         buffer, n_rows, n_cols, stride = d_prof, 3, 37, 43
 
     for dtau in (1 / fs, 8 / fs):
-        plan.records = RecordsPlan(3, 40, upsample_factor(25e3, dtau), queue=queue, vec=vec)
-        got = plan.from_device(Rows, tau0, dtau, 25e3, tx, rx, c)
+        records = RecordsPlan(3, 40, upsample_factor(25e3, dtau), queue=queue, vec=vec)
+        got = plan.from_device(Rows, records, tau0, dtau, 25e3, tx, rx, c)
         want = bp_twin(wide[:, :40], tau0, dtau, 25e3, tx, rx, c, grid.points())  # zero-padded to the plan's 40
         close(got, want, 1e-4, f"resident bp, dtau {dtau * fs:g} samples")
     assert RecordsPlan.selftest(queue, vec) < 1e-4, "carrier_records"

@@ -26,7 +26,7 @@ pytestmark = [pytest.mark.opencl, needs_opencl]
 
 MARK = "clsas_fallback_test_undeclared"  # the identifier the compiler's log must name
 ALL_KERNELS = ("matched_filter", "fmcw_dechirp", "matched_fft", "backproject", "focus_gradient", "stolt_spread",
-               "stolt_depths", "ffbp_leaf", "ffbp_merge", "project")
+               "stolt_depths", "ffbp_leaf", "ffbp_merge", "project", "carrier_records")
 
 
 def broken_source(kernel: str, only_with: str | None = None) -> tuple[str, str]:
@@ -87,6 +87,18 @@ def _backproject(scene, backend):
     return image.values, image.backend
 
 
+def _resident(scene, backend):
+    """bp of profiles that the OpenCL compression left on the device: the carrier records are made
+    there (kernels/records.cl). The profiles come from OpenCL whatever ``backend`` is, so that the
+    twin's image is of the same (float32) profiles."""
+    ds, grid, _ = scene
+    gate = clsas.rangegate.plan_reconstruction(ds, grid, []).gate_s
+    prof = clsas.compress(ds, gate_s=gate, backend="opencl")
+    assert prof.on_device is not None
+    image = clsas.backproject(prof, grid, backend=backend)
+    return image.values, image.backend
+
+
 def _formation(name, **options):
     def call(scene, backend):
         _, grid, prof = scene
@@ -132,6 +144,7 @@ CASES = {
     "ffbp_leaf": (None, _formation("ffbp", depth=1)),
     "ffbp_merge": ("TAPS", _formation("ffbp", depth=1, order=1)),  # the leaf kernel still builds
     "project": (None, _project),
+    "carrier_records": (None, _resident),
 }
 
 
