@@ -1,7 +1,8 @@
 """The whole ``reconstruct`` (compression + bp) against the bp kernel alone, per OpenCL runtime.
 
     python -m bench.resident [--sides 64 128] [--measurements 1000] [--repeats 3] [--code DIR ...]
-                             [--out DIR]
+                             [--devices P:D ...] [--out DIR]
+    python -m bench.resident --merge RUN.json RUN.json RUN.json   # medians over whole runs
 
 A planar scan of ``measurements`` stops (simulated once per process, three points) is imaged
 by ``clsas.reconstruct(..., formation="bp", backend="opencl")`` onto ``side``³ voxels
@@ -17,7 +18,9 @@ Each OpenCL device that builds kernels (Oclgrind left out) is measured in a chil
 (another checkout: the code before a change), so one run compares code versions on the same
 machine load. The parent times the hand-vectorised C/OpenMP backprojection (``bench.cpeer``)
 on a workload of the same size (``bench.throughput.backprojection_workload``). It prints a table
-and writes ``<date>-resident-<cpu>.json`` and ``.md``.
+and writes ``<date>-resident-<cpu>.json`` and ``.md``. ``--merge`` reads the JSON of several
+whole runs (a loaded machine: run it again, later) and prints the medians over them of each
+figure, per code, runtime and size, with the spread (min-max).
 """
 
 from __future__ import annotations
@@ -145,6 +148,44 @@ def markdown(res: dict) -> list[str]:
     return md
 
 
+def merge(paths: list[Path]) -> list[str]:
+    """The medians over whole runs (their JSON files) of each figure, per code, runtime and side."""
+    import numpy as np
+
+    runs = [json.loads(Path(p).read_text()) for p in paths]
+    figures = ("bp_kernel_rate", "reconstruct_rate", "whole_over_kernel", "host_share")
+    cells: dict[tuple, dict[str, list]] = {}
+    peers: dict[str, list] = {}
+    for res in runs:
+        for side, v in res["peer"].items():
+            if isinstance(v, dict):
+                peers.setdefault(str(side), []).append(v["rate"])
+        for r in res["rows"]:
+            for row in r.get("rows", []):
+                cell = cells.setdefault((r["code"], r["platform"], r["platform_version"][:24], row["side"]), {})
+                for f in figures:
+                    cell.setdefault(f, []).append(row[f])
+                cell.setdefault("peer", []).append(res["peer"].get(str(row["side"]), {}).get("rate"))
+
+    def fmt(xs, spec, scale=1.0):
+        m = float(np.median(xs)) * scale
+        return f"{m:{spec}} ({min(xs) * scale:{spec}}-{max(xs) * scale:{spec}})"
+
+    md = [f"Medians over {len(runs)} runs (min-max in brackets): {', '.join(str(p) for p in paths)}", "",
+          "| code | runtime | N³ | bp kernel, pairs/s | reconstruct, pairs/s | reconstruct / kernel | host share, % | "
+          "kernel / C peer | reconstruct / C peer |", "|---|---|---|---|---|---|---|---|---|"]
+    for (code, platform, version, side), c in cells.items():
+        ok = [p for p in c["peer"] if p]
+        kp = [k / p for k, p in zip(c["bp_kernel_rate"], c["peer"], strict=True) if p] if ok else None
+        rp = [k / p for k, p in zip(c["reconstruct_rate"], c["peer"], strict=True) if p] if ok else None
+        md.append(f"| {code} | {platform} ({version}) | {side} | {fmt(c['bp_kernel_rate'], '.3g')} | "
+                  f"{fmt(c['reconstruct_rate'], '.3g')} | {fmt(c['whole_over_kernel'], '.2f')} | "
+                  f"{fmt(c['host_share'], '.1f', 100)} | {fmt(kp, '.2f') if kp else '-'} | "
+                  f"{fmt(rp, '.2f') if rp else '-'} |")
+    md += ["", "C/OpenMP peer: " + ", ".join(f"{side}³ {fmt(v, '.3g')} pairs/s" for side, v in peers.items())]
+    return md
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sides", type=int, nargs="+", default=[64])
@@ -154,8 +195,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="a checkout whose clsas the children import (repeatable; default this one)")
     ap.add_argument("--devices", nargs="*", default=None, help="PYOPENCL_CTX indices (default every one)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
+    ap.add_argument("--merge", type=Path, nargs="+", help="JSON files of whole runs: print the medians over them")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.merge:
+        print("\n".join(merge(args.merge)))
+        return 0
     if any(n < 2 for n in args.sides) or args.measurements < 1 or args.repeats < 1:
         ap.error("--sides must be at least 2, --measurements and --repeats at least 1")
     if args.child:
