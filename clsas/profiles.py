@@ -46,6 +46,9 @@ class Profiles:
         The device's name.
     beams : clsas.beam.Beams, optional
         The transducers' beams (from the dataset); None: omnidirectional.
+    on_device : clsas.cl.DeviceRows, optional
+        ``data`` as the OpenCL compression left it on the device, which backprojection on the
+        same device reads there (while it still holds ``data``); None: on the host only.
 
     Examples
     --------

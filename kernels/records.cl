@@ -45,9 +45,8 @@ __kernel void carrier_records(
     __global const float2 *p = prof + (size_t)m * stride;
     const float inv_up = 1.0f / (float)up;
     const float2 r0 = rot0[m];
-    for (int l = 0; l < VEC; ++l) {
+    for (int l = 0; l < VEC && j0 + l < n_rec; ++l) {
         const int j = j0 + l;
-        if (j >= n_rec) break;
         const float2 R = cmul(rot[j], r0);
         const float2 q = cmul(fine_sample(p, n_data, up, inv_up, j), R);
         const float2 r = j + 1 < n_rec ? cmul(fine_sample(p, n_data, up, inv_up, j + 1), R) : (float2)(0.0f);
