@@ -20,6 +20,7 @@ from .direct import direct_arrivals
 from .engine import FocusEngine
 from .metrics import metric_and_weight
 from .motion import default_basis_size, motion_basis, optimise_los, stops_of
+from .options import AutofocusOptions
 from .report import AutofocusReport, ParameterEstimate
 from .significance import delay_floor_s, delay_spread_s, judge
 from .split import agreement, magnitude_correlation, split_halves
@@ -32,23 +33,20 @@ log = logging.getLogger("clsas.autofocus")
 FINAL_TOLERANCE = 0.005  # the returned correction may lower a sub-aperture pair's agreement by at most this
 
 
-def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c, max_delay_s, per_stop_delay,
-        max_iter, backend, device, progress, force, started, phase_sweeps=4, max_stop_bytes=1 << 30,
-        smooth_start=True, pga_options=None, temperature_tolerance_c=0.35, delay_tolerance_s=1e-6,
-        check_margin=0.01, phase_region_m=None, heldout_gain=0.2, track_tolerance_m=2.5e-3,
-        consistency_iter=0) -> tuple:
+def run(ds, grid, options: AutofocusOptions, *, progress, started) -> tuple:
     """The stages of :func:`clsas.autofocus` in turn: the direct sound, a delay, the motion, the
     temperature; then the check and the corrected dataset (or the input) and the report."""
-    rep = AutofocusReport(metric=metric, methods=list(methods))
+    o, methods = options, options.methods
+    rep = AutofocusReport(metric=o.metric, methods=list(methods))
     temp0 = np.broadcast_to(np.asarray(ds.temperature_c, float), (ds.n_meas,)).copy()
-    rel = 0.5 * temperature_range_c / (273.15 + float(temp0.min()) - temperature_range_c) if "temperature" in methods \
-        else 0.0
-    eopt = dict(margin_s=max_delay_s + 1e-4, rel_margin=rel, metric=metric, force=force)
-    engine = FocusEngine(ds, grid, backend=backend, device=device, **eopt)
+    rel = 0.5 * o.temperature_range_c / (273.15 + float(temp0.min()) - o.temperature_range_c) \
+        if "temperature" in methods else 0.0
+    eopt = dict(margin_s=o.max_delay_s + 1e-4, rel_margin=rel, metric=o.metric, force=o.force)
+    engine = FocusEngine(ds, grid, backend=o.backend, device=o.device, **eopt)
     rep.backend, rep.device = engine.backend, engine.device
-    fo = _Focus(ds, engine, rep, metric, progress, temp0, per_stop_delay)
-    fo.phase_region_m, fo.engine_options, fo.heldout_gain = phase_region_m, eopt, heldout_gain
-    fo.track_tolerance_m, fo.grid, fo.consistency_iter = track_tolerance_m, grid, consistency_iter
+    fo = _Focus(ds, engine, rep, o.metric, progress, temp0, o.per_stop_delay)
+    fo.phase_region_m, fo.engine_options, fo.heldout_gain = o.phase_region_m, eopt, o.heldout_gain
+    fo.track_tolerance_m, fo.grid, fo.consistency_iter = o.track_tolerance_m, grid, o.consistency_iter
     rep.metric_before = fo.image_metric(np.zeros(ds.n_meas), fo.c_stated, "input")
     stop, t_stop, xy = stops_of(ds)
     fo.splits = [hs for hs in (split_halves(ds, grid, stop, xy, how, backend=engine.selection, **eopt)
@@ -57,16 +55,16 @@ def run(ds, grid, *, methods, metric, n_basis, bandwidth_hz, temperature_range_c
     if fo.halves is None:
         rep.notes.append("fewer than 8 stops: no halves to check with; only what the direct sound gives is applied")
     if "direct" in methods:  # the direct sound: each recording's t0 at a given c
-        fo.find_direct(max_delay_s)
-    fo.delay_parameters("delay" in methods, max_delay_s, delay_tolerance_s)
+        fo.find_direct(o.max_delay_s)
+    fo.delay_parameters("delay" in methods, o.max_delay_s, o.delay_tolerance_s)
     zero3 = np.zeros((ds.n_meas, 3))
     move, motion_ok = zero3, False
-    if {"phase", "points", "track", "los", "3d", "pga"} & set(methods) and fo.halves is not None:
-        move, motion_ok = fo.motion(methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, phase_sweeps,
-                                    max_stop_bytes, smooth_start, pga_options or {}, check_margin)
+    if o.motion and fo.halves is not None:
+        move, motion_ok = fo.motion(methods, stop, t_stop, xy, o.n_basis, o.motion_bandwidth_hz, o.max_iter,
+                                    o.phase_sweeps, o.max_stop_bytes, True, o.pga_options, o.check_margin)
     d_temp = 0.0
-    if "temperature" in methods and temperature_range_c > 0 and fo.halves is not None:
-        d_temp = fo.temperature(temperature_range_c, temperature_tolerance_c, move if motion_ok else zero3)
+    if "temperature" in methods and o.temperature_range_c > 0 and fo.halves is not None:
+        d_temp = fo.temperature(o.temperature_range_c, o.temperature_tolerance_c, move if motion_ok else zero3)
     return _finish(fo, methods, d_temp, move if motion_ok else zero3, stop, started)
 
 

@@ -198,6 +198,27 @@ def test_input_validation(kwargs, error, match):
         autofocus(ds, GRID, **kwargs)
 
 
+@pytest.mark.parametrize("kwargs, error, match", [
+    ({"methods": ("focus",)}, ValueError, "methods"),
+    ({"max_iter": 0}, ValueError, "max_iter"),
+    ({"check_margin": 1.0}, ValueError, "check_margin"),
+    ({"consistency_iter": True}, ValueError, "consistency_iter"),
+    ({"phase_region_m": -0.01}, ValueError, "phase_region_m"),
+])
+def test_options_are_checked_once_where_built(kwargs, error, match):
+    from dataclasses import FrozenInstanceError
+
+    from clsas.focus import AutofocusOptions
+
+    with pytest.raises(error, match=match):
+        AutofocusOptions(**kwargs)
+    o = AutofocusOptions(methods=["direct", "pga"], max_iter=np.int64(3), pga_min_coherence=0.5)
+    assert o.methods == ("direct", "pga") and type(o.max_iter) is int and o.motion
+    assert o.pga_options == {"max_points": 32, "min_coherence": 0.5}
+    with pytest.raises(FrozenInstanceError):
+        o.metric = "entropy"
+
+
 def test_input_validation_of_dataset_and_grid():
     ds = scan(nx=3, ny=2)
     with pytest.raises(TypeError, match="dataset"):
