@@ -130,7 +130,7 @@ def test_error_free_scan_changes_nothing_beyond_tolerance():
 
 
 def test_never_returns_a_less_sharp_image(monkeypatch):
-    from clsas.focus import run as run_mod
+    from clsas.focus import motion_steps as run_mod
 
     ds = scan()
 
