@@ -14,15 +14,15 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    half of the stops (:mod:`.split`), applied only where they agree (``delay_tolerance_s``);
 3. ``"phase"``: one phase per stop by exact coordinate ascent (:mod:`.phases`), read as a
    line-of-sight move, its constant and tilt (the gauge) projected out. Held out
-   (:func:`.steps._held_out_phases`): each interleaved half's phases, predicted onto the other,
-   must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
-   time, left and right) must not agree less (:mod:`.motion_steps`, ``check_margin``);
+   (:func:`.stage_motion_steps._held_out_phases`): each interleaved half's phases, predicted onto
+   the other, must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
+   time, left and right) must not agree less (:mod:`.stage_motion`, ``check_margin``);
 4. ``"points"``: the stops' phases that the image's strong points
    share, the left singular vector of their per-stop contributions (rank one, no point taken as
    the reference), unwrapped in time and fitted in the hand's band, the points picked again
    after each pass (:mod:`.points`). *Determined* where the points are still coherent after it
    (isolated points, not the speckle of a surface); applied only where the disjoint
-   sub-apertures' images agree better by :data:`.motion_steps.MOTION_GAIN`; else the other
+   sub-apertures' images agree better by :data:`.stage_motion.MOTION_GAIN`; else the other
    motion steps named run (``"track"`` in the bench). Where ``"track"`` is named it runs after
    ``"points"`` passes too, and its correction replaces the points' where it passes its own
    decision and the sub-apertures agree better after it (on a surface the strong points are
@@ -33,10 +33,11 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    basis of stop time (the hand's 0.2-5 Hz band) plus the tilt, constant and tilt then set to
    zero (:mod:`.track`). *Determined* where the even and the odd stops, tracked apart, give the
    same path within ``track_tolerance_m``, or the target's two sides, tracked apart with every
-   stop, within :data:`.track_step.REGION_TOLERANCE_M`; applied only where the sub-apertures' images
-   agree better by :data:`.motion_steps.MOTION_GAIN` and the check on positions passes
-   (:func:`.track_step.where_check`: the brightest points of disjoint sub-apertures must not
-   lie farther apart after it, and the image's brightest point moves only where they agree);
+   stop, within :data:`.stage_motion_track.REGION_TOLERANCE_M`; applied only where the
+   sub-apertures' images agree better by :data:`.stage_motion.MOTION_GAIN` and the check on
+   positions passes (:func:`.stage_motion_track.where_check`: the brightest points of disjoint
+   sub-apertures must not lie farther apart after it, and the image's brightest point moves only
+   where they agree);
 6. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
    gradients (``kernels/autofocus.cl`` and its NumPy twin), phase-gradient autofocus on strong
    points (:mod:`.pga`); nothing held out, so the sub-apertures must agree better;
@@ -53,6 +54,13 @@ made a third of the scenes worse (see docs/guide/autofocus.md). The whole
 correction must not make the sub-apertures agree less than the direct sound's delay alone does;
 else, or where nothing was determined, the input comes back (``report.improved`` False, a note
 says why).
+
+The code follows the stages (:func:`.run.run` takes them in this order, each a
+:class:`.state.Stage` with ``estimate`` and ``check`` on a :class:`.state.FocusState`):
+:mod:`.stage_delay` (1-2), :mod:`.stage_motion` (3-6; its steps in :mod:`.stage_motion_steps`
+and :mod:`.stage_motion_track`), :mod:`.stage_temperature` (7), :mod:`.final_check` (the whole
+correction; :mod:`.final_consistency` with ``consistency_iter``). :class:`AutofocusOptions`
+holds the keywords of :func:`autofocus`, checked once.
 """
 
 from __future__ import annotations
@@ -134,7 +142,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         (None: on ``grid``; see docs/guide/autofocus.md).
     consistency_iter : int
         0 (default): off. Else a last check that trusts no image, :func:`data_consistency` with
-        this many iterations before and after the correction (:mod:`.consistency_gate`).
+        this many iterations before and after the correction (:mod:`.final_consistency`).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional; called after every image formed.
 

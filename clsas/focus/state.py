@@ -1,7 +1,9 @@
-"""What the stages of :func:`clsas.autofocus` share, in one place: :class:`FocusState`.
+"""What the stages of :func:`clsas.autofocus` share, in one place: :class:`FocusState`, and
+what a stage is: :class:`Stage`.
 
-The state is frozen: a stage reads it and returns its estimate, and :func:`.run.run` makes the
-next state from what the stage's check passed (``dataclasses.replace``). What each stage adds:
+The state is frozen: a stage reads it and returns its estimate, its check says whether the
+estimate is applied, and the stage makes the next state from that (``dataclasses.replace``);
+:func:`.run.run` takes the stages in turn. What each stage adds:
 
 ========================  =====================================================================
 field                     set by
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
@@ -37,7 +39,7 @@ from .options import AutofocusOptions
 from .report import AutofocusReport
 from .split import Half, magnitude_correlation
 
-__all__ = ["Delays", "FocusState", "SPLIT_NAMES"]
+__all__ = ["Delays", "FocusState", "SPLIT_NAMES", "Stage"]
 
 #: The pairs of disjoint sub-apertures the checks compare: first and second half of the stops in
 #: time, and the left and right half of the carriage's x.
@@ -160,3 +162,23 @@ class FocusState:
     def split_agreement(self, shift, c, move) -> list[float]:
         """Per pair of sub-apertures (``split_names``): their images' magnitude correlation."""
         return [magnitude_correlation(a.image(shift, c, move), b.image(shift, c, move)) for a, b in self.splits]
+
+
+class Stage(Protocol):
+    """One stage of the autofocus, in the order :func:`.run.run` takes them.
+
+    ``runs`` says whether the options name it and the scan allows it; ``estimate`` measures
+    what the stage estimates from the state (and records it in the report); ``check`` says
+    whether that estimate is applied; ``update`` returns the next state: the estimate where the
+    check passed, else what the stage learnt without applying anything.
+    """
+
+    name: str
+
+    def runs(self, state: FocusState) -> bool: ...
+
+    def estimate(self, state: FocusState) -> Any: ...
+
+    def check(self, state: FocusState, estimate: Any) -> bool: ...
+
+    def update(self, state: FocusState, estimate: Any, passed: bool) -> FocusState: ...

@@ -130,7 +130,7 @@ def test_error_free_scan_changes_nothing_beyond_tolerance():
 
 
 def test_never_returns_a_less_sharp_image(monkeypatch):
-    from clsas.focus import motion_steps as run_mod
+    from clsas.focus import stage_motion as run_mod
 
     ds = scan()
 
@@ -144,6 +144,20 @@ def test_never_returns_a_less_sharp_image(monkeypatch):
     assert rep.metric_after == rep.metric_before
     assert not rep.parameters["motion"].applied
     assert any(n.startswith("motion:") and "not applied" in n for n in rep.notes)
+
+
+def test_stages_run_in_order_and_their_check_decides(monkeypatch):
+    from clsas.focus import run as run_mod
+    from clsas.focus.stage_delay import DelayStage
+
+    assert [s.name for s in run_mod.STAGES] == ["delay", "motion", "temperature"]
+    ds = scan(group_delay_s=20e-6)
+    out, rep = autofocus(ds, GRID, methods=("direct",))
+    assert rep.improved and rep.parameters["group_delay"].applied
+    assert np.median(ds.t0_s - out.t0_s) == pytest.approx(20e-6, abs=1e-6)
+    monkeypatch.setattr(DelayStage, "check", lambda self, state, estimate: False)  # the estimate refused
+    out, rep = autofocus(ds, GRID, methods=("direct",))
+    assert out is ds and not rep.improved and rep.parameters["group_delay"].determined
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""The motion stage of :mod:`.run`, behind a check that is not the sharpness it maximised.
+"""The second stage of :func:`clsas.autofocus`: the motion, behind a check that is not the sharpness it maximised.
 
 The motion is estimated on all stops (``"phase"``: per-stop phases, the start for large motion;
 ``"los"``: a smooth line-of-sight search; ``"3d"``: the carriage's 3-D displacement in a smooth
@@ -13,15 +13,47 @@ energy wherever its own errors and speckle allow, which the other sub-aperture d
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .motion import default_basis_size, los_directions, motion_basis, optimise_los, optimise_xyz
 from .report import ParameterEstimate
+from .stage_motion_steps import _focus_centre, _per_stop_mean, _pga_step, _phase_step
 from .state import FocusState
-from .steps import _focus_centre, _per_stop_mean, _pga_step, _phase_step
 
-__all__ = ["estimate_motion", "carriage_3d"]
+__all__ = ["MotionEstimate", "MotionStage", "carriage_3d", "estimate_motion"]
+
+
+@dataclass(frozen=True, eq=False)
+class MotionEstimate:
+    """The carriage's displacement (n_meas, 3), m (zeros where it did not pass), and whether it
+    passed the motion's checks (held out, sub-apertures, positions: see the module docstring)."""
+
+    move: np.ndarray
+    passed: bool
+
+
+class MotionStage:
+    """The motion methods named (``"phase"``, ``"points"``, ``"track"``, ``"los"``, ``"3d"``,
+    ``"pga"``), on all stops; runs where one is named and the scan has sub-apertures to check with."""
+
+    name = "motion"
+
+    def runs(self, state: FocusState) -> bool:
+        return state.options.motion and state.halves is not None
+
+    def estimate(self, state: FocusState) -> MotionEstimate:
+        """:func:`estimate_motion`: the estimate and its checks, which the motion steps make as
+        they go (``"points"`` decides whether ``"track"`` replaces it)."""
+        return MotionEstimate(*estimate_motion(state))
+
+    def check(self, state: FocusState, estimate: MotionEstimate) -> bool:
+        """Whether the motion passed the checks :func:`estimate_motion` made (recorded in ``rep.check``)."""
+        return estimate.passed
+
+    def update(self, state: FocusState, estimate: MotionEstimate, passed: bool) -> FocusState:
+        return replace(state, move=estimate.move) if passed else state
 
 
 def estimate_motion(fo: FocusState) -> tuple[np.ndarray, bool]:
@@ -41,7 +73,7 @@ def estimate_motion(fo: FocusState) -> tuple[np.ndarray, bool]:
     p_stop, centre = _phase_paths(fo, methods, shift, c, stop, t_stop, xy, o.phase_sweeps, max_bytes)
     track = None
     if "track" in methods:
-        from .track_step import track_step
+        from .stage_motion_track import track_step
 
         p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, o.track_tolerance_m)
     if "los" in methods:
@@ -166,7 +198,7 @@ def points_step(fo, shift, c, stop, t_stop, xy, margin, others=frozenset()) -> n
     is determined and the sub-apertures agree better after it by :data:`MOTION_GAIN`; else None
     (the other motion steps named, ``others``, then run), with a note saying why."""
     from .points import points_paths
-    from .track_step import resolution_cell_m
+    from .stage_motion_track import resolution_cell_m
 
     ds, rep, engine = fo.ds, fo.rep, fo.engine
     t = time.perf_counter()
@@ -216,7 +248,7 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
     sample (speckle peaks that pass for points) the neighbours' phases hold more of the motion:
     on the family's tuning sets this took 3 scenes from -2.7, -2.6 and -1.2 dB to within 0.2 dB
     and changed none for the worse."""
-    from .track_step import track_step
+    from .stage_motion_track import track_step
 
     rep, engine = fo.rep, fo.engine
     kept = (rep.parameters.get("motion"), len(rep.notes), rep.focus_centre_m, dict(rep.check), len(rep.stages))
@@ -247,8 +279,8 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
 
 def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarray, bool]:
     """``"track"`` alone: applied where determined (the even and odd stops agree, or the target's
-    two sides do) and where the check on positions (:func:`.track_step.where_check`) passes."""
-    from .track_step import REGION_TOLERANCE_M, where_check
+    two sides do) and where the check on positions (:func:`.stage_motion_track.where_check`) passes."""
+    from .stage_motion_track import REGION_TOLERANCE_M, where_check
 
     rep = fo.rep
     where = where_check(fo, shift, c, move) if track["determined"] else {"passed": False}
