@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from clsas.focus.consistency_gate import REVERT_RATIO
+from clsas.focus.final_consistency import REVERT_RATIO
 
 from .common import add_device_options, check_grids_fit, grid_arg
 

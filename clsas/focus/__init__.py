@@ -14,15 +14,15 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    half of the stops (:mod:`.split`), applied only where they agree (``delay_tolerance_s``);
 3. ``"phase"``: one phase per stop by exact coordinate ascent (:mod:`.phases`), read as a
    line-of-sight move, its constant and tilt (the gauge) projected out. Held out
-   (:func:`.steps._held_out_phases`): each interleaved half's phases, predicted onto the other,
-   must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
-   time, left and right) must not agree less (:mod:`.motion_steps`, ``check_margin``);
+   (:func:`.stage_motion_steps._held_out_phases`): each interleaved half's phases, predicted onto
+   the other, must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
+   time, left and right) must not agree less (:mod:`.stage_motion`, ``check_margin``);
 4. ``"points"``: the stops' phases that the image's strong points
    share, the left singular vector of their per-stop contributions (rank one, no point taken as
    the reference), unwrapped in time and fitted in the hand's band, the points picked again
    after each pass (:mod:`.points`). *Determined* where the points are still coherent after it
    (isolated points, not the speckle of a surface); applied only where the disjoint
-   sub-apertures' images agree better by :data:`.motion_steps.MOTION_GAIN`; else the other
+   sub-apertures' images agree better by :data:`.stage_motion.MOTION_GAIN`; else the other
    motion steps named run (``"track"`` in the bench). Where ``"track"`` is named it runs after
    ``"points"`` passes too, and its correction replaces the points' where it passes its own
    decision and the sub-apertures agree better after it (on a surface the strong points are
@@ -33,10 +33,11 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    basis of stop time (the hand's 0.2-5 Hz band) plus the tilt, constant and tilt then set to
    zero (:mod:`.track`). *Determined* where the even and the odd stops, tracked apart, give the
    same path within ``track_tolerance_m``, or the target's two sides, tracked apart with every
-   stop, within :data:`.track_step.REGION_TOLERANCE_M`; applied only where the sub-apertures' images
-   agree better by :data:`.motion_steps.MOTION_GAIN` and the check on positions passes
-   (:func:`.track_step.where_check`: the brightest points of disjoint sub-apertures must not
-   lie farther apart after it, and the image's brightest point moves only where they agree);
+   stop, within :data:`.stage_motion_track.REGION_TOLERANCE_M`; applied only where the
+   sub-apertures' images agree better by :data:`.stage_motion.MOTION_GAIN` and the check on
+   positions passes (:func:`.stage_motion_track.where_check`: the brightest points of disjoint
+   sub-apertures must not lie farther apart after it, and the image's brightest point moves only
+   where they agree);
 6. ``"los"``, ``"3d"``, ``"pga"``: smooth line-of-sight and 3-D motion by L-BFGS with analytic
    gradients (``kernels/autofocus.cl`` and its NumPy twin), phase-gradient autofocus on strong
    points (:mod:`.pga`); nothing held out, so the sub-apertures must agree better;
@@ -53,6 +54,13 @@ made a third of the scenes worse (see docs/guide/autofocus.md). The whole
 correction must not make the sub-apertures agree less than the direct sound's delay alone does;
 else, or where nothing was determined, the input comes back (``report.improved`` False, a note
 says why).
+
+The code follows the stages (:func:`.run.run` takes them in this order, each a
+:class:`.state.Stage` with ``estimate`` and ``check`` on a :class:`.state.FocusState`):
+:mod:`.stage_delay` (1-2), :mod:`.stage_motion` (3-6; its steps in :mod:`.stage_motion_steps`
+and :mod:`.stage_motion_track`), :mod:`.stage_temperature` (7), :mod:`.final_check` (the whole
+correction; :mod:`.final_consistency` with ``consistency_iter``). :class:`AutofocusOptions`
+holds the keywords of :func:`autofocus`, checked once.
 """
 
 from __future__ import annotations
@@ -64,24 +72,16 @@ from typing import Any
 
 import numpy as np
 
-from .. import validate as v
 from ..dataset import Dataset
 from ..geometry import VoxelGrid
 from .consistency import Consistency, data_consistency
-from .metrics import METRICS
+from .options import DEFAULT_METHODS, FOCUS_METHODS, METHODS, AutofocusOptions
 from .report import AutofocusReport
 
-__all__ = ["AutofocusReport", "Consistency", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS", "autofocus",
-           "data_consistency", "score"]
+__all__ = ["AutofocusOptions", "AutofocusReport", "Consistency", "DEFAULT_METHODS", "FOCUS_METHODS", "METHODS",
+           "autofocus", "data_consistency", "score"]
 
 log = logging.getLogger(__name__)
-
-METHODS = ("direct", "temperature", "delay", "phase", "points", "track", "los", "3d", "pga")
-# only what the physics determines by default: on held-out scenes "phase" and "temperature" made
-# a third of the scenes worse; the focus steps run when named
-DEFAULT_METHODS = ("direct",)
-FOCUS_METHODS = ("direct", "phase", "temperature")
-
 
 def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | list[str] = DEFAULT_METHODS,
               metric: str = "sharpness", n_basis: int | None = None, motion_bandwidth_hz: float = 5.0,
@@ -142,7 +142,7 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         (None: on ``grid``; see docs/guide/autofocus.md).
     consistency_iter : int
         0 (default): off. Else a last check that trusts no image, :func:`data_consistency` with
-        this many iterations before and after the correction (:mod:`.consistency_gate`).
+        this many iterations before and after the correction (:mod:`.final_consistency`).
     backend, device, force : as for :func:`clsas.reconstruct`.
     progress : callable(step, n_images, metric), optional; called after every image formed.
 
@@ -153,80 +153,40 @@ def autofocus(dataset: Dataset, grid: VoxelGrid, *, methods: tuple[str, ...] | l
         record ``autofocus``) with only what the scan determined and the check passed; or the input
         itself (``report.improved`` False, a note says why).
     """
-    options = _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c,
-                       max_delay_s, per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence,
-                       pga_max_points, progress)
-    options.update(_checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                                          phase_region_m, track_tolerance_m, consistency_iter))
-    return _focus(dataset, grid, options, backend=backend, device=device, progress=progress, force=force)
+    _check_data(dataset, grid, progress)
+    return _focus(dataset, grid, AutofocusOptions(
+        methods=methods, metric=metric, n_basis=n_basis, motion_bandwidth_hz=motion_bandwidth_hz,
+        temperature_range_c=temperature_range_c, max_delay_s=max_delay_s, per_stop_delay=per_stop_delay,
+        max_iter=max_iter, phase_sweeps=phase_sweeps, max_stop_bytes=max_stop_bytes,
+        pga_min_coherence=pga_min_coherence, pga_max_points=pga_max_points,
+        temperature_tolerance_c=temperature_tolerance_c, delay_tolerance_s=delay_tolerance_s,
+        check_margin=check_margin, phase_region_m=phase_region_m, heldout_gain=heldout_gain,
+        track_tolerance_m=track_tolerance_m, consistency_iter=consistency_iter, backend=backend, device=device,
+        force=force), progress)
 
 
-def _focus(dataset, grid, options: dict, **where) -> tuple[Dataset, AutofocusReport]:
+def _check_data(dataset, grid, progress) -> None:
+    """:func:`autofocus`'s arguments beside its options, checked (its options check themselves)."""
+    if not isinstance(dataset, Dataset):
+        raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
+    if not isinstance(grid, VoxelGrid):
+        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
+    if progress is not None and not callable(progress):
+        raise TypeError("progress must be callable(step, n_images, metric)")
+    if dataset.n_meas < 4:
+        raise ValueError(f"dataset: autofocus needs at least 4 measurements, got {dataset.n_meas}")
+
+
+def _focus(dataset, grid, options: AutofocusOptions, progress) -> tuple[Dataset, AutofocusReport]:
     """The checked request run: the grid against the scan's echoes first (a grid beside the
     target leaves nothing to focus on; its warning leads the report's notes), then the steps."""
     from ..sanity import check_grid_against_data
     from .run import run
 
     grid_check = check_grid_against_data(dataset, grid, where="autofocus")
-    out, report = run(dataset, grid, started=time.perf_counter(), **where, **options)
+    out, report = run(dataset, grid, options, progress=progress, started=time.perf_counter())
     report.notes[:0] = list(grid_check.warnings)
     return out, report
-
-
-def _checked(dataset, grid, methods, metric, n_basis, motion_bandwidth_hz, temperature_range_c, max_delay_s,
-             per_stop_delay, max_iter, phase_sweeps, max_stop_bytes, pga_min_coherence, pga_max_points,
-             progress) -> dict:
-    """:func:`autofocus`'s arguments checked, as the keyword arguments of :func:`clsas.focus.run.run`."""
-    if not isinstance(dataset, Dataset):
-        raise TypeError(f"dataset must be a clsas.Dataset, got {type(dataset).__name__}")
-    if not isinstance(grid, VoxelGrid):
-        raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    if isinstance(methods, str) or not all(isinstance(m, str) for m in methods):
-        raise TypeError(f"methods must be a sequence of names from {METHODS}, got {methods!r}")
-    for m in methods:
-        v.choice("methods", m, METHODS)
-    if not methods:
-        raise ValueError(f"methods must name at least one of {METHODS}")
-    v.choice("metric", metric, METRICS)
-    if n_basis is not None:
-        n_basis = v.positive_int("n_basis", n_basis)
-    bw = v.positive("motion_bandwidth_hz", motion_bandwidth_hz)
-    t_range = v.non_negative("temperature_range_c", temperature_range_c)
-    max_delay = v.non_negative("max_delay_s", max_delay_s)
-    max_iter = v.positive_int("max_iter", max_iter)
-    phase_sweeps = v.positive_int("phase_sweeps", phase_sweeps)
-    max_stop_bytes = v.positive_int("max_stop_bytes", max_stop_bytes)
-    pga_options = {"max_points": v.positive_int("pga_max_points", pga_max_points)}
-    if pga_min_coherence is not None:
-        coh = v.non_negative("pga_min_coherence", pga_min_coherence)
-        if coh > 1:
-            raise ValueError(f"pga_min_coherence must be in [0, 1], got {pga_min_coherence!r}")
-        pga_options["min_coherence"] = coh
-    if progress is not None and not callable(progress):
-        raise TypeError("progress must be callable(step, n_images, metric)")
-    if dataset.n_meas < 4:
-        raise ValueError(f"dataset: autofocus needs at least 4 measurements, got {dataset.n_meas}")
-    return {"methods": tuple(methods), "metric": metric, "n_basis": n_basis, "bandwidth_hz": bw,
-            "temperature_range_c": t_range, "max_delay_s": max_delay, "per_stop_delay": bool(per_stop_delay),
-            "max_iter": max_iter, "phase_sweeps": phase_sweeps, "max_stop_bytes": max_stop_bytes,
-            "pga_options": pga_options}
-
-
-def _checked_determination(temperature_tolerance_c, delay_tolerance_s, check_margin, heldout_gain,
-                           phase_region_m, track_tolerance_m=2.5e-3, consistency_iter=0) -> dict:
-    """The autofocus options of what counts as determined, and of the check, checked."""
-    margin = v.non_negative("check_margin", check_margin)
-    if margin >= 1:
-        raise ValueError(f"check_margin must be in [0, 1), got {check_margin!r}")
-    if isinstance(consistency_iter, bool) or not isinstance(consistency_iter, int | np.integer) \
-            or not 0 <= consistency_iter <= 10_000:
-        raise ValueError(f"consistency_iter must be an int from 0 (off) to 10000, got {consistency_iter!r}")
-    return {"temperature_tolerance_c": v.positive("temperature_tolerance_c", temperature_tolerance_c),
-            "delay_tolerance_s": v.positive("delay_tolerance_s", delay_tolerance_s), "check_margin": margin,
-            "heldout_gain": v.positive("heldout_gain", heldout_gain),
-            "track_tolerance_m": v.positive("track_tolerance_m", track_tolerance_m),
-            "consistency_iter": int(consistency_iter),
-            "phase_region_m": None if phase_region_m is None else v.positive("phase_region_m", phase_region_m)}
 
 
 def score(report: AutofocusReport, dataset: Dataset) -> dict:

@@ -98,7 +98,7 @@ class AutofocusReport:
         half), ``coherence_after`` (the returned correction), ``passed``, ``motion_passed``; with
         ``consistency_iter``, ``excess_after`` and ``noise_floor``, and where a correction was
         judged ``excess_before``, ``excess_ratio`` and ``consistency_passed``
-        (:mod:`clsas.focus.consistency_gate`).
+        (:mod:`clsas.focus.final_consistency`).
     """
 
     improved: bool = False

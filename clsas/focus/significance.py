@@ -15,7 +15,7 @@ pass:
    moves the image). Smaller changes neither sharpen nor blur the image measurably.
 
 The motion is judged by what it explains instead (:data:`MOTION_GAIN` in
-:mod:`.motion_steps`): the disjoint sub-apertures' images must agree better after it.
+:mod:`.stage_motion`): the disjoint sub-apertures' images must agree better after it.
 """
 
 from __future__ import annotations

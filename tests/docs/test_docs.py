@@ -291,7 +291,7 @@ def test_output_block_tolerance_line(tmp_path):
 def test_consistency_help_states_the_rule_the_gate_uses(capsys):
     """``--consistency``'s help gives the withdrawal threshold the gate applies."""
     from clsas.cli import main
-    from clsas.focus.consistency_gate import REVERT_RATIO
+    from clsas.focus.final_consistency import REVERT_RATIO
 
     with pytest.raises(SystemExit):
         main(["autofocus", "--help"])

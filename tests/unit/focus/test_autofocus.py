@@ -130,7 +130,7 @@ def test_error_free_scan_changes_nothing_beyond_tolerance():
 
 
 def test_never_returns_a_less_sharp_image(monkeypatch):
-    from clsas.focus import run as run_mod
+    from clsas.focus import stage_motion as run_mod
 
     ds = scan()
 
@@ -144,6 +144,20 @@ def test_never_returns_a_less_sharp_image(monkeypatch):
     assert rep.metric_after == rep.metric_before
     assert not rep.parameters["motion"].applied
     assert any(n.startswith("motion:") and "not applied" in n for n in rep.notes)
+
+
+def test_stages_run_in_order_and_their_check_decides(monkeypatch):
+    from clsas.focus import run as run_mod
+    from clsas.focus.stage_delay import DelayStage
+
+    assert [s.name for s in run_mod.STAGES] == ["delay", "motion", "temperature"]
+    ds = scan(group_delay_s=20e-6)
+    out, rep = autofocus(ds, GRID, methods=("direct",))
+    assert rep.improved and rep.parameters["group_delay"].applied
+    assert np.median(ds.t0_s - out.t0_s) == pytest.approx(20e-6, abs=1e-6)
+    monkeypatch.setattr(DelayStage, "check", lambda self, state, estimate: False)  # the estimate refused
+    out, rep = autofocus(ds, GRID, methods=("direct",))
+    assert out is ds and not rep.improved and rep.parameters["group_delay"].determined
 
 
 @pytest.mark.slow
@@ -196,6 +210,27 @@ def test_input_validation(kwargs, error, match):
     ds = scan(nx=3, ny=2)
     with pytest.raises(error, match=match):
         autofocus(ds, GRID, **kwargs)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    ({"methods": ("focus",)}, ValueError, "methods"),
+    ({"max_iter": 0}, ValueError, "max_iter"),
+    ({"check_margin": 1.0}, ValueError, "check_margin"),
+    ({"consistency_iter": True}, ValueError, "consistency_iter"),
+    ({"phase_region_m": -0.01}, ValueError, "phase_region_m"),
+])
+def test_options_are_checked_once_where_built(kwargs, error, match):
+    from dataclasses import FrozenInstanceError
+
+    from clsas.focus import AutofocusOptions
+
+    with pytest.raises(error, match=match):
+        AutofocusOptions(**kwargs)
+    o = AutofocusOptions(methods=["direct", "pga"], max_iter=np.int64(3), pga_min_coherence=0.5)
+    assert o.methods == ("direct", "pga") and type(o.max_iter) is int and o.motion
+    assert o.pga_options == {"max_points": 32, "min_coherence": 0.5}
+    with pytest.raises(FrozenInstanceError):
+        o.metric = "entropy"
 
 
 def test_input_validation_of_dataset_and_grid():

@@ -6,7 +6,7 @@ import pytest
 
 import clsas
 from clsas.focus import autofocus, score
-from clsas.focus.motion_steps import SAMPLING_COHERENCE, sampling_note
+from clsas.focus.stage_motion import SAMPLING_COHERENCE, sampling_note
 from clsas.focus.track import (
     gauge_free,
     integrate_phases,
@@ -160,7 +160,7 @@ def test_where_check_rejects_a_correction_that_scatters_the_image():
     from clsas.focus.engine import FocusEngine
     from clsas.focus.motion import stops_of
     from clsas.focus.split import split_halves
-    from clsas.focus.track_step import where_check
+    from clsas.focus.stage_motion_track import where_check
 
     ds = scan()
     stop, _, xy = stops_of(ds)

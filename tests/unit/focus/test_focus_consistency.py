@@ -142,7 +142,7 @@ def test_autofocus_reports_the_consistency_check():
 
 
 def test_gate_keeps_what_the_data_cannot_see_and_withdraws_what_they_contradict():
-    from clsas.focus.consistency_gate import consistency_gate
+    from clsas.focus.final_consistency import consistency_gate
     from clsas.focus.report import AutofocusReport
 
     ds, sel = scan(3e-3), clsas.cl.select("numpy")
@@ -162,7 +162,7 @@ def test_gate_keeps_what_the_data_cannot_see_and_withdraws_what_they_contradict(
 
 @pytest.mark.parametrize("direct", [False, True])
 def test_withdrawn_motion_keeps_only_the_direct_sounds_delay(monkeypatch, direct):
-    import clsas.focus.run as run
+    import clsas.focus.final_check as final_check
     from clsas.focus import autofocus
 
     seen = []
@@ -171,7 +171,7 @@ def test_withdrawn_motion_keeps_only_the_direct_sounds_delay(monkeypatch, direct
         seen.append((base, out))
         return False
 
-    monkeypatch.setattr(run, "consistency_gate", refuse)
+    monkeypatch.setattr(final_check, "consistency_gate", refuse)
     w = clsas.lfm_chirp(20e3, 30e3, 2e-3, FS, taper=0.1)
     # a scan where "points" applies a motion (with the direct sound at a third of its level, or none)
     ds = clsas.simulate(clsas.Scene(POINTS), clsas.raster_aperture(8, 7, 0.24, 0.2), w, FS, snr_db=30, seed=3,

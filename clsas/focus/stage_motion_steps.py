@@ -1,5 +1,5 @@
-"""Steps of the autofocus that run on the whole scan: a bounded 1-D search, per-stop phases,
-PGA, and the small helpers the pipeline shares (:mod:`.run`)."""
+"""The motion stage's steps on the whole scan (:mod:`.stage_motion`): per-stop phases and their
+held-out check, PGA, the focus centre, per-stop means."""
 
 from __future__ import annotations
 
@@ -12,35 +12,6 @@ from .pga import pga_refine
 from .phases import PHASE_MIN_GAIN, phase_to_path, stop_phase_search
 
 log = logging.getLogger("clsas.autofocus")
-
-
-def _bounded_search(f, lo: float, hi: float, step: float, tol: float) -> tuple[float, float, int]:
-    """Maximise a 1-D ``f`` on ``[lo, hi]``: a scan at ``step``, then golden-section search
-    in the bracket around the best point, to ``tol``. Returns ``(x, f(x), evaluations)``."""
-    n = max(3, int(np.ceil((hi - lo) / step)) + 1)
-    xs = np.linspace(lo, hi, n)
-    fs = np.array([f(x) for x in xs])
-    k = int(np.argmax(fs))
-    a, b = xs[max(k - 1, 0)], xs[min(k + 1, n - 1)]
-    best_x, best_f = float(xs[k]), float(fs[k])
-    g = (np.sqrt(5) - 1) / 2
-    c, d = b - g * (b - a), a + g * (b - a)
-    fc, fd = f(c), f(d)
-    evals = n + 2
-    while b - a > tol:
-        if fc >= fd:
-            b, d, fd = d, c, fc
-            c = b - g * (b - a)
-            fc = f(c)
-        else:
-            a, c, fc = c, d, fd
-            d = a + g * (b - a)
-            fd = f(d)
-        evals += 1
-    for x, fx in ((c, fc), (d, fd)):
-        if fx > best_f:
-            best_x, best_f = float(x), float(fx)
-    return best_x, best_f, evals
 
 
 def _focus_centre(engine, grid, shift, c) -> np.ndarray:
@@ -138,14 +109,6 @@ def _per_stop_mean(move, stop) -> np.ndarray:
     return np.stack([np.bincount(stop, move[:, k], len(n)) / n for k in range(3)], axis=1)
 
 
-def _los_path(ds, centre, move, first) -> np.ndarray:
-    """The bistatic path change at ``centre`` that the displacement ``move`` makes, per stop, m."""
-    path = np.linalg.norm(centre - ds.tx_positions, axis=1) + np.linalg.norm(centre - ds.rx_positions, axis=1)
-    moved = np.linalg.norm(centre - ds.tx_positions - move, axis=1) \
-        + np.linalg.norm(centre - ds.rx_positions - move, axis=1)
-    return (moved - path)[first]
-
-
 def _pga_step(engine, ds, shift, c, stop, xy, move, options, image_metric, rep) -> tuple[np.ndarray, bool]:
     """PGA from the displacement ``move`` (n_meas, 3); kept where the image gets sharper."""
     t = time.perf_counter()
@@ -172,9 +135,3 @@ def _pga_step(engine, ds, shift, c, stop, xy, move, options, image_metric, rep) 
                      f"{np.sqrt(np.mean(np.sum((d - start) ** 2, axis=1))) * 1e3:.3f} mm RMS")
     log.info("autofocus pga: %d points, metric %.5g -> %.5g", info["points"], m_before, m_after)
     return d[stop], True
-
-
-def _record(rep) -> dict:
-    d = rep.as_dict()
-    d.pop("stages", None)
-    return d

@@ -1,4 +1,4 @@
-"""The motion stage of :mod:`.run`, behind a check that is not the sharpness it maximised.
+"""The second stage of :func:`clsas.autofocus`: the motion, behind a check that is not the sharpness it maximised.
 
 The motion is estimated on all stops (``"phase"``: per-stop phases, the start for large motion;
 ``"los"``: a smooth line-of-sight search; ``"3d"``: the carriage's 3-D displacement in a smooth
@@ -13,20 +13,53 @@ energy wherever its own errors and speckle allow, which the other sub-aperture d
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .motion import default_basis_size, los_directions, motion_basis, optimise_xyz
+from .motion import default_basis_size, los_directions, motion_basis, optimise_los, optimise_xyz
 from .report import ParameterEstimate
-from .steps import _focus_centre, _per_stop_mean, _pga_step, _phase_step
+from .stage_motion_steps import _focus_centre, _per_stop_mean, _pga_step, _phase_step
+from .state import FocusState
 
-__all__ = ["estimate_motion", "carriage_3d"]
+__all__ = ["MotionEstimate", "MotionStage", "carriage_3d", "estimate_motion"]
 
 
-def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_iter, sweeps, max_bytes, smooth_start,
-                    pga_options, margin) -> tuple[np.ndarray, bool]:
-    """The carriage's displacement (n_meas, 3), m, and whether it passed the check."""
-    ds = fo.ds
+@dataclass(frozen=True, eq=False)
+class MotionEstimate:
+    """The carriage's displacement (n_meas, 3), m (zeros where it did not pass), and whether it
+    passed the motion's checks (held out, sub-apertures, positions: see the module docstring)."""
+
+    move: np.ndarray
+    passed: bool
+
+
+class MotionStage:
+    """The motion methods named (``"phase"``, ``"points"``, ``"track"``, ``"los"``, ``"3d"``,
+    ``"pga"``), on all stops; runs where one is named and the scan has sub-apertures to check with."""
+
+    name = "motion"
+
+    def runs(self, state: FocusState) -> bool:
+        return state.options.motion and state.halves is not None
+
+    def estimate(self, state: FocusState) -> MotionEstimate:
+        """:func:`estimate_motion`: the estimate and its checks, which the motion steps make as
+        they go (``"points"`` decides whether ``"track"`` replaces it)."""
+        return MotionEstimate(*estimate_motion(state))
+
+    def check(self, state: FocusState, estimate: MotionEstimate) -> bool:
+        """Whether the motion passed the checks :func:`estimate_motion` made (recorded in ``rep.check``)."""
+        return estimate.passed
+
+    def update(self, state: FocusState, estimate: MotionEstimate, passed: bool) -> FocusState:
+        return replace(state, move=estimate.move) if passed else state
+
+
+def estimate_motion(fo: FocusState) -> tuple[np.ndarray, bool]:
+    """The carriage's displacement (n_meas, 3), m, and whether it passed the check (zeros where not)."""
+    ds, o, stop, t_stop, xy = fo.ds, fo.options, fo.stop, fo.t_stop, fo.xy
+    methods, margin, max_bytes = o.methods, o.check_margin, o.max_stop_bytes
     t = time.perf_counter()
     c = fo.c_stated
     shift = fo.t0_at(c) - ds.t0_s
@@ -37,16 +70,15 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
             return _points_or_track(fo, found, shift, c, stop, t_stop, xy, max_bytes), True
         if found is not None or not others:
             return (found, True) if found is not None else (np.zeros((ds.n_meas, 3)), False)
-    p_stop, centre = _phase_paths(fo, methods, shift, c, stop, t_stop, xy, sweeps, max_bytes)
+    p_stop, centre = _phase_paths(fo, methods, shift, c, stop, t_stop, xy, o.phase_sweeps, max_bytes)
     track = None
     if "track" in methods:
-        from .track_step import track_step
+        from .stage_motion_track import track_step
 
-        p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.track_tolerance_m)
+        p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, o.track_tolerance_m)
     if "los" in methods:
-        p_stop = fo.line_of_sight(shift, c, stop, t_stop, xy, p_stop, n_basis, bandwidth_hz, max_iter)
-    move = _carriage_move(fo, methods, shift, c, stop, t_stop, xy, p_stop, centre, n_basis, bandwidth_hz, max_iter,
-                          smooth_start, pga_options)
+        p_stop = _line_of_sight(fo, shift, c, p_stop)
+    move = _carriage_move(fo, shift, c, p_stop, centre)
     before = fo.split_agreement(shift, c, None)
     after = fo.split_agreement(shift, c, move)
     if track is not None and set(methods) & {"phase", "3d", "los", "pga"} == set():
@@ -54,6 +86,25 @@ def estimate_motion(fo, methods, stop, t_stop, xy, n_basis, bandwidth_hz, max_it
     passed = _motion_passed(fo.rep.check.get("phase_heldout"), methods, move, before, after, margin)
     _record_motion(fo, methods, move, before, after, passed, margin, time.perf_counter() - t)
     return (move, True) if passed else (np.zeros((ds.n_meas, 3)), False)
+
+
+def _line_of_sight(fo: FocusState, shift, c_est, p_stop) -> np.ndarray:
+    """``p_stop`` plus the line-of-sight path changes per stop (a smooth motion basis), m."""
+    rep, o, stop, t_stop = fo.rep, fo.options, fo.stop, fo.t_stop
+    t = time.perf_counter()
+    k = o.n_basis or default_basis_size(t_stop, len(t_stop), o.motion_bandwidth_hz, fo.ds.timestamps is not None)
+    basis = motion_basis(t_stop, fo.xy, min(k, max(len(t_stop) - 3, 1)))
+    rep.n_basis = basis.shape[1]
+    if rep.n_basis == 0:
+        rep.notes.append("line of sight: too few stops for a motion basis; not estimated")
+        return p_stop
+    stages = sorted({min(s, rep.n_basis) for s in (4, 12, rep.n_basis // 2, rep.n_basis) if s > 0})
+    dp, info = optimise_los(fo.engine, shift - p_stop[stop] / c_est, c_est, stop, basis, stages, o.max_iter,
+                            rep.history, callback=fo.progress)
+    rep.stages.append({"step": "los", "metric": info["stages"][-1]["metric"],
+                       "evaluations": info["evaluations"], "stages": info["stages"],
+                       "time_s": time.perf_counter() - t})
+    return p_stop + dp
 
 
 def _phase_paths(fo, methods, shift, c, stop, t_stop, xy, sweeps, max_bytes) -> tuple[np.ndarray, np.ndarray | None]:
@@ -64,32 +115,31 @@ def _phase_paths(fo, methods, shift, c, stop, t_stop, xy, sweeps, max_bytes) -> 
     centre = None
     if "phase" not in methods:
         return p_stop, centre
-    ph_engine, centre = _local_engine(fo, shift, c) if fo.phase_region_m is not None else (engine, None)
+    ph_engine, centre = _local_engine(fo, shift, c) if fo.options.phase_region_m is not None else (engine, None)
 
     def local_metric(sh, cc, step):
         return fo.metric_of(ph_engine.image(sh, cc), step)
 
     p_stop = _phase_step(ph_engine, ds, ph_engine.grid, shift, c, stop, sweeps, max_bytes, local_metric,
-                         rep.history, fo.progress, rep, margin=fo.heldout_gain)
+                         rep.history, fo.progress, rep, margin=fo.options.heldout_gain)
     # the gauge no focus metric sees: a constant path is a range shift, one linear in the
     # carriage's x and y a shift across; the phase search leaves them free, so they go
     nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
     return p_stop - nuis @ (nuis.T @ p_stop), centre
 
 
-def _carriage_move(fo, methods, shift, c, stop, t_stop, xy, p_stop, centre, n_basis, bandwidth_hz, max_iter,
-                   smooth_start, pga_options) -> np.ndarray:
+def _carriage_move(fo: FocusState, shift, c, p_stop, centre) -> np.ndarray:
     """The path-length errors as a carriage displacement along the lines of sight to the focus
     centre, refined in 3-D (``"3d"``) and by phase-gradient autofocus (``"pga"``) where named."""
-    ds, rep, engine = fo.ds, fo.rep, fo.engine
+    ds, rep, engine, methods, stop = fo.ds, fo.rep, fo.engine, fo.options.methods, fo.stop
     if centre is None:
         centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
     rep.focus_centre_m = centre
     move = (-0.5 * p_stop[stop])[:, None] * los_directions(ds, centre)
     if "3d" in methods:
-        move = carriage_3d(fo, shift, c, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start)
+        move = carriage_3d(fo, shift, c, move)
     if "pga" in methods:
-        move, _ = _pga_step(engine, ds, shift, c, stop, xy, move, pga_options, fo.image_metric, rep)
+        move, _ = _pga_step(engine, ds, shift, c, stop, fo.xy, move, fo.options.pga_options, fo.image_metric, rep)
     return move
 
 
@@ -148,7 +198,7 @@ def points_step(fo, shift, c, stop, t_stop, xy, margin, others=frozenset()) -> n
     is determined and the sub-apertures agree better after it by :data:`MOTION_GAIN`; else None
     (the other motion steps named, ``others``, then run), with a note saying why."""
     from .points import points_paths
-    from .track_step import resolution_cell_m
+    from .stage_motion_track import resolution_cell_m
 
     ds, rep, engine = fo.ds, fo.rep, fo.engine
     t = time.perf_counter()
@@ -198,12 +248,12 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
     sample (speckle peaks that pass for points) the neighbours' phases hold more of the motion:
     on the family's tuning sets this took 3 scenes from -2.7, -2.6 and -1.2 dB to within 0.2 dB
     and changed none for the worse."""
-    from .track_step import track_step
+    from .stage_motion_track import track_step
 
     rep, engine = fo.rep, fo.engine
     kept = (rep.parameters.get("motion"), len(rep.notes), rep.focus_centre_m, dict(rep.check), len(rep.stages))
     points_after = float(np.mean([rep.check[f"points_{n}_after"] for n in fo.split_names]))
-    p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.track_tolerance_m)
+    p_stop, track = track_step(fo, shift, c, stop, t_stop, xy, max_bytes, fo.options.track_tolerance_m)
     centre = _focus_centre(engine, engine.grid, shift - p_stop[stop] / c, c)
     move = (-0.5 * p_stop[stop])[:, None] * los_directions(fo.ds, centre)
     # the uncorrected sub-apertures' agreement is what "points" measured (same shift and speed)
@@ -229,8 +279,8 @@ def _points_or_track(fo, points_move, shift, c, stop, t_stop, xy, max_bytes) -> 
 
 def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarray, bool]:
     """``"track"`` alone: applied where determined (the even and odd stops agree, or the target's
-    two sides do) and where the check on positions (:func:`.track_step.where_check`) passes."""
-    from .track_step import REGION_TOLERANCE_M, where_check
+    two sides do) and where the check on positions (:func:`.stage_motion_track.where_check`) passes."""
+    from .stage_motion_track import REGION_TOLERANCE_M, where_check
 
     rep = fo.rep
     where = where_check(fo, shift, c, move) if track["determined"] else {"passed": False}
@@ -245,7 +295,7 @@ def _track_decision(fo, shift, c, move, track, before, after) -> tuple[np.ndarra
     how = (f"track: neighbouring stops' phase differences, integrated (median coherence "
            f"{track.get('coherence_median', 0):.2f}, closest stops {nearest:.2f}); even and odd stops tracked "
            f"apart differ by {track.get('halves_rms_m', float('nan')) * 1e3:.2f} mm RMS (one way; determined at "
-           f"<= {fo.track_tolerance_m * 1e3:.2f} mm), the target's two sides by "
+           f"<= {fo.options.track_tolerance_m * 1e3:.2f} mm), the target's two sides by "
            f"{track.get('regions_rms_m', float('nan')) * 1e3:.2f} mm (at <= {REGION_TOLERANCE_M * 1e3:.2f} mm)")
     sampling = sampling_note(track, bool(track["determined"]))
     if sampling:
@@ -291,7 +341,7 @@ def sampling_note(track: dict, determined: bool = False) -> str:
 
 def _local_engine(fo, shift, c):
     """A :class:`FocusEngine` on a fine grid (a quarter of the shortest wavelength) of half-size
-    ``fo.phase_region_m`` around the image's brightest voxel, and that voxel, m."""
+    ``fo.options.phase_region_m`` around the image's brightest voxel, and that voxel, m."""
     from ..geometry import VoxelGrid
     from .engine import FocusEngine
 
@@ -301,26 +351,27 @@ def _local_engine(fo, shift, c):
     f_max = max(engine.ds.chirp.get("f_start_hz", 0.0), engine.ds.chirp.get("f_stop_hz", 0.0)) or \
         2 * engine.prof.fc_hz
     step = float(np.min(engine.ds.c_per_meas)) / f_max / 4
-    r = fo.phase_region_m
+    r = fo.options.phase_region_m
     ax = np.arange(-r, r + 0.5 * step, step)
     grid = VoxelGrid(centre[0] + ax, centre[1] + ax, centre[2] + ax)
     return FocusEngine(engine.ds, grid, backend=engine.selection, **fo.engine_options), centre
 
 
-def carriage_3d(fo, shift, c_est, stop, t_stop, xy, move, n_basis, bandwidth_hz, max_iter, smooth_start):
+def carriage_3d(fo: FocusState, shift, c_est, move) -> np.ndarray:
     """The carriage's 3-D displacement per measurement (n_meas, 3), m, started from ``move``."""
     t = time.perf_counter()
+    stop, t_stop, xy, o = fo.stop, fo.t_stop, fo.xy, fo.options
     start = _per_stop_mean(move, stop)
-    k = n_basis or default_basis_size(t_stop, len(t_stop), bandwidth_hz, fo.ds.timestamps is not None)
+    k = o.n_basis or default_basis_size(t_stop, len(t_stop), o.motion_bandwidth_hz, fo.ds.timestamps is not None)
     basis = motion_basis(t_stop, xy, min(k, max(len(t_stop) - 3, 1))) if k < len(t_stop) else None
     nuis, _ = np.linalg.qr(np.c_[np.ones(len(t_stop)), xy - xy.mean(axis=0)])
-    if basis is not None and smooth_start:
+    if basis is not None:
         # the carriage moves smoothly: the start keeps the line-of-sight move's part in the basis;
         # what is left is the per-stop estimates' noise and the line of sight's turn, not motion
         start = basis @ (basis.T @ start)
     else:  # the gauge no focus metric sees: the constant and the tilt, out
         start = start - nuis @ (nuis.T @ start)
-    d, info = optimise_xyz(fo.engine, shift, c_est, stop, start, max_iter, fo.rep.history, callback=fo.progress,
+    d, info = optimise_xyz(fo.engine, shift, c_est, stop, start, o.max_iter, fo.rep.history, callback=fo.progress,
                            basis=basis)
     fo.rep.n_basis = info["functions"]
     fo.rep.stages.append({"step": "3d", "metric": info["metric"], "evaluations": info["evaluations"],
