@@ -144,11 +144,12 @@ def _carriage_move(fo: FocusState, shift, c, p_stop, centre) -> np.ndarray:
 
 
 def _motion_passed(held, methods, move, before, after, margin) -> bool:
-    """The motion's check: with phases alone, the held-out halves' verdict and no sub-aperture pair
-    agreeing less; otherwise, on all stops, the sub-aperture pairs agreeing better on average."""
+    """The motion's check: with phases alone, the held-out halves' verdict, the sub-aperture pairs
+    agreeing better by :data:`MOTION_GAIN` on average and none agreeing less; otherwise, on all
+    stops, the sub-aperture pairs agreeing better on average (by ``margin``)."""
     gain = np.asarray(after) - np.asarray(before)
     if held is not None and set(methods) & {"3d", "los", "pga"} == set():
-        return bool(held["passed"] and gain.min() > -margin and np.any(move != 0))
+        return bool(held["passed"] and gain.mean() >= MOTION_GAIN and gain.min() > -margin and np.any(move != 0))
     return bool(gain.mean() > margin and gain.min() > -margin and (held is None or held["passed"]))
 
 
@@ -178,7 +179,7 @@ def _record_motion(fo, methods, move, before, after, passed, margin, seconds) ->
                          "not applied")
 
 
-#: ``"points"`` and ``"track"`` are applied only where the disjoint sub-apertures' images agree
+#: ``"phase"``, ``"points"`` and ``"track"`` are applied only where the disjoint sub-apertures' images agree
 #: better after them by at least this (the mean over the pairs of the magnitude correlation's
 #: rise): a motion that explains no disagreement is not applied. On the scene family's tuning
 #: seeds the point scenes with hand motion rose by 0.30-0.66 and the one scene "points" made worse
