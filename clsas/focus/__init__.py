@@ -16,7 +16,8 @@ uncertainty, determined, applied). The steps (``methods``, applied in this order
    line-of-sight move, its constant and tilt (the gauge) projected out. Held out
    (:func:`.stage_motion_steps._held_out_phases`): each interleaved half's phases, predicted onto
    the other, must sharpen it (``heldout_gain``); and disjoint sub-apertures (first and second half in
-   time, left and right) must not agree less (:mod:`.stage_motion`, ``check_margin``);
+   time, left and right) must agree better by :data:`.stage_motion.MOTION_GAIN` and none less
+   (:mod:`.stage_motion`, ``check_margin``);
 4. ``"points"``: the stops' phases that the image's strong points
    share, the left singular vector of their per-stop contributions (rank one, no point taken as
    the reference), unwrapped in time and fitted in the hand's band, the points picked again
