@@ -21,6 +21,9 @@ ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
 PAGES = [README, *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 
+# the fast-formation page's headings of its ω-k and FFBP snippets
+OMEGA_K, FFBP = "ω-k: `formation=\"omega-k\"`", "FFBP: `formation=\"ffbp\"`"
+
 # (heading, language, n-th block under it) -> where it is run
 RUN_ELSEWHERE = {
     ("Your own data", "python", 1): "tests/docs/test_docs.py (the own-data page in order: scan.h5 of its setup block "
@@ -38,6 +41,8 @@ RUN_ELSEWHERE = {
     **{(heading, "python", 0): "tests/docs/test_docs.py (the autofocus page in order; its outputs compared)"
        for heading in ("A hand-held scan", "Run it and read the report", "When an estimate is applied",
                        "A last check that trusts no image: data consistency")},
+    ("`formation=\"auto\"`: what it chooses and what it prints", "python", 0):
+        "tests/docs/test_docs.py (the fast-formation page, after its setup block; its output compared)",
     ("Python API in ten lines", "python", 0):
         "tests/scenarios/test_first_use_guards_and_light_import.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
@@ -47,15 +52,15 @@ RUN_HERE = {
     ("Your own data", "toml", 0): "test_your_own_data_preprocess_table",
     ("Command line", "toml", 0): "test_command_line_scene_file",
     ("Beam models and boresights", "toml", 0): "test_beams_table",
-    ("Fast image formation", "python", 0): "test_fragments_on_a_small_scan",
-    ("Fast image formation", "python", 1): "test_fragments_on_a_small_scan",
+    (OMEGA_K, "python", 0): "test_fragments_on_a_small_scan",
+    (FFBP, "python", 0): "test_fragments_on_a_small_scan",
     ("Extending clsas: one module and one line", "python", 0): "test_extending_registers_a_formation",
     ("On the command line", "bash", 0): "test_autofocus_command_line",
 }
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
                                      "test suite (what CI does)",
-    ("Fast image formation", "bash", 0): "a synopsis with [optional] parts, not a command line",
+    ("Which formation when", "bash", 0): "a synopsis with [optional] parts, not a command line",
     ("Building and running a rig", "bash", 0): "runs a scan against the GRBL and audio emulators (about a "
                                                "minute); tests/hw/test_rig.py runs the same commands",
     ("Building and running a rig", "", 0): "a wiring diagram, not code",
@@ -219,9 +224,9 @@ def test_fragments_on_a_small_scan():
     dataset = clsas.simulate(clsas.Scene(np.array([[0.0, 0.0, 0.6]])), clsas.raster_aperture(36, 36, 0.1, 0.1),
                              chirp, fs, n_samples=900, snr_db=30)
     grid = clsas.VoxelGrid.from_bounds((-0.05, 0.05), (-0.05, 0.05), (0.55, 0.65), 0.01)
-    for k in (0, 1):
+    for heading in (OMEGA_K, FFBP):
         env = {"clsas": clsas, "dataset": dataset, "grid": grid}
-        exec(compile(block("Fast image formation", "python", k), f"README.md (formation {k})", "exec"), env)  # noqa: S102
+        exec(compile(block(heading, "python"), f"fast-formation.md ({heading})", "exec"), env)  # noqa: S102
         assert env["image"].values.shape == grid.shape
 
 
