@@ -9,7 +9,7 @@ import numpy as np
 
 from .stats import jsonable
 
-__all__ = ["write_report", "markdown"]
+__all__ = ["write_report", "write_run", "markdown"]
 
 
 def write_report(res: dict, out_dir: Path, stem: str, plots: bool = True) -> dict:
@@ -23,6 +23,19 @@ def write_report(res: dict, out_dir: Path, stem: str, plots: bool = True) -> dic
     if plots:
         _plot(res, paths["png"])
     return paths_s
+
+
+def write_run(out_dir: Path, kind: str, res: dict, md: list[str]) -> Path:
+    """``<date>-<kind>-<cpu>.{json,md}`` of a run that has no picture, in ``out_dir``; their stem."""
+    import datetime as dt
+    import re
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = out_dir / f"{dt.date.today()}-{kind}-{re.sub(r'[^A-Za-z0-9]+', '-', res['cpu']).strip('-')[:40]}"
+    stem.with_suffix(".json").write_text(json.dumps(res, indent=1, default=str))
+    stem.with_suffix(".md").write_text("\n".join(md) + "\n")
+    print(f"wrote {stem}.json and .md")
+    return stem
 
 
 def _rate(row, key):

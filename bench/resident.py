@@ -29,7 +29,6 @@ import argparse
 import datetime as dt
 import json
 import os
-import re
 import subprocess
 import sys
 import time
@@ -206,6 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.child:
         sys.stdout.write(json.dumps(child(args), default=str) + "\n")
         return 0
+    from bench.report import write_run
     from bench.stats import cpu_name
 
     res = {"date": dt.datetime.now().isoformat(timespec="seconds"), "cpu": cpu_name(), "cores": os.cpu_count(),
@@ -228,11 +228,7 @@ def main(argv: list[str] | None = None) -> int:
             res["rows"].append({**d, "code": str(code), **json.loads(lines[-1])})
     md = markdown(res)
     print("\n".join(md))
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"{dt.date.today()}-resident-{re.sub(r'[^A-Za-z0-9]+', '-', res['cpu']).strip('-')[:40]}"
-    (args.out / f"{stem}.json").write_text(json.dumps(res, indent=1, default=str))
-    (args.out / f"{stem}.md").write_text("\n".join(md) + "\n")
-    print(f"wrote {args.out / stem}.json and .md")
+    write_run(args.out, "resident", res, md)
     return 0
 
 

@@ -25,12 +25,12 @@ import argparse
 import datetime as dt
 import json
 import os
-import re
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from bench.report import write_run
 from bench.stats import cpu_name
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -184,11 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         res["rows"].append({**d, **json.loads(lines[-1])})
     md = markdown(res)
     print("\n".join(md))
-    args.out.mkdir(parents=True, exist_ok=True)
-    stem = f"{dt.date.today()}-runtimes-{re.sub(r'[^A-Za-z0-9]+', '-', res['cpu']).strip('-')[:40]}"
-    (args.out / f"{stem}.json").write_text(json.dumps(res, indent=1, default=str))
-    (args.out / f"{stem}.md").write_text("\n".join(md) + "\n")
-    print(f"wrote {args.out / stem}.json and .md")
+    write_run(args.out, "runtimes", res, md)
     return 0
 
 

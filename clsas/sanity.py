@@ -25,7 +25,7 @@ from .dataset import Dataset
 from .geometry import VoxelGrid
 
 __all__ = ["MAX_RECORDINGS", "MIN_SHARE", "GridCheck", "band_hz", "check_grid_against_data", "echo_share_in_grid",
-           "envelope", "grid_delays", "likely_cause", "pulse_width_s"]
+           "envelope", "grid_corners", "grid_delays", "likely_cause", "pulse_width_s"]
 
 log = logging.getLogger(__name__)
 
@@ -42,20 +42,25 @@ class GridCheck:
     warnings: tuple[str, ...] = ()
 
 
+def grid_corners(grid: VoxelGrid) -> np.ndarray:
+    """(8, 3) the corners of the grid's box, m."""
+    ends = [(ax[0], ax[-1]) for ax in (grid.x_m, grid.y_m, grid.z_m)]
+    return np.array(np.meshgrid(*ends, indexing="ij"), float).reshape(3, -1).T
+
+
 def grid_delays(ds: Dataset, grid: VoxelGrid, rows: np.ndarray | None = None) -> np.ndarray:
     """(n, 2) bounds of the bistatic delay from each measurement (``rows``) to the grid's box, s:
     at least the speaker's and the microphone's distances to the box, at most the farthest corner's
     (a sum of distances is convex, so its largest value over a box is at a corner). No voxel is
     formed: a grid typed in millimetres may hold 1e9 of them."""
     rows = np.arange(ds.n_meas) if rows is None else rows
-    lo = np.array([min(ax[0], ax[-1]) for ax in (grid.x_m, grid.y_m, grid.z_m)])
-    hi = np.array([max(ax[0], ax[-1]) for ax in (grid.x_m, grid.y_m, grid.z_m)])
+    corners = grid_corners(grid)
+    lo, hi = corners.min(axis=0), corners.max(axis=0)
     tx, rx, c = ds.tx_positions[rows], ds.rx_positions[rows], ds.c_per_meas[rows]
 
     def to_box(p):
         return np.linalg.norm(p - np.clip(p, lo, hi), axis=1)
 
-    corners = np.array(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij")).reshape(3, -1).T
     far = (np.linalg.norm(corners[None] - tx[:, None], axis=2) + np.linalg.norm(corners[None] - rx[:, None], axis=2))
     return np.c_[(to_box(tx) + to_box(rx)) / c, far.max(axis=1) / c]
 

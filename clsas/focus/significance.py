@@ -20,12 +20,14 @@ The motion is judged by what it explains instead (:data:`MOTION_GAIN` in
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy import stats
 
-from ..sanity import band_hz
+from ..sanity import band_hz, grid_corners
 
-__all__ = ["MIN_PERIODS", "CONFIDENCE", "Verdict", "beyond_uncertainty", "delay_floor_s", "delay_spread_s",
+__all__ = ["MIN_PERIODS", "CONFIDENCE", "Decision", "beyond_uncertainty", "delay_floor_s", "delay_spread_s",
            "judge"]
 
 #: The least change of the delays worth applying, in periods of the band's highest frequency
@@ -36,21 +38,11 @@ MIN_PERIODS = 1 / 16
 CONFIDENCE = 0.95
 
 
-class Verdict(tuple):
-    """``(apply, why)``: whether to apply the estimate, and the reason in words."""
+class Decision(NamedTuple):
+    """Whether to apply an estimate (``apply``), and the reason in words (``why``)."""
 
-    __slots__ = ()
-
-    def __new__(cls, apply: bool, why: str):
-        return super().__new__(cls, (bool(apply), why))
-
-    @property
-    def apply(self) -> bool:
-        return self[0]
-
-    @property
-    def why(self) -> str:
-        return self[1]
+    apply: bool
+    why: str
 
 
 def delay_floor_s(ds) -> float:
@@ -70,9 +62,8 @@ def delay_spread_s(ds, grid, t0_new: np.ndarray, c_new: np.ndarray) -> float:
     """The largest change of the delays across the aperture that ``(t0_new, c_new)`` makes at the
     grid's corners and centre (the change's spread over the recordings; a common part only moves
     the image), s."""
-    ends = np.array([[ax[0], ax[-1]] for ax in (grid.x_m, grid.y_m, grid.z_m)])
-    corners = np.array(np.meshgrid(*ends, indexing="ij")).reshape(3, -1).T
-    pts = np.r_[corners, ends.mean(axis=1)[None]]
+    corners = grid_corners(grid)
+    pts = np.r_[corners, corners.mean(axis=0)[None]]
     path = (np.linalg.norm(pts[None] - ds.tx_positions[:, None], axis=2)
             + np.linalg.norm(pts[None] - ds.rx_positions[:, None], axis=2))
     change = (path / np.asarray(c_new, float)[:, None] - np.asarray(t0_new, float)[:, None]
@@ -80,15 +71,15 @@ def delay_spread_s(ds, grid, t0_new: np.ndarray, c_new: np.ndarray) -> float:
     return float(np.max(np.ptp(change, axis=0)))
 
 
-def judge(offset: float, uncertainty: float, dof: int, effect_s: float, floor_s: float, unit: str = "") -> Verdict:
+def judge(offset: float, uncertainty: float, dof: int, effect_s: float, floor_s: float, unit: str = "") -> Decision:
     """Both tests of the module on one estimate: ``offset`` from the stated value (in ``unit``),
     its standard ``uncertainty`` with ``dof`` degrees of freedom, and the change ``effect_s`` it
     makes to the delays against ``floor_s``."""
     if not beyond_uncertainty(offset, uncertainty, dof):
         q = stats.t.ppf(0.5 + CONFIDENCE / 2, max(int(dof), 1))
-        return Verdict(False, f"{offset:+.3g} {unit} from the stated value is within {q:.3g} x its uncertainty "
+        return Decision(False, f"{offset:+.3g} {unit} from the stated value is within {q:.3g} x its uncertainty "
                               f"{uncertainty:.2g} {unit} ({CONFIDENCE:.0%}): consistent with the stated value")
     if effect_s < floor_s:
-        return Verdict(False, f"it changes the delays by {effect_s * 1e6:.2g} us, under {floor_s * 1e6:.2g} us "
+        return Decision(False, f"it changes the delays by {effect_s * 1e6:.2g} us, under {floor_s * 1e6:.2g} us "
                               f"({MIN_PERIODS:g} of the band's shortest period): too small to change the image")
-    return Verdict(True, f"beyond its uncertainty, and it changes the delays by {effect_s * 1e6:.3g} us")
+    return Decision(True, f"beyond its uncertainty, and it changes the delays by {effect_s * 1e6:.3g} us")

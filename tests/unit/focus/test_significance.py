@@ -9,6 +9,13 @@ from clsas.focus.significance import beyond_uncertainty, delay_floor_s, delay_sp
 from clsas.scene_family import TUNING_2_SEEDS, family_scene
 
 
+@pytest.fixture(scope="module")
+def scene():
+    """An odd tuning-2 seed of the family: its scan with errors, its error-free twin (both with
+    the direct sound) and its grid."""
+    return family_scene(TUNING_2_SEEDS[1])
+
+
 def test_the_uncertainty_test_uses_students_t_for_the_degrees_of_freedom():
     # one degree of freedom (two halves): the 95 % quantile is 12.7, not 1.96
     assert not beyond_uncertainty(4.0, 1.0, 1) and beyond_uncertainty(13.0, 1.0, 1)
@@ -25,23 +32,21 @@ def test_judge_names_the_test_that_failed():
     assert v.apply and v.why.startswith("beyond its uncertainty")
 
 
-def test_the_floor_is_a_sixteenth_of_a_period_at_the_top_of_the_band():
-    fs = family_scene(TUNING_2_SEEDS[1])
-    assert delay_floor_s(fs.clean) == pytest.approx(1 / 16 / 30e3, rel=0.03)
+def test_the_floor_is_a_sixteenth_of_a_period_at_the_top_of_the_band(scene):
+    assert delay_floor_s(scene.clean) == pytest.approx(1 / 16 / 30e3, rel=0.03)
 
 
-def test_a_common_delay_change_has_no_spread_and_a_speed_change_has_one():
-    ds = family_scene(TUNING_2_SEEDS[1]).clean
-    grid = family_scene(TUNING_2_SEEDS[1]).grid
+def test_a_common_delay_change_has_no_spread_and_a_speed_change_has_one(scene):
+    ds, grid = scene.clean, scene.grid
     assert delay_spread_s(ds, grid, ds.t0_s + 1e-5, ds.c_per_meas) == pytest.approx(0.0, abs=1e-12)
     assert delay_spread_s(ds, grid, ds.t0_s, ds.c_per_meas * 1.01) > 1e-6
 
 
-def test_the_direct_sound_of_an_error_free_scan_is_not_applied_and_of_a_delayed_one_is():
+def test_the_direct_sound_of_an_error_free_scan_is_not_applied_and_of_a_delayed_one_is(scene):
     """An odd seed of the family has the direct sound. Its error-free scan's arrivals give a delay
     of nanoseconds, within their scatter: nothing applied, the input returned. The recorded scan
     has a 10-50 us group delay: applied, to within its floor."""
-    fs = family_scene(TUNING_2_SEEDS[1])
+    fs = scene
     out, rep = clsas.autofocus(fs.clean, fs.grid)
     assert out is fs.clean and not rep.improved
     assert not any(p.applied for p in rep.parameters.values())
