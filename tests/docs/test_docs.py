@@ -219,7 +219,24 @@ def test_marks_give_a_reason():
 
 
 def test_readme_is_short():
-    assert len((ROOT / "README.md").read_text(encoding="utf-8").splitlines()) <= 150
+    assert len((ROOT / "README.md").read_text(encoding="utf-8").splitlines()) <= 100
+
+
+def test_readme_states_the_held_out_claim_in_one_sentence_with_its_link():
+    """What clsas tunes and where it is judged: one sentence in the README, the evidence one link away."""
+    paragraphs = (ROOT / "README.md").read_text(encoding="utf-8").split("\n\n")
+    claim = [p for p in paragraphs if "never saw" in p]
+    assert len(claim) == 1, "the README states the held-out claim once"
+    text = " ".join(claim[0].split())
+    assert len(re.findall(r"[.!?](?:\s|$)", text)) == 1, f"not one sentence: {text}"
+    assert "(docs/guide/benchmarks.md#how-choices-are-judged)" in text
+    assert "how-choices-are-judged" in _anchors(ROOT / "docs" / "guide" / "benchmarks.md")
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors of a page's headings, as GitHub and MyST make them (lower case, spaces to hyphens)."""
+    return {re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-")
+            for m in re.finditer(r"^#{1,6} (.*)$", page.read_text(encoding="utf-8"), re.MULTILINE)}
 
 
 def _globs() -> dict:
