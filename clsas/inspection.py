@@ -147,18 +147,17 @@ def inspect_dataset(ds: Dataset, grid: VoxelGrid | None = None, *, min_in_gate: 
 def draw_inspection(ins: Inspection, path: str | Path, *, dynamic_range_db: float = 40.0) -> Path:
     """Draw the transducers' paths with the grid (top and side view) and the waterfall with the
     predicted arrivals over it; write the picture to ``path`` (PNG, PDF, ... by its suffix)."""
-    import matplotlib
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Rectangle
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.8), gridspec_kw={"width_ratios": [1, 1, 1.6]})
+    fig = Figure(figsize=(15, 4.8))  # drawn through its own canvas: the caller's backend is left as it is
+    ax = fig.subplots(1, 3, gridspec_kw={"width_ratios": [1, 1, 1.6]})
     for k, (i, j, name) in enumerate(((0, 1, "top (x, y)"), (0, 2, "side (x, z)"))):
         ax[k].plot(ins.tx_positions[:, i], ins.tx_positions[:, j], ".", ms=2, label="speaker")
         ax[k].plot(ins.rx_positions[:, i], ins.rx_positions[:, j], ".", ms=2, label="microphone")
         if ins.grid_bounds_m is not None:
             (a0, a1), (b0, b1) = ins.grid_bounds_m[i], ins.grid_bounds_m[j]
-            ax[k].add_patch(plt.Rectangle((a0, b0), a1 - a0, max(b1 - b0, 1e-3), fill=False, color="k", lw=1))
+            ax[k].add_patch(Rectangle((a0, b0), a1 - a0, max(b1 - b0, 1e-3), fill=False, color="k", lw=1))
         ax[k].set_aspect("equal", adjustable="datalim")
         ax[k].set_title(name)
         ax[k].set_xlabel("xyz"[i] + " (m)")
@@ -183,5 +182,4 @@ def draw_inspection(ins: Inspection, path: str | Path, *, dynamic_range_db: floa
     fig.tight_layout()
     path = Path(path)
     fig.savefig(path, dpi=90)
-    plt.close(fig)
     return path
