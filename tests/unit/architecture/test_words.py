@@ -11,9 +11,10 @@ HISTORY = re.compile(r"issue [0-9]+|[0-9]+(st|nd|rd|th) session|commit [0-9a-f]{
 
 
 def history_words(root: Path) -> list[str]:
-    """``file:line: text`` of every line under ``root/clsas`` that cites an issue, a session or a commit."""
+    """``file:line: text`` of every line under ``root/clsas`` and ``root/kernels`` that cites an issue, a
+    session or a commit."""
     found = []
-    for path in sorted((root / "clsas").rglob("*")):
+    for path in sorted([*(root / "clsas").rglob("*"), *(root / "kernels").rglob("*")]):
         if path.suffix not in (".py", ".cl", ".h", ".c", ".toml", ".md", ".txt") or not path.is_file():
             continue
         for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
@@ -30,6 +31,7 @@ def test_the_library_carries_no_work_history():
 def test_the_scan_finds_history(tmp_path):
     (tmp_path / "clsas" / "cl").mkdir(parents=True)
     (tmp_path / "clsas" / "a.py").write_text('"""Fixed in issue 26."""\nx = 1  # the issue is the phase\n')
-    (tmp_path / "clsas" / "cl" / "k.cl").write_text("// since the 3rd session\n// see commit 1a2b3c4d\n")
-    assert [f.split(": ", 1)[0] for f in history_words(tmp_path)] == ["clsas/a.py:1", "clsas/cl/k.cl:1",
-                                                                     "clsas/cl/k.cl:2"]
+    (tmp_path / "kernels").mkdir()
+    (tmp_path / "kernels" / "k.cl").write_text("// since the 3rd session\n// see commit 1a2b3c4d\n")
+    assert [f.split(": ", 1)[0] for f in history_words(tmp_path)] == ["clsas/a.py:1", "kernels/k.cl:1",
+                                                                     "kernels/k.cl:2"]
