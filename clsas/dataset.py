@@ -438,46 +438,51 @@ def load(path: str | Path) -> Dataset:
     if not path.exists():
         raise FileNotFoundError(f"no dataset file at {path}")
     with h5py.File(path, "r") as f:
-        if "signals" not in f:
-            raise ValueError(f"{path} is not a clsas dataset (no 'signals' array)")
-        a = f.attrs
-        version = int(a.get("format_version", 0))
-        if version > FORMAT_VERSION:
-            raise ValueError(
-                f"{path} has format_version {version}; this clsas reads up to {FORMAT_VERSION}"
-            )
+        _check_format(f, path)
+        return _read_dataset(f)
 
-        def get(name):
-            return f[name][()] if name in f else None
 
-        n = f["signals"].shape[0]
+def _check_format(f, path: Path) -> None:
+    """Refuse a file that is not a clsas dataset, or one of a newer format than this clsas reads."""
+    if "signals" not in f:
+        raise ValueError(f"{path} is not a clsas dataset (no 'signals' array)")
+    version = int(f.attrs.get("format_version", 0))
+    if version > FORMAT_VERSION:
+        raise ValueError(f"{path} has format_version {version}; this clsas reads up to {FORMAT_VERSION}")
 
-        # a scan in progress may have grown its arrays ahead of 'signals': trim to it
-        def trim(x):
-            return None if x is None else x[:n]
 
-        air = {k: trim(get(k)) if k in f else (float(a[k]) if k in a else None) for k in _AIR}
-        air = {k: val for k, val in air.items() if val is not None}
+def _read_dataset(f) -> Dataset:
+    """The Dataset in an open dataset file (arrays a scan in progress grew ahead of ``signals`` trimmed to it)."""
+    a = f.attrs
+    n = f["signals"].shape[0]
 
-        return Dataset(
-            signals=f["signals"][()],
-            tx_positions=trim(get("tx_positions")),
-            rx_positions=trim(get("rx_positions")),
-            fs_hz=float(a["fs_hz"]),
-            waveform=get("waveform"),
-            t0_s=trim(get("t0_s")),
-            **air,
-            stage_positions=trim(get("stage_positions")),
-            timestamps=trim(get("timestamps")),
-            loopback=trim(get("loopback")),
-            background=trim(get("background")),
-            chirp=json.loads(a.get("chirp_json", "{}")),
-            config=str(a.get("config_toml", "")),
-            provenance=json.loads(a.get("provenance_json", "[]")),
-            truth={k: (trim(val) if isinstance(val, np.ndarray) and val.ndim and len(val) > n else val)
-                   for k, val in _read_truth(f).items()},
-            beams=_read_beams(f, n),
-        )
+    def get(name):
+        return f[name][()] if name in f else None
+
+    def trim(x):
+        return None if x is None else x[:n]
+
+    air = {k: trim(get(k)) if k in f else (float(a[k]) if k in a else None) for k in _AIR}
+    air = {k: val for k, val in air.items() if val is not None}
+    return Dataset(
+        signals=f["signals"][()],
+        tx_positions=trim(get("tx_positions")),
+        rx_positions=trim(get("rx_positions")),
+        fs_hz=float(a["fs_hz"]),
+        waveform=get("waveform"),
+        t0_s=trim(get("t0_s")),
+        **air,
+        stage_positions=trim(get("stage_positions")),
+        timestamps=trim(get("timestamps")),
+        loopback=trim(get("loopback")),
+        background=trim(get("background")),
+        chirp=json.loads(a.get("chirp_json", "{}")),
+        config=str(a.get("config_toml", "")),
+        provenance=json.loads(a.get("provenance_json", "[]")),
+        truth={k: (trim(val) if isinstance(val, np.ndarray) and val.ndim and len(val) > n else val)
+               for k, val in _read_truth(f).items()},
+        beams=_read_beams(f, n),
+    )
 
 
 def json_default(obj):
