@@ -313,62 +313,75 @@ def _bpdn_feature_sign(dictionary, op, b, lam, amplitudes, tol, deadline, t_star
     return BpdnResult(x, f, lam, status, n_it, gap, time.perf_counter() - t_start, info)
 
 
+#: atoms added to the working set at a time (the strongest violators of optimality)
+_GROWTH = 20
+
+
+def _restricted_problem(cols, b, x, work, real_signal) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
+    """The working set's normal equations for :func:`fista_gram`: ``(D^H D, D^H b, mode, start)``;
+    for a real signal the columns are each atom's [Re, Im] pair, whose modulus is penalised."""
+    if real_signal:
+        cols = real_part_columns(cols)
+        mode, x0 = "pairs", np.r_[x[work].real, x[work].imag]
+    else:
+        mode, x0 = "complex", x[work]
+    return cols.conj().T @ cols, cols.conj().T @ b, mode, x0
+
+
+def _residual_objective_gap(op, b, x, lam) -> tuple[np.ndarray, float, float]:
+    """The residual, the objective and the duality gap over all atoms at ``x``."""
+    r = b - op.forward(x)
+    return r, _objective(r, x, lam), _gap(op, b, r, x, lam, "complex")
+
+
+def _grown(dictionary, work: np.ndarray, cols: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The working set with the atoms ``new`` (not in it) added, kept sorted, and its columns
+    (only the new atoms are computed)."""
+    order = np.argsort(np.r_[work, new], kind="stable")
+    cols = np.concatenate([cols, dictionary.atom.matrix(dictionary.taus[new])], axis=1)
+    return np.r_[work, new][order], cols[:, order]
+
+
 def _bpdn_working_set(dictionary, op, b, lam, tol, max_outer, max_inner, deadline, real_signal, t_start,
                       info) -> BpdnResult:
     """:func:`bpdn` for complex amplitudes: FISTA on a working set of atoms, grown by the atoms
     that violate optimality (20 at a time), until the duality gap over all atoms certifies it."""
     x = np.zeros(dictionary.k, complex)
     lp = lam / 2
-    g = op.adjoint(b)
-    score = np.abs(g)
+    score = np.abs(op.adjoint(b))
     work = np.flatnonzero(score > lp)
-    work = work[np.argsort(score[work])[::-1][:20]]
+    work = np.sort(work[np.argsort(score[work])[::-1][:_GROWTH]])
     status, gap, inner, outer = "max_iter", np.inf, 0, 0
     bb = float(np.vdot(b, b).real)
     tol_inner = tol / 10
-    work = np.sort(work)
     cols = dictionary.atom.matrix(dictionary.taus[work])  # the working set's atoms, kept as it grows
     while outer < max_outer:
         outer += 1
-        Dw = cols
-        if real_signal:  # real coefficients [Re, Im] of each atom, its pair's modulus penalised
-            Dw = real_part_columns(Dw)
-            mode, x0 = "pairs", np.r_[x[work].real, x[work].imag]
-        else:
-            mode, x0 = "complex", x[work]
-        Gw = Dw.conj().T @ Dw
-        cw = Dw.conj().T @ b
+        Gw, cw, mode, x0 = _restricted_problem(cols, b, x, work, real_signal)
         xw, n_in = fista_gram(Gw, cw, bb, lam, mode, x0, tol / 10, max_inner, deadline)
         inner += n_in
         x[:] = 0
         x[work] = _unpair(xw, len(work)) if real_signal else xw
-        r = b - op.forward(x)
-        f = _objective(r, x, lam)
-        gap = _gap(op, b, r, x, lam, "complex")
+        r, f, gap = _residual_objective_gap(op, b, x, lam)
         if gap <= tol * max(f, 1e-300):
             status = "optimal"
             break
         if time.perf_counter() > deadline:
             status = "max_time"
             break
-        g = op.adjoint(r)
-        score = np.abs(g)
+        score = np.abs(op.adjoint(r))
         viol = np.setdiff1d(np.flatnonzero(score > lp * (1 + tol)), work)
         if viol.size == 0:  # the set is right, the restricted solve was not tight enough
             tol_inner = tol_inner / 10
             xw, n_in = fista_gram(Gw, cw, bb, lam, mode, xw, tol_inner, max_inner, deadline)
             inner += n_in
             x[work] = _unpair(xw, len(work)) if real_signal else xw
-            r = b - op.forward(x)
-            gap = _gap(op, b, r, x, lam, "complex")
-            if gap <= tol * max(_objective(r, x, lam), 1e-300):
+            r, f, gap = _residual_objective_gap(op, b, x, lam)
+            if gap <= tol * max(f, 1e-300):
                 status = "optimal"
                 break
             continue
-        new = viol[np.argsort(score[viol])[::-1][:20]]  # not in work: only their atoms are computed
-        order = np.argsort(np.r_[work, new], kind="stable")
-        work = np.r_[work, new][order]
-        cols = np.concatenate([cols, dictionary.atom.matrix(dictionary.taus[new])], axis=1)[:, order]
+        work, cols = _grown(dictionary, work, cols, viol[np.argsort(score[viol])[::-1][:_GROWTH]])
     if not np.all(np.isfinite(x)):
         raise FloatingPointError("BPDN diverged (non-finite coefficients); check the dictionary and b")
     r = b - op.forward(x)
