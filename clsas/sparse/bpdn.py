@@ -183,6 +183,33 @@ def _resolve_lam(op, b, amplitudes, lam, lam_frac):
     return lam, lmax
 
 
+def _best_on_the_way(Da, b, lam, xa, theta) -> np.ndarray:
+    """Feature-sign search's step on the active atoms ``Da``: the least-squares solution for the
+    signs ``theta``, or the best point on the way to it where a coefficient changes sign."""
+    lp = lam / 2
+    G = Da.T @ Da
+    c = Da.T @ b
+    try:
+        x_new = np.linalg.solve(G, c - lp * theta)
+    except np.linalg.LinAlgError:
+        x_new = np.linalg.lstsq(G, c - lp * theta, rcond=None)[0]
+
+    def f(z):
+        return float(z @ G @ z - 2 * c @ z + lam * np.abs(z).sum())
+
+    # candidate points: the full step and every zero crossing on the way
+    d = x_new - xa
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ts = -xa / d
+    ts = ts[(ts > 0) & (ts < 1) & np.isfinite(ts)]
+    best_t, best_f = 1.0, f(x_new)
+    for t in ts:
+        fz = f(xa + t * d)
+        if fz < best_f:
+            best_t, best_f = t, fz
+    return xa + best_t * d
+
+
 def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter, deadline=np.inf):
     """Exact BPDN for real or positive amplitudes by feature-sign search (Lee et al., NIPS 2006).
 
@@ -212,29 +239,7 @@ def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter, deadline=np.inf)
             active = np.append(active, i)
             theta = np.append(theta, np.sign(g[i]) if amplitudes == "real" else 1.0)
         Da = dictionary.atom.matrix(dictionary.taus[active])
-        G = Da.T @ Da
-        c = Da.T @ b
-        xa = x[active]
-        try:
-            x_new = np.linalg.solve(G, c - lp * theta)
-        except np.linalg.LinAlgError:
-            x_new = np.linalg.lstsq(G, c - lp * theta, rcond=None)[0]
-
-        def f(z, G=G, c=c):
-            return float(z @ G @ z - 2 * c @ z + lam * np.abs(z).sum())
-
-        # candidate points: the full step and every zero crossing on the way
-        d = x_new - xa
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ts = -xa / d
-        ts = ts[(ts > 0) & (ts < 1) & np.isfinite(ts)]
-        best_t, best_f = 1.0, f(x_new)
-        for t in ts:
-            z = xa + t * d
-            fz = f(z)
-            if fz < best_f:
-                best_t, best_f = t, fz
-        xa = xa + best_t * d
+        xa = _best_on_the_way(Da, b, lam, x[active], theta)
         xa[np.abs(xa) <= 1e-14 * max(1.0, np.abs(xa).max())] = 0.0
         if amplitudes == "positive":
             xa = np.maximum(xa, 0.0)
