@@ -85,6 +85,12 @@ def test_the_tracer_counts_a_launch_and_a_copy_by_their_events():
     kernel_s, transfer_s = tr.seconds()
     assert kernel_s > 0 and transfer_s > 0
     np.testing.assert_array_equal(out, 2 * host)
+    # a queue without profiling gives no kernel or transfer times (the table then shows "-")
+    plain = pyopencl.CommandQueue(queue.context, queue.device)
+    with rates.Tracer() as tr:
+        knl(plain, host.shape, None, buf)
+        pyopencl.enqueue_copy(plain, out, buf)
+    assert tr.seconds() == (None, None)
 
 
 def test_rates_refuse_a_scan_too_small_and_an_unknown_device():
@@ -101,3 +107,13 @@ def test_the_rates_flag_prints_the_table_and_writes_its_report(tmp_path, capsys)
     printed = capsys.readouterr().out
     assert "kernel, pairs/s" in printed and "numpy (twins)" in printed
     assert len(list(tmp_path.glob("*-rates-*.json"))) == 1 and len(list(tmp_path.glob("*-rates-*.md"))) == 1
+
+
+def test_a_row_without_profiling_times_shows_its_wall_rate_only():
+    row = {"device": "0:0 X", "index": "0:0", "step": "bp",
+           **rates._row([{"wall_s": 0.5, "kernel_s": None, "transfer_s": None}], 1000)}
+    res = {"side": 8, "grid": [8, 8, 41], "pairs": 1000, "repeats": 1, "load_before": [1.0], "load_after": [1.0],
+           "rows": [row]}
+    assert row["wall_rate"] == 2000 and row["kernel_rate"] is None and not rates.finite_shares(row)
+    # kernel rate, wall rate, host, transfers, kernels
+    assert rates.table(res)[2].split()[-5:] == ["-", "2e+03", "-", "-", "-"]
