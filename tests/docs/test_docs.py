@@ -47,6 +47,8 @@ OUTPUTS_PENDING: dict[str, str] = {}
 OUTPUT_CHECKED_ELSEWHERE = {
     ("own-data.md", 'ds = clsas.io.import_airsas("small_features_cutout_20k", background="bg_20k")'):
         "tests/docs/test_readme_blocks.py::test_your_own_data_python_prints_what_the_page_shows",
+    ("benchmarks.md", "python -m bench --rates"):
+        "tests/docs/test_readme_blocks.py::test_rates_command_prints_what_the_page_shows",
 }
 EXAMPLE_LINE = re.compile(r"^python3? (examples/[\w-]+\.py)((?: [^#]*)?)(?:#.*)?$")
 
@@ -291,6 +293,13 @@ def test_docstring_example_runs(name, tmp_path, monkeypatch):
     ("", "", True),
     ("", "something\n", False),                                           # no output block: prints nothing
     ("x", "x\ny", False),
+    # a row missing from a table padded with spaces is refused (at once: whitespace runs next to
+    # ``...`` are one pattern, not several that split each run every way)
+    ("...\nnumpy bp ...\nnumpy ffbp ...\nnumpy reconstruct ...\nwrote ...",
+     "\n".join(f"numpy{' ' * 40}{s}{' ' * 30}1.2 ms   3 %" for s in ("bp", "omega-k", "reconstruct")) + "\nwrote x",
+     False),
+    ("...\nnumpy bp ...\nnumpy ffbp ...\nwrote ...",
+     "\n".join(f"numpy{' ' * 40}{s}{' ' * 30}1.2 ms   3 %" for s in ("bp", "ffbp")) + "\nwrote x", True),
 ])
 def test_output_comparison(shown, printed, same):
     assert (compare(shown, printed) is None) is same

@@ -25,6 +25,8 @@ PAGES = [README, *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 OMEGA_K, FFBP = "ω-k: `formation=\"omega-k\"`", "FFBP: `formation=\"ffbp\"`"
 # the own-data page's headings of its AirSAS pipeline and of its preprocessing steps
 AIRSAS, PREPROCESS = "The AirSAS scans, start to end", "Preprocessing"
+# the benchmarks page's rates table
+RATES = "Kernel and wall rates on every device"
 
 # (heading, language, n-th block under it) -> where it is run
 RUN_ELSEWHERE = {
@@ -60,6 +62,7 @@ RUN_HERE = {
     (FFBP, "python", 0): "test_fragments_on_a_small_scan",
     ("Extending clsas: one module and one line", "python", 0): "test_extending_registers_a_formation",
     ("On the command line", "bash", 0): "test_autofocus_command_line",
+    (RATES, "bash", 0): "test_rates_command_prints_what_the_page_shows",
 }
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
@@ -251,6 +254,25 @@ def test_autofocus_command_line(tmp_path, monkeypatch):
     assert (tmp_path / "fixed.png").exists()
     steps = [p["step"] for p in clsas.load(tmp_path / "fixed.h5").provenance]
     assert steps[-1] == "autofocus"
+
+
+def test_rates_command_prints_what_the_page_shows(tmp_path, capsys):
+    """The benchmarks page's rates command, on the smallest scan (8 x 8 stops) and on the NumPy twins
+    only (the page's output block leaves the sizes, timings and devices as ``...``), prints what the
+    page shows."""
+    from doc_output import compare
+    from test_docs import code_blocks
+
+    from bench.__main__ import main
+
+    code = block(RATES, "bash")
+    shown = next(out for _, lang, _, c, out in code_blocks(ROOT / "docs" / "guide" / "benchmarks.md")
+                 if lang == "bash" and c.rstrip("\n") == code.rstrip("\n"))
+    argv = shlex.split(code.split("#")[0])
+    assert argv[:3] == ["python", "-m", "bench"] and "--rates" in argv
+    assert main([*argv[3:], "--rates", "8", "--devices", "numpy", "--out", str(tmp_path)]) == 0
+    why = compare(shown.text, capsys.readouterr().out, shown.rtol)
+    assert why is None, why
 
 
 def test_extending_registers_a_formation():
