@@ -14,7 +14,7 @@ from .preprocess import add_preprocess_options, apply_preprocessing
 
 def cmd_reconstruct(args) -> int:
     import clsas
-    from clsas.scenes import stored_grid_and_truth
+    from clsas.synthesis.scenes import stored_grid_and_truth
 
     if args.plot and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
         raise ValueError(f"--plot: the file must end in .png, .svg or .pdf, got {args.plot!r}")
@@ -37,7 +37,7 @@ def cmd_reconstruct(args) -> int:
     if partial:
         print(f"(imaged from a partial scan: {partial.split(':')[1].split(';')[0].strip()})")
     if args.box is not None:
-        from clsas.quality import tcr_db
+        from clsas.presenting.quality import tcr_db
 
         print(f"target-to-clutter ratio in {args.box}: {tcr_db(image, box_arg('--box', args.box)):.1f} dB")
     _write_pictures(image, ds, truth, out, args)
@@ -62,11 +62,11 @@ def _formed_and_saved(ds, grid, args, out: Path):
     """The image, written to ``out``: tile by tile into the file (``--max-memory``, ``--scheduler``, a
     ``.zarr`` store), else formed in memory and saved; either way with the dataset's provenance."""
     import clsas
-    from clsas.image import source_provenance
+    from clsas.types.image import source_provenance
 
     if args.max_memory is not None or args.scheduler is not None or out.suffix.lower() == ".zarr":
         image = _reconstruct_tiled(ds, grid, args, out)
-        return clsas.tiling.update_attrs(image, source_provenance(ds, args.data), compression=args.compression)
+        return clsas.pipeline.tiling.update_attrs(image, source_provenance(ds, args.data), compression=args.compression)
     image = reconstruct_image(ds, grid, args, not args.quiet)
     image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
     image.save(out, overwrite=True)  # checked against --overwrite before any work
@@ -101,7 +101,7 @@ def _write_pictures(image, ds, truth, out: Path, args) -> None:
     """``--png`` (beside ``out``) and ``--plot FILE``: the image's picture, the truth and scene marked."""
     if not (args.png or args.plot):
         return
-    from clsas.plots import stored_scene
+    from clsas.types.pictures import stored_scene
 
     kw = dict(truth_m=truth, scene=stored_scene(ds.config), aperture=ds, dynamic_range_db=args.dynamic_range)
     for pic in ([out.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else []):
@@ -138,7 +138,7 @@ def _partial_scan(path) -> str:
 def add_parser(sub) -> None:
     from clsas.formation import FORMATIONS
     from clsas.formation.auto import DEFAULT_MAX_ERROR_DB
-    from clsas.pipeline import methods
+    from clsas.pipeline.reconstruction import methods
 
     r = sub.add_parser("reconstruct", help="image a dataset file")
     r.add_argument("data", help="dataset file (HDF5, from clsas simulate, acquire, import or preprocess)")

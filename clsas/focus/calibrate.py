@@ -45,8 +45,8 @@ from typing import Any
 import numpy as np
 
 from .. import validate as v
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
 
 __all__ = ["PARAMETERS", "CAL_METRICS", "Calibration", "apply_calibration", "calibrate", "perturb"]
 

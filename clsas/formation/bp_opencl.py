@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..cl import Plan
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
 from .bp_numpy import (  # noqa: F401 - the twins of records.cl, imported from here by the projector
     MAX_CYCLES_PER_SAMPLE,
     carrier_factors,
@@ -67,7 +67,7 @@ def selftest_beam_weights(rng, mode: str, n_meas: int = 3):
     """The beams the beam selftests use: a piston speaker tilted per measurement (drawn from
     ``rng``) and a cone microphone, for ``n_meas`` measurements (the bp selftest scene's 3) at
     25 kHz."""
-    from ..beam import Beams, Piston, beam_weights
+    from ..physics.beam import Beams, Piston, beam_weights
 
     tilt = np.c_[rng.uniform(-0.3, 0.3, (n_meas, 2)), np.ones(n_meas)]
     beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), n_meas)

@@ -61,9 +61,9 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.geometry import VoxelGrid
+from ..types.image import Image
+from ..types.profiles import Profiles
 from . import ffbp_numpy as twin
 from .bp_numpy import upsample_factor
 from .bp_opencl import RecordsPlan
@@ -163,7 +163,7 @@ def _beam_weights(profiles: Profiles, beam: str | None, floor_db: float, fc: flo
     is weighted). The default where the profiles carry a directional beam is ``"weighted"``, not
     bp's ``"limited"``: a weighted sub-image interpolates, a gated one does not (its edges are
     not band-limited: -10 dB or worse against bp's gate on the tests' tilted scan)."""
-    from ..beam import BEAM_MODES, beam_weights
+    from ..physics.beam import BEAM_MODES, beam_weights
 
     floor_db = v.finite("beam_floor_db", floor_db)
     mode = None if beam is None else v.choice("beam", beam, BEAM_MODES)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..cl import Plan
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
 from . import ffbp_numpy as twin
 from .bp_opencl import BeamPlan, carrier_records, selftest_beam_weights
 from .ffbp_tree import BLOCK, Level, Tree
@@ -65,7 +65,7 @@ class FfbpLeafPlan(BeamPlan):
 
     With ``beam_lut`` > 0 it is built with kernels/beam.cl's ``-DBEAM`` for ``n_meas``
     measurements: each pair is weighted by its two-way beam at the sample's position (calls
-    then take ``beam``, a :class:`clsas.beam.BeamWeights` in tree order).
+    then take ``beam``, a :class:`clsas.physics.beam.BeamWeights` in tree order).
     """
 
     KERNEL = "ffbp_leaf"

@@ -40,11 +40,11 @@ wavenumber domain. The steps, and what each costs in accuracy:
    plane-wave expansion, the bistatic correction and a look-angle window, then the sum over
    frequency onto the grid's depths, one of two ways (option ``depths``): ``"direct"``, the sum
    evaluated at each depth (exact; work ``n_f n_z`` per column), or ``"spread"``, a type-1
-   non-uniform FFT (see :mod:`clsas.formation.stolt`: interpolation by spreading with an
+   non-uniform FFT (see :mod:`clsas.formation.stolt_numpy`: interpolation by spreading with an
    exponential-of-semicircle kernel of ``kernel_width`` cells on a 2x oversampled ``kz`` axis,
    error ~1e-3 at the default 4 cells, far under the method's own; work about
    ``n_f W + M log M``). ``"auto"`` (default) takes the one a fitted timing model
-   (:func:`clsas.formation.stolt.depth_path`) predicts faster on OpenCL, and the spread on the
+   (:func:`clsas.formation.stolt_numpy.depth_path`) predicts faster on OpenCL, and the spread on the
    NumPy twins (their direct sum is the slower); on a scan of 32 x 32 stops onto 30 x 30 x 41
    voxels the direct sum took ω-k from 22 to 16 ms. On OpenCL this step runs as
    ``kernels/stolt.cl`` (``stolt_depths``, ``stolt_spread``).
@@ -63,12 +63,12 @@ wavenumber domain. The steps, and what each costs in accuracy:
 Transducer beams: options ``beam`` (``"none"``, ``"limited"``, ``"weighted"``; default
 ``"limited"`` where the profiles carry directional beams, else ``"none"``) and ``beam_floor_db``
 (-12) weight each plane wave by the two-way pattern at its angle ``asin(|k_xy| / k)`` from the
-normal (:func:`clsas.beam.angular_weights`, the same tables as bp's), which needs every boresight
+normal (:func:`clsas.physics.beam.angular_weights`, the same tables as bp's), which needs every boresight
 along the aperture's normal. A 2-D line scan goes to :mod:`clsas.formation.omega_k_line`.
 
 Where each step lives: steps 1-2 in :mod:`~clsas.formation.omega_k_spectra`; the sizes of steps
 3-5 from the geometry in :mod:`~clsas.formation.omega_k_layout`; steps 3-6 per lattice group in
-:mod:`~clsas.formation.omega_k_lattice` (the Stolt sum itself in :mod:`~clsas.formation.stolt` and
+:mod:`~clsas.formation.omega_k_lattice` (the Stolt sum itself in :mod:`~clsas.formation.stolt_numpy` and
 ``kernels/stolt.cl``); the spatial windows and the chirp-z onto the grid in
 :mod:`~clsas.formation.omega_k_transforms`; the beams and the cone in
 :mod:`~clsas.formation.omega_k_beams`; this module checks the options and runs the steps.
@@ -92,10 +92,10 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
-from ..beam import BEAM_MODES
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.beam import BEAM_MODES
+from ..physics.geometry import VoxelGrid
+from ..types.image import Image
+from ..types.profiles import Profiles
 from . import omega_k_line as line
 from .omega_k_beams import beam_angular, warn_outside_cone
 from .omega_k_lattice import choose_stolt_step, form_lattices
@@ -306,7 +306,7 @@ def plan_sizes(profiles: Profiles, grid: VoxelGrid, *, rows: int = 256, **option
         ``axes`` (grid axes in aperture order, depths from the plane) and ``groups``: per lattice
         ``mu``, ``mv``, ``up``, ``columns``, ``n_cells``, ``terms`` (powers of the bistatic
         expansion), ``width`` (the spreading kernel's cells); ``depths`` (the option: how the
-        Stolt sum reaches the depths, see :func:`clsas.formation.stolt.depth_path`).
+        Stolt sum reaches the depths, see :func:`clsas.formation.stolt_numpy.depth_path`).
     """
     import scipy.fft
 

@@ -7,9 +7,9 @@ import logging
 
 import numpy as np
 
-from ..beam import angular_weights, beam_weights, facing
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
+from ..physics.beam import angular_weights, beam_weights, facing
+from ..physics.geometry import VoxelGrid
+from ..types.profiles import Profiles
 from .planar import cone_of
 
 __all__ = ["beam_angular", "beam_edge_sine", "plane_wave_beam", "warn_outside_cone"]

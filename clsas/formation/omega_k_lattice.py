@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from .. import cl as _cl
-from . import stolt
+from . import stolt_numpy as stolt
 from .omega_k_beams import plane_wave_beam
 from .omega_k_layout import group_terms, layout
 from .omega_k_transforms import dft_axis

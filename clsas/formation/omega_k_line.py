@@ -37,10 +37,10 @@ import time
 
 import numpy as np
 
-from ..beam import beam_weights, facing, weights_at_cos
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.beam import beam_weights, facing, weights_at_cos
+from ..physics.geometry import VoxelGrid
+from ..types.image import Image
+from ..types.profiles import Profiles
 from .omega_k_spectra import spectra
 from .omega_k_transforms import dft_axis, edge_window
 from .planar import NotPlanarUniform, _axis_values

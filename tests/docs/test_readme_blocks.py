@@ -184,14 +184,14 @@ def test_your_own_data_command_line(airsas_folders, capsys):
 
 def test_your_own_data_preprocess_table(tmp_path):
     from clsas import preprocess as pp
-    from clsas.synthetic import turntable_scan
+    from clsas.synthesis.synthetic import turntable_scan
 
     scan = turntable_scan(12, snr_db=40)
     scan.background.save(tmp_path / "empty.h5")
     (tmp_path / "steps.toml").write_text(block(PREPROCESS, "toml"))
     import tomllib
 
-    from clsas.config import preprocess_table
+    from clsas.io.config import preprocess_table
 
     cfg = tomllib.loads((tmp_path / "steps.toml").read_text())
     table = preprocess_table(cfg, str(tmp_path / "steps.toml"))
@@ -202,7 +202,7 @@ def test_your_own_data_preprocess_table(tmp_path):
 
 
 def test_command_line_scene_file(tmp_path):
-    from clsas.scenes import load_config
+    from clsas.synthesis.scenes import load_config
 
     (tmp_path / "scene.toml").write_text(block("Command line", "toml"))
     cfg = load_config(tmp_path / "scene.toml")
@@ -215,7 +215,7 @@ def test_command_line_scene_file(tmp_path):
 
 def test_beams_table(tmp_path):
     """The beams page's [beams] table, in the command-line page's scene file."""
-    from clsas.scenes import load_config
+    from clsas.synthesis.scenes import load_config
 
     text = block("Command line", "toml") + "\n" + block("Beam models and boresights", "toml")
     (tmp_path / "scene.toml").write_text(text)

@@ -13,8 +13,8 @@ import pyopencl as cl
 
 import clsas
 from clsas.compression import fft_layout
-from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
-from clsas.focus.opencl import FocusGradientPlan
+from clsas.compression.compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.focus.gradient_opencl import FocusGradientPlan
 from clsas.formation.bp_numpy import backproject as bp_twin
 from clsas.formation.bp_numpy import carrier_records
 from clsas.formation.bp_opencl import BackprojectPlan, RecordsPlan, selftest_scene, upsample_factor

@@ -228,7 +228,7 @@ def test_stale_rows_are_not_read():
     import pickle
     from dataclasses import replace
 
-    from clsas.compression.opencl import MatchedFilterPlan
+    from clsas.compression.compress_opencl import MatchedFilterPlan
 
     ds, grid = _scan()
     prof = clsas.compress(ds, backend="opencl", algorithm="direct")

@@ -1,9 +1,9 @@
 """Architecture rules read from the source: no private name imported across packages (nor by a
 test), no library function over 80 lines, no import cycle between the rooms of the package.
 
-A *package* here is a directory under ``clsas/``; a top-level module (``clsas/dataset.py``) counts
+A *package* here is a directory under ``clsas/``; a top-level module (``clsas/types/dataset.py``) counts
 as its own package. Within one package private imports are fine. A private name is one that
-starts with ``_`` (not a dunder), whether it is the imported name (``from clsas.dataset import
+starts with ``_`` (not a dunder), whether it is the imported name (``from clsas.types.dataset import
 _UNITS``, ``from clsas import _validate``) or a module on the path (``from clsas.validate import
 install_hint``).
 
@@ -192,7 +192,7 @@ def test_no_test_imports_a_private_name():
 
 def test_the_private_import_scan_of_tests_sees_what_it_should(tmp_path):
     (tmp_path / "test_x.py").write_text(
-        "from clsas.dataset import _UNITS, load\n"      # found: a private name
+        "from clsas.types.dataset import _UNITS, load\n"      # found: a private name
         "from clsas.io._common import reader\n"         # found: a private module on the path
         "import clsas.preprocess._base\n"               # found
         "from bench.report import _table\n"             # found: the benchmark package too
@@ -200,7 +200,7 @@ def test_the_private_import_scan_of_tests_sees_what_it_should(tmp_path):
         "from clsas.io import import_scan\n"            # not: public
         "import numpy._core\n")                         # not: another library
     assert [f.split(": ", 1)[1] for f in private_imports_in_tests(tmp_path)] == [
-        "clsas.dataset._UNITS", "clsas.io._common.reader", "clsas.preprocess._base", "bench.report._table"]
+        "clsas.types.dataset._UNITS", "clsas.io._common.reader", "clsas.preprocess._base", "bench.report._table"]
 
 
 def _room(module: str) -> str:

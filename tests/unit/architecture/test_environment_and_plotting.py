@@ -11,7 +11,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[3]
 ENVIRONMENT_READERS = ("clsas/cl/", "clsas/cli/")
-DRAWERS = ("clsas/plots.py", "clsas/image.py", "clsas/inspection.py", "clsas/cli/")
+DRAWERS = ("clsas/types/pictures.py", "clsas/types/image.py", "clsas/presenting/inspection.py", "clsas/cli/")
 
 
 def _sources(root: Path):
@@ -66,5 +66,5 @@ def test_the_scans_see_what_they_should(tmp_path):
         "import os\nfrom os import getenv\n\n\ndef f():\n    import matplotlib\n    matplotlib.use('Agg')\n"
         "    return os.getenv('X')\n")
     (tmp_path / "clsas" / "plots.py").write_text("from matplotlib.figure import Figure\n")
-    assert environment_reads(tmp_path) == ["clsas/cl/device.py:2", "clsas/physics.py:2", "clsas/physics.py:8"]
-    assert matplotlib_uses(tmp_path) == (["clsas/physics.py:6", "clsas/plots.py:1"], ["clsas/physics.py:7"])
+    assert environment_reads(tmp_path) == ["clsas/cl/device.py:2", "clsas/physics/sound.py:2", "clsas/physics/sound.py:8"]
+    assert matplotlib_uses(tmp_path) == (["clsas/physics/sound.py:6", "clsas/types/pictures.py:1"], ["clsas/physics/sound.py:7"])

@@ -1,4 +1,4 @@
-"""clsas.inspection: a look at a dataset before imaging it, with warnings where the geometry
+"""clsas.presenting.inspection: a look at a dataset before imaging it, with warnings where the geometry
 and the data disagree (on clsas.synthetic.turntable_scan)."""
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 
 import clsas
 from clsas import preprocess as pp
-from clsas.inspection import draw_inspection, inspect_dataset
-from clsas.synthetic import turntable_scan
+from clsas.presenting.inspection import draw_inspection, inspect_dataset
+from clsas.synthesis.synthetic import turntable_scan
 
 
 @pytest.fixture(scope="module")
