@@ -37,17 +37,24 @@ _LAZY = {"superres": "clsas.sparse", "delay_error": "clsas.sparse", "coherence":
 __all__ += sorted(_LAZY)
 
 
-# subpackages reached as attributes after a plain `import clsas` (clsas.synthetic.turntable_scan(),
-# clsas.io.import_folder), imported on first use
-_SUBMODULES = ("bench", "cl", "config", "export", "formation", "io", "plots", "rig", "scan_errors", "scenes", "sparse",
-               "synthetic")
+# subpackages reached as attributes after a plain `import clsas` (clsas.io.import_folder,
+# clsas.synthetic.turntable_scan()), imported on first use; the short names stand for modules in
+# their floors
+_SUBMODULES = {
+    "cl": "clsas.cl", "formation": "clsas.formation", "io": "clsas.io", "rig": "clsas.rig", "sparse": "clsas.sparse",
+    "physics": "clsas.physics", "types": "clsas.types", "synthesis": "clsas.synthesis", "pipeline": "clsas.pipeline",
+    "presenting": "clsas.presenting",
+    "config": "clsas.io.config", "export": "clsas.presenting.export", "plots": "clsas.types.pictures",
+    "scan_errors": "clsas.physics.scan_errors", "scenes": "clsas.synthesis.scenes",
+    "synthetic": "clsas.synthesis.synthetic",
+}
 
 
 def __getattr__(name: str):
     if name in _SUBMODULES:
         import importlib
 
-        return importlib.import_module(f"clsas.{name}")
+        return importlib.import_module(_SUBMODULES[name])
     if name in _LAZY:
         import importlib
 

@@ -66,7 +66,8 @@ def _formed_and_saved(ds, grid, args, out: Path):
 
     if args.max_memory is not None or args.scheduler is not None or out.suffix.lower() == ".zarr":
         image = _reconstruct_tiled(ds, grid, args, out)
-        return clsas.pipeline.tiling.update_attrs(image, source_provenance(ds, args.data), compression=args.compression)
+        return clsas.pipeline.tiling.update_attrs(image, source_provenance(ds, args.data),
+                                                  compression=args.compression)
     image = reconstruct_image(ds, grid, args, not args.quiet)
     image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
     image.save(out, overwrite=True)  # checked against --overwrite before any work
@@ -101,7 +102,7 @@ def _write_pictures(image, ds, truth, out: Path, args) -> None:
     """``--png`` (beside ``out``) and ``--plot FILE``: the image's picture, the truth and scene marked."""
     if not (args.png or args.plot):
         return
-    from clsas.types.pictures import stored_scene
+    from clsas.synthesis.scenes import stored_scene
 
     kw = dict(truth_m=truth, scene=stored_scene(ds.config), aperture=ds, dynamic_range_db=args.dynamic_range)
     for pic in ([out.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else []):

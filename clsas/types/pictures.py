@@ -43,7 +43,7 @@ class Image(Protocol):
 
     def db(self, floor_db: float = -60.0) -> np.ndarray: ...
 
-__all__ = ["plot_image", "plot_slices", "mip_png", "stored_scene", "FORMATS"]
+__all__ = ["plot_image", "plot_slices", "mip_png", "FORMATS"]
 
 log = logging.getLogger(__name__)
 
@@ -184,19 +184,6 @@ def mip_png(image: Image, path: str | Path, truth_m: np.ndarray | None = None, t
     """Write the picture of :func:`plot_image` to ``path`` (kept for the CLI and examples)."""
     plot_image(image, path, truth_m=truth_m, title=title or None, dynamic_range_db=dynamic_range_db, **kwargs)
     return Path(path)
-
-
-def stored_scene(config_text: str) -> Scene | None:
-    """The scene of a configuration stored in a dataset, or None if it holds none."""
-    if not config_text.strip():
-        return None
-    try:
-        from ..synthesis.scenes import parse_config
-
-        return parse_config(config_text).scene
-    except Exception as exc:  # a rig file or an older configuration: no scene to draw
-        log.debug("no scene in the stored configuration: %s", exc)
-        return None
 
 
 # ---------------------------------------------------------------------------------------------

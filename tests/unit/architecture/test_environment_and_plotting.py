@@ -1,6 +1,6 @@
 """Where the library reads the environment and where it draws (CONTRIBUTING's rules, read from the
 source): environment variables only in the device layer (``clsas/cl/``) and the command line
-(``clsas/cli/``); matplotlib only in the modules that present (``plots.py``, ``image.py``'s
+(``clsas/cli/``); matplotlib only in the modules that present (``types/pictures.py``, 
 ``Image.plot``, ``inspection.py``'s ``draw_inspection``, the command line), and never a
 ``matplotlib.use``: the caller's backend is the caller's."""
 
@@ -62,9 +62,12 @@ def test_only_the_presenting_modules_draw_and_none_picks_a_backend():
 def test_the_scans_see_what_they_should(tmp_path):
     (tmp_path / "clsas" / "cl").mkdir(parents=True)
     (tmp_path / "clsas" / "cl" / "device.py").write_text("import os\nx = os.environ.get('PYOPENCL_CTX')\n")
-    (tmp_path / "clsas" / "physics.py").write_text(
+    (tmp_path / "clsas" / "physics").mkdir()
+    (tmp_path / "clsas" / "types").mkdir()
+    (tmp_path / "clsas" / "physics" / "sound.py").write_text(
         "import os\nfrom os import getenv\n\n\ndef f():\n    import matplotlib\n    matplotlib.use('Agg')\n"
         "    return os.getenv('X')\n")
-    (tmp_path / "clsas" / "plots.py").write_text("from matplotlib.figure import Figure\n")
-    assert environment_reads(tmp_path) == ["clsas/cl/device.py:2", "clsas/physics/sound.py:2", "clsas/physics/sound.py:8"]
-    assert matplotlib_uses(tmp_path) == (["clsas/physics/sound.py:6", "clsas/types/pictures.py:1"], ["clsas/physics/sound.py:7"])
+    (tmp_path / "clsas" / "types" / "pictures.py").write_text("from matplotlib.figure import Figure\n")
+    sound = "clsas/physics/sound.py"
+    assert environment_reads(tmp_path) == ["clsas/cl/device.py:2", f"{sound}:2", f"{sound}:8"]
+    assert matplotlib_uses(tmp_path) == ([f"{sound}:6", "clsas/types/pictures.py:1"], [f"{sound}:7"])

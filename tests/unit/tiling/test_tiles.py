@@ -197,7 +197,8 @@ def test_a_file_of_another_request_is_refused(scene, tmp_path):
 def test_budget_bounds_the_tiles(scene):
     ds, _ = scene
     grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.56), 0.005)
-    image = clsas.reconstruct(ds, grid, backend="numpy", max_memory=clsas.pipeline.tiling.rss_bytes() + grid.size * 16 + 3e6)
+    budget = clsas.pipeline.tiling.rss_bytes() + grid.size * 16 + 3e6
+    image = clsas.reconstruct(ds, grid, backend="numpy", max_memory=budget)
     assert image.provenance["tiles"]["count"] > 1
     _same(image.values, clsas.reconstruct(ds, grid, backend="numpy").values)
     with pytest.raises(ValueError, match="max_memory"):
