@@ -118,8 +118,11 @@ def _bench_superres_image(args, status) -> int:
 def _bench_rates(args, status) -> int:
     """``--rates [N]``: what ``clsas bench --size N`` runs (:mod:`clsas.presenting.rates`), its report
     written to ``--out``."""
+    from clsas.formation.auto.calibrate import MIN_SIDE
     from clsas.presenting import rates
 
+    if args.rates < MIN_SIDE:
+        raise ValueError(f"--rates: N (stops per side) must be at least {MIN_SIDE}, got {args.rates}")
     res = rates.measure_rates(args.rates, devices=args.devices, status=status)
     print("\n".join(rates.table(res)))
     print(f"wrote {rates.write(res, args.out)}.json and .md")
