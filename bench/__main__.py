@@ -3,7 +3,7 @@
     python -m bench                  # the quick set, 3 to 6 minutes on a 2-core CPU
     python -m bench --full           # the full set
     python -m bench --formation ...  # only the image-formation benchmark (see --help)
-    python -m bench --rates [N]      # kernel and wall rates of each formation and reconstruct, every device
+    python -m bench --rates [N]      # clsas bench --size N, its report written to --out
 """
 
 from __future__ import annotations
@@ -116,12 +116,16 @@ def _bench_superres_image(args, status) -> int:
 
 
 def _bench_rates(args, status) -> int:
-    """``--rates [N]``: kernel and wall rates, and where the wall time goes, per device (:mod:`bench.rates`)."""
-    from bench import rates
+    """``--rates [N]``: what ``clsas bench --size N`` runs (:mod:`clsas.presenting.rates`), its report
+    written to ``--out``."""
+    from clsas.formation.auto.calibrate import MIN_SIDE
+    from clsas.presenting import rates
 
-    res = rates.run_rates(args.rates, indices=args.devices, status=status)
+    if args.rates < MIN_SIDE:
+        raise ValueError(f"--rates: N (stops per side) must be at least {MIN_SIDE}, got {args.rates}")
+    res = rates.measure_rates(args.rates, devices=args.devices, status=status)
     print("\n".join(rates.table(res)))
-    rates.write(res, args.out)
+    print(f"wrote {rates.write(res, args.out)}.json and .md")
     return 0
 
 
@@ -224,8 +228,8 @@ def build_parser():
     b.add_argument("--airsas", default=None, metavar="DIR",
                    help="with --superres-image: local copy of CSAS_Deconvolution_INR (or its airsas_deconv_pipeline)")
     b.add_argument("--rates", type=int, nargs="?", const=24, default=None, metavar="N",
-                   help="run only the rates table: bp, omega-k, ffbp and the whole reconstruct (compression + bp) on "
-                   "N x N stops (default 24: under a minute on a 2-core CPU), on every device: kernel and wall rates "
+                   help="run only the rates table (what `clsas bench --size N` runs): bp, omega-k, ffbp and the whole "
+                   "reconstruct (compression + bp) on N x N stops (default 24), on every device: kernel and wall rates "
                    "and the shares of the wall time on the host, in transfers and in kernels")
     b.add_argument("--devices", nargs="+", metavar="P:D|numpy", default=None,
                    help="with --rates: only these devices (OpenCL P:D numbers as clsas devices lists them, or numpy)")

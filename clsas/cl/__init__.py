@@ -19,6 +19,7 @@ Selection is passed down (every function that takes ``backend`` takes one), and
 - :mod:`.fission`: a sub-device of some compute units (Dask workers), a device's copy time.
 - :mod:`.plan`: the :class:`Plan` base class; each plan declares its ``KERNEL`` and ``SOURCES``
   and registers them in :data:`KERNELS` when its module is imported.
+- :mod:`.trace`: :class:`Tracer`, the kernel and copy times of a call from their profiling events.
 """
 
 from __future__ import annotations
@@ -44,6 +45,7 @@ from .device import (
 from .fission import copy_seconds, sub_device_queue
 from .plan import DeviceRows, Plan, release_reused, reused
 from .program import BuildError, build, kernel, kernel_source, override_source
+from .trace import Tracer
 from .variants import (
     KERNELS,
     KernelSpec,
@@ -66,7 +68,7 @@ __all__ = [
     "kernel_spec",
     "copy_seconds", "list_devices", "override_source", "register_kernel", "release_reused", "resolve_backend",
     "reused", "runtime_record", "select",
-    "sub_device_queue",
+    "sub_device_queue", "Tracer",
 ]
 
 

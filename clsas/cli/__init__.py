@@ -22,6 +22,7 @@ from importlib.metadata import entry_points
 from . import (
     acquire,
     autofocus,
+    bench,
     calibrate,
     compare,
     demo,
@@ -46,7 +47,7 @@ PLUGIN_GROUP = "clsas.plugins"
 
 # the subcommands in the order ``clsas --help`` lists them
 COMMANDS = (demo, simulate, reconstruct, autofocus, preprocess, limits, compare, devices, acquire, importing,
-            inspecting, export, calibrate)
+            inspecting, export, calibrate, bench)
 
 
 #: the exit codes of every command (docs/guide/command-line.md: "Exit codes")

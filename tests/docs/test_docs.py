@@ -47,7 +47,7 @@ OUTPUTS_PENDING: dict[str, str] = {}
 OUTPUT_CHECKED_ELSEWHERE = {
     ("own-data.md", 'ds = clsas.io.import_airsas("small_features_cutout_20k", background="bg_20k")'):
         "tests/docs/test_readme_blocks.py::test_your_own_data_python_prints_what_the_page_shows",
-    ("benchmarks.md", "python -m bench --rates"):
+    ("benchmarks.md", "clsas bench"):
         "tests/docs/test_readme_blocks.py::test_rates_command_prints_what_the_page_shows",
 }
 EXAMPLE_LINE = re.compile(r"^python3? (examples/[\w-]+\.py)((?: [^#]*)?)(?:#.*)?$")

@@ -256,21 +256,21 @@ def test_autofocus_command_line(tmp_path, monkeypatch):
     assert steps[-1] == "autofocus"
 
 
-def test_rates_command_prints_what_the_page_shows(tmp_path, capsys):
-    """The benchmarks page's rates command, on the smallest scan (8 x 8 stops) and on the NumPy twins
-    only (the page's output block leaves the sizes, timings and devices as ``...``), prints what the
-    page shows."""
+def test_rates_command_prints_what_the_page_shows(capsys):
+    """The benchmarks page's ``clsas bench`` command, on the smallest scan (8 x 8 stops) and on the
+    NumPy twins only (the page's output block leaves the sizes, timings and devices as ``...``),
+    prints what the page shows."""
     from doc_output import compare
     from test_docs import code_blocks
 
-    from bench.__main__ import main
+    from clsas.cli import main
 
     code = block(RATES, "bash")
     shown = next(out for _, lang, _, c, out in code_blocks(ROOT / "docs" / "guide" / "benchmarks.md")
                  if lang == "bash" and c.rstrip("\n") == code.rstrip("\n"))
-    argv = shlex.split(code.split("#")[0])
-    assert argv[:3] == ["python", "-m", "bench"] and "--rates" in argv
-    assert main([*argv[3:], "--rates", "8", "--devices", "numpy", "--out", str(tmp_path)]) == 0
+    argv = shlex.split(code.splitlines()[0].split("#")[0])
+    assert argv[:2] == ["clsas", "bench"]
+    assert main([*argv[1:], "--size", "8", "--devices", "numpy"]) == 0
     why = compare(shown.text, capsys.readouterr().out, shown.rtol)
     assert why is None, why
 

@@ -78,6 +78,7 @@ def _bad_input(tmp: Path) -> dict[str, list[str]]:
         "inspect": ["inspect", missing],
         "export": ["export", missing, str(tmp / "x.npy")],
         "calibrate": ["calibrate", "--sides", "4"],
+        "bench": ["bench", "--size", "4"],
     }
 
 
