@@ -242,7 +242,8 @@ class PendingBackprojection:
             if isinstance(p, _Done):
                 timings = dict(p.timings)
             else:
-                timings = {"records_kernel": p.records_s, "backproject_kernel": p.kernel_s - p.records_s}
+                timings = {"records_kernel": p.records_s, "backproject_kernel": p.kernel_s - p.records_s,
+                           "image_read": p.read_s}
             timings["backproject"] = time.perf_counter() - self._t_start
             self._image = Image(values.reshape(self.grid.shape), self.grid, "bp", self._kind, self._device, timings,
                                 provenance=self._provenance)

@@ -159,13 +159,14 @@ class RecordsPlan(Plan):
 class PendingImage:
     """A backprojection whose kernels are enqueued and whose image is being read back on the copy
     queue (:func:`clsas.cl.copy_queue`); :meth:`result` waits for it. ``kernel_s`` and
-    ``records_s`` are the kernel time of its launches and of its records (s), known once it is done."""
+    ``records_s`` are the kernel time of its launches and of its records, ``read_s`` the read
+    back's (profiling events, s), known once it is done."""
 
     def __init__(self, plan: BackprojectPlan, slot: int, hosts: tuple, reads: list, events: list, records_evt,
                  n_vox: int):
         self._plan, self._slot, self._hosts, self._reads = plan, slot, hosts, reads
         self._events, self._records_evt, self.n_vox = events, records_evt, n_vox
-        self.kernel_s = self.records_s = 0.0
+        self.kernel_s = self.records_s = self.read_s = 0.0
         self._values = None
 
     def result(self) -> np.ndarray:
@@ -176,6 +177,7 @@ class PendingImage:
             seconds = self._plan.seconds
             self.records_s = 0.0 if self._records_evt is None else seconds(self._records_evt)
             self.kernel_s = sum(seconds(e) for e in self._events) + self.records_s
+            self.read_s = sum(seconds(e) for e in self._reads)
             self._plan.collected(self._slot, self)
             self._plan.last_kernel_s, self._plan.last_records_s = self.kernel_s, self.records_s
             if len(self._hosts) == 1:
