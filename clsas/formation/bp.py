@@ -238,15 +238,17 @@ class PendingBackprojection:
         """The image (formed once; later calls return the same Image)."""
         if self._image is None:
             p = self._pending
-            values = p.result()
+            values = p.result().reshape(self.grid.shape)
+            on_device = None
             if isinstance(p, _Done):
                 timings = dict(p.timings)
             else:
                 timings = {"records_kernel": p.records_s, "backproject_kernel": p.kernel_s - p.records_s,
                            "image_read": p.read_s}
+                on_device = p.on_device(values)
             timings["backproject"] = time.perf_counter() - self._t_start
-            self._image = Image(values.reshape(self.grid.shape), self.grid, "bp", self._kind, self._device, timings,
-                                provenance=self._provenance)
+            self._image = Image(values, self.grid, "bp", self._kind, self._device, timings,
+                                provenance=self._provenance, on_device=on_device)
             self._pending = None
         return self._image
 

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..cl import Plan, copy_queue
+from ..cl import DeviceRows, Plan, copy_queue
 from ..geometry import VoxelGrid
 from .bp_numpy import (  # noqa: F401 - the twins of records.cl, imported from here by the projector
     MAX_CYCLES_PER_SAMPLE,
@@ -163,9 +163,10 @@ class PendingImage:
     back's (profiling events, s), known once it is done."""
 
     def __init__(self, plan: BackprojectPlan, slot: int, hosts: tuple, reads: list, events: list, records_evt,
-                 n_vox: int):
+                 n_vox: int, rows: DeviceRows | None = None):
         self._plan, self._slot, self._hosts, self._reads = plan, slot, hosts, reads
         self._events, self._records_evt, self.n_vox = events, records_evt, n_vox
+        self._rows = rows
         self.kernel_s = self.records_s = self.read_s = 0.0
         self._values = None
 
@@ -188,6 +189,16 @@ class PendingImage:
                 self._values = out
             self._hosts = self._reads = self._events = None
         return self._values
+
+    def on_device(self, values: np.ndarray) -> DeviceRows | None:
+        """The complex image left in its device buffer, as one row of ``n_vox`` values whose host
+        copy is ``values`` (the result, as the caller keeps it: made read-only here); valid until
+        the plan's next call. None for an image written as two planes."""
+        if self._rows is None:
+            return None
+        values.flags.writeable = False
+        self._rows.host = values
+        return self._rows
 
 
 class BackprojectPlan(BeamPlan):
@@ -366,7 +377,9 @@ class BackprojectPlan(BeamPlan):
         reads = [self.cl.enqueue_copy(copy, h, b, wait_for=events, is_blocking=False)
                  for h, b in zip(hosts, image, strict=True)]
         copy.flush()
-        pending = PendingImage(self, slot, hosts, reads, events, records_evt, self.n_vox)
+        # the image stays in the buffer until this plan's next call: DeviceRows is valid until then
+        rows = DeviceRows(self, image[0], 1, self.n_vox, self.n_pad, None) if self.complex_image else None
+        pending = PendingImage(self, slot, hosts, reads, events, records_evt, self.n_vox, rows)
         self._reads[slot], self._pending[slot] = reads, pending
         return pending
 

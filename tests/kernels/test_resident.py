@@ -215,3 +215,37 @@ def test_plans_are_reused_across_calls_with_the_same_shapes():
     step(second)
     assert step._plan is not a._plan  # the step-by-step path keeps a plan of its own kind
     assert cl.release_reused() >= 2
+
+
+@needs_opencl
+def test_resident_default_reads_one_complex_image_and_leaves_it_on_the_device():
+    """The default (resident) Backprojector builds bp with -DCOMPLEX_IMAGE and reads the image
+    back once as complex64; the image it returns also names its device buffer
+    (``image.on_device``), which holds the values until the plan's next call; the step-by-step
+    path builds without it, reads two planes and leaves nothing."""
+    import pyopencl as pcl
+
+    from clsas import cl
+    from clsas.formation.bp import Backprojector
+
+    ds, grid = _scan()
+    prof = clsas.compress(ds, backend="opencl")
+    bp = Backprojector(grid, backend="opencl")
+    image = bp(prof)
+    plan = bp._plan
+    assert plan.complex_image and plan.defines().get("COMPLEX_IMAGE") == 1 and plan.image_buffers == 1
+    assert image.values.dtype == np.complex64 and image.timings_s["image_read"] > 0
+    rows = image.on_device
+    q = cl.get_queue()
+    assert rows is not None and rows.valid(q, image.values) and (rows.n_rows, rows.n_cols) == (1, grid.size)
+    back = np.empty(rows.stride, np.complex64)
+    pcl.enqueue_copy(rows.queue, back, rows.buffer)
+    assert np.array_equal(back[: grid.size], image.values.ravel())  # the device copy is the image
+    assert not image.values.flags.writeable
+    Backprojector(grid, backend="opencl")(prof)  # the same plan again: its buffer holds the new image
+    assert not rows.valid(q, image.values)
+    step = Backprojector(grid, backend="opencl", resident=False)
+    old = step(prof)
+    assert not step._plan.complex_image and "COMPLEX_IMAGE" not in step._plan.defines()
+    assert old.on_device is None and np.abs(old.values - image.values).max() <= TOL["backproject"] * np.abs(
+        old.values).max()
