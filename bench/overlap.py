@@ -10,8 +10,10 @@ tiles of ``tile_x`` x-planes by :func:`clsas.tiling.form_tiled` with ``overlap``
 memory and into an HDF5 file (each tile written and synced before the next is handed on), the
 variants interleaved in each repeat so that a change of machine load touches all of them; and
 onto the whole grid at once (one Backprojector call). It reports the medians of the wall times,
-the bp kernel time and the image read back time of the tiles (profiling events), and the
-overlap's gain (sequential wall over overlapped wall).
+the bp kernel time and the image read back time of the tiles (profiling events), the share of
+each tile's read back that ran while the next tile's kernels ran and the device's idle time
+between one tile's kernels and the next's (device clock), and the overlap's gain (sequential
+wall over overlapped wall).
 
 Each OpenCL device that builds kernels (Oclgrind left out) is measured in a child process with
 ``PYOPENCL_CTX`` set. It prints a table and writes ``<date>-overlap-<cpu>.json`` and ``.md``.
@@ -34,23 +36,46 @@ ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = ("memory, sequential", "memory, overlapped", "file, sequential", "file, overlapped")
 
 
-def _tiles_timed(prof, grid, shape, overlap: bool, out) -> tuple[float, float, float]:
-    """(wall, bp kernel, read back) seconds of one tiled formation."""
+def _tiles_timed(prof, grid, shape, overlap: bool, out) -> tuple:
+    """(wall, bp kernel, read back, share of the read back under the next tile's kernels, device idle
+    between tiles) seconds of one tiled formation; the last four from the same tiles formed again
+    for their events (in memory only)."""
     from clsas import cl
-    from clsas.formation.bp import form_tiles
-    from clsas.tiling import TiledRequest, form_tiled, tile_grid
+    from clsas.tiling import TiledRequest, form_tiled
 
     sel = cl.select("opencl")
     t = time.perf_counter()
     form_tiled(prof, grid, "bp", {}, sel, TiledRequest(out=out, tile_shape=shape, overlap=overlap))
     wall = time.perf_counter() - t
     if out is not None:
-        return wall, 0.0, 0.0
-    kernel = read = 0.0  # the same tiles again, for their event times
-    for image in form_tiles(prof, (tile.grid for tile in tile_grid(grid, shape)), backend=sel, overlap=overlap):
-        kernel += image.timings_s["backproject_kernel"] + image.timings_s["records_kernel"]
-        read += image.timings_s["image_read"]
-    return wall, kernel, read
+        return wall, 0.0, 0.0, 0.0, 0.0
+    return wall, *_events(prof, grid, shape, overlap, sel)
+
+
+def _events(prof, grid, shape, overlap: bool, sel) -> tuple[float, float, float, float]:
+    """The tiles formed as :func:`clsas.formation.bp.form_tiles` forms them, timed by their events:
+    (kernel s, read back s, share of the read back under the next tile's kernels, device idle s
+    between one tile's last kernel and the next one's first)."""
+    from collections import deque
+
+    from clsas.formation.bp import Backprojector
+    from clsas.tiling import tile_grid
+
+    pending, done = deque(), []
+    for tile in tile_grid(grid, shape):
+        pending.append(Backprojector(tile.grid, backend=sel).enqueue(prof))
+        if len(pending) == (2 if overlap else 1):
+            done.append(pending.popleft())
+    done += list(pending)
+    images = [p.result() for p in done]
+    kernel = sum(i.timings_s["backproject_kernel"] + i.timings_s["records_kernel"] for i in images)
+    read = sum(i.timings_s["image_read"] for i in images)
+    under = idle = 0.0
+    for a, b in zip(done, done[1:], strict=False):
+        (r0, r1), (k0, k1) = a.spans_ns["read"], b.spans_ns["kernels"]
+        under += max(0, min(r1, k1) - max(r0, k0)) * 1e-9
+        idle += max(0, k0 - a.spans_ns["kernels"][1]) * 1e-9
+    return kernel, read, under / read if read else 0.0, idle
 
 
 def child(args) -> dict:
@@ -79,8 +104,8 @@ def child(args) -> dict:
             t = time.perf_counter()
             image = Backprojector(grid, backend="opencl")(prof)
             runs["whole grid"].append((time.perf_counter() - t, image.timings_s["backproject_kernel"]
-                                       + image.timings_s["records_kernel"], image.timings_s["image_read"]))
-    med = {k: [float(np.median([r[i] for r in v[1:]])) for i in range(3)] for k, v in runs.items()}  # after warm-up
+                                       + image.timings_s["records_kernel"], image.timings_s["image_read"], 0.0, 0.0))
+    med = {k: [float(np.median([r[i] for r in v[1:]])) for i in range(5)] for k, v in runs.items()}  # after warm-up
     return {"runtime": cl.runtime_record(cl.get_queue()), "pairs": grid.size * ds.n_meas,
             "tiles": -(-args.side // args.tile_x), "median_s": med, "runs_s": runs}
 
@@ -92,20 +117,22 @@ def markdown(res: dict) -> list[str]:
           f"{a['measurements']} measurements; medians of {a['repeats']} interleaved runs after a warm-up). "
           f"Load average before the run: {res['load_before']}, after: {res['load_after']}.", "",
           "| runtime (version) | variant | wall, s | pairs/s | bp kernels, s | image read back, s | "
-          "sequential / overlapped wall |", "|---|---|---|---|---|---|---|"]
+          "read back under the next kernels | device idle between tiles, s | sequential / overlapped wall |",
+          "|---|---|---|---|---|---|---|---|---|"]
     for r in res["rows"]:
         name = f"{r['platform']} ({r['platform_version'][:28]})"
         if "error" in r:
             md.append(f"| {name} | failed: {r['error'][:200]} |" + " |" * 5)
             continue
         med = r["median_s"]
-        for v, (wall, kernel, read) in med.items():
+        for v, (wall, kernel, read, under, idle) in med.items():
             gain = ""
             if v.endswith("overlapped"):
                 gain = f"{med[v.replace('overlapped', 'sequential')][0] / wall:.3f}"
-            k = f"{kernel:.4f}" if kernel else "-"
-            rd = f"{read:.4f}" if kernel else "-"
-            md.append(f"| {name} | {v} | {wall:.4f} | {r['pairs'] / wall:.3g} | {k} | {rd} | {gain} |")
+            ev = [f"{kernel:.4f}", f"{read:.4f}", f"{100 * under:.0f} %", f"{idle:.4f}"] if kernel else ["-"] * 4
+            if v == "whole grid" and kernel:
+                ev[2:] = ["-", "-"]
+            md.append(f"| {name} | {v} | {wall:.4f} | {r['pairs'] / wall:.3g} | {' | '.join(ev)} | {gain} |")
     return md
 
 

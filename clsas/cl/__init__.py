@@ -41,6 +41,7 @@ from .device import (
     is_cpu,
     resolve_backend,
     select,
+    transfer_queue,
 )
 from .fission import copy_seconds, sub_device_queue
 from .plan import DeviceRows, Plan, release_reused, reused, reused_plans
@@ -67,7 +68,7 @@ __all__ = [
     "kernel_spec",
     "copy_queue", "copy_seconds", "list_devices", "override_source", "register_kernel", "release_reused",
     "resolve_backend", "reused", "reused_plans", "runtime_record", "select",
-    "sub_device_queue",
+    "sub_device_queue", "transfer_queue",
 ]
 
 

@@ -223,6 +223,16 @@ def copy_queue(queue: Any) -> Any:
     return copy
 
 
+def transfer_queue(queue: Any) -> Any:
+    """The queue that reads results back beside ``queue``'s kernels: on a CPU device ``queue``
+    itself (a transfer there is a copy by the cores that run the kernels; read without
+    blocking, in order between two launches, it lets the host take one result while the next
+    kernels run, and a second queue only adds the runtimes' cross-queue waits: Intel's CPU
+    runtime ran such a read only after the next kernel had ended), elsewhere
+    :func:`copy_queue` (a GPU copies beside its kernels)."""
+    return queue if is_cpu(queue.device) else copy_queue(queue)
+
+
 @functools.cache
 def _queue_for(device_ptr: int) -> Any:
     device = next(d for p in _platforms() for d in p.get_devices() if d.int_ptr == device_ptr)

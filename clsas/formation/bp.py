@@ -233,6 +233,7 @@ class PendingBackprojection:
         self._pending, self.grid, self._kind, self._device = pending, grid, kind, device
         self._t_start, self._provenance = t_start, provenance
         self._image = None
+        self.spans_ns: dict = {}  # OpenCL: device clock (start, end) of the kernels and of the read back, ns
 
     def result(self) -> Image:
         """The image (formed once; later calls return the same Image)."""
@@ -247,6 +248,7 @@ class PendingBackprojection:
                            "image_read": p.read_s}
                 on_device = p.on_device(values)
             timings["backproject"] = time.perf_counter() - self._t_start
+            self.spans_ns = getattr(p, "spans_ns", {})
             self._image = Image(values, self.grid, "bp", self._kind, self._device, timings,
                                 provenance=self._provenance, on_device=on_device)
             self._pending = None

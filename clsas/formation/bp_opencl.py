@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..cl import DeviceRows, Plan, copy_queue
+from ..cl import DeviceRows, Plan, transfer_queue
 from ..geometry import VoxelGrid
 from .bp_numpy import (  # noqa: F401 - the twins of records.cl, imported from here by the projector
     MAX_CYCLES_PER_SAMPLE,
@@ -158,9 +158,10 @@ class RecordsPlan(Plan):
 
 class PendingImage:
     """A backprojection whose kernels are enqueued and whose image is being read back on the copy
-    queue (:func:`clsas.cl.copy_queue`); :meth:`result` waits for it. ``kernel_s`` and
+    queue (:func:`clsas.cl.transfer_queue`); :meth:`result` waits for it. ``kernel_s`` and
     ``records_s`` are the kernel time of its launches and of its records, ``read_s`` the read
-    back's (profiling events, s), known once it is done."""
+    back's (profiling events, s), and ``spans_ns`` the device clock's (start, end) of its bp
+    kernels and of its read back (ns: where two images overlapped), known once it is done."""
 
     def __init__(self, plan: BackprojectPlan, slot: int, hosts: tuple, reads: list, events: list, records_evt,
                  n_vox: int, rows: DeviceRows | None = None):
@@ -168,6 +169,7 @@ class PendingImage:
         self._events, self._records_evt, self.n_vox = events, records_evt, n_vox
         self._rows = rows
         self.kernel_s = self.records_s = self.read_s = 0.0
+        self.spans_ns: dict = {}  # device clock (start, end) of the bp kernels and of the read back, ns
         self._values = None
 
     def result(self) -> np.ndarray:
@@ -179,6 +181,9 @@ class PendingImage:
             self.records_s = 0.0 if self._records_evt is None else seconds(self._records_evt)
             self.kernel_s = sum(seconds(e) for e in self._events) + self.records_s
             self.read_s = sum(seconds(e) for e in self._reads)
+            self.spans_ns = {"kernels": (self._events[0].profile.start, self._events[-1].profile.end),
+                             "read": (min(e.profile.start for e in self._reads),
+                                      max(e.profile.end for e in self._reads))}
             self._plan.collected(self._slot, self)
             self._plan.last_kernel_s, self._plan.last_records_s = self.kernel_s, self.records_s
             if len(self._hosts) == 1:
@@ -211,11 +216,12 @@ class BackprojectPlan(BeamPlan):
 
     The grid is the last one given (``grid``, then :meth:`retarget`): one plan forms every tile
     of a grid, its image buffers reallocated only where a grid needs more voxels than they hold
-    (or fewer than a quarter). The image is read back on a second queue of the same device
-    (:func:`clsas.cl.copy_queue`) without waiting (:meth:`enqueue_resident` returns a
-    :class:`PendingImage`): two image buffers take turns, so that the next grid's kernels run
-    while the last image is read and collected; a grid whose last image was collected writes
-    into the first buffer again (one buffer where nothing overlaps).
+    (or fewer than a quarter). The image is read back without waiting (:meth:`enqueue_resident`
+    returns a :class:`PendingImage`), on a second queue of the same device on a GPU, in order on
+    the plan's queue on a CPU (:func:`clsas.cl.transfer_queue`): two image buffers take turns,
+    so that the next grid's kernels run while the last image is read and collected; a grid
+    whose last image was collected writes into the first buffer again (one buffer where nothing
+    overlaps).
     """
 
     KERNEL = "backproject"
@@ -369,9 +375,9 @@ class BackprojectPlan(BeamPlan):
         return self._read_back(slot, image, events, records_evt)
 
     def _read_back(self, slot: int, image: tuple, events: list, records_evt) -> PendingImage:
-        """Begin reading buffer ``slot`` (``image``) back on the copy queue once ``events`` end."""
+        """Begin reading buffer ``slot`` (``image``) back on the transfer queue once ``events`` end."""
         self.queue.flush()  # the kernels start before anything waits on them from the other queue
-        copy = copy_queue(self.queue)
+        copy = transfer_queue(self.queue)
         dtype = np.complex64 if self.complex_image else np.float32
         hosts = tuple(np.empty(self.n_pad, dtype) for _ in image)
         reads = [self.cl.enqueue_copy(copy, h, b, wait_for=events, is_blocking=False)

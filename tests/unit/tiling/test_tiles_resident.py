@@ -100,7 +100,35 @@ def test_overlapped_tiles_equal_the_sequential_ones(scene, shape):
     _close(runs[True], whole.values)
 
 
-def test_pending_images_collected_out_of_order():
+@pytest.fixture(params=["transfer queue", "copy queue"])
+def read_queue(request, monkeypatch):
+    """The default queue the images are read on (the plan's own on a CPU device), and a second
+    queue of the same device (a GPU's default), run here on the CPU runtimes."""
+    if request.param == "copy queue":
+        from clsas.formation import bp_opencl
+
+        monkeypatch.setattr(bp_opencl, "transfer_queue", cl.copy_queue)
+    return request.param
+
+
+def test_transfer_queue_is_the_queue_on_a_cpu_and_the_copy_queue_a_second_one():
+    q = cl.get_queue()
+    copy = cl.copy_queue(q)
+    assert copy is not q and copy.context == q.context and copy.device == q.device and cl.copy_queue(q) is copy
+    assert cl.transfer_queue(q) is (q if cl.is_cpu(q.device) else copy)
+
+
+def test_overlap_on_either_read_queue_equals_the_sequential_tiles(scene, read_queue):
+    ds, grid, whole = scene
+    prof = clsas.compress(ds, backend="opencl", gate_s=whole.plan.gate_s)
+    sel = cl.select("opencl")
+    runs = [form_tiled(prof, grid, "bp", {}, sel, TiledRequest(tile_shape=(3, 17, 17), overlap=o)).values
+            for o in (True, False)]
+    assert np.array_equal(runs[0], runs[1])
+    _close(runs[0], whole.values)
+
+
+def test_pending_images_collected_out_of_order(read_queue):
     """Three tiles enqueued before any is collected (more than the two image buffers), then
     collected last first: each equals its own image formed alone (a buffer is not overwritten
     before its read back ends)."""
