@@ -238,10 +238,10 @@ class BackprojectPlan(BeamPlan):
         self.d_tx = self.alloc(16 * n_meas, "r")
         self.d_rx = self.alloc(16 * n_meas, "r")
         self.d_s0 = self.alloc(4 * n_meas, "r")
-        self.alloc_beam(n_meas)
         self.capacity = 0  # voxels each image buffer holds
         self.last_records_s = 0.0  # kernel time of the last call's records (:meth:`from_device`), s
-        self.retarget(grid)
+        self.retarget(grid)  # the image buffers before the beam tables: in the other order, Oclgrind's
+        self.alloc_beam(n_meas)  # uninitialised-value plugin reports bp's image writes (test_beam_formation.py)
 
     def defines(self) -> dict:
         return {**super().defines(), **({"COMPLEX_IMAGE": 1} if self.complex_image else {})}
@@ -259,6 +259,7 @@ class BackprojectPlan(BeamPlan):
             self._reads = [None, None]  # the read-back events of the image each buffer last held
             self._pending: list = [None, None]  # the PendingImage not yet collected from each buffer
             self._last = 0
+            self._slot()  # the first buffer now, the second where images overlap
 
     def _slot(self) -> int:
         """The image buffer the next call writes: the last one, or the other while the last one's
