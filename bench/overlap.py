@@ -6,7 +6,7 @@ read back and file write changes, per OpenCL runtime.
 
 A planar scan of ``measurements`` stops (``bench.resident``'s scene) is compressed once on the
 device; its profiles are then formed onto ``side``³ voxels (``bench.throughput.cube_grid``) in
-tiles of ``tile_x`` x-planes by :func:`clsas.tiling.form_tiled` with ``overlap`` on and off, in
+tiles of ``tile_x`` x-planes by :func:`clsas.pipeline.tiling.form_tiled` with ``overlap`` on and off, in
 memory and into an HDF5 file (each tile written and synced before the next is handed on), the
 variants interleaved in each repeat so that a change of machine load touches all of them; and
 onto the whole grid at once (one Backprojector call). It reports the medians of the wall times,
@@ -41,7 +41,7 @@ def _tiles_timed(prof, grid, shape, overlap: bool, out) -> tuple:
     between tiles) seconds of one tiled formation; the last four from the same tiles formed again
     for their events (in memory only)."""
     from clsas import cl
-    from clsas.tiling import TiledRequest, form_tiled
+    from clsas.pipeline.tiling import TiledRequest, form_tiled
 
     sel = cl.select("opencl")
     t = time.perf_counter()
@@ -59,7 +59,7 @@ def _events(prof, grid, shape, overlap: bool, sel) -> tuple[float, float, float,
     from collections import deque
 
     from clsas.formation.bp import Backprojector
-    from clsas.tiling import tile_grid
+    from clsas.pipeline.tiling import tile_grid
 
     pending, done = deque(), []
     for tile in tile_grid(grid, shape):

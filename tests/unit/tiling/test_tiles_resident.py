@@ -8,7 +8,7 @@ from conftest import TOL, needs_opencl, small_dataset
 
 import clsas
 from clsas import cl
-from clsas.tiling import TiledRequest, form_tiled, tile_grid
+from clsas.pipeline.tiling import TiledRequest, form_tiled, tile_grid
 
 pytestmark = needs_opencl
 
@@ -55,7 +55,7 @@ def test_out_of_core_within_a_budget_is_resident_and_equals_the_whole_image(scen
     whole = clsas.reconstruct(ds, grid, backend="opencl", formation="bp")
     clsas.reconstruct(ds, grid, backend="opencl", out=tmp_path / "warm.h5", tile_shape=(10, 33, 33))  # h5py, plans
     cl.release_reused()
-    budget = clsas.tiling.rss_bytes() + 2e6
+    budget = clsas.pipeline.tiling.rss_bytes() + 2e6
     image = clsas.reconstruct(ds, grid, backend="opencl", out=tmp_path / "image.h5", max_memory=budget)
     t = image.provenance["tiles"]
     assert t["count"] > 1 and t["records"] == {"rows": 1, "kept": t["count"] - 1}
