@@ -32,6 +32,7 @@ from .device import (
     OpenCLUnavailable,
     Selection,
     _cl,
+    copy_queue,
     default_backend,
     describe,
     device_info,
@@ -41,9 +42,10 @@ from .device import (
     is_cpu,
     resolve_backend,
     select,
+    transfer_queue,
 )
 from .fission import copy_seconds, sub_device_queue
-from .plan import DeviceRows, Plan, release_reused, reused
+from .plan import DeviceRows, Plan, release_reused, reused, reused_plans
 from .program import BuildError, build, kernel, kernel_source, override_source
 from .trace import Tracer
 from .variants import (
@@ -66,9 +68,9 @@ __all__ = [
     "Verdict", "build", "cache_dir", "candidate_widths", "check", "choose", "clear_cache", "default_backend",
     "describe", "device_info", "Health", "health", "device_kind", "get_queue", "is_cpu", "kernel", "kernel_source",
     "kernel_spec",
-    "copy_seconds", "list_devices", "override_source", "register_kernel", "release_reused", "resolve_backend",
-    "reused", "runtime_record", "select",
-    "sub_device_queue", "Tracer",
+    "copy_queue", "copy_seconds", "list_devices", "override_source", "register_kernel", "release_reused",
+    "resolve_backend", "reused", "reused_plans", "runtime_record", "select",
+    "sub_device_queue", "transfer_queue", "Tracer",
 ]
 
 

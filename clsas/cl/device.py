@@ -205,6 +205,34 @@ def make_queue(device: Any, sub_device: bool = False) -> Any:
     return queue
 
 
+# queue.int_ptr -> (queue, its copy queue): the queue is held so that its pointer is not reused
+_COPY_QUEUES: dict[int, tuple] = {}
+
+
+def copy_queue(queue: Any) -> Any:
+    """A second profiling-enabled queue on ``queue``'s context and device (one per queue, made on
+    first use), for transfers that overlap the kernels of ``queue``: a command on it runs
+    beside those of ``queue``, ordered with them only by the events it waits for."""
+    held = _COPY_QUEUES.get(queue.int_ptr)
+    if held is not None and held[0] is queue:
+        return held[1]
+    cl = _cl()
+    copy = cl.CommandQueue(queue.context, device=queue.device,
+                           properties=cl.command_queue_properties.PROFILING_ENABLE)
+    _COPY_QUEUES[queue.int_ptr] = (queue, copy)
+    return copy
+
+
+def transfer_queue(queue: Any) -> Any:
+    """The queue that reads results back beside ``queue``'s kernels: on a CPU device ``queue``
+    itself (a transfer there is a copy by the cores that run the kernels; read without
+    blocking, in order between two launches, it lets the host take one result while the next
+    kernels run, and a second queue only adds the runtimes' cross-queue waits: Intel's CPU
+    runtime ran such a read only after the next kernel had ended), elsewhere
+    :func:`copy_queue` (a GPU copies beside its kernels)."""
+    return queue if is_cpu(queue.device) else copy_queue(queue)
+
+
 @functools.cache
 def _queue_for(device_ptr: int) -> Any:
     device = next(d for p in _platforms() for d in p.get_devices() if d.int_ptr == device_ptr)

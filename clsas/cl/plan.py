@@ -25,7 +25,7 @@ from .variants import choose, kernel_spec, register_kernel
 
 P = TypeVar("P")
 
-__all__ = ["DeviceRows", "Plan", "release_reused", "reused"]
+__all__ = ["DeviceRows", "Plan", "release_reused", "reused", "reused_plans"]
 
 # (thread, queue, kernel) -> (key, plan): the last plan of each kernel built through :func:`reused`
 _REUSED: dict[tuple, tuple] = {}
@@ -50,6 +50,12 @@ def reused(queue: Any, kernel: str, key: tuple, factory: Callable[[Any], P]) -> 
     plan = factory(queue)
     _REUSED[slot] = (key, plan)
     return plan
+
+
+def reused_plans(kernel: str | None = None) -> list:
+    """The plans :func:`reused` keeps now (those of ``kernel`` only, where given): what stays on
+    the devices between calls."""
+    return [plan for (_, _, k), (_, plan) in _REUSED.items() if kernel is None or k == kernel]
 
 
 def release_reused() -> int:
@@ -119,6 +125,7 @@ class Plan:
         self.last_kernel_s = 0.0
         self._calls = [0]  # calls begun (:meth:`begin`), shared with the DeviceRows this plan made
         self._events: list = []
+        self._written: dict[int, tuple] = {}  # id(buffer) -> (buffer, bytes) of :meth:`write_changed`
 
     def defines(self) -> dict[str, Any]:
         """Build defines of this instance besides ``VEC`` (the variant the probe verifies is
@@ -141,7 +148,20 @@ class Plan:
         return self.cl.Buffer(self.context, mf.READ_ONLY | mf.COPY_HOST_PTR, hostbuf=host)
 
     def write(self, buf: Any, arr: np.ndarray, dtype: Any) -> None:
+        self._written.pop(id(buf), None)
         self.cl.enqueue_copy(self.queue, buf, np.ascontiguousarray(arr, dtype=dtype))
+
+    def write_changed(self, buf: Any, arr: np.ndarray, dtype: Any) -> bool:
+        """:meth:`write`, skipped where ``buf`` holds these very bytes from its last write through
+        here (a blocking write waits for every command before it on the queue: skipping the
+        unchanged ones lets the next launches be enqueued while earlier ones run). Whether it wrote."""
+        host = np.ascontiguousarray(arr, dtype=dtype)
+        held = self._written.get(id(buf))
+        if held is not None and held[0] is buf and held[1] == host.tobytes():
+            return False
+        self.write(buf, host, dtype)
+        self._written[id(buf)] = (buf, host.tobytes())
+        return True
 
     def read(self, buf: Any, shape: tuple[int, ...], dtype: Any, after: Sequence[Any] | None = None) -> np.ndarray:
         """Copy ``buf`` back once the launches it depends on have ended.
@@ -168,8 +188,11 @@ class Plan:
         self._events = []
         self._calls[0] += 1
 
-    def launch(self, global_size: tuple[int, ...], *args: Any, local_size: tuple[int, ...] | None = None) -> Any:
-        evt = self.kernel(self.queue, global_size, local_size, *args)
+    def launch(self, global_size: tuple[int, ...], *args: Any, local_size: tuple[int, ...] | None = None,
+               wait_for: Sequence[Any] | None = None) -> Any:
+        """Enqueue the kernel (after the queue's earlier commands, and after ``wait_for``'s events
+        of other queues); its event counts in the next :meth:`read`'s kernel time."""
+        evt = self.kernel(self.queue, global_size, local_size, *args, wait_for=wait_for or None)
         self._events.append(evt)
         return evt
 

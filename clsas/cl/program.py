@@ -74,6 +74,13 @@ def _read(name: str) -> str:
 
 def sources_hash(files: tuple[str, ...]) -> str:
     """SHA-256 of the concatenated sources and the build options (a cache key)."""
+    return _sources_hash(tuple(files), tuple(_OVERRIDES.get(f) for f in files))
+
+
+@functools.lru_cache(maxsize=256)
+def _sources_hash(files: tuple[str, ...], overrides: tuple) -> str:
+    """:func:`sources_hash` of ``files`` with these overrides in place (memoised: plans reused per
+    call ask for it on every call)."""
     h = hashlib.sha256()
     for f in files:
         h.update(f.encode() + b"\0" + kernel_source(f).encode() + b"\0")

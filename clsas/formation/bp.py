@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ from .bp_opencl import BackprojectPlan, RecordsPlan, upsample_factor
 from .guard import check_grid
 from .registry import FORMATIONS
 
-__all__ = ["Backprojector", "backproject", "form", "BP_OPTIONS"]
+__all__ = ["Backprojector", "PendingBackprojection", "backproject", "form", "form_tiles", "BP_OPTIONS"]
 
 BP_OPTIONS = ("beam", "beam_floor_db")  # the options the formation declares
 
@@ -62,11 +63,15 @@ class Backprojector:
         The two-way level of ``beam="limited"``, dB (default -12: each transducer's -6 dB
         beam when speaker and microphone are together).
     resident : bool
-        On OpenCL, keep the data on the device (default): profiles that the OpenCL compression
-        left there (``profiles.on_device``, still holding ``profiles.data``) go to the carrier
-        records kernel (kernels/records.cl) and then to bp without a trip through the host, and
-        the image is read back once as complex64. False: the step-by-step path (records made
-        on the host and written, the image read as two planes and joined), kept for comparison.
+        On OpenCL, keep the data on the device (default): the carrier records are made there
+        (kernels/records.cl) from the profiles the OpenCL compression left there
+        (``profiles.on_device``, still holding ``profiles.data``), else from ``profiles.data``
+        uploaded once; bp reads them there, and the image is read back once as complex64
+        (``-DCOMPLEX_IMAGE``). The records are kept on the device for the next call on the same
+        read-only profiles array (tiles of a grid, a Dask worker's tiles), whatever its grid;
+        ``image.provenance["bp"]["records"]`` says where they came from (``"rows"``,
+        ``"uploaded"``, ``"kept"``). False: the step-by-step path (records made on the host and
+        written, the image read as two planes and joined), kept for comparison.
 
     Examples
     --------
@@ -113,14 +118,14 @@ class Backprojector:
         p = self._plan
         if p is None or p.n_meas != n_meas or p.n_lags < n_lags or p.beam_lut != beam_lut:
             was = self.selection.kind
-            g = self.grid
-            key = (g.x_m.tobytes(), g.y_m.tobytes(), g.z_m.tobytes(), n_meas, n_lags, self.chunk, beam_lut,
-                   self.resident)
+            key = (n_meas, n_lags, self.chunk, beam_lut, self.resident)  # any grid: the plan is retargeted
             self._plan, self.selection = self.selection.plan(lambda q: _cl.reused(q, "backproject", key, lambda q:
-                BackprojectPlan(g, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut,
+                BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut,
                                 complex_image=self.resident)))
             if self.selection.kind != was:  # fell back to the twin: its memory is the host's, per voxel more
                 check_grid(self.grid, self.selection.kind, None, force=self._force)
+        if self._plan is not None:
+            self._plan.retarget(self.grid)
         return self._plan
 
     def _records_plan(self, n_meas: int, n_lags: int, up: int):
@@ -151,6 +156,24 @@ class Backprojector:
     ) -> Image:
         """Backproject ``profiles`` (see :func:`backproject` for the arguments; ``beams``
         default the profiles')."""
+        return self.enqueue(profiles, tx_positions=tx_positions, rx_positions=rx_positions, c_mps=c_mps,
+                            progress=progress, beams=beams).result()
+
+    def enqueue(
+        self,
+        profiles: Profiles,
+        *,
+        tx_positions: np.ndarray | None = None,
+        rx_positions: np.ndarray | None = None,
+        c_mps: float | np.ndarray | None = None,
+        progress: Callable[[int, int], None] | None = None,
+        beams: Beams | None = None,
+    ) -> PendingBackprojection:
+        """Begin backprojecting ``profiles`` (the arguments of :meth:`__call__`); the image is
+        :meth:`PendingBackprojection.result`. On the resident OpenCL path the kernels are enqueued
+        and the image read back on a second queue without waiting, so that a Backprojector of the
+        next tile, enqueued before this result is asked for, runs its kernels during the read
+        (:func:`form_tiles`); elsewhere the image is formed here."""
         if not isinstance(profiles, Profiles):
             raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
         n = profiles.n_meas
@@ -166,31 +189,106 @@ class Backprojector:
         if weights is not None and len(weights.tx_dir) != n:
             raise ValueError(f"beams must have {n} boresights (one per measurement), got {len(weights.tx_dir)}")
         t_start = time.perf_counter()
-        timings = {}
         lut = 0 if weights is None else weights.luts.shape[1]
         plan = self._opencl_plan(n, data.shape[1], lut) if self.selection.opencl else None
-        rows = profiles.on_device
         records = None
-        if plan is not None and self.resident and rows is not None and rows.valid(plan.queue, profiles.data):
+        if plan is not None and self.resident:
             records = self._records_plan(n, plan.n_lags, upsample_factor(fc, dtau))
             plan = None if records is None else plan  # None: the records kernel fell back to the twin
+        bp_record = {}
         if records is not None:
-            values = plan.from_device(rows, records, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
-            timings["records_kernel"] = plan.last_records_s
-            timings["backproject_kernel"] = plan.last_kernel_s - plan.last_records_s
+            # profiles.data itself (not the checked copy): the records are kept for this very array
+            pending, bp_record["records"] = plan.enqueue_resident(profiles.data, profiles.on_device, records, tau0,
+                                                                  dtau, fc, tx, rx, c, progress, beam=weights)
         elif plan is not None:
             values = plan(data, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
-            timings["backproject_kernel"] = plan.last_kernel_s
+            pending = _Done(values, {"backproject_kernel": plan.last_kernel_s})
         else:
             values = twin.backproject(data.astype(np.complex128), tau0, dtau, fc, tx, rx, c, self.grid.points(),
                                       progress, beam=weights)
-        timings["backproject"] = time.perf_counter() - t_start
-        sel = self.selection
+            pending = _Done(values, {})
         # with beams, the mode applied (the default resolves to "limited") is kept with the image
-        mode = "none" if weights is None else ("weighted" if weights.gate is None else "limited")
-        provenance = {} if beams is None else {"bp": {"beam": mode, "beam_floor_db": self.beam_floor_db}}
-        return Image(values.reshape(self.grid.shape), self.grid, "bp", sel.kind, sel.device, timings,
-                     provenance=provenance)
+        if beams is not None:
+            mode = "none" if weights is None else ("weighted" if weights.gate is None else "limited")
+            bp_record.update(beam=mode, beam_floor_db=self.beam_floor_db)
+        sel = self.selection
+        return PendingBackprojection(pending, self.grid, sel.kind, sel.device, t_start,
+                                     {"bp": bp_record} if bp_record else {})
+
+
+class _Done:
+    """An image formed already (the twin, the step-by-step path), as a pending one."""
+
+    def __init__(self, values: np.ndarray, timings: dict):
+        self.values, self.timings = values, timings
+
+    def result(self) -> np.ndarray:
+        return self.values
+
+
+class PendingBackprojection:
+    """What :meth:`Backprojector.enqueue` started; :meth:`result` waits for the :class:`~clsas.Image`."""
+
+    def __init__(self, pending, grid: VoxelGrid, kind: str, device: str, t_start: float, provenance: dict):
+        self._pending, self.grid, self._kind, self._device = pending, grid, kind, device
+        self._t_start, self._provenance = t_start, provenance
+        self._image = None
+        self.spans_ns: dict = {}  # OpenCL: device clock (start, end) of the kernels and of the read back, ns
+
+    def result(self) -> Image:
+        """The image (formed once; later calls return the same Image)."""
+        if self._image is None:
+            p = self._pending
+            values = p.result().reshape(self.grid.shape)
+            on_device = None
+            if isinstance(p, _Done):
+                timings = dict(p.timings)
+            else:
+                timings = {"records_kernel": p.records_s, "backproject_kernel": p.kernel_s - p.records_s,
+                           "image_read": p.read_s}
+                on_device = p.on_device(values)
+            timings["backproject"] = time.perf_counter() - self._t_start
+            self.spans_ns = getattr(p, "spans_ns", {})
+            self._image = Image(values, self.grid, "bp", self._kind, self._device, timings,
+                                provenance=self._provenance, on_device=on_device)
+            self._pending = None
+        return self._image
+
+
+def form_tiles(profiles: Profiles, grids: Iterable[VoxelGrid], *, backend: str | _cl.Selection | None = None,
+               device: Any = None, force: bool = False, beam: str | None = None, beam_floor_db: float = -12.0,
+               overlap: bool = True) -> Iterator[Image]:
+    """The bp image of ``profiles`` on each grid of ``grids`` (tiles of one grid), in order.
+
+    Each grid is one :class:`Backprojector` call; on OpenCL they share one plan (same profile
+    shapes) and the records made on the device for the first (:meth:`RecordsPlan.records_of`).
+    With ``overlap`` the next grid's kernels are enqueued before the last image is read back and
+    handed on, so that its read back and what the caller does with it (a file write) run beside
+    them; without, one grid after the other. The images are the same either way.
+
+    Parameters
+    ----------
+    profiles : Profiles
+    grids : iterable of VoxelGrid
+        Taken one at a time, as the previous image is handed on.
+    backend, device, force, beam, beam_floor_db : see :class:`Backprojector`.
+    overlap : bool
+    """
+    if not isinstance(profiles, Profiles):
+        raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
+    if not isinstance(overlap, bool):
+        raise TypeError(f"overlap must be True or False, got {overlap!r}")
+    selection = _cl.select(backend, device)
+    depth = 2 if overlap else 1
+    pending: deque = deque()
+    for grid in grids:
+        bp = Backprojector(grid, backend=selection, force=force, beam=beam, beam_floor_db=beam_floor_db)
+        pending.append(bp.enqueue(profiles))
+        selection = bp.selection  # a fallback to the twin holds for the next tiles
+        if len(pending) == depth:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
 
 
 def backproject(
@@ -254,3 +352,6 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | 
     """The ``"bp"`` formation: :class:`Backprojector` with its options ``beam`` and ``beam_floor_db``."""
     bp = Backprojector(grid, backend=backend, device=device, force=force, beam=beam, beam_floor_db=beam_floor_db)
     return bp(profiles, progress=progress)
+
+
+form.form_tiles = form_tiles  # the tiles of one grid, overlapped (clsas.pipeline.tiling)

@@ -67,6 +67,11 @@ class Image:
         The echoes found per recording by a sparse method.
     provenance : dict
         The dataset's provenance and the reconstruction's settings (stored with the image).
+    on_device : clsas.cl.DeviceRows, optional
+        ``values`` as bp's resident OpenCL path left them on the device (one row of complex64,
+        voxels in C order; ``values`` is then read-only), for a next step on the same device
+        to read there while it still holds them (:meth:`clsas.cl.DeviceRows.valid`: until
+        the plan's next call); None: on the host only. Not saved.
 
     Examples
     --------
@@ -93,6 +98,8 @@ class Image:
     plan: object | None = None
     echoes: list | None = None  # sparse methods: the Echoes found in each recording
     provenance: dict = field(default_factory=dict)  # source scan, parameters (stored as JSON)
+    # clsas.cl.DeviceRows: ``values`` as bp's resident path left them on the device (None: host only)
+    on_device: object | None = field(default=None, compare=False, repr=False)
 
     def magnitude(self) -> np.ndarray:
         """``|values|`` (read into memory where the values are on disk: see :meth:`projection`,

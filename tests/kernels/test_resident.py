@@ -202,18 +202,15 @@ def test_resident_equals_step_by_step_per_step(algorithm, lag_step):
 
 
 @needs_opencl
-def test_reconstruct_takes_the_resident_path_and_equals_step_by_step(monkeypatch):
-    """``reconstruct`` with bp on OpenCL forms from the profiles compression left on the device;
-    its image equals the step-by-step one (and the NumPy twin's within bp's tolerance)."""
+def test_reconstruct_takes_the_resident_path_and_equals_step_by_step():
+    """``reconstruct`` with bp on OpenCL forms from the profiles compression left on the device
+    (its provenance says the records were made from the compression's rows); its image equals
+    the step-by-step one (and the NumPy twin's within bp's tolerance)."""
     from clsas.formation.bp import Backprojector
-    from clsas.formation.bp_opencl import BackprojectPlan
 
     ds, grid = _scan()
-    calls = []
-    real = BackprojectPlan.from_device
-    monkeypatch.setattr(BackprojectPlan, "from_device", lambda self, *a, **k: calls.append(1) or real(self, *a, **k))
     image = clsas.reconstruct(ds, grid, backend="opencl", formation="bp")
-    assert calls, "reconstruct did not take the resident path"
+    assert image.provenance["bp"]["records"] == "rows", "reconstruct did not take the resident path"
     prof = clsas.compress(ds, backend="opencl", gate_s=image.plan.gate_s)
     step = Backprojector(grid, backend="opencl", resident=False)(prof).values
     twin = clsas.reconstruct(ds, grid, backend="numpy", formation="bp").values
@@ -274,3 +271,37 @@ def test_plans_are_reused_across_calls_with_the_same_shapes():
     step(second)
     assert step._plan is not a._plan  # the step-by-step path keeps a plan of its own kind
     assert cl.release_reused() >= 2
+
+
+@needs_opencl
+def test_resident_default_reads_one_complex_image_and_leaves_it_on_the_device():
+    """The default (resident) Backprojector builds bp with -DCOMPLEX_IMAGE and reads the image
+    back once as complex64; the image it returns also names its device buffer
+    (``image.on_device``), which holds the values until the plan's next call; the step-by-step
+    path builds without it, reads two planes and leaves nothing."""
+    import pyopencl as pcl
+
+    from clsas import cl
+    from clsas.formation.bp import Backprojector
+
+    ds, grid = _scan()
+    prof = clsas.compress(ds, backend="opencl")
+    bp = Backprojector(grid, backend="opencl")
+    image = bp(prof)
+    plan = bp._plan
+    assert plan.complex_image and plan.defines().get("COMPLEX_IMAGE") == 1 and plan.image_buffers == 1
+    assert image.values.dtype == np.complex64 and image.timings_s["image_read"] > 0
+    rows = image.on_device
+    q = cl.get_queue()
+    assert rows is not None and rows.valid(q, image.values) and (rows.n_rows, rows.n_cols) == (1, grid.size)
+    back = np.empty(rows.stride, np.complex64)
+    pcl.enqueue_copy(rows.queue, back, rows.buffer)
+    assert np.array_equal(back[: grid.size], image.values.ravel())  # the device copy is the image
+    assert not image.values.flags.writeable
+    Backprojector(grid, backend="opencl")(prof)  # the same plan again: its buffer holds the new image
+    assert not rows.valid(q, image.values)
+    step = Backprojector(grid, backend="opencl", resident=False)
+    old = step(prof)
+    assert not step._plan.complex_image and "COMPLEX_IMAGE" not in step._plan.defines()
+    assert old.on_device is None and np.abs(old.values - image.values).max() <= TOL["backproject"] * np.abs(
+        old.values).max()

@@ -138,9 +138,12 @@ def worker_selection(requested, device=None, threads: int | None = None) -> tupl
 def _tile_task(profiles, grid, formation, options, requested, force):
     """A task: form one tile on this worker's device (a sub-device of its threads' compute units)."""
     selection, units = worker_selection(requested, worker_device())
-    vals, dev, seconds = form_tile(profiles, grid, formation, options, selection, force)
+    # the worker's own copy of the profiles, shared by its tasks, made read-only: bp's resident path then
+    # uploads it and makes its records on the device for the first tile, and keeps them for the others
+    profiles.data.flags.writeable = False
+    vals, dev, seconds, records = form_tile(profiles, grid, formation, options, selection, force)
     cu = "" if units is None else f", {units} CU"
-    return vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units
+    return vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units, records
 
 
 def connect(client):
@@ -162,8 +165,9 @@ def n_workers(client) -> int:
 
 
 def run_on_cluster(client, profiles, tiles, pending, formation, options, requested, force, resources=None):
-    """Yield ``(tile, values, device, seconds, compute_units)`` for the ``pending`` tiles, formed on
-    the cluster (``device`` names the worker's process and compute units)."""
+    """Yield ``(tile, values, device, seconds, compute_units, records)`` for the ``pending`` tiles,
+    formed on the cluster (``device`` names the worker's process and compute units; ``records``:
+    :func:`clsas.pipeline.tiling.tiles.records_source`)."""
     distributed = import_distributed()
     c, own = connect(client)
     try:
@@ -175,11 +179,11 @@ def run_on_cluster(client, profiles, tiles, pending, formation, options, request
             futures[f.key] = (f, i)
         # as_completed waits on the loop it is given, else the *default* client's: with two clients in
         # one process (a LocalCluster's and another) the default one's loop may never see these futures
-        for f, (vals, device, seconds, units) in distributed.as_completed([f for f, _ in futures.values()],
-                                                                            loop=c.loop, with_results=True):
+        for f, (vals, device, seconds, units, records) in distributed.as_completed(
+                [f for f, _ in futures.values()], loop=c.loop, with_results=True):
             _, i = futures.pop(f.key)
             f.release()
-            yield tiles[i], vals, device, seconds, units
+            yield tiles[i], vals, device, seconds, units, records
         del prof
     finally:
         if own:

@@ -29,7 +29,7 @@ from ...physics.geometry import VoxelGrid
 from ...types.image import Image
 from ...types.profiles import Profiles
 from .store import open_store, request_digest
-from .tiles import form_tile, profile_bytes, rss_bytes, tile_grid, tile_shape_for
+from .tiles import form_tile, profile_bytes, read_only, records_source, rss_bytes, tile_grid, tile_shape_for
 
 __all__ = ["TiledRequest", "form_tiled"]
 
@@ -47,6 +47,7 @@ class TiledRequest:
     client: object = None  # a distributed.Client, a scheduler address, or None
     tile_shape: tuple[int, int, int] | None = None
     devices: tuple = ()  # several devices on this host (empty: the one selection)
+    overlap: bool = True  # one device: the next tile's kernels run while the last tile is read and written
 
 
 @dataclass
@@ -57,8 +58,12 @@ class _Tally:
     seconds: dict = field(default_factory=dict)
     pairs: dict = field(default_factory=dict)
     units: dict = field(default_factory=dict)
+    records: dict = field(default_factory=dict)  # tiles per source of bp's device records
 
-    def add(self, device: str, seconds: float, pairs: float, units: int | None = None) -> None:
+    def add(self, device: str, seconds: float, pairs: float, units: int | None = None,
+            records: str | None = None) -> None:
+        if records is not None:
+            self.records[records] = self.records.get(records, 0) + 1
         self.tiles[device] = self.tiles.get(device, 0) + 1
         self.seconds[device] = self.seconds.get(device, 0.0) + seconds
         self.pairs[device] = self.pairs.get(device, 0.0) + pairs
@@ -81,6 +86,7 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
     """
     selections = [cl.select(selection.requested, d) if not _is_numpy(d) else cl.select("numpy")
                   for d in request.devices] or [selection]
+    profiles = read_only(profiles)  # the device records of the first tile serve the others
     kind = "numpy" if any(not s.opencl for s in selections) else "opencl"
     n_parallel = _n_parallel(request.client, selections)
     shape = request.tile_shape or _auto_shape(grid, profiles, kind, request, n_parallel)
@@ -101,13 +107,13 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
     try:
         if progress is not None:
             progress(done, len(tiles))
-        for tile, vals, device, seconds, units in _run(profiles, tiles, pending, formation, options, selections,
-                                                       request, force):
+        for tile, vals, device, seconds, units, records in _run(profiles, tiles, pending, formation, options,
+                                                                selections, request, force):
             if store is not None:
                 store.write(tile, vals)
             else:
                 values[tile.slices] = vals
-            tally.add(device, seconds, float(tile.size) * profiles.n_meas, units)
+            tally.add(device, seconds, float(tile.size) * profiles.n_meas, units, records)
             done += 1
             if progress is not None:
                 progress(done, len(tiles))
@@ -117,6 +123,9 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
     devices = sorted(tally.tiles) or [selections[0].device]
     prov = {"tiles": {"shape": list(shape), "count": len(tiles), "formed_now": len(pending),
                       "resumed": len(tiles) - len(pending), "devices": tally.report()}}
+    if tally.records:  # bp's resident path: where each tile's carrier records came from
+        prov["tiles"]["records"] = dict(tally.records)
+        prov["tiles"]["overlap"] = _overlaps(request, selections)
     return Image(values, grid, "bp", kind, "; ".join(devices),
                  {"form_tiles": time.perf_counter() - t0}, provenance=prov)
 
@@ -168,18 +177,42 @@ def _units(selection: cl.Selection) -> int | None:
 
 
 def _run(profiles, tiles, pending, formation, options, selections, request, force):
-    """Yield ``(tile, values, device, seconds, compute_units)`` for each pending tile, as they finish."""
+    """Yield ``(tile, values, device, seconds, compute_units, records)`` for each pending tile, as they
+    finish (``records``: :func:`clsas.pipeline.tiling.tiles.records_source`)."""
     if request.client is not None:
         from .dask import run_on_cluster
 
         yield from run_on_cluster(request.client, profiles, tiles, pending, formation, options,
                                   selections[0].requested, force)
     elif len(selections) == 1:
-        for i in pending:
-            vals, device, seconds = form_tile(profiles, tiles[i].grid, formation, options, selections[0], force)
-            yield tiles[i], vals, device, seconds, _units(selections[0])
+        yield from _run_one(profiles, tiles, pending, formation, options, selections[0], request.overlap, force)
     else:
         yield from _run_threads(profiles, tiles, pending, formation, options, selections, force)
+
+
+def _overlaps(request: TiledRequest, selections) -> bool:
+    """Whether the tiles' kernels overlapped the read back and writing of the previous tile."""
+    return request.overlap and request.client is None and len(selections) == 1 and selections[0].opencl
+
+
+def _run_one(profiles, tiles, pending, formation, options, selection, overlap: bool, force):
+    """The tiles on one device, one after the other; a formation that forms tiles itself
+    (``form_tiles``, bp: the next tile's kernels overlapping the last one's read back) on OpenCL."""
+    from ...formation import FORMATIONS
+
+    form_tiles = getattr(FORMATIONS[formation], "form_tiles", None)
+    units = _units(selection)
+    if form_tiles is None or not selection.opencl:
+        for i in pending:
+            vals, device, seconds, records = form_tile(profiles, tiles[i].grid, formation, options, selection, force)
+            yield tiles[i], vals, device, seconds, units, records
+        return
+    t0 = time.perf_counter()
+    images = form_tiles(profiles, (tiles[i].grid for i in pending), backend=selection, force=force,
+                        overlap=overlap, **options)
+    for i, image in zip(pending, images, strict=True):
+        seconds, t0 = time.perf_counter() - t0, time.perf_counter()  # the tile's share of the run's time
+        yield tiles[i], np.asarray(image.values), image.device, seconds, units, records_source(image)
 
 
 def _run_threads(profiles, tiles, pending, formation, options, selections, force):
@@ -206,7 +239,8 @@ def _run_threads(profiles, tiles, pending, formation, options, selections, force
             except Exception as exc:  # noqa: BLE001 - handed to the caller's thread and raised there
                 results.put(exc)
                 return
-            results.put((tiles[i], *out, _units(sel)))
+            vals, device, seconds, records = out
+            results.put((tiles[i], vals, device, seconds, _units(sel), records))
 
     threads = [threading.Thread(target=worker, args=(s,), daemon=True) for s in selections]
     for t in threads:

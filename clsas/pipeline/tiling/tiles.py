@@ -10,15 +10,17 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ...formation.bp_numpy import upsample_factor
 from ...formation.guard import bytes_per_voxel
 from ...physics.geometry import VoxelGrid
 from ...types.profiles import Profiles
 
-__all__ = ["Tile", "form_tile", "tile_grid", "tile_shape_for", "rss_bytes", "peak_rss_bytes", "profile_bytes"]
+__all__ = ["Tile", "form_tile", "read_only", "records_source", "tile_grid", "tile_shape_for", "rss_bytes",
+           "peak_rss_bytes", "profile_bytes"]
 
 # what a tile costs on the host beyond the formation's own bytes per voxel: the values handed
 # to the writer (complex64) and the writer's conversion to HDF5's compound (complex64)
@@ -76,9 +78,21 @@ def check_tile_shape(grid: VoxelGrid, shape) -> tuple[int, int, int]:
 
 
 def profile_bytes(profiles: Profiles) -> int:
-    """Host bytes the profiles cost while a tile is formed: the profiles, and the OpenCL plan's
-    padded copy and sample pairs (complex64), about four times the complex128 data."""
-    return int(4 * profiles.data.nbytes + 64 * profiles.n_meas)
+    """Host bytes the profiles cost while tiles are formed (on a CPU device, its buffers are host
+    memory): the profiles, and the OpenCL path's copy of them and carrier records (complex64
+    pairs, upsampled), kept for every tile; at least four times the complex128 data."""
+    records = 16 * profiles.n_meas * ((profiles.n_lags - 1) * upsample_factor(profiles.fc_hz, profiles.dtau_s) + 1)
+    return int(max(4 * profiles.data.nbytes, 2 * profiles.data.nbytes + records) + 64 * profiles.n_meas)
+
+
+def read_only(profiles: Profiles) -> Profiles:
+    """``profiles`` with read-only data (a view where it was writeable): the OpenCL path keeps
+    the records it made on the device for the next tile only for an array that cannot change."""
+    if not profiles.data.flags.writeable:
+        return profiles
+    view = profiles.data.view()
+    view.flags.writeable = False
+    return replace(profiles, data=view)
 
 
 def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = None, fixed_bytes: int = 0,
@@ -121,13 +135,21 @@ def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = Non
 
 
 def form_tile(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, selection,
-              force: bool = False) -> tuple[np.ndarray, str, float]:
-    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds)``."""
+              force: bool = False) -> tuple[np.ndarray, str, float, str | None]:
+    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds, records)``,
+    ``records`` where bp's resident path took its carrier records (:func:`records_source`)."""
     from ...formation import form
 
     t0 = time.perf_counter()
     image = form(profiles, grid, formation, backend=selection, force=force, **options)
-    return np.asarray(image.values), image.device, time.perf_counter() - t0
+    return np.asarray(image.values), image.device, time.perf_counter() - t0, records_source(image)
+
+
+def records_source(image) -> str | None:
+    """Where bp's resident OpenCL path took a tile's carrier records (``"rows"``: the
+    compression's device rows, ``"uploaded"``, ``"kept"``: from an earlier tile); None: not
+    that path."""
+    return image.provenance.get("bp", {}).get("records")
 
 
 def rss_bytes() -> int:

@@ -9,7 +9,7 @@ from contextlib import contextmanager
 
 import numpy as np
 import pytest
-from conftest import small_dataset
+from conftest import TOL, needs_opencl, small_dataset
 
 import clsas
 
@@ -175,6 +175,22 @@ def test_a_worker_of_one_thread_gets_one_compute_unit(client):
     assert devices and all(d["compute_units"] == 1 for d in devices.values()), devices
     assert all(", 1 CU)" in name for name in devices)
     np.testing.assert_allclose(image.values, ref.values, rtol=0, atol=1e-5 * np.abs(ref.values).max())
+
+
+@needs_opencl
+def test_workers_form_their_tiles_from_records_uploaded_once(scene, client):
+    """On OpenCL each worker uploads the profiles it was sent and makes their carrier records on
+    its device for its first tile, and keeps them for every other tile it forms (the counts are
+    the tiles' own provenance); the image equals the single-process one within bp's tolerance."""
+    ds, grid, _ = scene
+    ref = clsas.reconstruct(ds, grid, backend="opencl", formation="bp")
+    image = clsas.reconstruct(ds, grid, backend="opencl", client=client)
+    tiles = image.provenance["tiles"]
+    workers = len(tiles["devices"])
+    assert tiles["count"] >= 8 and 1 <= workers <= 2
+    assert tiles["records"] == {"uploaded": workers, "kept": tiles["count"] - workers}, tiles
+    assert tiles["overlap"] is False  # one task per tile: nothing to overlap within a worker
+    np.testing.assert_allclose(image.values, ref.values, rtol=0, atol=TOL["backproject"] * np.abs(ref.values).max())
 
 
 def test_scheduler_address_from_the_command_line(client, tmp_path, capsys):
