@@ -1,0 +1,173 @@
+"""Work-group shapes (clsas.cl.shapes): the pick among timed shapes, the on-disk memory, the real
+timing child; backproject.cl's -DLOCAL_PROFILES variant against the twin at every width."""
+
+import json
+
+import numpy as np
+import pytest
+from conftest import TOL, needs_opencl, width_or_skip
+
+import clsas
+from clsas import cl
+from clsas.cl import shapes
+from clsas.formation import bp_numpy as twin
+
+PLAIN, LOCAL = cl.Shape(), "local_profiles"
+
+
+@pytest.fixture
+def fresh_shapes(tmp_path, monkeypatch):
+    """An empty cache (verdicts and tunings) on disk and in memory; restored afterwards."""
+    from clsas.cl import variants
+
+    monkeypatch.setenv("CLSAS_CACHE_DIR", str(tmp_path))
+    saved = dict(shapes._MEMO), dict(variants._MEMO)
+    shapes._MEMO.clear()
+    yield tmp_path / "shapes"
+    shapes._MEMO.clear()
+    shapes._MEMO.update(saved[0])
+    variants._MEMO.update(saved[1])
+
+
+def test_pick_keeps_the_default_unless_another_shape_is_clearly_faster():
+    a, b = cl.Shape(64), cl.Shape(16, LOCAL)
+    assert shapes.pick({PLAIN: 1.0, a: 0.97, b: 1.2})[0] == PLAIN  # within the 5 % margin
+    shape, why = shapes.pick({PLAIN: 1.0, a: 0.9, b: 0.5})
+    assert shape == b and "2.00x the default" in why
+    assert shapes.pick({a: 0.9, b: 0.5})[0] == b  # the default refused: the fastest that passed
+    assert shapes.pick({})[0] == PLAIN
+
+
+@pytest.mark.parametrize("bad, match", [(0, "positive int"), (2.0, "positive int"), (True, "positive int")])
+def test_shape_rejects_bad_local_sizes(bad, match):
+    with pytest.raises(ValueError, match=match):
+        cl.Shape(bad)
+
+
+@needs_opencl
+def test_tuning_is_kept_on_disk_and_a_crash_is_the_default(monkeypatch, fresh_shapes):
+    q = cl.get_queue()
+    cands = [PLAIN, cl.Shape(16), cl.Shape(16, LOCAL)]
+    calls = []
+
+    def child(device, name, vec, candidates):
+        calls.append(len(candidates))
+        return {"seconds": {"plain/auto": 2.0, "plain/16": 1.9, "local_profiles/16": 1.0}, "refused": {}}
+
+    monkeypatch.setattr(shapes, "_run_child", child)
+    t = shapes.tune(q, "backproject", 4, cands)
+    assert t.shape == cl.Shape(16, LOCAL) and t.source == "probe" and calls == [3]
+    stored = json.loads(next(fresh_shapes.glob("*.json")).read_text())
+    assert stored["variant"] == LOCAL and stored["local"] == 16 and stored["device"] == q.device.name.strip()
+    shapes._MEMO.clear()
+    assert shapes.tune(q, "backproject", 4, cands).source == "cache" and calls == [3]  # read, not timed
+    assert shapes.tune(q, "backproject", 4, cands[:2]).source == "probe" and calls == [3, 2]  # other candidates
+    assert cl.clear_shapes() == 2 and not list(fresh_shapes.glob("*.json"))
+    monkeypatch.setattr(shapes, "_run_child", lambda *a: None)
+    t = shapes.tune(q, "backproject", 4, cands)
+    assert t.shape == PLAIN and "crashed" in t.reason
+
+
+@needs_opencl
+def test_the_timing_child_checks_and_times_real_shapes(fresh_shapes):
+    """The real child on the default device: every candidate checked against the twin and timed
+    (or refused with its reason), and the chosen shape is one that passed."""
+    q = cl.get_queue()
+    vec = cl.choose(q, "backproject")
+    cands = [PLAIN, cl.Shape(16, LOCAL)]
+    t = shapes.tune(q, "backproject", vec, cands)
+    assert t.source == "probe" and set(t.seconds) | set(t.refused) == {c.label for c in cands}, t
+    assert all(s > 0 for s in t.seconds.values())
+    assert t.shape.label in t.seconds
+
+
+@needs_opencl
+def test_plan_checks_the_shape_it_is_given():
+    from clsas.formation.bp_opencl import BackprojectPlan
+
+    grid = clsas.VoxelGrid.from_bounds((0, 0.1), (0, 0), (0.5, 0.6), 0.05)
+    with pytest.raises(ValueError, match="no variant 'taylor'"):
+        BackprojectPlan(grid, 3, 10, shape=cl.Shape(16, "taylor"))
+    with pytest.raises(ValueError, match="needs a local size"):
+        BackprojectPlan(grid, 3, 10, shape=cl.Shape(None, LOCAL))
+    with pytest.raises(ValueError, match="exceeds the device"):
+        BackprojectPlan(grid, 3, 10, shape=cl.Shape(1 << 20))
+    with pytest.raises(TypeError, match="'auto' or a clsas.cl.Shape"):
+        BackprojectPlan(grid, 3, 10, shape=16)
+
+
+def test_staged_records_cover_every_groups_spread(rng):
+    """The run a work-group stages holds every left sample its voxels read: the spread of
+    floor(idx) over each group of consecutive voxels, brute force, stays within the bound."""
+    from clsas.formation.bp_opencl import staged_records
+
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 7), np.linspace(-0.05, 0.05, 5), np.linspace(0.4, 0.7, 11))
+    pts = grid.points()
+    tx = np.c_[rng.uniform(-0.5, 0.5, (20, 2)), np.zeros(20)]
+    rx = tx + [0.03, 0, 0]
+    per_m = 96e3 / 343.0
+    for per_group in (4, 16, 37, 64, 400):
+        bound = staged_records(grid, per_group, per_m)
+        path = np.linalg.norm(pts[None] - tx[:, None], axis=2) + np.linalg.norm(pts[None] - rx[:, None], axis=2)
+        k = np.floor(path * per_m)
+        spread = max((k[:, g:g + per_group].max(axis=1) - k[:, g:g + per_group].min(axis=1)).max()
+                     for g in range(0, grid.size, per_group))
+        assert spread <= bound - 2, (per_group, spread, bound)
+        assert bound <= 2 * np.linalg.norm(grid.bounds()[:, 1] - grid.bounds()[:, 0]) * per_m + 3
+
+
+def _bp_case(rng, shape):
+    """A grid of several work-groups (not a multiple of any), voxels in and out of the window,
+    upsampled profiles (2 carrier cycles per sample), a speed of sound per measurement."""
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 9), np.linspace(-0.05, 0.05, 5), np.linspace(0.3, 0.7, shape))
+    n, n_lags, dtau = 12, 40, 1 / 24e3
+    tx = np.c_[rng.uniform(-0.2, 0.2, (n, 2)), np.zeros(n)]
+    rx = tx + [0.03, 0, 0]
+    c = rng.uniform(340, 346, n)
+    prof = rng.normal(size=(n, n_lags)) + 1j * rng.normal(size=(n, n_lags))
+    tau0 = 0.8 / 343 - 20 * dtau + rng.uniform(-3, 3, n) * dtau
+    return grid, (prof, tau0, dtau, 25e3, tx, rx, c)
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+@pytest.mark.parametrize("local", [1, 4, 16], ids=lambda n: f"local{n}")
+def test_local_profiles_equal_twin(rng, vec, local):
+    """-DLOCAL_PROFILES (records staged per work-group) at every width the device accepts: the
+    twin's image to the plain kernel's tolerance, the staged run really used."""
+    from clsas.formation.bp_opencl import BackprojectPlan, upsample_factor
+
+    width_or_skip("backproject", vec)
+    grid, args = _bp_case(rng, 17)
+    plan = BackprojectPlan(grid, 12, 40, vec=vec, chunk=5, shape=cl.Shape(local, LOCAL))
+    fine = args[2] / upsample_factor(args[3], args[2])
+    assert plan.n_pad % (vec * local) == 0 and len(plan._staging(fine, args[6])[1]) == 3
+    got = plan(*args)
+    want = twin.backproject(*args, grid.points())
+    assert np.any(want == 0) and np.any(want != 0)
+    assert np.abs(got - want).max() < TOL["backproject"] * np.abs(want).max()
+
+
+@needs_opencl
+@pytest.mark.parametrize("local", [1, 16], ids=lambda n: f"local{n}")
+def test_plain_kernel_with_a_local_size_equals_twin(rng, local):
+    from clsas.formation.bp_opencl import BackprojectPlan
+
+    grid, args = _bp_case(rng, 13)
+    got = BackprojectPlan(grid, 12, 40, chunk=5, shape=cl.Shape(local))(*args)
+    want = twin.backproject(*args, grid.points())
+    assert np.abs(got - want).max() < TOL["backproject"] * np.abs(want).max()
+
+
+@needs_opencl
+def test_a_run_too_long_for_local_memory_runs_the_plain_kernel(rng, monkeypatch):
+    from clsas.formation import bp_opencl
+
+    grid, args = _bp_case(rng, 13)
+    plan = bp_opencl.BackprojectPlan(grid, 12, 40, chunk=5, shape=cl.Shape(4, LOCAL))
+    monkeypatch.setattr(bp_opencl, "staged_records", lambda *a: plan.queue.device.local_mem_size // 16)
+    kern, extra = plan._staging(args[2] / bp_opencl.upsample_factor(args[3], args[2]), args[6])
+    assert extra == () and kern is not plan.kernel
+    got = plan(*args)
+    want = twin.backproject(*args, grid.points())
+    assert np.abs(got - want).max() < TOL["backproject"] * np.abs(want).max()
