@@ -4,8 +4,8 @@ Reads a JSON spec on stdin (platform and device names, kernel, width, the plan c
 and qualified name, source texts), runs the plan class's ``selftest`` (a small input against
 the NumPy twin) on that device and prints one JSON line ``{"ok": ..., "reason": ..., "log":
 ...}``. With ``"task": "shapes"`` and a list of shapes (:mod:`clsas.cl.shapes`) it checks each
-shape against the twin and times those that pass, printing ``{"seconds": {label: s}, "refused":
-{label: why}}``. A crash of the OpenCL runtime kills only this process; the parent reads that from the
+shape against the twin and times those that pass, printing ``{"rounds": {label: [s per round]},
+"refused": {label: why}}``. A crash of the OpenCL runtime kills only this process; the parent reads that from the
 exit status.
 """
 
@@ -66,7 +66,7 @@ def run(spec: dict) -> dict:
 
 def time_shapes(plan_cls, queue, vec: int, shapes: list[Shape]) -> dict:
     """Each shape checked against the twin (``plan_cls.selftest(queue, vec, shape)``), those that
-    pass timed together (``plan_cls.time_shapes``); label -> seconds, and label -> why refused."""
+    pass timed together (``plan_cls.time_shapes``); label -> seconds per round, label -> why refused."""
     refused, passed = {}, []
     for shape in shapes:
         try:
@@ -78,8 +78,8 @@ def time_shapes(plan_cls, queue, vec: int, shapes: list[Shape]) -> dict:
             passed.append(shape)
         else:
             refused[shape.label] = f"differs from the NumPy twin by {err:.3g} of the peak"
-    seconds = plan_cls.time_shapes(queue, vec, passed) if passed else []
-    return {"seconds": {s.label: t for s, t in zip(passed, seconds, strict=True)}, "refused": refused}
+    rounds = plan_cls.time_shapes(queue, vec, passed) if passed else []
+    return {"rounds": {s.label: t for s, t in zip(passed, rounds, strict=True)}, "refused": refused}
 
 
 def main() -> int:

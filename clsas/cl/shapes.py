@@ -7,11 +7,13 @@ other names to their defines). The first plan of a (device, driver, kernel sourc
 width) starts a child process (:mod:`clsas.cl.probe`, as the width verdicts do: a variant that
 kills the runtime kills only the child) that, for every candidate shape, runs the plan's
 ``selftest(queue, vec, shape)`` against the NumPy twin and times the plan's
-``time_shapes(queue, vec, shapes)`` on a representative launch, in interleaved rounds (a shared
-host's load moves between rounds, not between candidates). A shape that differs from the twin by
-:data:`TOLERANCE` of the peak, or fails to build or launch, is never chosen; among the others,
-one that is not the runtime's default is chosen only when it is faster than the default by
-:data:`MARGIN`. The outcome is kept in ``cache_dir().parent / "shapes"`` (:func:`shapes_dir`).
+``time_shapes(queue, vec, shapes)`` on a representative launch, in interleaved rounds. A shape
+that differs from the twin by :data:`TOLERANCE` of the peak, or fails to build or launch, is
+never chosen; among the others, one that is not the runtime's default is chosen only when its
+median time relative to the default's in the same round is below ``1 -`` :data:`MARGIN`
+(:func:`pick`), and, on a CPU device, when the host was not busy (load average above its CPU
+count: the timings then measure other processes, :func:`busy`). The outcome is kept in
+``cache_dir().parent / "shapes"`` (:func:`shapes_dir`).
 
 Inside a probe process and on the Oclgrind simulator (which interprets kernels: its timings
 mean nothing) the default shape is used without timing.
@@ -29,6 +31,8 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from .device import _cl, describe
 from .program import is_simulator, kernel_source
@@ -117,18 +121,31 @@ def candidate_shapes(device: Any, max_local: int, variants: dict[str, dict], nee
     return out
 
 
-def pick(seconds: dict[Shape, float], margin: float = MARGIN) -> tuple[Shape, str]:
-    """The shape to use among those that passed the twin check, with why: the fastest, unless the
-    default (plain kernel, the runtime's local size) is within ``margin`` of it."""
-    if not seconds:
+def pick(rounds: dict[Shape, list[float]], margin: float = MARGIN) -> tuple[Shape, str]:
+    """The shape to use among those that passed the twin check (shape -> its seconds in each
+    interleaved round), with why. Each shape is scored by the median over rounds of its time over
+    the default's in the same round (a shared host's load moves between rounds more than within
+    one); the best-scored shape is chosen only when it beats the default by ``margin``."""
+    if not rounds:
         return DEFAULT, "no shape passed the twin check: the default"
-    best = min(seconds, key=seconds.get)
-    base = seconds.get(DEFAULT)
+    base = rounds.get(DEFAULT)
     if base is None:
-        return best, f"{best.label}: the fastest ({seconds[best] * 1e3:.2f} ms; the default was refused)"
-    if best == DEFAULT or seconds[best] > base * (1 - margin):
-        return DEFAULT, f"the default ({base * 1e3:.2f} ms) is within {margin:.0%} of the fastest"
-    return best, f"{best.label}: {base / seconds[best]:.2f}x the default ({seconds[best] * 1e3:.2f} ms)"
+        best = min(rounds, key=lambda s: min(rounds[s]))
+        return best, f"{best.label}: the fastest ({min(rounds[best]) * 1e3:.2f} ms; the default was refused)"
+    score = {s: float(np.median(np.asarray(t) / np.asarray(base))) for s, t in rounds.items()}
+    best = min(score, key=score.get)
+    if best == DEFAULT or score[best] > 1 - margin:
+        return DEFAULT, f"the default ({min(base) * 1e3:.2f} ms) is within {margin:.0%} of the fastest"
+    return best, f"{best.label}: {1 / score[best]:.2f}x the default ({min(rounds[best]) * 1e3:.2f} ms)"
+
+
+def busy(device: Any) -> float | None:
+    """The host's 1-minute load average where it exceeds its CPU count and the device is a CPU
+    (its timings then measure the other processes), else None."""
+    if not (device.type & _cl().device_type.CPU) or not hasattr(os, "getloadavg"):
+        return None
+    load = os.getloadavg()[0]
+    return load if load > (os.cpu_count() or 1) else None
 
 
 def _digest(device: Any, name: str, vec: int, candidates: list[Shape]) -> tuple[str, dict]:
@@ -208,9 +225,14 @@ def tune(queue: Any, name: str, vec: int, candidates: list[Shape], in_probe: boo
             tuning = Tuning(DEFAULT, "the timing probe crashed or timed out: the default shape")
         else:
             by_label = {c.label: c for c in candidates}
-            seconds = {by_label[k]: float(v) for k, v in report.get("seconds", {}).items() if k in by_label}
-            shape, reason = pick(seconds)
-            tuning = Tuning(shape, reason, {c.label: s for c, s in seconds.items()}, dict(report.get("refused", {})))
+            rounds = {by_label[k]: [float(x) for x in v] for k, v in report.get("rounds", {}).items() if k in by_label}
+            shape, reason = pick(rounds)
+            load = busy(device)
+            if load is not None and shape != DEFAULT:
+                shape, reason = DEFAULT, (f"the default: the host was busy while timing (load {load:.1f} on "
+                                          f"{os.cpu_count()} CPUs; {reason}); clear with clsas devices --clear-cache")
+            tuning = Tuning(shape, reason, {c.label: min(t) for c, t in rounds.items()},
+                            dict(report.get("refused", {})))
         _store(digest, ident, tuning)
         log.info("kernel %s (VEC=%d) on %s: work-group shape %s (%s)", name, vec, describe(device),
                  tuning.shape.label, tuning.reason)

@@ -278,18 +278,19 @@ class BackprojectPlan(BeamPlan):
 
 
     @classmethod
-    def time_shapes(cls, queue, vec: int, shapes: list[Shape], rounds: int = 3) -> list[float]:
-        """Kernel seconds of each shape on a 40^3 grid x 32 measurements (a raster in front of it,
-        every pair inside the profiles), the best of ``rounds`` interleaved rounds after a warm-up."""
+    def time_shapes(cls, queue, vec: int, shapes: list[Shape], rounds: int = 5) -> list[list[float]]:
+        """Kernel seconds of each shape in each of ``rounds`` interleaved rounds (after a warm-up)
+        on a 40^3 grid x 32 measurements (a raster in front of it, every pair inside the profiles)."""
         grid, args = timing_scene(np.random.default_rng(1))
         plans = [cls(grid, 32, args[0].shape[1], queue=queue, vec=vec, shape=s) for s in shapes]
-        best = [np.inf] * len(plans)
-        for r in range(rounds + 1):
-            for i, plan in enumerate(plans):
+        for plan in plans:
+            plan(*args)
+        out = [[] for _ in plans]
+        for _ in range(rounds):
+            for times, plan in zip(out, plans, strict=True):
                 plan(*args)
-                if r:
-                    best[i] = min(best[i], plan.last_kernel_s)
-        return best
+                times.append(plan.last_kernel_s)
+        return out
 
 
 def staged_records(grid: VoxelGrid, per_group: int, samples_per_m: float) -> int:
