@@ -90,6 +90,8 @@ def shapes_dir() -> Path:
 
 
 _MEMO: dict[str, Tuning] = {}
+# (device int_ptr, kernel) -> the label of the shape tuned for it in this process (provenance)
+CHOSEN: dict[tuple[int, str], str] = {}
 
 
 def clear_shapes() -> int:
@@ -104,9 +106,9 @@ def clear_shapes() -> int:
 
 
 def candidate_shapes(device: Any, max_local: int, variants: dict[str, dict], needs_local: set[str]) -> list[Shape]:
-    """The shapes to try: the runtime's choice, and local sizes of 16 to 256 work-items (and the
-    device's preferred multiple) up to ``max_local``, for every variant (those in ``needs_local``
-    only with a local size)."""
+    """The shapes to try: the runtime's choice, and local sizes of 16, 64 and 256 work-items (and 32
+    and 128 on a GPU) up to ``max_local``, for every variant (those in ``needs_local`` only with a
+    local size)."""
     if max_local < 1:
         raise ValueError(f"max_local must be at least 1, got {max_local!r}")
     cl = _cl()
@@ -237,4 +239,5 @@ def tune(queue: Any, name: str, vec: int, candidates: list[Shape], in_probe: boo
         log.info("kernel %s (VEC=%d) on %s: work-group shape %s (%s)", name, vec, describe(device),
                  tuning.shape.label, tuning.reason)
     _MEMO[digest] = tuning
+    CHOSEN[(device.int_ptr, name)] = tuning.shape.label
     return tuning

@@ -88,6 +88,7 @@ def test_the_timing_child_checks_and_times_real_shapes(fresh_shapes):
     assert t.source == "probe" and set(t.seconds) | set(t.refused) == {c.label for c in cands}, t
     assert all(s > 0 for s in t.seconds.values())
     assert t.shape.label in t.seconds
+    assert cl.runtime_record(q)["kernels_shape"]["backproject"] == t.shape.label  # provenance names it
 
 
 @needs_opencl
