@@ -27,13 +27,47 @@
  * local atomic_min) into local memory, and its lanes read them there: the same values, so the
  * same image. The host sizes seg_len from the work-group's bounding box (its path spread in
  * samples, plus 2); it needs a local size. Two barriers per measurement; the atomic's slot alternates with m's parity, so the
- * slot of m + 1 is reset while m's is still read. */
+ * slot of m + 1 is reset while m's is still read.
+ *
+ * -DHALF_PROFILES: the records are stored as half (4 per record, read with vload_half4, core
+ * OpenCL), scaled by the host into half's range (it scales the image back): half the bytes per
+ * pair gathered, float arithmetic. Not with -DLOCAL_PROFILES. */
 
 #ifdef COMPLEX_IMAGE /* the image as one interleaved complex array (re, im), read back as complex64 */
 #define IMAGE_ARGS __global float *image /* (n_vox_padded, 2) complex image, (re, im) per voxel */
 #else /* the image as two planes */
 #define IMAGE_ARGS __global float *image_re, /* (n_vox_padded,) real part of the image */ \
                    __global float *image_im  /* (n_vox_padded,) imaginary part of the image */
+#endif
+
+#ifdef HALF_PROFILES /* the records as half, gathered with vload_half4 */
+#ifdef LOCAL_PROFILES
+#error "HALF_PROFILES and LOCAL_PROFILES do not combine"
+#endif
+#define PAIRS_T half
+#define RECORD_ELEMS 4
+#undef G4
+#define G4(src, li, l) vload_half4((int)(li).s[l], (src))
+/* lerp_pairs (common.cl) of a row of half records */
+inline void lerp_pairs_half(__global const half *row, const floatV idx, const float last, floatV *re, floatV *im,
+                            floatV *w_out)
+{
+    const intV inside = (idx >= 0.0f) & (idx <= last);
+    lanes_f li;
+    li.v = lag_floor(idx, last);
+    const floatV w = idx - li.v;
+    GATHER_PAIRS(row, li, are, aim, bre, bim)
+    *re = inside ? are + w * (bre - are) : (floatV)(0.0f);
+    *im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+    *w_out = inside ? w : (floatV)(0.5f);
+}
+#undef G4
+#define G4(src, li, l) (src)[(int)(li).s[l]]
+#define LERP_ROW lerp_pairs_half
+#else
+#define PAIRS_T float4
+#define RECORD_ELEMS 1
+#define LERP_ROW lerp_pairs
 #endif
 
 #ifdef LOCAL_PROFILES /* the records of a work-group's measurement staged in local memory */
@@ -87,9 +121,10 @@ inline void stage_and_lerp(__global const float4 *row, const int n_lags, const f
 #endif
 
 __kernel void backproject(
-    __global const float4 *pairs,    /* (n_meas, n_lags) records (q_k, r_k) above: the samples
+    __global const PAIRS_T *pairs,   /* (n_meas, n_lags) records (q_k, r_k) above: the samples
                                         k and k + 1 of the baseband profile rotated by R_mk,
-                                        as (re, im, re, im); p[n_lags] = 0                    */
+                                        as (re, im, re, im); p[n_lags] = 0; float4, or 4 half
+                                        with -DHALF_PROFILES                                  */
     const int n_lags,                /* samples per profile                                   */
     __global const float4 *tx,       /* (n_meas,) speaker position xyz, m; w: 1 / (c_m dtau),
                                         profile samples per metre of path                     */
@@ -148,7 +183,7 @@ __kernel void backproject(
         stage_and_lerp(pairs + (size_t)m * n_lags, n_lags, idx, last, real, seg, seg_len, k_lo, m & 1, &re, &im,
                        &f);
 #else
-        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im, &f);
+        LERP_ROW(pairs + (size_t)m * n_lags * RECORD_ELEMS, idx, last, &re, &im, &f);
 #endif
         floatV c;
         floatV s = sincos_small(phi * (f - 0.5f), &c);

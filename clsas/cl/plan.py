@@ -12,7 +12,8 @@ from profiling events.
 
 A class that sets ``SHAPES = True`` launches with a tuned work-group shape (:mod:`.shapes`): it
 names its build variants in ``VARIANTS`` (name -> defines; ``""`` the plain kernel), those that
-need a local size in ``NEEDS_LOCAL``, and gives ``selftest(queue, vec, shape)`` and
+need a local size in ``NEEDS_LOCAL``, those that need an OpenCL extension in ``NEEDS_EXTENSION``
+(tried only where the device reports it), and gives ``selftest(queue, vec, shape)`` and
 ``time_shapes(queue, vec, shapes) -> seconds per shape``; :attr:`Plan.shape` is the outcome.
 """
 
@@ -114,6 +115,7 @@ class Plan:
     SHAPES: ClassVar[bool] = False  # True: the work-group shape is tuned per device (:mod:`.shapes`)
     VARIANTS: ClassVar[dict[str, dict[str, Any]]] = {"": {}}  # build variant name -> its defines
     NEEDS_LOCAL: ClassVar[frozenset[str]] = frozenset()  # variants launched only with a local size
+    NEEDS_EXTENSION: ClassVar[dict[str, str]] = {}  # variant -> the OpenCL extension the device must report
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -134,6 +136,14 @@ class Plan:
         self._calls = [0]  # calls begun (:meth:`begin`), shared with the DeviceRows this plan made
         self._events: list = []
 
+    def candidate_shapes(self) -> list[Shape]:
+        """The shapes the tuning tries on this plan's device: every variant whose extension the
+        device reports (:data:`NEEDS_EXTENSION`), at the local sizes of :func:`.shapes.candidate_shapes`."""
+        has = set(self.queue.device.extensions.split()) | {""}
+        usable = {k: v for k, v in self.VARIANTS.items() if self.NEEDS_EXTENSION.get(k, "") in has}
+        return candidate_shapes(self.queue.device, min(256, int(self.queue.device.max_work_group_size)), usable,
+                                set(self.NEEDS_LOCAL))
+
     def _shape(self, shape: Shape | str) -> Shape:
         """The shape asked for, checked; ``"auto"``: tuned (``SHAPES``) or the default."""
         from . import variants
@@ -141,14 +151,16 @@ class Plan:
         if isinstance(shape, str) and shape == "auto":
             if not self.SHAPES:
                 return DEFAULT
-            cands = candidate_shapes(self.queue.device, min(256, int(self.queue.device.max_work_group_size)),
-                                     self.VARIANTS, set(self.NEEDS_LOCAL))
-            return tune(self.queue, self.KERNEL, self.vec, cands, in_probe=variants._IN_PROBE).shape
+            return tune(self.queue, self.KERNEL, self.vec, self.candidate_shapes(), in_probe=variants._IN_PROBE).shape
         if not isinstance(shape, Shape):
             raise TypeError(f"shape must be 'auto' or a clsas.cl.Shape, got {shape!r}")
         if shape.variant not in self.VARIANTS:
             raise ValueError(f"shape: {type(self).__name__} has no variant {shape.variant!r} "
                              f"(it has {sorted(self.VARIANTS)})")
+        ext = self.NEEDS_EXTENSION.get(shape.variant)
+        if ext and ext not in self.queue.device.extensions.split():
+            raise ValueError(f"shape: the variant {shape.variant!r} needs a device with {ext}; "
+                             f"{self.queue.device.name.strip()} does not report it")
         if shape.local is None and shape.variant in self.NEEDS_LOCAL:
             raise ValueError(f"shape: the variant {shape.variant!r} needs a local size (got None)")
         limit = int(self.queue.device.max_work_group_size)

@@ -126,6 +126,11 @@ class RecordsPlan(Plan):
         return err
 
 
+# the half-profiles variant's error against the float64 twin, relative to the peak (each record
+# rounded to half, 2^-11 of it; tests/kernels/test_shapes.py checks it, bench/bp_shapes.py states it)
+HALF_TOLERANCE = 1e-3
+
+
 class BackprojectPlan(BeamPlan):
     """Compiled kernel and device buffers for one grid and profile shape.
 
@@ -136,16 +141,20 @@ class BackprojectPlan(BeamPlan):
 
     ``shape`` (:class:`clsas.cl.Shape`): the work-items per group and the build variant,
     ``"local_profiles"`` (``-DLOCAL_PROFILES``: each group's run of records staged in local memory,
-    the same image) or the plain kernel; ``"auto"``: the one tuned for the device
+    the same image), ``"half_profiles"`` (``-DHALF_PROFILES``: the records stored as half, scaled
+    into its range; on devices with ``cl_khr_fp16`` only; the image within :data:`HALF_TOLERANCE`
+    of its peak) or the plain kernel; ``"auto"``: the one tuned for the device
     (:mod:`clsas.cl.shapes`). Where a geometry's staged run would not fit the device's local
-    memory, the plain kernel runs with the same local size.
+    memory, and for records made on the device (:meth:`from_device`) under half profiles, the
+    plain kernel runs with the same local size.
     """
 
     KERNEL = "backproject"
     SOURCES = ("common.cl", "beam.cl", "backproject.cl")
     SHAPES = True
-    VARIANTS = {"": {}, "local_profiles": {"LOCAL_PROFILES": 1}}
+    VARIANTS = {"": {}, "local_profiles": {"LOCAL_PROFILES": 1}, "half_profiles": {"HALF_PROFILES": 1}}
     NEEDS_LOCAL = frozenset({"local_profiles"})
+    NEEDS_EXTENSION = {"half_profiles": "cl_khr_fp16"}
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
                  beam_lut: int = 0, complex_image: bool = False, shape: Shape | str = "auto"):
@@ -188,9 +197,17 @@ class BackprojectPlan(BeamPlan):
         if n_lags != self.n_lags_dev:  # upsampled (fc dtau > MAX_CYCLES_PER_SAMPLE): a larger buffer
             self.d_prof, self.n_lags_dev = self.alloc(pairs.nbytes, "r"), n_lags
         self.begin()
-        self.write(self.d_prof, pairs, np.complex64)
-        return self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps, progress,
-                          beam)
+        if self.shape.variant != "half_profiles":
+            self.write(self.d_prof, pairs, np.complex64)
+            return self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps,
+                              progress, beam)
+        parts = np.ascontiguousarray(pairs, np.complex64).view(np.float32)
+        scale = float(np.abs(parts).max()) or 1.0  # into half's range (|x| <= 65504); the image scaled back
+        self.write(self.d_prof, parts / scale, np.float16)
+        image = self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps, progress,
+                           beam, half=True)
+        image *= np.float32(scale)
+        return image
 
     def from_device(self, rows, records: RecordsPlan, tau0_s, dtau_s: float, fc_hz: float, tx_positions,
                     rx_positions, c_mps, progress: Callable[[int, int], None] | None = None,
@@ -217,9 +234,9 @@ class BackprojectPlan(BeamPlan):
         return image
 
     def _form(self, d_pairs, n_lags: int, tau0_s, dtau_s: float, phi: float, tx_positions, rx_positions, c_mps,
-              progress, beam) -> np.ndarray:
-        """The bp kernel over every chunk of measurements on records ``d_pairs`` (n_meas, n_lags)
-        at lag step ``dtau_s``, and the image read back."""
+              progress, beam, half: bool = False) -> np.ndarray:
+        """The bp kernel over every chunk of measurements on records ``d_pairs`` (n_meas, n_lags;
+        float, or half with ``half``) at lag step ``dtau_s``, and the image read back."""
         self.write_geometry(tau0_s, dtau_s, tx_positions, rx_positions, c_mps)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
@@ -229,7 +246,7 @@ class BackprojectPlan(BeamPlan):
             np.int32(g.shape[1]), np.int32(g.shape[2]), np.float32(phi),
         )
         beam_args = self.beam_args(beam)
-        kern, local_args = self._staging(dtau_s, c_mps)
+        kern, local_args = self._staging(dtau_s, c_mps, half)
         local = None if self.shape.local is None else (self.shape.local,)
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
@@ -247,19 +264,29 @@ class BackprojectPlan(BeamPlan):
         out.real, out.imag = re[: self.n_vox], im[: self.n_vox]
         return out
 
-    def _staging(self, dtau_s: float, c_mps) -> tuple:
-        """The kernel to launch and its -DLOCAL_PROFILES arguments (none for the plain kernel): the
-        staged run's records, sized by :func:`staged_records`; the plain kernel where they would
-        not fit the device's local memory."""
+    def _staging(self, dtau_s: float, c_mps, half: bool = False) -> tuple:
+        """The kernel to launch on float records (or half ones, ``half``) and its -DLOCAL_PROFILES
+        arguments (none for the others): the staged run's records, sized by :func:`staged_records`.
+        The plain kernel where the run would not fit the device's local memory, and for float
+        records under -DHALF_PROFILES (the resident path's, made on the device)."""
+        if self.shape.variant == "half_profiles":
+            if not half:
+                return self._plain_kernel(), ()
+        elif half:
+            raise ValueError(f"half records, but this plan runs the {self.shape.label} kernel")
         if self.shape.variant != "local_profiles":
             return self.kernel, ()
         per_m = float(np.max(1.0 / (np.asarray(c_mps, float) * dtau_s)))
         seg_len = staged_records(self.grid, self.per_group, per_m)
         if 16 * seg_len + 64 > int(self.queue.device.local_mem_size):
-            from ..cl import kernel
-
-            return kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), "VEC": self.vec}), ()
+            return self._plain_kernel(), ()
         return self.kernel, (self.cl.LocalMemory(16 * seg_len), np.int32(seg_len), np.int32(self.n_vox))
+
+    def _plain_kernel(self):
+        """The plain kernel at this plan's width and defines (built once per context)."""
+        from ..cl import kernel
+
+        return kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), "VEC": self.vec})
 
     @classmethod
     def selftest(cls, queue, vec: int, shape: Shape | None = None) -> float:

@@ -1,7 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [backproject_local] [gradient] [stolt]
-[stolt_depths] [ffbp] [records] [vec=N ...]. Checks each
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [backproject_local] [backproject_half] [gradient]
+[stolt] [stolt_depths] [ffbp] [records] [vec=N ...]. Checks each
 result against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
@@ -78,6 +78,20 @@ def check_backproject_local(queue, rng, vec):
     assert BackprojectPlan.selftest(queue, vec, Shape(4, "local_profiles")) < 1e-4, "backproject local, selftest"
 
 
+def check_backproject_half(queue, rng, vec):
+    # -DHALF_PROFILES (records stored as half, read with vload_half4): Oclgrind does not report
+    # cl_khr_fp16, but vload_half is core OpenCL, so this checking process lifts the plan's
+    # extension gate; 5 x 3 x 7 voxels in groups of 2 over two chunks, then the selftest (in that
+    # order, as for the local variant)
+    BackprojectPlan.NEEDS_EXTENSION = {}
+    _, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 5), np.linspace(0.0, 0.05, 3), np.linspace(0.2, 0.6, 7))
+    plan = BackprojectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=Shape(2, "half_profiles"))
+    got = plan(prof * 1e6, tau0, 1 / fs, 25e3, tx, rx, c)
+    close(got, bp_twin(prof * 1e6, tau0, 1 / fs, 25e3, tx, rx, c, grid.points()), 1e-3, "backproject half")
+    assert BackprojectPlan.selftest(queue, vec, Shape(None, "half_profiles")) < 1e-3, "backproject half, selftest"
+
+
 def check_records(queue, rng, vec):
     # the resident path: profiles in a device buffer with a row stride wider than the data, the
     # carrier records made there (not upsampled, then 4 x), bp on them over two chunks writing the
@@ -145,6 +159,8 @@ def main(kernels: set[str]) -> int:
             check_backproject(queue, rng, vec)
         if "backproject_local" in kernels:
             check_backproject_local(queue, rng, vec)
+        if "backproject_half" in kernels:
+            check_backproject_half(queue, rng, vec)
         if "gradient" in kernels:
             check_gradient(queue, rng, vec)
         if "stolt" in kernels:
@@ -160,5 +176,5 @@ def main(kernels: set[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "backproject_local", "gradient", "stolt",
-                                        "stolt_depths", "ffbp", "records"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "backproject_local", "backproject_half",
+                                        "gradient", "stolt", "stolt_depths", "ffbp", "records"}))

@@ -181,3 +181,63 @@ def test_a_run_too_long_for_local_memory_runs_the_plain_kernel(rng, monkeypatch)
     got = plan(*args)
     want = twin.backproject(*args, grid.points())
     assert np.abs(got - want).max() < TOL["backproject"] * np.abs(want).max()
+
+
+def _has_fp16() -> bool:
+    return "cl_khr_fp16" in cl.get_queue().device.extensions.split()
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+@pytest.mark.parametrize("local", [None, 16], ids=lambda n: f"local{n}")
+def test_half_profiles_equal_twin(rng, vec, local):
+    """-DHALF_PROFILES (records stored as half, scaled into its range) at every width the device
+    accepts, on profiles far beyond half's range (1e6): the twin's image to HALF_TOLERANCE."""
+    from clsas.formation.bp_opencl import HALF_TOLERANCE, BackprojectPlan
+
+    if not _has_fp16():
+        pytest.skip(f"{cl.describe(cl.get_queue().device)} does not report cl_khr_fp16")
+    width_or_skip("backproject", vec)
+    grid, args = _bp_case(rng, 17)
+    args = (args[0] * 1e6, *args[1:])
+    plan = BackprojectPlan(grid, 12, 40, vec=vec, chunk=5, shape=cl.Shape(local, "half_profiles"))
+    got = plan(*args)
+    want = twin.backproject(*args, grid.points())
+    err = np.abs(got - want).max() / np.abs(want).max()
+    assert TOL["backproject"] / 100 < err < HALF_TOLERANCE, err  # half, not float records: rounded more
+
+
+@needs_opencl
+def test_half_profiles_only_where_the_device_reports_fp16():
+    from clsas.formation.bp_opencl import BackprojectPlan
+
+    grid = clsas.VoxelGrid.from_bounds((0, 0.1), (0, 0), (0.5, 0.6), 0.05)
+    if _has_fp16():
+        assert BackprojectPlan(grid, 3, 10, shape=cl.Shape(None, "half_profiles")).shape.variant == "half_profiles"
+    else:
+        with pytest.raises(ValueError, match="needs a device with cl_khr_fp16"):
+            BackprojectPlan(grid, 3, 10, shape=cl.Shape(None, "half_profiles"))
+    cands = BackprojectPlan(grid, 3, 10, shape=PLAIN).candidate_shapes()  # what the tuning tries here
+    assert any(c.variant == "half_profiles" for c in cands) == _has_fp16()
+    assert PLAIN in cands and cl.Shape(16, LOCAL) in cands and cl.Shape(None, LOCAL) not in cands
+
+
+@needs_opencl
+def test_records_made_on_the_device_run_the_plain_kernel_under_half_profiles(rng):
+    """The resident path's records are float (records.cl): a half-profiles plan reads them with the
+    plain kernel, the twin's image to the plain tolerance."""
+    from clsas.formation.bp_opencl import BackprojectPlan, RecordsPlan, selftest_scene, upsample_factor
+
+    if not _has_fp16():
+        pytest.skip(f"{cl.describe(cl.get_queue().device)} does not report cl_khr_fp16")
+    grid, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
+    plan = BackprojectPlan(grid, 3, 40, chunk=2, complex_image=True, shape=cl.Shape(None, "half_profiles"))
+    d_prof = plan.upload(prof, np.complex64)
+
+    class Rows:
+        buffer, n_rows, n_cols, stride = d_prof, 3, 40, 40
+
+    records = RecordsPlan(3, 40, upsample_factor(25e3, 1 / fs), queue=plan.queue)
+    got = plan.from_device(Rows, records, tau0, 1 / fs, 25e3, tx, rx, c)
+    want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
+    assert np.abs(got - want).max() < TOL["backproject"] / 4 * np.abs(want).max()  # float records: no half rounding
