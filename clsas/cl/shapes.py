@@ -12,7 +12,8 @@ that differs from the twin by :data:`TOLERANCE` of the peak, or fails to build o
 never chosen; among the others, one that is not the runtime's default is chosen only when its
 median time relative to the default's in the same round is below ``1 -`` :data:`MARGIN`
 (:func:`pick`), and, on a CPU device, when the host was not busy (load average above its CPU
-count: the timings then measure other processes, :func:`busy`). The outcome is kept in
+count: the timings then measure other processes, :func:`busy`; the default is then kept
+provisionally, and timed again after :data:`RETIME_S` once the host is quiet). The outcome is kept in
 ``cache_dir().parent / "shapes"`` (:func:`shapes_dir`).
 
 Inside a probe process and on the Oclgrind simulator (which interprets kernels: its timings
@@ -46,6 +47,7 @@ log = logging.getLogger("clsas.cl.shapes")
 TOLERANCE = 1e-3  # relative to the peak, as the width probe: catches wrong code, not float32 rounding
 MARGIN = 0.05  # a shape other than the default must be this much faster (a shared host's timings move)
 PROBE_TIMEOUT_S = 300.0
+RETIME_S = 3600.0  # a provisional tuning (a busy host) is timed again after this long, on a quiet host
 FORMAT = 1
 
 
@@ -82,6 +84,8 @@ class Tuning:
     seconds: dict[str, float] = field(default_factory=dict)
     refused: dict[str, str] = field(default_factory=dict)
     source: str = "probe"  # "probe", "cache", "default"
+    provisional: bool = False  # the default kept because the host was busy: timed again later (RETIME_S)
+    when_s: float = 0.0  # when it was timed (time.time())
 
 
 def shapes_dir() -> Path:
@@ -160,7 +164,8 @@ def _load(digest: str) -> Tuning | None:
     try:
         data = json.loads((shapes_dir() / f"{digest}.json").read_text())
         shape = Shape(data["local"], data["variant"])
-        return Tuning(shape, data["reason"], dict(data["seconds"]), dict(data["refused"]), "cache")
+        return Tuning(shape, data["reason"], dict(data["seconds"]), dict(data["refused"]), "cache",
+                      bool(data.get("provisional", False)), float(data.get("when_s", 0.0)))
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -168,7 +173,8 @@ def _load(digest: str) -> Tuning | None:
 def _store(digest: str, ident: dict, tuning: Tuning) -> None:
     d = shapes_dir()
     record = {**ident, "local": tuning.shape.local, "variant": tuning.shape.variant, "reason": tuning.reason,
-              "seconds": tuning.seconds, "refused": tuning.refused, "when": time.strftime("%Y-%m-%dT%H:%M:%S")}
+              "seconds": tuning.seconds, "refused": tuning.refused, "provisional": tuning.provisional,
+              "when_s": tuning.when_s, "when": time.strftime("%Y-%m-%dT%H:%M:%S")}
     try:
         d.mkdir(parents=True, exist_ok=True)
         tmp = d / f".{digest}.{os.getpid()}.tmp"
@@ -209,6 +215,24 @@ def _run_child(device: Any, name: str, vec: int, candidates: list[Shape]) -> dic
     return None
 
 
+def _timed(device: Any, name: str, vec: int, candidates: list[Shape]) -> Tuning:
+    """Time the candidates in a child and pick (:func:`pick`); on a busy host, the default, provisionally."""
+    report = _run_child(device, name, vec, candidates)
+    if report is None:
+        return Tuning(DEFAULT, "the timing probe crashed or timed out: the default shape", when_s=time.time())
+    by_label = {c.label: c for c in candidates}
+    rounds = {by_label[k]: [float(x) for x in v] for k, v in report.get("rounds", {}).items() if k in by_label}
+    shape, reason = pick(rounds)
+    load = busy(device)
+    provisional = load is not None and shape != DEFAULT
+    if provisional:
+        shape, reason = DEFAULT, (f"the default, for now: the host was busy while timing (load {load:.1f} on "
+                                  f"{os.cpu_count()} CPUs; {reason}); timed again on a quiet host after "
+                                  f"{RETIME_S / 3600:g} h")
+    return Tuning(shape, reason, {c.label: min(t) for c, t in rounds.items()}, dict(report.get("refused", {})),
+                  provisional=provisional, when_s=time.time())
+
+
 def tune(queue: Any, name: str, vec: int, candidates: list[Shape], in_probe: bool = False) -> Tuning:
     """The :class:`Tuning` of kernel ``name`` at width ``vec`` on the queue's device among
     ``candidates`` (memoised, kept on disk; the default shape inside a probe or on a simulator)."""
@@ -221,20 +245,10 @@ def tune(queue: Any, name: str, vec: int, candidates: list[Shape], in_probe: boo
     if digest in _MEMO:
         return _MEMO[digest]
     tuning = _load(digest)
+    if tuning is not None and tuning.provisional and time.time() - tuning.when_s > RETIME_S and busy(device) is None:
+        tuning = None  # kept only because the host was busy; it is quiet now
     if tuning is None:
-        report = _run_child(device, name, vec, candidates)
-        if report is None:
-            tuning = Tuning(DEFAULT, "the timing probe crashed or timed out: the default shape")
-        else:
-            by_label = {c.label: c for c in candidates}
-            rounds = {by_label[k]: [float(x) for x in v] for k, v in report.get("rounds", {}).items() if k in by_label}
-            shape, reason = pick(rounds)
-            load = busy(device)
-            if load is not None and shape != DEFAULT:
-                shape, reason = DEFAULT, (f"the default: the host was busy while timing (load {load:.1f} on "
-                                          f"{os.cpu_count()} CPUs; {reason}); clear with clsas devices --clear-cache")
-            tuning = Tuning(shape, reason, {c.label: min(t) for c, t in rounds.items()},
-                            dict(report.get("refused", {})))
+        tuning = _timed(device, name, vec, candidates)
         _store(digest, ident, tuning)
         log.info("kernel %s (VEC=%d) on %s: work-group shape %s (%s)", name, vec, describe(device),
                  tuning.shape.label, tuning.reason)

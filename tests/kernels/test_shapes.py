@@ -67,9 +67,18 @@ def test_tuning_is_kept_on_disk_and_a_crash_is_the_default(monkeypatch, fresh_sh
     assert shapes.tune(q, "backproject", 4, cands).source == "cache" and calls == [3]  # read, not timed
     assert shapes.tune(q, "backproject", 4, cands[:2]).source == "probe" and calls == [3, 2]  # other candidates
     assert cl.clear_shapes() == 2 and not list(fresh_shapes.glob("*.json"))
-    monkeypatch.setattr(shapes, "busy", lambda device: 7.5)  # a busy host keeps the default
+    monkeypatch.setattr(shapes, "busy", lambda device: 7.5)  # a busy host keeps the default, for now
     t = shapes.tune(q, "backproject", 4, cands)
-    assert t.shape == PLAIN and "busy" in t.reason and t.seconds["local_profiles/16"] == 1.0
+    assert t.shape == PLAIN and "busy" in t.reason and t.seconds["local_profiles/16"] == 1.0 and t.provisional
+    shapes._MEMO.clear()
+    assert shapes.tune(q, "backproject", 4, cands).source == "cache"  # still busy, or not yet an hour old
+    monkeypatch.setattr(shapes, "busy", lambda device: None)
+    monkeypatch.setattr(shapes.time, "time", lambda: t.when_s + shapes.RETIME_S + 1)
+    shapes._MEMO.clear()
+    t = shapes.tune(q, "backproject", 4, cands)  # quiet and old: timed again
+    assert t.source == "probe" and t.shape == cl.Shape(16, LOCAL) and not t.provisional
+    monkeypatch.undo()
+    monkeypatch.setenv("CLSAS_CACHE_DIR", str(fresh_shapes.parent))
     shapes._MEMO.clear()
     cl.clear_shapes()
     monkeypatch.setattr(shapes, "_run_child", lambda *a: None)
