@@ -129,6 +129,7 @@ class Plan:
         self.queue = get_queue(queue)
         self.context = self.queue.context
         self.vec = choose(self.queue, self.KERNEL, vec)
+        self.tuning = None  # the Tuning behind an "auto" shape of a tuned class (:mod:`.shapes`)
         self.shape = self._shape(shape)
         self.kernel = kernel(self.context, self.SOURCES, self.KERNEL,
                              {**self.VARIANTS[self.shape.variant], **self.defines(), "VEC": self.vec})
@@ -151,7 +152,8 @@ class Plan:
         if isinstance(shape, str) and shape == "auto":
             if not self.SHAPES:
                 return DEFAULT
-            return tune(self.queue, self.KERNEL, self.vec, self.candidate_shapes(), in_probe=variants._IN_PROBE).shape
+            self.tuning = tune(self.queue, self.KERNEL, self.vec, self.candidate_shapes(), in_probe=variants._IN_PROBE)
+            return self.tuning.shape
         if not isinstance(shape, Shape):
             raise TypeError(f"shape must be 'auto' or a clsas.cl.Shape, got {shape!r}")
         if shape.variant not in self.VARIANTS:
