@@ -165,7 +165,7 @@ def _throughput_part(res: dict, cfg: dict, rng, opencl: bool, device: str, say) 
     res["backprojection"] = []
     for name, side, n_meas, twin_meas, numba_meas in cfg["backprojection"]:
         if side == "demo":
-            from clsas.scenes import demo_configs, parse_config
+            from clsas.synthesis.scenes import demo_configs, parse_config
 
             grid = parse_config(demo_configs(0.01)["front"]).grid
         else:
@@ -243,7 +243,7 @@ def _check_dependencies(use_dask: bool, say) -> None:
 
 def _demo_dataset(n_stops: int):
     import clsas
-    from clsas.scenes import demo_configs, parse_config
+    from clsas.synthesis.scenes import demo_configs, parse_config
 
     cfg = parse_config(demo_configs(0.01)["front"])
     return clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=20).subset(slice(0, n_stops))

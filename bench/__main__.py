@@ -3,6 +3,7 @@
     python -m bench                  # the quick set, 3 to 6 minutes on a 2-core CPU
     python -m bench --full           # the full set
     python -m bench --formation ...  # only the image-formation benchmark (see --help)
+    python -m bench --rates [N]      # kernel and wall rates of each formation and reconstruct, every device
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ def cmd_bench(args) -> int:
 
     if args.formation_family is not None:
         return _bench_formation_family(args, status)
+    if args.rates is not None:
+        return _bench_rates(args, status)
     if args.superres_image:
         return _bench_superres_image(args, status)
     if args.scale == "tiles":
@@ -109,6 +112,16 @@ def _bench_superres_image(args, status) -> int:
         print(f"AirSAS {r['scan']}: {r['method']}: TCR {r['tcr_db']:.1f} dB, edge {r['edge_width_mm']:.1f} mm")
     for path in res["paths"].values():
         print(f"wrote {path}")
+    return 0
+
+
+def _bench_rates(args, status) -> int:
+    """``--rates [N]``: kernel and wall rates, and where the wall time goes, per device (:mod:`bench.rates`)."""
+    from bench import rates
+
+    res = rates.run_rates(args.rates, indices=args.devices, status=status)
+    print("\n".join(rates.table(res)))
+    rates.write(res, args.out)
     return 0
 
 
@@ -210,6 +223,12 @@ def build_parser():
                    "with --airsas, on the measured AirSAS scans")
     b.add_argument("--airsas", default=None, metavar="DIR",
                    help="with --superres-image: local copy of CSAS_Deconvolution_INR (or its airsas_deconv_pipeline)")
+    b.add_argument("--rates", type=int, nargs="?", const=24, default=None, metavar="N",
+                   help="run only the rates table: bp, omega-k, ffbp and the whole reconstruct (compression + bp) on "
+                   "N x N stops (default 24: under a minute on a 2-core CPU), on every device: kernel and wall rates "
+                   "and the shares of the wall time on the host, in transfers and in kernels")
+    b.add_argument("--devices", nargs="+", metavar="P:D|numpy", default=None,
+                   help="with --rates: only these devices (OpenCL P:D numbers as clsas devices lists them, or numpy)")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     b.add_argument("-v", "--verbose", action="store_true", help="log details")
     b.add_argument("--debug", action="store_true", help="show tracebacks")

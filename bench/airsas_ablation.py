@@ -14,7 +14,7 @@ row swaps ingredients for the owners' (``sim_csas_package`` and ``airsas_utils``
 - ``c``: clsas's (``clsas.speed_of_sound`` at the Dataset's humidity: since 2026-11-27 humid air,
   Cramer's humid/dry ratio on 331.3 sqrt(1 + T / 273.15), at an assumed 50 % RH; before, dry) or
   331.4 + 0.6 T (theirs), T per ping; or, for scale, Cramer's (1993) own absolute value for air at
-  50 % relative humidity (``clsas.physics.cramer_speed_of_sound``; the scans log no humidity);
+  50 % relative humidity (``clsas.physics.sound.cramer_speed_of_sound``; the scans log no humidity);
 - ``common``: clsas's mean over pings, or their weighted removal (``owners_common``);
 - ``blank``: clsas's direct-path blanking, or none (theirs);
 - ``filters``: clsas's DC removal and band-pass, or none (theirs: the matched filter alone).
@@ -47,7 +47,7 @@ from bench.airsas_compare import (
 )
 from clsas import preprocess as pp  # noqa: E402
 from clsas.focus.direct import direct_arrivals  # noqa: E402
-from clsas.physics import cramer_speed_of_sound  # noqa: E402
+from clsas.physics.sound import cramer_speed_of_sound  # noqa: E402
 
 CLSAS = {"clock": "direct", "radius": "sysparams", "c": "clsas", "common": "mean", "blank": True, "filters": True}
 ROWS = [

@@ -75,8 +75,8 @@ def run_cases(cases=CASES_QUICK, *, spacing_m: float = 0.01, max_iter: int = 40,
     ``"temperature"`` (°C), ``"delay"`` (s)."""
     import clsas
     from clsas.focus import autofocus, score
-    from clsas.scan_errors import HandMotion
-    from clsas.scenes import demo_configs, parse_config
+    from clsas.physics.scan_errors import HandMotion
+    from clsas.synthesis.scenes import demo_configs, parse_config
 
     cfg = parse_config(demo_configs(spacing_m)["front"])
     grid, truth = cfg.grid, cfg.scene.image_sources()[0]

@@ -5,7 +5,7 @@
 
 Sharpness and image energy over-fit on the scene family's planes and sphere caps (the eighth
 session's note): the truth is not their maximum. This probe asks the question the other way
-round, of the measurements themselves, on each family scene (:func:`clsas.scene_family.family_scene`,
+round, of the measurements themselves, on each family scene (:func:`clsas.synthesis.scene_family.family_scene`,
 with the true clock and speed of sound, so that only the motion is unknown):
 
 - **the objective**: the relative residual ``|y - A x| / |y|`` of the range profiles ``y``
@@ -44,8 +44,8 @@ from clsas.focus.motion import stops_of
 from clsas.focus.points import smooth_unwrapped
 from clsas.focus.track import DEFAULT_CUTOFF_HZ, gauge_free, smooth_basis
 from clsas.inverse.operator import ImagingOperator, compressed_pulse
-from clsas.profiles import Profiles
-from clsas.scene_family import family_scene
+from clsas.synthesis.scene_family import family_scene
+from clsas.types.profiles import Profiles
 
 INNER = 10  # LSQR iterations per model fit
 PASSES = 6

@@ -30,7 +30,7 @@ METHOD_SETS = {"default": ("direct",), "focus": None, "hand": ("direct", "points
 def run(seeds, status=print) -> list[dict]:
     import clsas
     from clsas.focus import FOCUS_METHODS
-    from clsas.scene_family import family_scene
+    from clsas.synthesis.scene_family import family_scene
 
     from .autofocus_family import local_peak_db
 
@@ -75,7 +75,7 @@ def summary(rows: list[dict]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from clsas.scene_family import SEED_SETS
+    from clsas.synthesis.scene_family import SEED_SETS
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--set", default="tuning-2", choices=sorted(SEED_SETS), help="the seed set (default tuning-2)")

@@ -1,4 +1,4 @@
-"""Autofocus on the seeded scene family (:mod:`clsas.scene_family`): the distribution.
+"""Autofocus on the seeded scene family (:mod:`clsas.synthesis.scene_family`): the distribution.
 
 Each scene is drawn from its seed, imaged as recorded, autofocused with :data:`BENCH_METHODS` (direct, points, track),
 and scored against the same scan without errors:
@@ -72,7 +72,7 @@ def run_scene(seed: int, rms_m: float, *, backend=None, methods=None, **options)
     """One scene of the family, autofocused and scored (see the module docstring)."""
     import clsas
     from clsas.focus import autofocus, score
-    from clsas.scene_family import family_scene
+    from clsas.synthesis.scene_family import family_scene
 
     fs = family_scene(seed, rms_m=rms_m)
     clean = clsas.reconstruct(fs.clean, fs.grid, backend=backend)
@@ -209,7 +209,7 @@ def finish_peak_plot(fig, ax, xlabel: str, path) -> None:
 
 def run_and_write(seed_set: str = "tuning", rms_mm=(3.0,), *, n_seeds: int | None = None, out_dir=None,
                   plots: bool = True, backend=None, status=None, consistency_iter: int = 0) -> dict:
-    """The family at each RMS (mm) on ``seed_set`` (a name in :data:`clsas.scene_family.SEED_SETS`:
+    """The family at each RMS (mm) on ``seed_set`` (a name in :data:`clsas.synthesis.scene_family.SEED_SETS`:
     ``"tuning"``, ``"tuning-2"``, ``"held-out"``, ``"held-out-2"``; the first ``n_seeds`` only),
     summarised, and written to ``out_dir`` as ``<date>-autofocus-family-<set>.{json,md,png}``
     (``...-<set>-consistency<N>`` with ``consistency_iter`` N, :func:`clsas.autofocus`'s last check).
@@ -222,7 +222,7 @@ def run_and_write(seed_set: str = "tuning", rms_mm=(3.0,), *, n_seeds: int | Non
     import platform
     from pathlib import Path
 
-    from clsas.scene_family import SEED_SETS
+    from clsas.synthesis.scene_family import SEED_SETS
 
     if seed_set not in SEED_SETS:
         raise ValueError(f"seed_set must be one of {', '.join(SEED_SETS)}, got {seed_set!r}")

@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 
 import clsas
-from clsas.beam import Beams, Piston
 from clsas.formation import error_to_signal_db, form
-from clsas.specular import Surface
+from clsas.physics.beam import Beams, Piston
+from clsas.physics.specular import Surface
 
 from .stats import jsonable
 

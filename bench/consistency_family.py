@@ -1,6 +1,6 @@
 """Does each family scene's data determine its motion, and how much of it does autofocus remove?
 
-For each scene of :mod:`clsas.scene_family`, :func:`clsas.focus.data_consistency`
+For each scene of :mod:`clsas.synthesis.scene_family`, :func:`clsas.focus.data_consistency`
 fits a target in the scene's grid to
 
 - the scan as recorded (stated positions, clock and air),
@@ -43,7 +43,7 @@ def run_scene(seed: int, rms_m: float = 3e-3, *, max_iter: int = 30, backend=Non
     from bench.autofocus_family import BENCH_METHODS, local_peak_db
     from clsas.focus import autofocus
     from clsas.focus.consistency import data_consistency
-    from clsas.scene_family import family_scene
+    from clsas.synthesis.scene_family import family_scene
 
     fs = family_scene(seed, rms_m=rms_m)
     t = time.perf_counter()
@@ -151,7 +151,7 @@ def _main(argv=None) -> str:
     import json
     from pathlib import Path
 
-    from clsas.scene_family import SEED_SETS
+    from clsas.synthesis.scene_family import SEED_SETS
 
     ap = argparse.ArgumentParser(prog="python -m bench.consistency_family", description=__doc__.split("\n")[0])
     ap.add_argument("seed_set", choices=sorted(SEED_SETS))

@@ -14,7 +14,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from clsas.geometry import VoxelGrid
+from clsas.physics.geometry import VoxelGrid
 
 __all__ = ["dask_client", "sweep_dask", "grid_sweep_dask", "backproject_tiled", "tiles"]
 
@@ -89,12 +89,12 @@ def tiles(grid: VoxelGrid, n_tiles: int) -> list[tuple[slice, VoxelGrid]]:
 
 def backproject_tiled(client, profiles, grid: VoxelGrid, n_tiles: int, backend: str | None = "auto"):
     """Backproject ``profiles`` onto ``grid`` in ``n_tiles`` tiles on the cluster, through the library's
-    tiling (:func:`clsas.tiling.dask.run_on_cluster`: the profiles scattered once, one task per tile).
+    tiling (:func:`clsas.pipeline.tiling.dask.run_on_cluster`: the profiles scattered once, one task per tile).
 
     Returns ``(values (nx, ny, nz) complex, devices)``: the joined image and the device each tile ran on.
     """
-    from clsas.tiling import Tile
-    from clsas.tiling.dask import run_on_cluster
+    from clsas.pipeline.tiling import Tile
+    from clsas.pipeline.tiling.dask import run_on_cluster
 
     parts = [Tile(i, (sl, slice(None), slice(None)), sub) for i, (sl, sub) in enumerate(tiles(grid, n_tiles))]
     out = None

@@ -114,7 +114,7 @@ def run(cases, scale: float, settings: list[str], backend: str | None, say=print
     for name in cases:
         ds, grid, text, mask, mask_text = case(name, scale)
         say(f"{name}: {text}; mask: {mask_text}")
-        plan = clsas.rangegate.plan_reconstruction(ds, grid, [])
+        plan = clsas.types.rangegate.plan_reconstruction(ds, grid, [])
         prof = clsas.compress(ds, gate_s=plan.gate_s, backend=backend)
         row = {"case": name, "description": text, "mask": mask_text, "n_meas": prof.n_meas, "grid": list(grid.shape),
                "mask_fraction": None if mask is None else float(np.mean(mask)), "runs": []}

@@ -84,7 +84,7 @@ def make_case(name: str, scale: float = 1.0):
     """(dataset, grid, description) of a case; ``scale`` < 1 shrinks the dense scan's sides and the
     circular scan's stop count and grid."""
     if name == "demo":
-        from clsas.scenes import demo_configs, parse_config
+        from clsas.synthesis.scenes import demo_configs, parse_config
 
         cfg = parse_config(demo_configs(0.01)["front"])
         ds = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=cfg.snr_db, chirp=cfg.chirp)

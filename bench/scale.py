@@ -1,4 +1,4 @@
-"""``python -m bench --scale``: volumes past memory and past one process (:mod:`clsas.tiling`).
+"""``python -m bench --scale``: volumes past memory and past one process (:mod:`clsas.pipeline.tiling`).
 
 - peak RSS against grid size: each grid formed out of core (``reconstruct(out=..., max_memory=...)``)
   in a fresh child process, its peak resident memory (``VmHWM``) read there, and a sample of its
@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 import clsas
-from clsas.geometry import VoxelGrid
-from clsas.profiles import Profiles
+from clsas.physics.geometry import VoxelGrid
+from clsas.types.profiles import Profiles
 
 __all__ = ["QUICK_SCALE", "FULL_SCALE", "run_scale", "out_of_core_case", "strong_scaling", "tile_size_effect"]
 
@@ -84,7 +84,7 @@ def _autogroup() -> str | None:
 
 def _ooc_child(n_voxels: float, n_meas: int, max_memory: float, path: str, sample: int) -> dict:
     """In a fresh process: form the grid out of core, read the peak RSS, check a sample of tiles."""
-    from clsas.tiling import peak_rss_bytes, rss_bytes, tile_grid
+    from clsas.pipeline.tiling import peak_rss_bytes, rss_bytes, tile_grid
 
     grid = _grid(n_voxels)
     prof = _profiles(grid, n_meas)
@@ -145,7 +145,7 @@ def tile_size_effect(n_voxels: float, n_meas: int, planes: tuple) -> list[dict]:
 def _warm(grid_axes, dask_worker=None) -> str:
     """On a worker: build the kernel once on the device its tiles will use (not counted in the timed run)."""
     from clsas.formation import form
-    from clsas.tiling.dask import worker_selection
+    from clsas.pipeline.tiling.dask import worker_selection
 
     threads = None if dask_worker is None else dask_worker.state.nthreads
     selection, units = worker_selection("auto", None, threads=threads)
@@ -172,7 +172,7 @@ def _cpu_s() -> float:
 def _cluster_run(n_workers: int, prof, grid, tile_shape, ref) -> dict:
     import distributed
 
-    # one core per worker: its OpenCL CPU device is a sub-device of 1 compute unit (clsas.tiling.dask)
+    # one core per worker: its OpenCL CPU device is a sub-device of 1 compute unit (clsas.pipeline.tiling.dask)
     env = {"OMP_NUM_THREADS": "1"}
     quiet = logging.getLogger("distributed")
     level = quiet.level

@@ -15,7 +15,7 @@ import scipy.signal
 import clsas
 from clsas.compression import compress
 from clsas.formation import bp_numpy as twin
-from clsas.rangegate import path_bounds
+from clsas.types.rangegate import path_bounds
 
 from .stats import fit_exponent, timed
 
@@ -339,7 +339,7 @@ def _series(points, x_name, fixed) -> dict:
 
 def bench_plan_saving(*, repeats, backend, spacing_m=0.01) -> dict:
     """The demo's front scene: the scene-aware plan against a full-window, full-volume one, and a plane."""
-    from clsas.scenes import demo_configs, parse_config
+    from clsas.synthesis.scenes import demo_configs, parse_config
 
     cfg = parse_config(demo_configs(spacing_m)["front"])
     ds = clsas.simulate(cfg.scene, cfg.aperture, cfg.waveform, cfg.fs_hz, snr_db=20)

@@ -48,7 +48,7 @@ class TwoEchoTask:
 
     @cached_property
     def waveform(self) -> np.ndarray:
-        from clsas.signals import lfm_chirp
+        from clsas.physics.signals import lfm_chirp
 
         return lfm_chirp(self.f_start_hz, self.f_stop_hz, self.duration_s, self.fs_hz, taper=self.taper)
 
@@ -250,8 +250,8 @@ def measured_like(n_recordings: int = 4, *, seed: int = 0, snr_db: float = 20.0,
     """
     import scipy.signal
 
-    from clsas.dataset import Dataset
-    from clsas.signals import lfm_chirp
+    from clsas.physics.signals import lfm_chirp
+    from clsas.types.dataset import Dataset
 
     wave = lfm_chirp(30e3, 10e3, 1e-3, fs_hz, taper=0.2)
     heard = wave

@@ -3,24 +3,24 @@
 from __future__ import annotations
 
 from . import preprocess  # a module: clsas.preprocess.apply(ds, ...)
-from .apertures import aperture_from_csv, circular_aperture, helical_aperture
 from .compression import compress
-from .dataset import Dataset, load
 
 # the function, not its package: clsas.autofocus(dataset, grid) (the package's other names are
 # imported from it: from clsas.focus import AutofocusReport, score)
 from .focus import autofocus
 from .formation.bp import Backprojector, backproject
-from .geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
-from .image import Image
-from .physics import air_absorption_db_per_m, resolution_limits, speed_of_sound
-from .pipeline import reconstruct
-from .profiles import Profiles
-from .progress import Progress
-from .quality import compare, tcr_db
-from .rangegate import ReconstructionPlan
-from .signals import analytic, lfm_chirp
-from .simulation import simulate
+from .physics.apertures import aperture_from_csv, circular_aperture, helical_aperture
+from .physics.geometry import Aperture, Scene, VoxelGrid, Wall, raster_aperture
+from .physics.signals import analytic, lfm_chirp
+from .physics.sound import air_absorption_db_per_m, resolution_limits, speed_of_sound
+from .pipeline.reconstruction import reconstruct
+from .presenting.quality import compare, tcr_db
+from .synthesis.simulation import simulate
+from .types.dataset import Dataset, load
+from .types.image import Image
+from .types.profiles import Profiles
+from .types.progress import Progress
+from .types.rangegate import ReconstructionPlan
 from .version import __version__  # noqa: F401 - clsas.__version__
 
 __all__ = [
@@ -37,17 +37,24 @@ _LAZY = {"superres": "clsas.sparse", "delay_error": "clsas.sparse", "coherence":
 __all__ += sorted(_LAZY)
 
 
-# subpackages reached as attributes after a plain `import clsas` (clsas.synthetic.turntable_scan(),
-# clsas.io.import_folder), imported on first use
-_SUBMODULES = ("bench", "cl", "config", "export", "formation", "io", "plots", "rig", "scan_errors", "scenes", "sparse",
-               "synthetic")
+# subpackages reached as attributes after a plain `import clsas` (clsas.io.import_folder,
+# clsas.synthetic.turntable_scan()), imported on first use; the short names stand for modules in
+# their floors
+_SUBMODULES = {
+    "cl": "clsas.cl", "formation": "clsas.formation", "io": "clsas.io", "rig": "clsas.rig", "sparse": "clsas.sparse",
+    "physics": "clsas.physics", "types": "clsas.types", "synthesis": "clsas.synthesis", "pipeline": "clsas.pipeline",
+    "presenting": "clsas.presenting",
+    "config": "clsas.io.config", "export": "clsas.presenting.export", "plots": "clsas.types.pictures",
+    "scan_errors": "clsas.physics.scan_errors", "scenes": "clsas.synthesis.scenes",
+    "synthetic": "clsas.synthesis.synthetic",
+}
 
 
 def __getattr__(name: str):
     if name in _SUBMODULES:
         import importlib
 
-        return importlib.import_module(f"clsas.{name}")
+        return importlib.import_module(_SUBMODULES[name])
     if name in _LAZY:
         import importlib
 

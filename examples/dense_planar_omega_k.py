@@ -29,7 +29,7 @@ import numpy as np
 import clsas
 from clsas.formation import error_to_signal_db, form
 from clsas.formation.planar import well_sampled_cone
-from clsas.scenes import mannequin_points
+from clsas.synthesis.scenes import mannequin_points
 
 
 def main() -> None:
@@ -53,7 +53,7 @@ def main() -> None:
     t_sim = time.perf_counter() - t
     lo, hi = pts.min(axis=0) - 0.06, pts.max(axis=0) + 0.06
     grid = clsas.VoxelGrid.from_bounds((lo[0], hi[0]), (lo[1], hi[1]), (lo[2], hi[2]), args.spacing)
-    gate = clsas.rangegate.plan_reconstruction(ds, grid, []).gate_s
+    gate = clsas.types.rangegate.plan_reconstruction(ds, grid, []).gate_s
     prof = clsas.compress(ds, gate_s=gate)
     form(prof, clsas.VoxelGrid.from_bounds((0, 0), (0, 0), (lo[2], lo[2]), 0.01), "omega-k")  # build kernels
 

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import clsas
 from clsas import preprocess as pp
-from clsas.synthetic import turntable_scan
+from clsas.synthesis.synthetic import turntable_scan
 
 
 def stages(scan):

@@ -11,7 +11,7 @@
  *
  * where u_tx = (v - tx_m) / |v - tx_m| (likewise u_rx) and path = |v - tx_m| + |v - rx_m|.
  * With these, dM / d(delay of m) = -out0, dM / d(carriage shift of m) = out1..3 / c_m and
- * dM / d c_m = -out4 / c_m^2 (see clsas/focus/numpy.py, the specification). The
+ * dM / d c_m = -out4 / c_m^2 (see clsas/focus/gradient_numpy.py, the specification). The
  * derivative of the linear interpolation is its slope (b - a) / dtau: the exact derivative of
  * the image the kernel forms, away from sample knots. Samples outside [0, n_lags - 1] add 0.
  *

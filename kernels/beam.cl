@@ -1,4 +1,4 @@
-/* Transducer beams: the two-way weight of a voxel-measurement pair (clsas/beam.py).
+/* Transducer beams: the two-way weight of a voxel-measurement pair (clsas/physics/beam.py).
  *
  * Included before a kernel that has the hook lines BEAM_ARGS (end of its argument list) and
  * BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m) (in its measurement loop, scaling the
@@ -8,7 +8,7 @@
  * The weight is lut_tx(u_tx) * lut_rx(u_rx), u = sin(theta / 2) = sqrt((1 - cos theta) / 2),
  * theta the angle between a transducer's boresight and the direction to the voxel; each table
  * holds beam_n samples uniform in u from 0 to 1, linearly interpolated (the NumPy twin is
- * clsas.beam.pair_weights). With beam_gate > 0 (beam="limited") the weight becomes 1 where it
+ * clsas.physics.beam.pair_weights). With beam_gate > 0 (beam="limited") the weight becomes 1 where it
  * is at least beam_gate and 0 elsewhere. Needs common.cl. */
 
 /* one table at cos theta, lane by lane */

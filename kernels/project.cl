@@ -22,7 +22,7 @@
  * work-item the VEC lanes' geometry (path, lag, weight, carrier) is computed as vectors and the
  * scatter runs lane by lane (lanes may hit the same lag). Deterministic: same order every run.
  *
- * Transducer beams (issue 33): built with beam.cl and -DBEAM, the real two-way weight of each
+ * Transducer beams: built with beam.cl and -DBEAM, the real two-way weight of each
  * voxel-measurement pair scales the carrier (c, s) exactly as in backproject.cl, so it enters
  * (vr, vi) as the same real factor and the two kernels stay exact adjoints. Without -DBEAM the
  * hooks expand to nothing (the omnidirectional kernel, bit for bit).

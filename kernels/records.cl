@@ -11,7 +11,10 @@
  * one value per measurement), so that no carrier phase is formed in float32 here.
  *
  * Each work-item makes VEC consecutive records of one measurement (global size
- * (ceil(n_rec / VEC), n_meas)); records past n_rec are not written. */
+ * (ceil(n_rec / VEC), n_meas)); records past n_rec are not written.
+ *
+ * Built with -DROW_MAP, record row m is made from row row_of[m] of prof (another order of the
+ * same rows: FFBP's tree order); rot0 is then given in the records' order. */
 
 /* fine_j of the row `p` (n_data samples), as above */
 inline float2 fine_sample(__global const float2 *p, const int n_data, const int up, const float inv_up, const int j)
@@ -38,11 +41,19 @@ __kernel void carrier_records(
     const int n_rec,                 /* records per measurement: (n_lags - 1) up + 1            */
     __global const float2 *rot,      /* (n_rec,) carrier at the middle of record j, R's j part  */
     __global const float2 *rot0,     /* (n_meas,) carrier at each profile's zero delay          */
-    __global float4 *pairs)          /* (n_meas, n_rec) records (q_j, r_j) as (re, im, re, im)  */
+    __global float4 *pairs           /* (n_meas, n_rec) records (q_j, r_j) as (re, im, re, im)  */
+#ifdef ROW_MAP
+    , __global const int *row_of     /* (n_meas,) the row of prof record row m is made from     */
+#endif
+    )
 {
     const int j0 = get_global_id(0) * VEC;
     const int m = get_global_id(1);
+#ifdef ROW_MAP
+    __global const float2 *p = prof + (size_t)row_of[m] * stride;
+#else
     __global const float2 *p = prof + (size_t)m * stride;
+#endif
     const float inv_up = 1.0f / (float)up;
     const float2 r0 = rot0[m];
     for (int l = 0; l < VEC && j0 + l < n_rec; ++l) {

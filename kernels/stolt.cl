@@ -11,7 +11,7 @@
  * and c0 alpha^p is added, for each term p, to the W cells around pos (modulo M) with the
  * weight exp(beta (sqrt(1 - (2 x / W)^2) - 1)), x the cell's distance from pos.
  * The phase is reduced to cycles in [-0.5, 0.5] before sin/cos. NumPy twin:
- * clsas/formation/stolt.py:spread. Needs common.cl (RINT, sincos_2pi, the lane unions).
+ * clsas/formation/stolt_numpy.py:spread. Needs common.cl (RINT, sincos_2pi, the lane unions).
  *
  * The VEC columns of a work-item are its vector lanes: everything per sample (kz, window,
  * strength, position) and per kernel tap (the weight) is computed for the VEC columns at once,
@@ -154,7 +154,7 @@ __kernel void stolt_spread(
  * is kz z at depth z = zc + l' dz). It is what the spread, the inverse FFT and the de-apodisation
  * approximate, exactly: for few frequency samples and depths (n_f n_z small against the cells'
  * FFT) it is the cheaper of the two. fac[p, l] are the bistatic expansion's weights (i u_z)^p / p!
- * times whatever per-depth factor the caller folds in. NumPy twin: clsas/formation/stolt.py:direct.
+ * times whatever per-depth factor the caller folds in. NumPy twin: clsas/formation/stolt_numpy.py:direct.
  *
  * Work-item: VEC consecutive columns (its lanes), all depths. The inputs come lanes contiguous
  * (the host pads the columns to whole items with zeros), so every load is one vector; the sums

@@ -67,8 +67,29 @@ def _pattern(expected: str) -> tuple[re.Pattern, list[str]]:
         elif space:  # between words or numbers whitespace must stay (it separates them); elsewhere it may go
             parts.append(r"\s+" if wordlike(k - 1) and wordlike(k + 1) else r"\s*")
         else:
-            parts.append(re.escape(char) if char.isalnum() else r"\s*" + re.escape(char) + r"\s*")
-    return re.compile("".join(parts), re.DOTALL), numbers
+            parts += [re.escape(char)] if char.isalnum() else [r"\s*", re.escape(char), r"\s*"]
+    return re.compile("".join(_merged(parts)), re.DOTALL), numbers
+
+
+_SPACE = (r"\s*", r"\s+")
+
+
+def _merged(parts: list[str]) -> list[str]:
+    r"""``parts`` with each run of whitespace patterns as one (``\s+`` where any of them needs a
+    space), and none beside ``...``'s ``.*?``, which takes whitespace itself: the same texts match,
+    and a table's padded columns no longer give a mismatch exponentially many ways to be tried."""
+    out: list[str] = []
+    for part in parts:
+        prev = out[-1] if out else None
+        if part in _SPACE and prev in _SPACE:
+            out[-1] = r"\s+" if r"\s+" in (part, prev) else r"\s*"
+        elif part == r"\s*" and prev == ".*?":
+            continue
+        elif part == ".*?" and prev == r"\s*":
+            out[-1] = part
+        else:
+            out.append(part)
+    return out
 
 
 def _half_unit(printed: str) -> float:

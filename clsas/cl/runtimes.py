@@ -163,25 +163,52 @@ def register() -> Registration:
     if os.environ.get("CLSAS_PIP_RUNTIMES", "").strip() == "0":
         reg.note = "CLSAS_PIP_RUNTIMES=0"
         return reg
-    try:
-        reg.runtimes = pip_runtimes()
-    except Exception as exc:  # noqa: BLE001 - a broken metadata entry must not stop OpenCL use
-        reg.note = f"the installed distributions could not be read ({exc})"
-        return reg
-    usable = [r for r in reg.runtimes if not r.problem]
-    for r in reg.runtimes:
-        if r.problem:
-            log.warning("%s %s cannot be used: %s", r.distribution, r.version, r.problem)
+    usable = _usable_runtimes(reg)
     if not usable:
-        reg.note = reg.note or "none installed"
         return reg
     sources = loader_folders()
     if sources is None:
         reg.note = f"OCL_ICD_VENDORS names one file ({os.environ['OCL_ICD_VENDORS']}); left as it is"
         return reg
     reg.loader_folders = [str(f) for f in sources]
+    entries = _registered_drivers(sources)
+    known = {Path(line).name for line in entries.values()}
+    for r in usable:
+        if Path(r.library).name not in known:  # else the system registers this driver already
+            entries[f"clsas-{r.distribution}.icd"] = r.library
+    try:
+        folder = _write_folder(entries)
+    except OSError as exc:
+        reg.note = f"cannot write the ICD folder under {_cache_root()} ({exc})"
+        log.warning("%s: %s", ", ".join(r.distribution for r in usable), reg.note)
+        return reg
+    os.environ["OCL_ICD_VENDORS"] = str(folder)
+    reg.folder = str(folder)
+    log.debug("OpenCL ICD folder %s (%d drivers)", folder, len(entries))
+    return reg
+
+
+def _usable_runtimes(reg: Registration) -> list:
+    """The pip-installed runtimes that can be used (kept in ``reg.runtimes``; each one that cannot
+    is logged with why); where none, ``reg.note`` says why."""
+    try:
+        reg.runtimes = pip_runtimes()
+    except Exception as exc:  # noqa: BLE001 - a broken metadata entry must not stop OpenCL use
+        reg.note = f"the installed distributions could not be read ({exc})"
+        return []
+    for r in reg.runtimes:
+        if r.problem:
+            log.warning("%s %s cannot be used: %s", r.distribution, r.version, r.problem)
+    usable = [r for r in reg.runtimes if not r.problem]
+    if not usable:
+        reg.note = reg.note or "none installed"
+    return usable
+
+
+def _registered_drivers(sources: list[Path]) -> dict[str, str]:
+    """``file name -> library`` of the drivers the loader's folders already register, each once (a
+    library that is not there, such as the Intel wheel's placeholder, left out)."""
     entries: dict[str, str] = {}
-    known = set()
     for folder in sources:
         try:
             files = sorted(folder.glob("*.icd")) if folder.is_dir() else []
@@ -193,25 +220,10 @@ def register() -> Registration:
             except (OSError, UnicodeDecodeError):
                 continue
             if not line or line in entries.values() or (Path(line).is_absolute() and not Path(line).is_file()):
-                continue  # a driver named twice, or a library that is not there (the Intel wheel's placeholder)
+                continue
             name = f.name if f.name not in entries else f"{folder.name}-{len(entries)}-{f.name}"
             entries[name] = line
-            known.add(Path(line).name)
-    for r in usable:
-        name = Path(r.library).name
-        if name in known:
-            continue  # the system registers this driver already
-        entries[f"clsas-{r.distribution}.icd"] = r.library
-    try:
-        folder = _write_folder(entries)
-    except OSError as exc:
-        reg.note = f"cannot write the ICD folder under {_cache_root()} ({exc})"
-        log.warning("%s: %s", ", ".join(r.distribution for r in usable), reg.note)
-        return reg
-    os.environ["OCL_ICD_VENDORS"] = str(folder)
-    reg.folder = str(folder)
-    log.debug("OpenCL ICD folder %s (%d drivers)", folder, len(entries))
-    return reg
+    return entries
 
 
 def current() -> Registration | None:

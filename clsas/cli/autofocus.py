@@ -86,7 +86,7 @@ def before_after_png(before, after, path, title: str) -> None:
 
 def cmd_autofocus(args) -> int:
     import clsas
-    from clsas.scenes import stored_grid_and_truth
+    from clsas.synthesis.scenes import stored_grid_and_truth
 
     check_consistency(args)
     ds = clsas.load(args.data)

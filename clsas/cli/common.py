@@ -141,8 +141,8 @@ def estimated_sparse_s(ds, grid, method: str) -> float | None:
     """A rough time (s) for super-resolving every recording of ``ds`` on ``grid`` by a convex
     (cvxpy) method, from the gates' lengths, before any solve; None for the other methods
     (:func:`clsas.sparse.registry.convex_estimate_s`)."""
-    from clsas.rangegate import plan_reconstruction
     from clsas.sparse.registry import CONVEX_S_PER_RECORDING, convex_estimate_s
+    from clsas.types.rangegate import plan_reconstruction
 
     if method not in CONVEX_S_PER_RECORDING:
         return None

@@ -6,7 +6,7 @@ from .common import box_arg
 
 
 def cmd_compare(args) -> int:
-    from clsas.quality import compare
+    from clsas.presenting.quality import compare
 
     res = compare(args.a, args.b, target_box=box_arg("--box", args.box),
                   clutter_box=box_arg("--clutter-box", args.clutter_box), peaks=args.peaks)

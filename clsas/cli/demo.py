@@ -12,8 +12,8 @@ from .common import add_device_options, check_grids_fit, reconstruct_image, simu
 
 def cmd_demo(args) -> int:
     import clsas
-    from clsas.plots import mip_png
-    from clsas.scenes import demo_configs, parse_config
+    from clsas.synthesis.scenes import demo_configs, parse_config
+    from clsas.types.pictures import mip_png
 
     configs = {name: parse_config(text) for name, text in demo_configs(args.spacing).items()}
     check_grids_fit([cfg.grid for cfg in configs.values()], args)  # every scene, before the first one starts

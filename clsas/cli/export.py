@@ -13,8 +13,8 @@ def cmd_export(args) -> int:
 
         print(f"wrote {clsas.io.export_uff(clsas.load(args.image), args.out, overwrite=args.overwrite)}")
         return 0
-    from clsas.export import export
-    from clsas.image import Image
+    from clsas.presenting.export import export
+    from clsas.types.image import Image
 
     for path in export(Image.load(args.image), args.out):
         print(f"wrote {path}")

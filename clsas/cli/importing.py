@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..dataset import SOUND_SPEED_STEP
+from ..types.dataset import SOUND_SPEED_STEP
 
 
 def cmd_import(args) -> int:

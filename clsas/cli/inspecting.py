@@ -1,4 +1,4 @@
-"""``clsas inspect``: a look at a dataset before imaging it (:mod:`clsas.inspection`)."""
+"""``clsas inspect``: a look at a dataset before imaging it (:mod:`clsas.presenting.inspection`)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,14 @@ from pathlib import Path
 def _stored_grid(ds, source: str):
     import tomllib
 
-    from clsas.config import grid_table
+    from clsas.io.config import grid_table
 
     return grid_table(tomllib.loads(ds.config), source) if ds.config.strip() else None
 
 
 def cmd_inspect(args) -> int:
     import clsas
-    from clsas.inspection import draw_inspection, inspect_dataset
+    from clsas.presenting.inspection import draw_inspection, inspect_dataset
 
     from .common import grid_arg
 

@@ -15,7 +15,7 @@ def _limits_from_file(path: str) -> dict:
     from the [grid]'s centre (else the reflectors' mean) to the aperture's plane."""
     import tomllib
 
-    from clsas.config import kind_of, read_text
+    from clsas.io.config import kind_of, read_text
 
     p = Path(path)
     if not p.exists():
@@ -31,7 +31,7 @@ def _limits_from_file(path: str) -> dict:
 
         parse_rig_config(text, source=str(p))
     else:
-        from clsas.scenes import parse_config
+        from clsas.synthesis.scenes import parse_config
 
         parse_config(text, source=str(p))
     out = {}

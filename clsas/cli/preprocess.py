@@ -14,7 +14,7 @@ def _preprocess_table(ds, config_path: str | None) -> tuple[dict, str]:
         path = Path(config_path)
         if not path.exists():
             raise FileNotFoundError(f"no preprocessing file at {path}")
-        from clsas.config import preprocess_table, read_text
+        from clsas.io.config import preprocess_table, read_text
 
         try:
             cfg = tomllib.loads(read_text(path, "preprocessing"))

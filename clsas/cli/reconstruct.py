@@ -14,7 +14,7 @@ from .preprocess import add_preprocess_options, apply_preprocessing
 
 def cmd_reconstruct(args) -> int:
     import clsas
-    from clsas.scenes import stored_grid_and_truth
+    from clsas.synthesis.scenes import stored_grid_and_truth
 
     if args.plot and Path(args.plot).suffix.lower() not in (".png", ".svg", ".pdf"):
         raise ValueError(f"--plot: the file must end in .png, .svg or .pdf, got {args.plot!r}")
@@ -26,6 +26,27 @@ def cmd_reconstruct(args) -> int:
     stored_grid, truth = stored_grid_and_truth(ds.config)
     grid = grid_arg(args.grid, args.spacing, stored_grid)
     check_grids_fit([grid], args)  # before preprocessing and autofocus, not after them
+    ds = _prepared(ds, grid, args)
+    out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
+    image = _formed_and_saved(ds, grid, args, out)
+    if args.verbose and image.plan is not None:
+        print(image.plan.describe())
+    print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
+    _print_formation_choice(image.provenance.get("formation_auto"))
+    _print_peaks(image, ds, args.peaks)
+    if partial:
+        print(f"(imaged from a partial scan: {partial.split(':')[1].split(';')[0].strip()})")
+    if args.box is not None:
+        from clsas.presenting.quality import tcr_db
+
+        print(f"target-to-clutter ratio in {args.box}: {tcr_db(image, box_arg('--box', args.box)):.1f} dB")
+    _write_pictures(image, ds, truth, out, args)
+    print(f"wrote {out}")
+    return 0
+
+
+def _prepared(ds, grid, args):
+    """``--preprocess`` and ``--autofocus``: the dataset as it is to be imaged."""
     if args.preprocess:
         n_before = len(ds.provenance)
         ds, source = apply_preprocessing(ds, args, stored=True)
@@ -34,50 +55,59 @@ def cmd_reconstruct(args) -> int:
         print(f"preprocessed with the steps from {source}: {', '.join(p['step'] for p in ds.provenance[n_before:])}")
     if args.autofocus:
         ds, _ = af.run_autofocus(ds, grid, args)
-    from clsas.image import source_provenance
+    return ds
 
-    out = Path(args.out or Path(args.data).with_name(Path(args.data).stem + "-image.h5"))
+
+def _formed_and_saved(ds, grid, args, out: Path):
+    """The image, written to ``out``: tile by tile into the file (``--max-memory``, ``--scheduler``, a
+    ``.zarr`` store), else formed in memory and saved; either way with the dataset's provenance."""
+    import clsas
+    from clsas.types.image import source_provenance
+
     if args.max_memory is not None or args.scheduler is not None or out.suffix.lower() == ".zarr":
         image = _reconstruct_tiled(ds, grid, args, out)
-        image = clsas.tiling.update_attrs(image, source_provenance(ds, args.data), compression=args.compression)
-    else:
-        image = reconstruct_image(ds, grid, args, not args.quiet)
-        image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
-        image.save(out, overwrite=True)  # checked against --overwrite before any work
-    if args.verbose and image.plan is not None:
-        print(image.plan.describe())
-    peaks = image.peaks(args.peaks, min_separation_m=0.03)
-    print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
-    auto = image.provenance.get("formation_auto")
-    if auto:
-        print(f"formation: {auto['formation']} (auto, error target {auto['max_error_db']:g} dB: {auto['reason']})")
-        for c in auto.get("checks", []):
-            err, up = (f"{float(c[k]):.1f}" for k in ("error_db", "upper_db"))  # "inf" is stored as a string
-            print(f"  measured {c['formation']} against bp on {c['voxels']} voxels (a stride of {c['stride']}): "
-                  f"{err} dB (upper bound {up} dB): " + ("kept" if c["kept"] else "over the target, not kept"))
+        return clsas.pipeline.tiling.update_attrs(image, source_provenance(ds, args.data),
+                                                  compression=args.compression)
+    image = reconstruct_image(ds, grid, args, not args.quiet)
+    image.provenance.update(source_provenance(ds, args.data), compression=args.compression)
+    image.save(out, overwrite=True)  # checked against --overwrite before any work
+    return image
+
+
+def _print_formation_choice(auto: dict | None) -> None:
+    """What ``formation="auto"`` chose and why, with each measured check against bp."""
+    if not auto:
+        return
+    print(f"formation: {auto['formation']} (auto, error target {auto['max_error_db']:g} dB: {auto['reason']})")
+    for c in auto.get("checks", []):
+        err, up = (f"{float(c[k]):.1f}" for k in ("error_db", "upper_db"))  # "inf" is stored as a string
+        print(f"  measured {c['formation']} against bp on {c['voxels']} voxels (a stride of {c['stride']}): "
+              f"{err} dB (upper bound {up} dB): " + ("kept" if c["kept"] else "over the target, not kept"))
+
+
+def _print_peaks(image, ds, n: int) -> None:
+    """The ``n`` strongest peaks, each with a note where it may be a grating lobe of a stronger one."""
     from clsas.compression import center_frequency
     from clsas.formation.lobes import grating_lobe_notes
 
+    peaks = image.peaks(n, min_separation_m=0.03)
     notes = grating_lobe_notes(peaks, ds.tx_positions, ds.rx_positions, center_frequency(ds.waveform, ds.fs_hz),
                                float(np.mean(ds.c_mps)))
     for p, note in zip(peaks, notes, strict=True):
         x, y, z = p.position_m
         print(f"peak ({x:+.3f}, {y:+.3f}, {z:.3f}) m  |v| = {p.magnitude:.4g}" + (f"  [{note}]" if note else ""))
-    if partial:
-        print(f"(imaged from a partial scan: {partial.split(':')[1].split(';')[0].strip()})")
-    if args.box is not None:
-        from clsas.quality import tcr_db
 
-        print(f"target-to-clutter ratio in {args.box}: {tcr_db(image, box_arg('--box', args.box)):.1f} dB")
-    if args.png or args.plot:
-        from clsas.plots import stored_scene
 
-        kw = dict(truth_m=truth, scene=stored_scene(ds.config), aperture=ds, dynamic_range_db=args.dynamic_range)
-        for pic in ([out.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else []):
-            image.plot(pic, **kw)
-            print(f"wrote {pic}")
-    print(f"wrote {out}")
-    return 0
+def _write_pictures(image, ds, truth, out: Path, args) -> None:
+    """``--png`` (beside ``out``) and ``--plot FILE``: the image's picture, the truth and scene marked."""
+    if not (args.png or args.plot):
+        return
+    from clsas.synthesis.scenes import stored_scene
+
+    kw = dict(truth_m=truth, scene=stored_scene(ds.config), aperture=ds, dynamic_range_db=args.dynamic_range)
+    for pic in ([out.with_suffix(".png")] if args.png else []) + ([Path(args.plot)] if args.plot else []):
+        image.plot(pic, **kw)
+        print(f"wrote {pic}")
 
 
 def _reconstruct_tiled(ds, grid, args, out: Path):
@@ -109,7 +139,7 @@ def _partial_scan(path) -> str:
 def add_parser(sub) -> None:
     from clsas.formation import FORMATIONS
     from clsas.formation.auto import DEFAULT_MAX_ERROR_DB
-    from clsas.pipeline import methods
+    from clsas.pipeline.reconstruction import methods
 
     r = sub.add_parser("reconstruct", help="image a dataset file")
     r.add_argument("data", help="dataset file (HDF5, from clsas simulate, acquire, import or preprocess)")

@@ -6,7 +6,7 @@ from .common import add_device_options, simulate_scene
 
 
 def cmd_simulate(args) -> int:
-    from clsas.scenes import load_config
+    from clsas.synthesis.scenes import load_config
 
     cfg = load_config(args.scene)
     ds = simulate_scene(cfg, not args.quiet)

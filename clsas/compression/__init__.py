@@ -16,13 +16,13 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
-from ..dataset import Dataset
-from ..profiles import Profiles, center_frequency
+from ..physics.signals import analytic
 from ..registry import Registry
-from ..signals import analytic
-from . import numpy as twin
+from ..types.dataset import Dataset
+from ..types.profiles import Profiles, center_frequency
+from . import compress_numpy as twin
+from .compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan, layout_key, table_key
 from .layout import FftLayout, fft_layout
-from .opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan, layout_key, table_key
 
 __all__ = ["COMPRESSIONS", "Profiles", "compress", "center_frequency", "profile_decimation"]
 

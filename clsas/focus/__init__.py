@@ -73,8 +73,8 @@ from typing import Any
 
 import numpy as np
 
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
 from .consistency import Consistency, data_consistency
 from .options import DEFAULT_METHODS, FOCUS_METHODS, METHODS, AutofocusOptions
 from .report import AutofocusReport
@@ -181,7 +181,7 @@ def _check_data(dataset, grid, progress) -> None:
 def _focus(dataset, grid, options: AutofocusOptions, progress) -> tuple[Dataset, AutofocusReport]:
     """The checked request run: the grid against the scan's echoes first (a grid beside the
     target leaves nothing to focus on; its warning leads the report's notes), then the steps."""
-    from ..sanity import check_grid_against_data
+    from ..types.sanity import check_grid_against_data
     from .run import run
 
     grid_check = check_grid_against_data(dataset, grid, where="autofocus")

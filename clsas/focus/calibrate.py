@@ -25,9 +25,8 @@ different sides), each run is imaged alone, and the metric is the mean ``|.|``-c
 every pair of those images. A wrong path length moves each arc's image of a feature towards or
 away from that arc, so the images agree best where the geometry is right; a sharper image
 bought by focusing on one glint does not make them agree. On an extended target it is the
-check to prefer: on the AirSAS 20k scan, sharpness asked for +12.4 mm of ring radius (and the
-image so calibrated lost its likeness to the owners': |.|-correlation 0.97 -> 0.69), the
-sectors +6 mm (``bench/airsas_compare.py --calibrate``).
+check to prefer. On the public AirSAS scans the two disagree (the own-data guide gives both,
+from ``bench/airsas_compare.py --calibrate``).
 
 What can and cannot be told apart: a ring radius error moves every path by about twice the
 error (both transducers), and a group delay moves every path by ``c`` times the delay; over a
@@ -46,8 +45,8 @@ from typing import Any
 import numpy as np
 
 from .. import validate as v
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
 
 __all__ = ["PARAMETERS", "CAL_METRICS", "Calibration", "apply_calibration", "calibrate", "perturb"]
 
@@ -217,6 +216,32 @@ def _checked(dataset, parameter: str, metric: str, sectors, span, step) -> tuple
     return span, step, sectors
 
 
+def _estimate_with_halves(curve, dataset: Dataset, parameter: str, metric: str, offsets: np.ndarray) -> Calibration:
+    """The curve's peak on the whole data, and its uncertainty from the peaks of the two halves."""
+    full = curve(dataset)
+    est, width, edge = _peak(offsets, full)
+    half = dataset.n_meas // 2
+    halves = tuple(_peak(offsets, curve(dataset.subset(rows)))[0]
+                   for rows in (slice(0, half), slice(half, dataset.n_meas)))
+    # the halves' spread, or how far the whole data's estimate lies from theirs, whichever is larger
+    spread = max(abs(halves[0] - halves[1]) / 2, abs(est - 0.5 * (halves[0] + halves[1])))
+    return Calibration(parameter=parameter, estimate=est, uncertainty=spread,
+                       halves=(float(halves[0]), float(halves[1])), width=width, offsets=offsets, metric=full,
+                       at_edge=edge, metric_name=metric)
+
+
+def _caveats(cal: Calibration, span: float) -> list[str]:
+    """What limits the estimate: a peak at the range's end, a curve wider than it, a parameter held fixed."""
+    notes = []
+    if cal.at_edge:
+        notes.append("the metric is largest at the end of the scanned range: widen span")
+    if np.isfinite(cal.width) and cal.width > span:
+        notes.append("the curve is wider than the scanned range: the parameter is weakly determined")
+    if cal.parameter in ("radius", "group_delay"):
+        notes.append("radius and group delay move the paths nearly alike (2 dr ~ c dt): one was held fixed")
+    return notes
+
+
 def calibrate(
     dataset: Dataset,
     grid: VoxelGrid,
@@ -275,22 +300,8 @@ def calibrate(
             return _sector_curve(engine, ds, parameter, offsets, axis_xy_m, sectors)
         return _curve(engine, ds, parameter, offsets, axis_xy_m)
 
-    full = curve(dataset)
-    est, width, edge = _peak(offsets, full)
-    half = dataset.n_meas // 2
-    halves = tuple(_peak(offsets, curve(dataset.subset(rows)))[0]
-                   for rows in (slice(0, half), slice(half, dataset.n_meas)))
-    # the halves' spread, or how far the whole data's estimate lies from theirs, whichever is larger
-    spread = max(abs(halves[0] - halves[1]) / 2, abs(est - 0.5 * (halves[0] + halves[1])))
-    cal = Calibration(parameter=parameter, estimate=est, uncertainty=spread,
-                      halves=(float(halves[0]), float(halves[1])), width=width, offsets=offsets, metric=full,
-                      at_edge=edge, metric_name=metric)
-    if edge:
-        cal.notes.append("the metric is largest at the end of the scanned range: widen span")
-    if np.isfinite(width) and width > span:
-        cal.notes.append("the curve is wider than the scanned range: the parameter is weakly determined")
-    if parameter in ("radius", "group_delay"):
-        cal.notes.append("radius and group delay move the paths nearly alike (2 dr ~ c dt): one was held fixed")
+    cal = _estimate_with_halves(curve, dataset, parameter, metric, offsets)
+    cal.notes.extend(_caveats(cal, span))
     log.info("calibrate %s", cal.summary())
     if apply:
         out = apply_calibration(dataset, cal, axis_xy_m=axis_xy_m)

@@ -43,8 +43,8 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
 
 __all__ = ["Consistency", "data_consistency"]
 
@@ -160,7 +160,7 @@ def _fit_both(dataset, grid, n_iter, seed, floor_of, selection, progress) -> Con
     from ..compression import compress
     from ..inverse import solvers
     from ..inverse.methods import noise_sigma, operator_for
-    from ..rangegate import plan_reconstruction
+    from ..types.rangegate import plan_reconstruction
 
     t0 = time.perf_counter()
     prof = compress(dataset, gate_s=plan_reconstruction(dataset, grid).gate_s, backend=selection)

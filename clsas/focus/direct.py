@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..dataset import Dataset
-from ..signals import analytic
+from ..physics.signals import analytic
+from ..types.dataset import Dataset
 
 __all__ = ["DirectPath", "direct_arrivals"]
 

@@ -16,13 +16,13 @@ import numpy as np
 
 from .. import cl as _cl
 from ..compression import Profiles, compress
-from ..dataset import Dataset
 from ..formation.bp import Backprojector
-from ..geometry import VoxelGrid
-from ..rangegate import plan_reconstruction
-from . import numpy as twin
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
+from ..types.rangegate import plan_reconstruction
+from . import gradient_numpy as twin
+from .gradient_opencl import FocusGradientPlan
 from .metrics import metric_and_weight
-from .opencl import FocusGradientPlan
 
 __all__ = ["FocusEngine"]
 
@@ -117,7 +117,7 @@ class FocusEngine:
 
     def sums(self, shift_s: np.ndarray, c_mps: np.ndarray, weight: np.ndarray, tx: np.ndarray | None = None,
              rx: np.ndarray | None = None) -> np.ndarray:
-        """(n_meas, 5) gradient sums (see :func:`clsas.focus.numpy.focus_gradient`) at these
+        """(n_meas, 5) gradient sums (see :func:`clsas.focus.gradient_numpy.focus_gradient`) at these
         shifts, speeds and positions (default: the dataset's)."""
         p = self.prof
         data, tau0 = self._shifted(shift_s)

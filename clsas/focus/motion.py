@@ -8,7 +8,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..scan_errors import stop_index
+from ..physics.scan_errors import stop_index
 
 __all__ = ["motion_basis", "optimise_los", "optimise_xyz", "los_directions", "stops_of"]
 

@@ -158,6 +158,33 @@ def strong_points(engine, values, shift, c, tx, rx, stop, *, max_points=32, dyna
     return StrongPoints(pts[keep], np.abs(a_stop.sum(axis=0))[keep], _coherence(a_stop)[keep])
 
 
+def _pga_step(engine, shift, c, d, stop, positions_m, w_point, kc, min_eig_ratio) -> np.ndarray:
+    """One Gauss-Newton step of the stops' displacements (n_stops, 3), m, from the points' phases.
+
+    Each stop's phase at each point against the points' mean phasor over all stops, weighted by
+    the point's coherence and the stop's power there, is fitted by a move of the stop along the
+    path-length gradients (``kc`` turns metres of path into radians)."""
+    ds = engine.ds
+    n_stops = d.shape[0]
+    counts = np.bincount(stop, minlength=n_stops)
+    a, g = point_samples(engine, shift, c, ds.tx_positions + d[stop], ds.rx_positions + d[stop], positions_m)
+    a_s = _per_stop(a, stop, n_stops)
+    g_s = _per_stop(g, stop, n_stops) / counts[:, None, None]
+    ref = a_s.sum(axis=0)
+    psi = np.angle(a_s * np.conj(ref)[None, :])  # (n_stops, K), rad
+    p2 = np.abs(a_s) ** 2
+    w = w_point[None, :] * p2 / np.maximum(p2.mean(axis=0, keepdims=True), 1e-300)
+    jac = kc[:, None, None] * g_s  # d psi / d d_s, rad/m
+    h = np.einsum("sk,ski,skj->sij", w, jac, jac)
+    rhs = -np.einsum("sk,sk,ski->si", w, psi, jac)
+    # per stop, only along the directions the points constrain: eigenvalues of the normal
+    # matrix within min_eig_ratio of its largest (the line of sight; across it, points a
+    # small angle apart tell little and would turn their noise into large moves)
+    ev, vec = np.linalg.eigh(h)
+    inv = np.where(ev >= min_eig_ratio * ev[:, -1:], 1 / np.maximum(ev, 1e-300), 0.0)
+    return np.einsum("sij,sj,skj,sk->si", vec, inv, vec, rhs)
+
+
 def pga_refine(engine, shift, c, stop, start_m, xy, *, n_iter=6, min_points=4, tol_m=2e-6, min_eig_ratio=0.1,
                min_coherence=PGA_MIN_COHERENCE, basis=None, **select) -> tuple[np.ndarray, dict]:
     """Per-stop carriage displacements (n_stops, 3), m, refined from ``start_m`` by PGA.
@@ -185,23 +212,7 @@ def pga_refine(engine, shift, c, stop, start_m, xy, *, n_iter=6, min_points=4, t
     counts = np.bincount(stop, minlength=n_stops)
     kc = 2 * np.pi * engine.prof.fc_hz * counts / np.bincount(stop, c, minlength=n_stops)  # rad per m of path
     for _ in range(n_iter):
-        tx, rx = ds.tx_positions + d[stop], ds.rx_positions + d[stop]
-        a, g = point_samples(engine, shift, c, tx, rx, sp.positions_m)
-        a_s = _per_stop(a, stop, n_stops)
-        g_s = _per_stop(g, stop, n_stops) / counts[:, None, None]
-        ref = a_s.sum(axis=0)
-        psi = np.angle(a_s * np.conj(ref)[None, :])  # (n_stops, K), rad
-        p2 = np.abs(a_s) ** 2
-        w = w_point[None, :] * p2 / np.maximum(p2.mean(axis=0, keepdims=True), 1e-300)
-        jac = kc[:, None, None] * g_s  # d psi / d d_s, rad/m
-        h = np.einsum("sk,ski,skj->sij", w, jac, jac)
-        rhs = -np.einsum("sk,sk,ski->si", w, psi, jac)
-        # per stop, only along the directions the points constrain: eigenvalues of the normal
-        # matrix within min_eig_ratio of its largest (the line of sight; across it, points a
-        # small angle apart tell little and would turn their noise into large moves)
-        ev, vec = np.linalg.eigh(h)
-        inv = np.where(ev >= min_eig_ratio * ev[:, -1:], 1 / np.maximum(ev, 1e-300), 0.0)
-        step = np.einsum("sij,sj,skj,sk->si", vec, inv, vec, rhs)
+        step = _pga_step(engine, shift, c, d, stop, sp.positions_m, w_point, kc, min_eig_ratio)
         step -= nuis @ (nuis.T @ step)  # no image shift: the points' positions are not known better
         if basis is not None:  # the carriage moves smoothly: keep the update's part in the motion basis
             step = basis @ (basis.T @ step)
@@ -209,8 +220,8 @@ def pga_refine(engine, shift, c, stop, start_m, xy, *, n_iter=6, min_points=4, t
         rms = float(np.sqrt(np.mean(np.sum(step**2, axis=1))))
         info["update_rms_m"].append(rms)
         info["iterations"] += 1
-        log.info("autofocus pga: iteration %d, %d points, update %.3g mm RMS", info["iterations"], len(ref),
-                 rms * 1e3)
+        log.info("autofocus pga: iteration %d, %d points, update %.3g mm RMS", info["iterations"],
+                 len(sp.magnitude), rms * 1e3)
         if rms < tol_m:
             break
     a, _ = point_samples(engine, shift, c, ds.tx_positions + d[stop], ds.rx_positions + d[stop], sp.positions_m)

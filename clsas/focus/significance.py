@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy import stats
 
-from ..sanity import band_hz, grid_corners
+from ..types.sanity import band_hz, grid_corners
 
 __all__ = ["MIN_PERIODS", "CONFIDENCE", "Decision", "beyond_uncertainty", "delay_floor_s", "delay_spread_s",
            "judge"]
@@ -46,7 +46,7 @@ class Decision(NamedTuple):
 
 
 def delay_floor_s(ds) -> float:
-    """:data:`MIN_PERIODS` of a period of ``ds``'s highest frequency (:func:`clsas.sanity.band_hz`), s."""
+    """:data:`MIN_PERIODS` of a period of ``ds``'s highest frequency (:func:`clsas.types.sanity.band_hz`), s."""
     return MIN_PERIODS / band_hz(ds)[1]
 
 

@@ -343,7 +343,7 @@ def sampling_note(track: dict, determined: bool = False) -> str:
 def _local_engine(fo, shift, c):
     """A :class:`FocusEngine` on a fine grid (a quarter of the shortest wavelength) of half-size
     ``fo.options.phase_region_m`` around the image's brightest voxel, and that voxel, m."""
-    from ..geometry import VoxelGrid
+    from ..physics.geometry import VoxelGrid
     from .engine import FocusEngine
 
     engine = fo.engine

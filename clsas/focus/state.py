@@ -29,9 +29,9 @@ from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
-from ..physics import speed_of_sound
+from ..physics.geometry import VoxelGrid
+from ..physics.sound import speed_of_sound
+from ..types.dataset import Dataset
 from .direct import DirectPath
 from .engine import FocusEngine
 from .metrics import metric_and_weight

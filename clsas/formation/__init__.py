@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
+from ..physics.geometry import VoxelGrid
+from ..types.profiles import Profiles
 from . import auto, bp, ffbp, omega_k  # noqa: F401 - each registers its formation
 from .registry import FORMATIONS
 

@@ -12,10 +12,10 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
-from ..beam import BEAM_MODES, Beams, BeamWeights, beam_weights
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.beam import BEAM_MODES, Beams, BeamWeights, beam_weights
+from ..physics.geometry import VoxelGrid
+from ..types.image import Image
+from ..types.profiles import Profiles
 from . import bp_numpy as twin
 from .bp_opencl import BackprojectPlan, RecordsPlan, upsample_factor
 from .guard import check_grid
@@ -57,7 +57,7 @@ class Backprojector:
         before beams); ``"limited"`` keeps a voxel-measurement pair only where the two-way
         beam amplitude is at least ``beam_floor_db``; ``"weighted"`` scales each pair by the
         two-way amplitude. Default: ``"limited"`` where the profiles carry a directional beam,
-        else ``"none"``. Patterns are evaluated at the carrier ``fc_hz`` (see :mod:`clsas.beam`).
+        else ``"none"``. Patterns are evaluated at the carrier ``fc_hz`` (see :mod:`clsas.physics.beam`).
     beam_floor_db : float
         The two-way level of ``beam="limited"``, dB (default -12: each transducer's -6 dB
         beam when speaker and microphone are together).
@@ -132,7 +132,7 @@ class Backprojector:
     def _weights(self, beams, fc_hz: float, c) -> BeamWeights | None:
         """The pair weights of this Backprojector's ``beam`` mode for ``beams`` (None: none)."""
         if beams is not None and not isinstance(beams, Beams):
-            raise TypeError(f"beams must be clsas.beam.Beams or None, got {type(beams).__name__}")
+            raise TypeError(f"beams must be clsas.physics.beam.Beams or None, got {type(beams).__name__}")
         mode = self.beam or ("limited" if beams is not None and not beams.is_omni else "none")
         if self.beam is None and mode == "limited":
             log.info("bp: the profiles carry directional beams: beam='limited' (pairs above %g dB)",

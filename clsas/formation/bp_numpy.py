@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..beam import BeamWeights, pair_weights
+from ..physics.beam import BeamWeights, pair_weights
 
 
 def backproject(
@@ -31,8 +31,8 @@ def backproject(
     c_mps : float or (n_meas,) array
         Speed of sound, m/s; an array gives each measurement its own.
     points_m : (n_vox, 3) voxel centres, m.
-    beam : clsas.beam.BeamWeights, optional
-        Weight (or gate) each pair by the two-way beam (:func:`clsas.beam.pair_weights`);
+    beam : clsas.physics.beam.BeamWeights, optional
+        Weight (or gate) each pair by the two-way beam (:func:`clsas.physics.beam.pair_weights`);
         None: every pair counts fully (omnidirectional).
 
     Returns

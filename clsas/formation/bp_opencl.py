@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..cl import Plan, Shape
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
 from .bp_numpy import (  # noqa: F401 - the twins of records.cl, imported from here by the projector
     MAX_CYCLES_PER_SAMPLE,
     carrier_factors,
@@ -67,7 +67,7 @@ def selftest_beam_weights(rng, mode: str, n_meas: int = 3):
     """The beams the beam selftests use: a piston speaker tilted per measurement (drawn from
     ``rng``) and a cone microphone, for ``n_meas`` measurements (the bp selftest scene's 3) at
     25 kHz."""
-    from ..beam import Beams, Piston, beam_weights
+    from ..physics.beam import Beams, Piston, beam_weights
 
     tilt = np.c_[rng.uniform(-0.3, 0.3, (n_meas, 2)), np.ones(n_meas)]
     beams = Beams(Piston(0.03), {"model": "cone", "half_angle_deg": 25.0}, tilt, (0.0, 0.0, 1.0), n_meas)
@@ -76,23 +76,31 @@ def selftest_beam_weights(rng, mode: str, n_meas: int = 3):
 
 class RecordsPlan(Plan):
     """kernels/records.cl: the carrier records of ``n_meas`` profiles of ``n_lags`` samples,
-    upsampled ``up`` times, made on the device (the twin: :func:`carrier_records`)."""
+    upsampled ``up`` times, made on the device (the twin: :func:`carrier_records`). With
+    ``row_map``, record row m is made from profile row ``row_of[m]`` (:meth:`enqueue`): the rows in
+    another order (FFBP's tree order) without moving them."""
 
     KERNEL = "carrier_records"
     SOURCES = ("records.cl",)
 
-    def __init__(self, n_meas: int, n_lags: int, up: int, queue=None, vec=None):
+    def __init__(self, n_meas: int, n_lags: int, up: int, queue=None, vec=None, row_map: bool = False):
+        self.row_map = bool(row_map)
         super().__init__(queue, vec)
         self.n_meas, self.n_lags, self.up = int(n_meas), max(2, int(n_lags)), int(up)
         self.n_rec = (self.n_lags - 1) * self.up + 1
         self.d_pairs = self.alloc(16 * self.n_meas * self.n_rec)
         self.d_rot0 = self.alloc(8 * self.n_meas, "r")
+        self.d_row_of = self.alloc(4 * self.n_meas, "r") if self.row_map else None
         self.d_rot, self._cycles = None, None
 
-    def enqueue(self, d_prof, stride: int, n_data: int, tau0_s, dtau_s: float, fc_hz: float):
+    def defines(self) -> dict:
+        return {"ROW_MAP": 1} if self.row_map else {}
+
+    def enqueue(self, d_prof, stride: int, n_data: int, tau0_s, dtau_s: float, fc_hz: float, row_of=None):
         """Launch on profiles already on the device (``d_prof``: (n_meas, stride) complex64,
         ``n_data`` <= n_lags samples of each row used) at lag step ``dtau_s``; returns
-        ``(event, dtau / up, phi)``, the records in :attr:`d_pairs`."""
+        ``(event, dtau / up, phi)``, the records in :attr:`d_pairs`. A ``row_map`` plan takes
+        ``row_of`` (n_meas,), a permutation of the rows, and ``tau0_s`` in the records' order."""
         if not 1 <= n_data <= self.n_lags or stride < n_data:
             raise ValueError(f"n_data must be in [1, {self.n_lags}] and at most stride={stride}, got {n_data}")
         fine = dtau_s / self.up
@@ -101,8 +109,21 @@ class RecordsPlan(Plan):
             self.d_rot, self._cycles = self.upload(rot, np.complex64), fc_hz * fine
         self.write(self.d_rot0, rot0, np.complex64)
         evt = self.launch((-(-self.n_rec // self.vec), self.n_meas), d_prof, np.int32(stride), np.int32(n_data),
-                          np.int32(self.up), np.int32(self.n_rec), self.d_rot, self.d_rot0, self.d_pairs)
+                          np.int32(self.up), np.int32(self.n_rec), self.d_rot, self.d_rot0, self.d_pairs,
+                          *self._row_of(row_of))
         return evt, fine, 2 * np.pi * fc_hz * fine
+
+    def _row_of(self, row_of) -> tuple:
+        """The row-map argument of a ``row_map`` plan (``row_of`` written to the device), else none."""
+        if not self.row_map:
+            if row_of is not None:
+                raise ValueError("row_of: this plan was made without row_map")
+            return ()
+        rows = np.asarray(row_of)
+        if rows.shape != (self.n_meas,) or not np.array_equal(np.sort(rows), np.arange(self.n_meas)):
+            raise ValueError(f"row_of must be a permutation of the {self.n_meas} rows, got shape {rows.shape}")
+        self.write(self.d_row_of, rows, np.int32)
+        return (self.d_row_of,)
 
     def __call__(self, data: np.ndarray, tau0_s, dtau_s: float, fc_hz: float):
         """:func:`carrier_records` of host profiles (uploaded, made, read back): ``(records

@@ -61,10 +61,12 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.geometry import VoxelGrid
+from ..types.image import Image
+from ..types.profiles import Profiles
 from . import ffbp_numpy as twin
+from .bp_numpy import upsample_factor
+from .bp_opencl import RecordsPlan
 from .ffbp_opencl import FfbpPipeline
 from .ffbp_tree import Tree, build_tree, default_depth, estimate_band, max_depth
 from .guard import available_memory_bytes, check_grid
@@ -161,7 +163,7 @@ def _beam_weights(profiles: Profiles, beam: str | None, floor_db: float, fc: flo
     is weighted). The default where the profiles carry a directional beam is ``"weighted"``, not
     bp's ``"limited"``: a weighted sub-image interpolates, a gated one does not (its edges are
     not band-limited: -10 dB or worse against bp's gate on the tests' tilted scan)."""
-    from ..beam import BEAM_MODES, beam_weights
+    from ..physics.beam import BEAM_MODES, beam_weights
 
     floor_db = v.finite("beam_floor_db", floor_db)
     mode = None if beam is None else v.choice("beam", beam, BEAM_MODES)
@@ -295,7 +297,8 @@ def form(
     t_start = time.perf_counter()
     tree = _planned_tree(data, dtau, fc, tx, rx, c, grid, opts, sel, force, weights)
     timings = {"ffbp_plan": time.perf_counter() - t_start}
-    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings, weights)
+    values, sel = _run(tree, grid, (data, tau0, dtau, fc, tx, rx, c), opts, sel, progress, timings, weights,
+                       rows=_rows_of(profiles))
     timings["ffbp"] = time.perf_counter() - t_start
     return Image(values.reshape(grid.shape), grid, "bp", sel.kind, sel.device, timings, plan=tree,
                  provenance={"ffbp": _record(opts, tree, mode, beam_floor_db)})
@@ -338,12 +341,37 @@ def _exact(profiles, grid, backend, device, force, progress, beam: str, beam_flo
                                                                                  "beam_floor_db": beam_floor_db}})
 
 
+def _rows_of(profiles: Profiles):
+    """The rows the OpenCL compression left on the device with ``profiles.data`` (valid on their own
+    queue: :meth:`clsas.cl.DeviceRows.valid`), or None."""
+    rows = profiles.on_device
+    return rows if rows is not None and rows.valid(rows.queue, profiles.data) else None
+
+
+def _device_records(pipe: FfbpPipeline, rows, n_lags: int, dtau: float, fc: float):
+    """The row-map records plan that makes the leaves' records from ``rows`` on the pipeline's queue,
+    or None (the rows are on another queue, or the kernel does not build there: the records are
+    then made on the host)."""
+    if rows is None or rows.queue is not pipe.leaf.queue or rows.n_cols > max(2, n_lags):
+        return None
+    up = upsample_factor(fc, dtau)
+    key = (rows.n_rows, max(2, n_lags), up, "row_map")
+    try:
+        return _cl.reused(pipe.leaf.queue, "carrier_records", key,
+                          lambda q: RecordsPlan(rows.n_rows, n_lags, up, queue=q, row_map=True))
+    except _cl.BuildError as exc:
+        log.info("ffbp: the records kernel does not build here (%s); records made on the host", exc)
+        return None
+
+
 def _run(tree: Tree, grid: VoxelGrid, arrays: tuple, opts: dict, sel: _cl.Selection, progress, timings: dict,
-         weights=None):
-    """The tree's levels on the device (or the twin where the kernels will not build): (values, selection)."""
+         weights=None, rows=None):
+    """The tree's levels on the device (or the twin where the kernels will not build): (values, selection).
+    ``rows``: the profiles as the compression left them on the device (their records are then made
+    there, in tree order), or None."""
     data, tau0, dtau, fc, tx, rx, c = arrays
     o = tree.order
-    args = (data[o], tau0[o], dtau, fc, tx[o], rx[o], c[o])
+    geometry = (tau0[o], dtau, fc, tx[o], rx[o], c[o])  # the profiles' rows are put in tree order where used
     if weights is not None:  # the boresights in tree order, as the profiles
         weights = replace(weights, tx_dir=np.asarray(weights.tx_dir)[o], rx_dir=np.asarray(weights.rx_dir)[o])
     taps = opts["order"] + 1
@@ -353,8 +381,12 @@ def _run(tree: Tree, grid: VoxelGrid, arrays: tuple, opts: dict, sel: _cl.Select
     pipe, sel = sel.plan(lambda q: FfbpPipeline(tree, grid, data.shape[1], tables, queue=q, beam_lut=lut,
                                                 n_meas=len(data)))
     if pipe is None:
-        return _run_numpy(tree, grid, args, tables, progress, timings, weights), sel
-    values = pipe(*args, progress=progress, beam=weights)
+        return _run_numpy(tree, grid, (data[o], *geometry), tables, progress, timings, weights), sel
+    records = _device_records(pipe, rows, data.shape[1], dtau, fc)
+    if records is not None:
+        values = pipe.from_device(rows, records, o, *geometry, progress=progress, beam=weights)
+    else:
+        values = pipe(data[o], *geometry, progress=progress, beam=weights)
     timings.update(pipe.timings_s)
     return values, sel
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..beam import BeamWeights, pair_weights
+from ..physics.beam import BeamWeights, pair_weights
 from .ffbp_tree import BLOCK, Level
 
 __all__ = ["RES", "INTERPOLATORS", "lagrange", "least_squares", "weight_table", "table_weights", "sample_points",
@@ -120,7 +120,7 @@ def form_leaves(data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps, level: Level, kref: 
     tx, rx : (n_meas, 3) m; c_mps : (n_meas,) m/s (all in tree order)
     level : the leaves; kref : reference cycles per metre of path
     beam : each pair weighted by its two-way beam at the sample (boresights in tree order;
-        :func:`clsas.beam.pair_weights`), as bp weights it at a voxel
+        :func:`clsas.physics.beam.pair_weights`), as bp weights it at a voxel
     """
     n_lags = data.shape[1]
     out = np.zeros(level.size, np.complex128)

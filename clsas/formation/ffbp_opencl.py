@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..cl import Plan
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
 from . import ffbp_numpy as twin
 from .bp_opencl import BeamPlan, carrier_records, selftest_beam_weights
 from .ffbp_tree import BLOCK, Level, Tree
@@ -37,15 +37,23 @@ def _profiles(plan: Plan, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps):
     """Device copies of the profiles as backproject.cl takes them (records rotated by the
     carrier at each sample, :func:`~clsas.formation.bp_opencl.carrier_records`), the positions
     with the path scale in tx's w lane, the zero-delay indices and the sub-sample phase step."""
-    n, n_lags = data.shape
+    n_lags = data.shape[1]
     pairs, dtau_s, phi = carrier_records(data, max(2, n_lags), tau0_s, dtau_s, fc_hz)
+    d_pairs = plan.upload(pairs, np.complex64)
+    return (d_pairs, np.int32(pairs.shape[1]), *_geometry(plan, tau0_s, dtau_s, tx, rx, c_mps), np.float32(phi))
+
+
+def _geometry(plan: Plan, tau0_s, dtau_s: float, tx, rx, c_mps) -> tuple:
+    """Device copies of the positions (the path scale ``1 / (c dtau)`` in tx's w lane) and of the
+    zero-delay indices ``tau0 / dtau``, for records at lag step ``dtau_s``."""
+    n = len(tx)
     c = np.broadcast_to(np.asarray(c_mps, float), (n,))
     pos4 = np.zeros((2, n, 4), np.float32)
     pos4[0, :, :3] = tx
     pos4[0, :, 3] = 1.0 / (c * dtau_s)
     pos4[1, :, :3] = rx
-    return (plan.upload(pairs, np.complex64), np.int32(pairs.shape[1]), plan.upload(pos4[0], np.float32),
-            plan.upload(pos4[1], np.float32), plan.upload(np.asarray(tau0_s) / dtau_s, np.float32), np.float32(phi))
+    return (plan.upload(pos4[0], np.float32), plan.upload(pos4[1], np.float32),
+            plan.upload(np.asarray(tau0_s) / dtau_s, np.float32))
 
 
 def _complex(host: np.ndarray) -> np.ndarray:
@@ -57,7 +65,7 @@ class FfbpLeafPlan(BeamPlan):
 
     With ``beam_lut`` > 0 it is built with kernels/beam.cl's ``-DBEAM`` for ``n_meas``
     measurements: each pair is weighted by its two-way beam at the sample's position (calls
-    then take ``beam``, a :class:`clsas.beam.BeamWeights` in tree order).
+    then take ``beam``, a :class:`clsas.physics.beam.BeamWeights` in tree order).
     """
 
     KERNEL = "ffbp_leaf"
@@ -236,12 +244,32 @@ class FfbpPipeline:
     def __call__(self, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps,
                  progress: Callable[[int, int], None] | None = None, beam=None) -> np.ndarray:
         """Image profiles given in tree order (as the twin takes them; ``beam`` too): (n_vox,) complex64."""
+        t0 = time.perf_counter()
+        prof = _profiles(self.leaf, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps)
+        return self._levels(prof, [], progress, beam, t0)
+
+    def from_device(self, rows, records, order, tau0_s, dtau_s: float, fc_hz: float, tx, rx, c_mps,
+                    progress: Callable[[int, int], None] | None = None, beam=None) -> np.ndarray:
+        """Image profiles another plan left on this queue's device (:class:`clsas.cl.DeviceRows`, in
+        their own order): ``records`` (a :class:`~clsas.formation.bp_opencl.RecordsPlan` with
+        ``row_map``) makes the carrier records there in tree order (``order``: the tree's row of
+        each; ``tau0_s``, the positions, speeds and ``beam`` already in tree order), and the leaf
+        kernel reads them. Only the geometry and one value per measurement go to the device."""
+        if rows.n_rows != len(order) or not records.row_map or records.queue is not self.leaf.queue:
+            raise ValueError("rows and records: a row-map records plan on this pipeline's queue, for "
+                             f"{len(order)} rows, is needed")
+        t0 = time.perf_counter()
+        evt, fine, phi = records.enqueue(rows.buffer, rows.stride, rows.n_cols, tau0_s, dtau_s, fc_hz, row_of=order)
+        prof = (records.d_pairs, np.int32(records.n_rec), *_geometry(self.leaf, tau0_s, fine, tx, rx, c_mps),
+                np.float32(phi))
+        return self._levels(prof, [("ffbp_records", evt)], progress, beam, t0)
+
+    def _levels(self, prof: tuple, events: list, progress, beam, t0: float) -> np.ndarray:
+        """The leaves from the device profiles ``prof``, every merge and the grid; the image read back
+        once. ``events``: launches before the leaves (named), timed with the levels'."""
         tree, kref = self.tree, self.tree.kref
         beam_args = self.leaf.beam_args(beam)
         total = tree.depth + 1
-        events = []
-        t0 = time.perf_counter()
-        prof = _profiles(self.leaf, data, tau0_s, dtau_s, fc_hz, tx, rx, c_mps)
         cur = 0
         events.append(("ffbp_leaves", self.leaf.launch_level(prof, self.levels[-1], kref, self.bufs[cur],
                                                              beam_args)))

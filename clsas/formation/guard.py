@@ -13,7 +13,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from contextvars import ContextVar
 
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
 
 __all__ = ["available_memory_bytes", "check_grid", "bytes_per_voxel", "checked_once", "mark_checked"]
 

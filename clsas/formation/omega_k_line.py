@@ -14,12 +14,13 @@ line is exact:
 
     I(x, rho) = 1 / (M du) sum_q exp(i q (x - u0)) sum_f A(q, f) H(q, rho)
 
-with ``A`` the profiles' spectra (step 1-2 of :mod:`clsas.formation.omega_k`, shared) FFT'd
-along the line, zero-padded to ``M`` stops. The sum over frequency is evaluated directly at
-each distinct ``rho`` of the grid (no interpolation: the "Stolt" mapping of the 3-D method
-becomes exact here), the sum over ``q`` by a chirp-z transform at the grid's ``x``. As in 3-D,
-only the unaliased angles (``|q| < pi / du``, with a raised-cosine ``taper``) and the look
-angles up to the steepest voxel-stop angle are formed: backprojection's grating lobes are not.
+with ``A`` the profiles' spectra (step 1-2 of :mod:`clsas.formation.omega_k`, shared:
+:mod:`clsas.formation.omega_k_spectra`) FFT'd along the line, zero-padded to ``M`` stops. The
+sum over frequency is evaluated directly at each distinct ``rho`` of the grid (no
+interpolation: the "Stolt" mapping of the 3-D method becomes exact here), the sum over ``q`` by
+a chirp-z transform at the grid's ``x``. As in 3-D, only the unaliased angles (``|q| < pi / du``,
+with a raised-cosine ``taper``) and the look angles up to the steepest voxel-stop angle are
+formed: backprojection's grating lobes are not.
 
 Costs ``n_q x n_f x n_rho`` Hankel evaluations. Directional beams (``beam`` as in 3-D, every
 boresight the same and across the line) weight each plane wave by the two-way pattern at
@@ -36,10 +37,12 @@ import time
 
 import numpy as np
 
-from ..beam import beam_weights, facing, weights_at_cos
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.beam import beam_weights, facing, weights_at_cos
+from ..physics.geometry import VoxelGrid
+from ..types.image import Image
+from ..types.profiles import Profiles
+from .omega_k_spectra import spectra
+from .omega_k_transforms import dft_axis, edge_window
 from .planar import NotPlanarUniform, _axis_values
 
 __all__ = ["line_axis", "form_line", "hankel1_1"]
@@ -113,12 +116,11 @@ def _transfer(q: np.ndarray, k: np.ndarray, rho: float, s1: float, s2: float) ->
     return np.where(k[None, :] < 0, np.conj(h), h)
 
 
-def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: float, steps: tuple) -> Image:
-    """ω-k image of a line scan along grid ``axis`` (options ``o`` as omega-k's, checked;
-    ``steps``: omega-k's spectra, chirp-z and edge-window functions, shared)."""
+def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: float) -> Image:
+    """ω-k image of a line scan along grid ``axis`` (options ``o`` as omega-k's, checked; the
+    spectra, the spatial window and the chirp-z shared with the planar step)."""
     import scipy.fft
 
-    _spectra, _dft_axis, _edge_window = steps
     if o["upsample"] != 1:
         raise ValueError("upsample: a line scan forms the unaliased angles only (upsample=1)")
     workers = o["workers"] or os.cpu_count() or 1
@@ -134,7 +136,7 @@ def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: floa
     rho = keys[:, 0]
     if rho.min() < 4 * tol:
         raise ValueError(f"grid: a voxel lies {rho.min():.3g} m from the scan line; omega-k needs the grid off it")
-    spec, f, c_ref, f_top = _spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
+    spec, f, c_ref, f_top = spectra(data, tau0, dtau, fc, c, o["pad_time"], o["band_tol"], workers)
     k = 4 * np.pi * f / c_ref
     base = np.linalg.norm(tx - rx, axis=1).max()
     phase = np.abs(k).max() * base**2 / (4 * rho.min())
@@ -153,14 +155,14 @@ def form_line(profiles: Profiles, grid: VoxelGrid, axis: int, o: dict, tol: floa
     line[iu] = spec
     a = scipy.fft.fft(line, m, axis=0, workers=workers)
     q = 2 * np.pi * scipy.fft.fftfreq(m, du)
-    a *= _edge_window(q, np.pi / du, o["taper"], o["window"])[:, None]
+    a *= edge_window(q, np.pi / du, o["taper"], o["window"])[:, None]
     t = np.empty((m, len(rho)), np.complex128)
     for j, (r, cos_phi) in enumerate(keys):
         h = _transfer(q, k, float(r), s1, s2)
         if weights is not None:  # the plane wave's direction: cos theta = cos(along-line angle) cos phi
             h *= weights_at_cos(weights, np.sqrt(np.clip(1 - (q[:, None] / k[None, :]) ** 2, 0, 1)) * cos_phi)
         t[:, j] = np.einsum("qf,qf->q", a, h)
-    img = _dft_axis(t, q, x - u0, workers) / (m * du)  # (n_x, n_rho)
+    img = dft_axis(t, q, x - u0, workers) / (m * du)  # (n_x, n_rho)
     values = np.moveaxis(img[:, inverse], 0, axis).astype(np.complex64)
     total = time.perf_counter() - t_start
     info = {"line_axis": "xyz"[axis], "stops": nu, "spacing_m": du, "padded": m, "n_f": len(f),

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import validate as v
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
 
 __all__ = ["Lattice", "PlanarAperture", "NotPlanarUniform", "planar_aperture", "well_sampled_cone", "cone_of"]
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..cl import Plan
-from . import stolt
+from . import stolt_numpy as stolt
 
 
 class StoltPlan(Plan):
     """The ``stolt_spread`` kernel on one queue; buffers grow to the largest call.
 
-    Called like :func:`clsas.formation.stolt.spread` (its NumPy twin), in float32 on the
+    Called like :func:`clsas.formation.stolt_numpy.spread` (its NumPy twin), in float32 on the
     device; returns complex64 cells (n_terms, n_cols, n_cells).
     """
 
@@ -72,7 +72,7 @@ class StoltPlan(Plan):
 class StoltDepthsPlan(StoltPlan):
     """The ``stolt_depths`` kernel on one queue: the Stolt sum evaluated directly at the depths.
 
-    Called like :func:`clsas.formation.stolt.direct` (its NumPy twin), in float32 on the
+    Called like :func:`clsas.formation.stolt_numpy.direct` (its NumPy twin), in float32 on the
     device; returns complex64 (n_cols, n_z).
     """
 

@@ -41,10 +41,10 @@ from scipy import fft
 from scipy.fft import next_fast_len
 
 from .. import cl as _cl
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
+from ..types.image import Image
+from ..types.profiles import Profiles
 from . import solvers
 from .methods import MODEL_METHODS, _say, check_options, noise_weight, operator_for
 

@@ -37,12 +37,12 @@ import numpy as np
 
 from .. import cl as _cl
 from .. import validate as v
-from ..beam import BEAM_MODES
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.beam import BEAM_MODES
+from ..physics.geometry import VoxelGrid
 from ..registry import Registry
+from ..types.dataset import Dataset
+from ..types.image import Image
+from ..types.profiles import Profiles
 from . import solvers
 from .operator import ImagingOperator, compressed_pulse
 

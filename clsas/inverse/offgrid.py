@@ -21,7 +21,7 @@ spectrum): each a 1-2 % model error if left out, more than the noise after compr
 
 The image returned puts each reflector's amplitude on its nearest voxel; ``image.provenance
 ["inverse"]["reflectors"]`` and :func:`reflector_peaks` give the continuous positions as
-:class:`clsas.image.Peak` objects (strongest first), like :meth:`clsas.Image.peaks`.
+:class:`clsas.types.image.Peak` objects (strongest first), like :meth:`clsas.Image.peaks`.
 """
 
 from __future__ import annotations
@@ -33,11 +33,11 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from .. import cl as _cl
-from ..beam import pair_weights
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
-from ..image import Image, Peak
-from ..profiles import Profiles
+from ..physics.beam import pair_weights
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
+from ..types.image import Image, Peak
+from ..types.profiles import Profiles
 from .methods import MODEL_METHODS, _solve, check_options, noise_weight, operator_for
 from .operator import ImagingOperator, compressed_pulse
 
@@ -94,7 +94,7 @@ def _absorbed(waveform: np.ndarray, fs_hz: float, path_m: float, temperature_c: 
               humidity_pct: float) -> np.ndarray:
     """The waveform after ISO 9613-1 air absorption over ``path_m`` (its shape changes: higher
     frequencies lose more)."""
-    from ..physics import air_absorption_db_per_m
+    from ..physics.sound import air_absorption_db_per_m
 
     n = len(waveform)
     f = np.fft.rfftfreq(2 * n, 1 / fs_hz)

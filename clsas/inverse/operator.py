@@ -14,11 +14,11 @@ from scipy.sparse.linalg import LinearOperator
 
 from .. import cl as _cl
 from .. import validate as v
-from ..beam import BEAM_MODES, Beams, BeamWeights, beam_weights
 from ..formation import bp_numpy
 from ..formation.bp_opencl import BackprojectPlan
-from ..geometry import VoxelGrid
-from ..profiles import Profiles
+from ..physics.beam import BEAM_MODES, Beams, BeamWeights, beam_weights
+from ..physics.geometry import VoxelGrid
+from ..types.profiles import Profiles
 from . import project_numpy as twin
 from .project_opencl import ProjectPlan
 
@@ -87,7 +87,7 @@ def _pair_weights(beams: Beams | None, beam: str | None, floor_db: float, fc_hz:
         beam = v.choice("beam", beam, BEAM_MODES)
     floor_db = v.finite("beam_floor_db", floor_db)
     if beams is not None and not isinstance(beams, Beams):
-        raise TypeError(f"beams must be clsas.beam.Beams or None, got {type(beams).__name__}")
+        raise TypeError(f"beams must be clsas.physics.beam.Beams or None, got {type(beams).__name__}")
     mode = beam or ("limited" if beams is not None and not beams.is_omni else "none")
     if beam is None and mode == "limited":
         log.info("imaging operator: the profiles carry directional beams: beam='limited' (pairs above %g dB)",
@@ -126,7 +126,7 @@ class ImagingOperator(LinearOperator):
         ``"limited"`` where the beams are directional, else ``"none"``.
     beam_floor_db : float
         The two-way level of ``beam="limited"``, dB (default -12, as bp's).
-    beams : clsas.beam.Beams, optional
+    beams : clsas.physics.beam.Beams, optional
         The transducers' beams, default the profiles' (from the dataset).
     """
 

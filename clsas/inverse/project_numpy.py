@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..beam import BeamWeights, pair_weights
+from ..physics.beam import BeamWeights, pair_weights
 
 
 def project(
@@ -43,8 +43,8 @@ def project(
     c_mps : float or (n_meas,) array
         Speed of sound, m/s; an array gives each measurement its own.
     points_m : (n_vox, 3) voxel centres, m.
-    beam : clsas.beam.BeamWeights, optional
-        Weight (or gate) each pair by the two-way beam (:func:`clsas.beam.pair_weights`), as
+    beam : clsas.physics.beam.BeamWeights, optional
+        Weight (or gate) each pair by the two-way beam (:func:`clsas.physics.beam.pair_weights`), as
         :func:`clsas.formation.bp_numpy.backproject` does with the same weights (so this stays
         its adjoint); None: omnidirectional.
 

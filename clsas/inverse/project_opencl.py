@@ -9,7 +9,7 @@ import numpy as np
 
 from ..cl import kernel
 from ..formation.bp_opencl import BeamPlan, carrier_rotation, upsample_adjoint, upsample_factor
-from ..geometry import VoxelGrid
+from ..physics.geometry import VoxelGrid
 
 #: bytes of partial profiles one chunk of measurements may hold on the device
 PARTIAL_BYTES = 64 << 20
@@ -33,7 +33,7 @@ class ProjectPlan(BeamPlan):
     chunk : int, optional
         Measurements per launch.
     beam_lut : int, optional
-        Samples per beam table (:class:`clsas.beam.BeamWeights`): the ``-DBEAM`` variant that weights
+        Samples per beam table (:class:`clsas.physics.beam.BeamWeights`): the ``-DBEAM`` variant that weights
         each pair as the backprojection does (kernels/beam.cl); 0 (default): omnidirectional.
     """
 
@@ -85,7 +85,7 @@ class ProjectPlan(BeamPlan):
         beam=None,
     ) -> np.ndarray:
         """Project ``values`` ((n_vox,) complex); the twin's arguments less ``n_lags`` and the
-        points (fixed by the plan), ``beam`` a :class:`clsas.beam.BeamWeights` of the plan's
+        points (fixed by the plan), ``beam`` a :class:`clsas.physics.beam.BeamWeights` of the plan's
         ``beam_lut`` (None without one). Returns (n_meas, n_lags) complex64 profiles."""
         x = np.zeros(self.n_pad, np.complex64)
         x[: self.n_vox] = np.ravel(values)

@@ -15,10 +15,10 @@ import time
 import numpy as np
 
 from .. import cl as _cl
-from ..dataset import Dataset
-from ..geometry import VoxelGrid
-from ..image import Image
-from ..profiles import Profiles
+from ..physics.geometry import VoxelGrid
+from ..types.dataset import Dataset
+from ..types.image import Image
+from ..types.profiles import Profiles
 from .methods import MODEL_METHODS, check_options, operator_for
 from .operator import ImagingOperator
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 from .airsas import import_airsas, is_airsas
 from .folder import import_folder
 from .registry import IMPORTERS, Importer

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 
 log = logging.getLogger("clsas.io")
 

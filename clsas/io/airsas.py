@@ -67,7 +67,7 @@ the object published with them:
   (``sim_csas_package``'s ``theta_start=90, theta_step=-1``): mirrored in y, that is
   ``-90 + a``, which is this importer's default (the speaker at -y at angle 0, turning
   counter-clockwise in the target's frame as the angle grows). The default image, drawn
-  with y up (``clsas.plots``), has the photo's handedness.
+  with y up (``clsas.types.pictures``), has the photo's handedness.
 
 ``angle_sign=-1, zero_angle_deg=180`` gives the owners' frame exactly (their image's pixels,
 their handedness). ``angle_sign=-1`` alone gives the owners' image turned by 180 degrees.
@@ -89,8 +89,8 @@ from typing import Any
 
 import numpy as np
 
-from ..dataset import Dataset
-from ..signals import lfm_chirp
+from ..physics.signals import lfm_chirp
+from ..types.dataset import Dataset
 from ..validate import cell_number
 from ._common import attach_background, is_number, read_numbers, stack_padded
 from .registry import IMPORTERS, Importer

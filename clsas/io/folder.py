@@ -81,9 +81,9 @@ from typing import Any
 
 import numpy as np
 
-from ..dataset import Dataset
-from ..physics import ASSUMED_HUMIDITY_PCT, speed_of_sound
-from ..signals import lfm_chirp
+from ..physics.signals import lfm_chirp
+from ..physics.sound import ASSUMED_HUMIDITY_PCT, speed_of_sound
+from ..types.dataset import Dataset
 from ..validate import cell_number
 from ._common import attach_background, read_numbers, read_settings, read_wav, sniff_delimiter, stack_padded
 from .registry import IMPORTERS, Importer

@@ -51,7 +51,7 @@ from typing import Any
 
 import numpy as np
 
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 from ._common import attach_background
 from .registry import IMPORTERS, Importer
 

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import Dataset, json_default
+from ..types.dataset import Dataset, json_default
 from .uff import CLSAS_GROUP, DIVERGING_Z_M
 
 __all__ = ["export_uff"]

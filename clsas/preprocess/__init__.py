@@ -1,7 +1,7 @@
 """Preprocessing of measured recordings: DC removal, band-pass, background subtraction,
 removal of what every recording shares, direct-path blanking, group-delay removal.
 
-Each step takes a :class:`~clsas.dataset.Dataset` and returns a new one (the input is not
+Each step takes a :class:`~clsas.types.dataset.Dataset` and returns a new one (the input is not
 changed) whose ``provenance`` ends with a record of the step and its parameters, so an image
 file can say what was done to its data. :func:`preprocess` runs several steps in a fixed,
 sensible order and is what the ``[preprocess]`` table of a scene or preprocessing file and

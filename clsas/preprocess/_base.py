@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 
 log = logging.getLogger("clsas.preprocess")
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import validate as v
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 from ._base import _check_ds, _step, log
 
 __all__ = ["attach_background", "subtract_background"]

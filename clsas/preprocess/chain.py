@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from .. import validate as v
-from ..config import PREPROCESS_KEYS
-from ..dataset import Dataset
+from ..io.config import PREPROCESS_KEYS
+from ..types.dataset import Dataset
 from ._base import _check_ds
 from .background import attach_background, subtract_background
 from .common import remove_common
@@ -60,7 +60,7 @@ def apply(ds: Dataset, *, group_delay_s: float | None = None, group_delay_sample
     Examples
     --------
     >>> from clsas import preprocess as pp
-    >>> from clsas.synthetic import turntable_scan
+    >>> from clsas.synthesis.synthetic import turntable_scan
     >>> scan = turntable_scan(30)
     >>> clean = pp.apply(scan.dataset, group_delay_samples=62.33, dc=True, bandpass=True,
     ...                  background=scan.background, blank_direct=True)
@@ -109,7 +109,7 @@ def _background_source(ds: Dataset, background) -> tuple[Any, dict]:
         bg_opts = _only(background, "background", ("path", "align_s", "fit_gain"))
         src = bg_opts.pop("path", True)
     if isinstance(src, str):
-        from ..dataset import load
+        from ..types.dataset import load
 
         bg_opts["label"] = src
         src = load(src)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import validate as v
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 from ._base import _check_ds, _step, log
 
 __all__ = ["COMMON_STATISTICS", "remove_common"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import validate as v
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 from ._base import _check_ds, _step, log
 
 __all__ = ["blank_direct", "clock_from_direct"]
@@ -53,9 +53,8 @@ def clock_from_direct(ds: Dataset, *, max_delay_s: float = 5e-4, min_snr_db: flo
     blanked, and after filtering (:func:`apply` runs it after DC removal and band-pass).
 
     What it assumes: the stated speaker-microphone spacing is right, and the direct path (off
-    the transducers' axes) is delayed by the chain as the echoes are. On the AirSAS scans it
-    moves ``t0_s`` by +11.0 us (20k) and +14.6 us (5k) from ``Group Delay`` (docs/guide/own-data.md, "Your own
-    data").
+    the transducers' axes) is delayed by the chain as the echoes are. What it finds on the
+    public AirSAS scans is in the own-data guide (docs/guide/own-data.md).
 
     Raises
     ------

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from .. import validate as v
-from ..dataset import Dataset
+from ..types.dataset import Dataset
 from ._base import _check_ds, _step
 
 __all__ = ["bandpass", "chirp_band", "remove_dc", "remove_delay"]

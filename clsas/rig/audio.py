@@ -22,8 +22,8 @@ import scipy.fft
 import scipy.signal
 
 from .. import validate as v
-from ..geometry import Aperture, Scene
-from ..simulation import simulate
+from ..physics.geometry import Aperture, Scene
+from ..synthesis.simulation import simulate
 from ..validate import install_hint
 
 __all__ = ["AudioError", "Take", "Recorder", "SoundDeviceIO", "SimulatedIO", "find_onset", "import_sounddevice",
@@ -259,7 +259,7 @@ class SimulatedIO:
 
     Faults (stop indices are 0-based): ``clip_at_stop`` and ``xrun_at_stop`` spoil the first
     attempt of that stop (retried), ``error_at_stop`` raises an audio device error.
-    ``beams_for`` (speaker and microphone positions (m, 3) -> :class:`clsas.beam.Beams` or None,
+    ``beams_for`` (speaker and microphone positions (m, 3) -> :class:`clsas.physics.beam.Beams` or None,
     e.g. :meth:`clsas.rig.RigConfig.beams_for`) gives the transducers' directivity, which the
     simulator then applies.
     """

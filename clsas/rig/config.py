@@ -17,9 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import config as c
 from .. import validate as v
-from ..geometry import Scene, VoxelGrid, raster_aperture
+from ..io import config as c
+from ..physics.geometry import Scene, VoxelGrid, raster_aperture
 
 __all__ = ["RigConfig", "parse_rig_config", "load_rig_config", "SAMPLE_RIG_TOML"]
 
@@ -185,7 +185,7 @@ class RigConfig:
                              self.humidity_pct if humidity_pct is None else humidity_pct)
 
     def beams_for(self, tx_m: np.ndarray, rx_m: np.ndarray):
-        """The transducers' beams (:class:`clsas.beam.Beams`) of measurements at these positions
+        """The transducers' beams (:class:`clsas.physics.beam.Beams`) of measurements at these positions
         ((n, 3) speaker and microphone, m), boresights by the ``[beams]`` rule; None without
         ``[beams]`` (omnidirectional)."""
         if self.beams is None:

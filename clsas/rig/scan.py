@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..physics import speed_of_sound
+from ..physics.sound import speed_of_sound
 from ..validate import install_hint
 from .audio import AudioError, Recorder, SimulatedIO, SoundDeviceIO
 from .config import RigConfig

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..dataset import FORMAT_VERSION, UNITS
+from ..types.dataset import FORMAT_VERSION, UNITS
 
 __all__ = ["ScanFile"]
 
@@ -38,7 +38,7 @@ class ScanFile:
     def create(cls, path: str | Path, *, fs_hz: float, waveform: np.ndarray, n_samples: int, n_mics: int,
                n_stops: int, temperature_c: float, humidity_pct: float, c_mps: float, chirp: dict,
                config_text: str, beams=None) -> ScanFile:
-        """A new scan file; ``beams`` (:class:`clsas.beam.Beams`, any measurements) gives the
+        """A new scan file; ``beams`` (:class:`clsas.physics.beam.Beams`, any measurements) gives the
         transducers' models to store, their boresights come with each stop."""
         import h5py
 
@@ -66,7 +66,7 @@ class ScanFile:
             f.attrs[f"chirp_{k}"] = val
         if beams is not None:
             g = f.create_group("beams")
-            g.attrs["about"] = "transducer directivity (clsas.beam): one-way patterns and boresights"
+            g.attrs["about"] = "transducer directivity (clsas.physics.beam): one-way patterns and boresights"
             for k, val in beams.specs().items():
                 g.attrs[f"{k}_json"] = json.dumps(val)
             for name in _BORESIGHTS:
@@ -120,7 +120,7 @@ class ScanFile:
 
     def append(self, stop: int, *, signals: np.ndarray, tx_m: np.ndarray, rx_m: np.ndarray, t0_s: float,
                stage_m: np.ndarray, timestamp: float, loopback: np.ndarray, beams=None) -> None:
-        """Write one stop (``n_mics`` measurements) and flush; ``beams`` (:class:`clsas.beam.Beams`
+        """Write one stop (``n_mics`` measurements) and flush; ``beams`` (:class:`clsas.physics.beam.Beams`
         of the stop's measurements) where the file was created with beams."""
         f, m = self._f, self.n_mics
         if (beams is not None) != self.has_beams:

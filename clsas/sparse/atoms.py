@@ -356,7 +356,7 @@ def default_max_echoes(dictionary: Dictionary) -> int:
 def absorbed_pulse(pulse, fs_hz: float, path_m: float, *, temperature_c: float = 20.0,
                    humidity_pct: float = 50.0) -> np.ndarray:
     """The pulse after ``path_m`` of air: each frequency attenuated by ISO 9613-1 absorption
-    (:func:`clsas.physics.air_absorption_db_per_m`), as :func:`clsas.simulate` applies it
+    (:func:`clsas.physics.sound.air_absorption_db_per_m`), as :func:`clsas.simulate` applies it
     (``exp(-beta(f) L)``, no delay). Used as an atom (``superres(..., absorbed_pulse(...))``)
     it matches echoes from about that range, which the unabsorbed pulse fits as a pair.
 
@@ -371,7 +371,7 @@ def absorbed_pulse(pulse, fs_hz: float, path_m: float, *, temperature_c: float =
     """
     import scipy.fft
 
-    from ..physics import air_absorption_db_per_m
+    from ..physics.sound import air_absorption_db_per_m
 
     x = v.array("pulse", pulse, ndim=1)
     fs = v.positive("fs_hz", fs_hz)

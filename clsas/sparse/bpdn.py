@@ -183,6 +183,33 @@ def _resolve_lam(op, b, amplitudes, lam, lam_frac):
     return lam, lmax
 
 
+def _best_on_the_way(Da, b, lam, xa, theta) -> np.ndarray:
+    """Feature-sign search's step on the active atoms ``Da``: the least-squares solution for the
+    signs ``theta``, or the best point on the way to it where a coefficient changes sign."""
+    lp = lam / 2
+    G = Da.T @ Da
+    c = Da.T @ b
+    try:
+        x_new = np.linalg.solve(G, c - lp * theta)
+    except np.linalg.LinAlgError:
+        x_new = np.linalg.lstsq(G, c - lp * theta, rcond=None)[0]
+
+    def f(z):
+        return float(z @ G @ z - 2 * c @ z + lam * np.abs(z).sum())
+
+    # candidate points: the full step and every zero crossing on the way
+    d = x_new - xa
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ts = -xa / d
+    ts = ts[(ts > 0) & (ts < 1) & np.isfinite(ts)]
+    best_t, best_f = 1.0, f(x_new)
+    for t in ts:
+        fz = f(xa + t * d)
+        if fz < best_f:
+            best_t, best_f = t, fz
+    return xa + best_t * d
+
+
 def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter, deadline=np.inf):
     """Exact BPDN for real or positive amplitudes by feature-sign search (Lee et al., NIPS 2006).
 
@@ -212,29 +239,7 @@ def _feature_sign(dictionary, op, b, lam, amplitudes, max_iter, deadline=np.inf)
             active = np.append(active, i)
             theta = np.append(theta, np.sign(g[i]) if amplitudes == "real" else 1.0)
         Da = dictionary.atom.matrix(dictionary.taus[active])
-        G = Da.T @ Da
-        c = Da.T @ b
-        xa = x[active]
-        try:
-            x_new = np.linalg.solve(G, c - lp * theta)
-        except np.linalg.LinAlgError:
-            x_new = np.linalg.lstsq(G, c - lp * theta, rcond=None)[0]
-
-        def f(z, G=G, c=c):
-            return float(z @ G @ z - 2 * c @ z + lam * np.abs(z).sum())
-
-        # candidate points: the full step and every zero crossing on the way
-        d = x_new - xa
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ts = -xa / d
-        ts = ts[(ts > 0) & (ts < 1) & np.isfinite(ts)]
-        best_t, best_f = 1.0, f(x_new)
-        for t in ts:
-            z = xa + t * d
-            fz = f(z)
-            if fz < best_f:
-                best_t, best_f = t, fz
-        xa = xa + best_t * d
+        xa = _best_on_the_way(Da, b, lam, x[active], theta)
         xa[np.abs(xa) <= 1e-14 * max(1.0, np.abs(xa).max())] = 0.0
         if amplitudes == "positive":
             xa = np.maximum(xa, 0.0)
@@ -313,62 +318,75 @@ def _bpdn_feature_sign(dictionary, op, b, lam, amplitudes, tol, deadline, t_star
     return BpdnResult(x, f, lam, status, n_it, gap, time.perf_counter() - t_start, info)
 
 
+#: atoms added to the working set at a time (the strongest violators of optimality)
+_GROWTH = 20
+
+
+def _restricted_problem(cols, b, x, work, real_signal) -> tuple[np.ndarray, np.ndarray, str, np.ndarray]:
+    """The working set's normal equations for :func:`fista_gram`: ``(D^H D, D^H b, mode, start)``;
+    for a real signal the columns are each atom's [Re, Im] pair, whose modulus is penalised."""
+    if real_signal:
+        cols = real_part_columns(cols)
+        mode, x0 = "pairs", np.r_[x[work].real, x[work].imag]
+    else:
+        mode, x0 = "complex", x[work]
+    return cols.conj().T @ cols, cols.conj().T @ b, mode, x0
+
+
+def _residual_objective_gap(op, b, x, lam) -> tuple[np.ndarray, float, float]:
+    """The residual, the objective and the duality gap over all atoms at ``x``."""
+    r = b - op.forward(x)
+    return r, _objective(r, x, lam), _gap(op, b, r, x, lam, "complex")
+
+
+def _grown(dictionary, work: np.ndarray, cols: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The working set with the atoms ``new`` (not in it) added, kept sorted, and its columns
+    (only the new atoms are computed)."""
+    order = np.argsort(np.r_[work, new], kind="stable")
+    cols = np.concatenate([cols, dictionary.atom.matrix(dictionary.taus[new])], axis=1)
+    return np.r_[work, new][order], cols[:, order]
+
+
 def _bpdn_working_set(dictionary, op, b, lam, tol, max_outer, max_inner, deadline, real_signal, t_start,
                       info) -> BpdnResult:
     """:func:`bpdn` for complex amplitudes: FISTA on a working set of atoms, grown by the atoms
     that violate optimality (20 at a time), until the duality gap over all atoms certifies it."""
     x = np.zeros(dictionary.k, complex)
     lp = lam / 2
-    g = op.adjoint(b)
-    score = np.abs(g)
+    score = np.abs(op.adjoint(b))
     work = np.flatnonzero(score > lp)
-    work = work[np.argsort(score[work])[::-1][:20]]
+    work = np.sort(work[np.argsort(score[work])[::-1][:_GROWTH]])
     status, gap, inner, outer = "max_iter", np.inf, 0, 0
     bb = float(np.vdot(b, b).real)
     tol_inner = tol / 10
-    work = np.sort(work)
     cols = dictionary.atom.matrix(dictionary.taus[work])  # the working set's atoms, kept as it grows
     while outer < max_outer:
         outer += 1
-        Dw = cols
-        if real_signal:  # real coefficients [Re, Im] of each atom, its pair's modulus penalised
-            Dw = real_part_columns(Dw)
-            mode, x0 = "pairs", np.r_[x[work].real, x[work].imag]
-        else:
-            mode, x0 = "complex", x[work]
-        Gw = Dw.conj().T @ Dw
-        cw = Dw.conj().T @ b
+        Gw, cw, mode, x0 = _restricted_problem(cols, b, x, work, real_signal)
         xw, n_in = fista_gram(Gw, cw, bb, lam, mode, x0, tol / 10, max_inner, deadline)
         inner += n_in
         x[:] = 0
         x[work] = _unpair(xw, len(work)) if real_signal else xw
-        r = b - op.forward(x)
-        f = _objective(r, x, lam)
-        gap = _gap(op, b, r, x, lam, "complex")
+        r, f, gap = _residual_objective_gap(op, b, x, lam)
         if gap <= tol * max(f, 1e-300):
             status = "optimal"
             break
         if time.perf_counter() > deadline:
             status = "max_time"
             break
-        g = op.adjoint(r)
-        score = np.abs(g)
+        score = np.abs(op.adjoint(r))
         viol = np.setdiff1d(np.flatnonzero(score > lp * (1 + tol)), work)
         if viol.size == 0:  # the set is right, the restricted solve was not tight enough
             tol_inner = tol_inner / 10
             xw, n_in = fista_gram(Gw, cw, bb, lam, mode, xw, tol_inner, max_inner, deadline)
             inner += n_in
             x[work] = _unpair(xw, len(work)) if real_signal else xw
-            r = b - op.forward(x)
-            gap = _gap(op, b, r, x, lam, "complex")
-            if gap <= tol * max(_objective(r, x, lam), 1e-300):
+            r, f, gap = _residual_objective_gap(op, b, x, lam)
+            if gap <= tol * max(f, 1e-300):
                 status = "optimal"
                 break
             continue
-        new = viol[np.argsort(score[viol])[::-1][:20]]  # not in work: only their atoms are computed
-        order = np.argsort(np.r_[work, new], kind="stable")
-        work = np.r_[work, new][order]
-        cols = np.concatenate([cols, dictionary.atom.matrix(dictionary.taus[new])], axis=1)[:, order]
+        work, cols = _grown(dictionary, work, cols, viol[np.argsort(score[viol])[::-1][:_GROWTH]])
     if not np.all(np.isfinite(x)):
         raise FloatingPointError("BPDN diverged (non-finite coefficients); check the dictionary and b")
     r = b - op.forward(x)

@@ -68,6 +68,54 @@ def newton_polish(G, c, lam, x, amplitudes, max_steps: int = 30):
     raise ValueError(f"amplitudes must be 'complex' or 'pairs' for newton_polish, got {amplitudes!r}")
 
 
+def _newton_direction(Gs, cs, us, lam) -> tuple[np.ndarray, float] | None:
+    """The Newton step of ``z Gs z - 2 cs z + lam sum |z_g|`` at ``us`` (pairs layout, every group
+    nonzero) and the objective's slope along it; None where it does not descend."""
+    n = len(us) // 2
+    j = np.arange(n)
+    mm = np.hypot(us[:n], us[n:])
+    n1, n2 = us[:n] / mm, us[n:] / mm
+    grad = 2 * (Gs @ us) - 2 * cs + lam * np.r_[n1, n2]
+    H = 2 * Gs
+    H[j, j] += lam * n2**2 / mm  # lam (I - n n^T) / |u_g|: curvature along the phase only
+    H[j + n, j + n] += lam * n1**2 / mm
+    H[j, j + n] -= lam * n1 * n2 / mm
+    H[j + n, j] -= lam * n1 * n2 / mm
+    try:
+        d = np.linalg.solve(H, -grad)
+    except np.linalg.LinAlgError:
+        d = np.linalg.lstsq(H, -grad, rcond=None)[0]
+    slope = float(grad @ d)
+    if not np.all(np.isfinite(d)) or slope >= 0:
+        return None
+    return d, slope
+
+
+def _line_search_to_zero(f, us, fu, d, slope) -> tuple[np.ndarray, float, int | None] | None:
+    """A backtracking (Armijo) step from ``us`` along ``d``: ``(point, f there, the group set to zero
+    or None)``, or None where 40 halvings find no decrease.
+
+    An atom whose modulus the step drives through zero leaves the support there (as in
+    feature-sign search): the step is first shortened to that point and the atom set to zero."""
+    n = len(us) // 2
+    mm = np.hypot(us[:n], us[n:])
+    radial = us[:n] / mm * d[:n] + us[n:] / mm * d[n:]  # the step along each group's modulus
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross = np.where(radial < 0, -mm / radial, np.inf)
+    hit = int(np.argmin(cross))
+    t = float(min(cross[hit], 1.0))
+    for _ in range(40):
+        trial = us + t * d
+        zeroed = t == cross[hit]
+        if zeroed:
+            trial[[hit, hit + n]] = 0.0
+        ft = f(trial)
+        if ft <= fu + 1e-4 * t * slope:
+            return trial, ft, (hit if zeroed else None)
+        t /= 2
+    return None
+
+
 def _newton_pairs(G2, c2, lam, u, max_steps):
     """Newton on the support of ``u`` (pairs layout), the matrices cut to the support once per
     support; an atom that a step drives through zero is removed and the matrices cut again."""
@@ -81,7 +129,6 @@ def _newton_pairs(G2, c2, lam, u, max_steps):
     while on.size and steps < max_steps:
         n, idx = on.size, np.r_[on, on + k]
         Gs, cs, us = G2[np.ix_(idx, idx)], c2[idx], u[idx]
-        j = np.arange(n)
 
         def f(z, Gs=Gs, cs=cs, n=n):
             return float(z @ Gs @ z - 2 * cs @ z + lam * np.hypot(z[:n], z[n:]).sum())
@@ -89,43 +136,15 @@ def _newton_pairs(G2, c2, lam, u, max_steps):
         fu, left = f(us), None
         while steps < max_steps:
             steps += 1
-            mm = np.hypot(us[:n], us[n:])
-            n1, n2 = us[:n] / mm, us[n:] / mm
-            grad = 2 * (Gs @ us) - 2 * cs + lam * np.r_[n1, n2]
-            H = 2 * Gs
-            H[j, j] += lam * n2**2 / mm  # lam (I - n n^T) / |u_g|: curvature along the phase only
-            H[j + n, j + n] += lam * n1**2 / mm
-            H[j, j + n] -= lam * n1 * n2 / mm
-            H[j + n, j] -= lam * n1 * n2 / mm
-            try:
-                d = np.linalg.solve(H, -grad)
-            except np.linalg.LinAlgError:
-                d = np.linalg.lstsq(H, -grad, rcond=None)[0]
-            slope = float(grad @ d)
-            if not np.all(np.isfinite(d)) or slope >= 0:
+            step = _newton_direction(Gs, cs, us, lam)
+            found = None if step is None else _line_search_to_zero(f, us, fu, *step)
+            if found is None:
                 break
-            # an atom whose modulus the step drives through zero leaves the support there (as in
-            # feature-sign search): the step is shortened to that point and the atom set to zero
-            radial = n1 * d[:n] + n2 * d[n:]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                cross = np.where(radial < 0, -mm / radial, np.inf)
-            hit = int(np.argmin(cross))
-            t = float(min(cross[hit], 1.0))
-            for _ in range(40):
-                trial = us + t * d
-                zeroed = t == cross[hit]
-                if zeroed:
-                    trial[[hit, hit + n]] = 0.0
-                ft = f(trial)
-                if ft <= fu + 1e-4 * t * slope:
-                    break
-                t /= 2
-            else:
-                break
+            trial, ft, zeroed = found
             done = fu - ft <= 1e-15 * max(abs(fu), 1e-300)
             us, fu = trial, ft
-            if zeroed:
-                left = hit
+            if zeroed is not None:
+                left = zeroed
                 break
             if done:
                 break

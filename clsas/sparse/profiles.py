@@ -21,9 +21,9 @@ from collections.abc import Callable
 import numpy as np
 
 from .. import validate as v
-from ..dataset import Dataset
-from ..profiles import Profiles, center_frequency
-from ..signals import analytic
+from ..physics.signals import analytic
+from ..types.dataset import Dataset
+from ..types.profiles import Profiles, center_frequency
 from .registry import SPARSE_METHODS
 
 __all__ = ["SPARSE_OPTIONS", "superres_profiles"]
@@ -305,7 +305,7 @@ class _Recordings:
 
     def _atom(self, m: int, n_window: int):
         """The atom of recording ``m`` (absorbed over its gate's mean path where asked) and that path, m."""
-        from ..physics import speed_of_sound
+        from ..physics.sound import speed_of_sound
         from . import Atom, absorbed_pulse
 
         fs = self.dataset.fs_hz

@@ -355,7 +355,7 @@ def superres(signal, atom_shape, fs_hz: float, *, method: str = "cbp-polar", del
 def _signal_to_fit(x: np.ndarray, amplitudes: str, remove_dc: bool) -> tuple[np.ndarray, bool]:
     """The signal :func:`superres` fits (its mean removed where ``remove_dc``; a real recording
     with complex amplitudes turned into its analytic signal), and whether it was real."""
-    from ..signals import analytic
+    from ..physics.signals import analytic
 
     if remove_dc:
         x = x - np.mean(x)

@@ -47,6 +47,8 @@ OUTPUTS_PENDING: dict[str, str] = {}
 OUTPUT_CHECKED_ELSEWHERE = {
     ("own-data.md", 'ds = clsas.io.import_airsas("small_features_cutout_20k", background="bg_20k")'):
         "tests/docs/test_readme_blocks.py::test_your_own_data_python_prints_what_the_page_shows",
+    ("benchmarks.md", "python -m bench --rates"):
+        "tests/docs/test_readme_blocks.py::test_rates_command_prints_what_the_page_shows",
 }
 EXAMPLE_LINE = re.compile(r"^python3? (examples/[\w-]+\.py)((?: [^#]*)?)(?:#.*)?$")
 
@@ -219,7 +221,24 @@ def test_marks_give_a_reason():
 
 
 def test_readme_is_short():
-    assert len((ROOT / "README.md").read_text(encoding="utf-8").splitlines()) <= 150
+    assert len((ROOT / "README.md").read_text(encoding="utf-8").splitlines()) <= 100
+
+
+def test_readme_states_the_held_out_claim_in_one_sentence_with_its_link():
+    """What clsas tunes and where it is judged: one sentence in the README, the evidence one link away."""
+    paragraphs = (ROOT / "README.md").read_text(encoding="utf-8").split("\n\n")
+    claim = [p for p in paragraphs if "never saw" in p]
+    assert len(claim) == 1, "the README states the held-out claim once"
+    text = " ".join(claim[0].split())
+    assert len(re.findall(r"[.!?](?:\s|$)", text)) == 1, f"not one sentence: {text}"
+    assert "(docs/guide/benchmarks.md#how-choices-are-judged)" in text
+    assert "how-choices-are-judged" in _anchors(ROOT / "docs" / "guide" / "benchmarks.md")
+
+
+def _anchors(page: Path) -> set[str]:
+    """The anchors of a page's headings, as GitHub and MyST make them (lower case, spaces to hyphens)."""
+    return {re.sub(r"[^\w\- ]", "", m.group(1).strip().lower()).replace(" ", "-")
+            for m in re.finditer(r"^#{1,6} (.*)$", page.read_text(encoding="utf-8"), re.MULTILINE)}
 
 
 def _globs() -> dict:
@@ -274,6 +293,13 @@ def test_docstring_example_runs(name, tmp_path, monkeypatch):
     ("", "", True),
     ("", "something\n", False),                                           # no output block: prints nothing
     ("x", "x\ny", False),
+    # a row missing from a table padded with spaces is refused (at once: whitespace runs next to
+    # ``...`` are one pattern, not several that split each run every way)
+    ("...\nnumpy bp ...\nnumpy ffbp ...\nnumpy reconstruct ...\nwrote ...",
+     "\n".join(f"numpy{' ' * 40}{s}{' ' * 30}1.2 ms   3 %" for s in ("bp", "omega-k", "reconstruct")) + "\nwrote x",
+     False),
+    ("...\nnumpy bp ...\nnumpy ffbp ...\nwrote ...",
+     "\n".join(f"numpy{' ' * 40}{s}{' ' * 30}1.2 ms   3 %" for s in ("bp", "ffbp")) + "\nwrote x", True),
 ])
 def test_output_comparison(shown, printed, same):
     assert (compare(shown, printed) is None) is same

@@ -23,18 +23,24 @@ PAGES = [README, *sorted((ROOT / "docs" / "guide").glob("*.md"))]
 
 # the fast-formation page's headings of its ω-k and FFBP snippets
 OMEGA_K, FFBP = "ω-k: `formation=\"omega-k\"`", "FFBP: `formation=\"ffbp\"`"
+# the own-data page's headings of its AirSAS pipeline and of its preprocessing steps
+AIRSAS, PREPROCESS = "The AirSAS scans, start to end", "Preprocessing"
+# the benchmarks page's rates table
+RATES = "Kernel and wall rates on every device"
 
 # (heading, language, n-th block under it) -> where it is run
 RUN_ELSEWHERE = {
-    ("Your own data", "python", 1): "tests/docs/test_docs.py (the own-data page in order: scan.h5 of its setup block "
-                                    "through UFF and back)",
+    **{(heading, "python", 0): "tests/docs/test_docs.py (the own-data page in order, on the scan.h5 of its setup "
+                               "block; its outputs compared)"
+       for heading in ("Look before imaging", PREPROCESS, "Image and compare", "Importing")},
     ("Volumes past memory and past one machine", "python", 0):
         "tests/docs/test_docs.py (the large-volumes page, after its setup block)",
     ("Apodization: `formation_options={\"beam\": ...}`", "python", 0): "tests/docs/test_docs.py (the beams page)",
     ("Super-resolution (sparse recovery)", "python", 0):
         "tests/docs/test_docs.py (the super-resolution page, after its setup block; its output compared)",
-    ("Your own data", "bash", 1): "tests/docs/test_docs.py::test_example_prints_what_the_page_shows (the turntable "
-                                  "example, its output against the page's)",
+    ("A measured-looking scan to try things on", "bash", 0):
+        "tests/docs/test_docs.py::test_example_prints_what_the_page_shows (the turntable example, its output "
+        "against the page's)",
     ("Super-resolution (sparse recovery)", "bash", 0):
         "tests/docs/test_docs.py::test_example_prints_what_the_page_shows (the fig4 example, its output against "
         "the page's)",
@@ -47,15 +53,16 @@ RUN_ELSEWHERE = {
         "tests/scenarios/test_first_use_guards_and_light_import.py::test_the_readme_python_api_in_ten_lines_runs_as_written",
 }
 RUN_HERE = {
-    ("Your own data", "python", 0): "test_your_own_data_python",
-    ("Your own data", "bash", 0): "test_your_own_data_command_line",
-    ("Your own data", "toml", 0): "test_your_own_data_preprocess_table",
+    (AIRSAS, "python", 0): "test_your_own_data_python",
+    (AIRSAS, "bash", 0): "test_your_own_data_command_line",
+    (PREPROCESS, "toml", 0): "test_your_own_data_preprocess_table",
     ("Command line", "toml", 0): "test_command_line_scene_file",
     ("Beam models and boresights", "toml", 0): "test_beams_table",
     (OMEGA_K, "python", 0): "test_fragments_on_a_small_scan",
     (FFBP, "python", 0): "test_fragments_on_a_small_scan",
     ("Extending clsas: one module and one line", "python", 0): "test_extending_registers_a_formation",
     ("On the command line", "bash", 0): "test_autofocus_command_line",
+    (RATES, "bash", 0): "test_rates_command_prints_what_the_page_shows",
 }
 NOT_RUN = {
     ("The two commands", "bash", 0): "installs the package into a new virtual environment and runs the whole "
@@ -131,7 +138,7 @@ def test_your_own_data_python(airsas_folders):
     from airsas_kit import TARGET
 
     env: dict = {}
-    exec(compile(block("Your own data", "python"), "README.md (Your own data)", "exec"), env)  # noqa: S102
+    exec(compile(block(AIRSAS, "python"), "own-data.md (AirSAS)", "exec"), env)  # noqa: S102
     image = env["image"]
     found = np.array([p.position_m for p in image.peaks(3, min_separation_m=0.015)])
     for t in TARGET:
@@ -153,11 +160,11 @@ def test_your_own_data_python_prints_what_the_page_shows(monkeypatch, capsys):
     data = os.environ.get("CLSAS_AIRSAS_DATA", "")
     if not data or not (Path(data) / "small_features_cutout_20k").is_dir():
         pytest.skip("CLSAS_AIRSAS_DATA does not name the AirSAS data folder (small_features_cutout_20k, bg_20k)")
-    code = block("Your own data", "python")
+    code = block(AIRSAS, "python")
     shown = next(out for _, lang, _, c, out in code_blocks(ROOT / "docs" / "guide" / "own-data.md")
                  if lang == "python" and c.rstrip("\n") == code.rstrip("\n"))
     monkeypatch.chdir(data)
-    exec(compile(code, "own-data.md (Your own data)", "exec"), {})  # noqa: S102
+    exec(compile(code, "own-data.md (AirSAS)", "exec"), {})  # noqa: S102
     why = compare(shown.text, capsys.readouterr().out, shown.rtol)
     assert why is None, why
 
@@ -165,7 +172,7 @@ def test_your_own_data_python_prints_what_the_page_shows(monkeypatch, capsys):
 def test_your_own_data_command_line(airsas_folders, capsys):
     from clsas.cli import main
 
-    for line in block("Your own data", "bash").splitlines():
+    for line in block(AIRSAS, "bash").splitlines():
         argv = shlex.split(line.split("#")[0])
         assert argv[0] == "clsas"
         assert main(argv[1:]) == 0, line
@@ -177,14 +184,14 @@ def test_your_own_data_command_line(airsas_folders, capsys):
 
 def test_your_own_data_preprocess_table(tmp_path):
     from clsas import preprocess as pp
-    from clsas.synthetic import turntable_scan
+    from clsas.synthesis.synthetic import turntable_scan
 
     scan = turntable_scan(12, snr_db=40)
     scan.background.save(tmp_path / "empty.h5")
-    (tmp_path / "steps.toml").write_text(block("Your own data", "toml"))
+    (tmp_path / "steps.toml").write_text(block(PREPROCESS, "toml"))
     import tomllib
 
-    from clsas.config import preprocess_table
+    from clsas.io.config import preprocess_table
 
     cfg = tomllib.loads((tmp_path / "steps.toml").read_text())
     table = preprocess_table(cfg, str(tmp_path / "steps.toml"))
@@ -195,7 +202,7 @@ def test_your_own_data_preprocess_table(tmp_path):
 
 
 def test_command_line_scene_file(tmp_path):
-    from clsas.scenes import load_config
+    from clsas.synthesis.scenes import load_config
 
     (tmp_path / "scene.toml").write_text(block("Command line", "toml"))
     cfg = load_config(tmp_path / "scene.toml")
@@ -208,7 +215,7 @@ def test_command_line_scene_file(tmp_path):
 
 def test_beams_table(tmp_path):
     """The beams page's [beams] table, in the command-line page's scene file."""
-    from clsas.scenes import load_config
+    from clsas.synthesis.scenes import load_config
 
     text = block("Command line", "toml") + "\n" + block("Beam models and boresights", "toml")
     (tmp_path / "scene.toml").write_text(text)
@@ -247,6 +254,25 @@ def test_autofocus_command_line(tmp_path, monkeypatch):
     assert (tmp_path / "fixed.png").exists()
     steps = [p["step"] for p in clsas.load(tmp_path / "fixed.h5").provenance]
     assert steps[-1] == "autofocus"
+
+
+def test_rates_command_prints_what_the_page_shows(tmp_path, capsys):
+    """The benchmarks page's rates command, on the smallest scan (8 x 8 stops) and on the NumPy twins
+    only (the page's output block leaves the sizes, timings and devices as ``...``), prints what the
+    page shows."""
+    from doc_output import compare
+    from test_docs import code_blocks
+
+    from bench.__main__ import main
+
+    code = block(RATES, "bash")
+    shown = next(out for _, lang, _, c, out in code_blocks(ROOT / "docs" / "guide" / "benchmarks.md")
+                 if lang == "bash" and c.rstrip("\n") == code.rstrip("\n"))
+    argv = shlex.split(code.split("#")[0])
+    assert argv[:3] == ["python", "-m", "bench"] and "--rates" in argv
+    assert main([*argv[3:], "--rates", "8", "--devices", "numpy", "--out", str(tmp_path)]) == 0
+    why = compare(shown.text, capsys.readouterr().out, shown.rtol)
+    assert why is None, why
 
 
 def test_extending_registers_a_formation():

@@ -116,7 +116,7 @@ def test_rig_beams_are_stored_per_stop_on_the_real_firmware(uno, tmp_path, capsy
     assert main(["acquire", str(conf), str(out), "--simulate", "audio", "-q"]) == 0
     ds = clsas.load(out)
     assert ds.beams is not None and ds.beams.n_meas == ds.n_meas == 4
-    want = clsas.beam.axis_boresights(ds.tx_positions, (0.5, 0.5, 0.0), (0.0, 0.0, 1.0))
+    want = clsas.physics.beam.axis_boresights(ds.tx_positions, (0.5, 0.5, 0.0), (0.0, 0.0, 1.0))
     np.testing.assert_allclose(ds.beams.tx_boresight, want, atol=1e-12)
 
 

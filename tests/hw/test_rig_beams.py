@@ -48,7 +48,7 @@ def test_rig_beams_follow_the_axis_rule_at_each_measured_position(tmp_path):
     path = tmp_path / "axis.h5"
     rig.acquire(cfg, path, simulate=True)
     ds = clsas.load(path)
-    want = clsas.beam.axis_boresights(ds.tx_positions, (0, 0, 0), (0, 1, 0))
+    want = clsas.physics.beam.axis_boresights(ds.tx_positions, (0, 0, 0), (0, 1, 0))
     np.testing.assert_allclose(ds.beams.tx_boresight, want, atol=1e-12)
 
 

@@ -14,9 +14,10 @@ import pyopencl as cl
 import clsas
 from clsas.cl import Shape
 from clsas.compression import fft_layout
-from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
-from clsas.focus.opencl import FocusGradientPlan
+from clsas.compression.compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+from clsas.focus.gradient_opencl import FocusGradientPlan
 from clsas.formation.bp_numpy import backproject as bp_twin
+from clsas.formation.bp_numpy import carrier_records
 from clsas.formation.bp_opencl import BackprojectPlan, RecordsPlan, selftest_scene, upsample_factor
 from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
 from clsas.formation.stolt_opencl import StoltDepthsPlan, StoltPlan
@@ -112,6 +113,13 @@ def check_records(queue, rng, vec):
         want = bp_twin(wide[:, :40], tau0, dtau, 25e3, tx, rx, c, grid.points())  # zero-padded to the plan's 40
         close(got, want, 1e-4, f"resident bp, dtau {dtau * fs:g} samples")
     assert RecordsPlan.selftest(queue, vec) < 1e-4, "carrier_records"
+    # the row-map build (FFBP's tree order): rows read through row_of, in another order
+    order = np.array([2, 0, 1])
+    mapped = RecordsPlan(3, 40, upsample_factor(25e3, 8 / fs), queue=queue, vec=vec, row_map=True)
+    mapped.begin()
+    mapped.enqueue(d_prof, 43, 37, tau0[order], 8 / fs, 25e3, row_of=order)
+    want_rec, *_ = carrier_records(wide[order, :37], 40, tau0[order], 8 / fs, 25e3)
+    close(mapped.read(mapped.d_pairs, want_rec.shape, np.complex64), want_rec, 1e-5, "carrier_records, row map")
 
 
 def check_gradient(queue, rng, vec):

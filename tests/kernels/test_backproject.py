@@ -6,7 +6,7 @@ from conftest import BACKENDS, TOL, needs_opencl, small_dataset, width_or_skip
 
 import clsas
 from clsas.formation import bp_numpy as twin
-from clsas.rangegate import path_bounds
+from clsas.types.rangegate import path_bounds
 
 
 @needs_opencl

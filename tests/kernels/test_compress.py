@@ -161,7 +161,7 @@ def test_every_compress_kernel_equals_twin_at_every_width(rng, chirp96, kernel, 
     from clsas import cl
     from clsas.compression import fft_layout
     from clsas.compression import numpy as twin
-    from clsas.compression.opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
+    from clsas.compression.compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 
     width_or_skip(kernel, vec)
     wave, fs = chirp96

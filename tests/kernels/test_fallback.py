@@ -58,7 +58,7 @@ def scene():
     """A 16 x 16 raster (planar and uniform, for omega-k), one point, a small grid in front."""
     ds = small_dataset([[0.0, 0.0, 0.5]], nx=16, ny=16, width=0.2, height=0.2)
     grid = clsas.VoxelGrid.from_bounds((-0.04, 0.04), (-0.04, 0.04), (0.46, 0.54), 0.008)
-    gate = clsas.rangegate.plan_reconstruction(ds, grid, []).gate_s
+    gate = clsas.types.rangegate.plan_reconstruction(ds, grid, []).gate_s
     prof = clsas.compress(ds, gate_s=gate, backend="numpy")
     return ds, grid, prof
 
@@ -92,7 +92,7 @@ def _resident(scene, backend):
     there (kernels/records.cl). The profiles come from OpenCL whatever ``backend`` is, so that the
     twin's image is of the same (float32) profiles."""
     ds, grid, _ = scene
-    gate = clsas.rangegate.plan_reconstruction(ds, grid, []).gate_s
+    gate = clsas.types.rangegate.plan_reconstruction(ds, grid, []).gate_s
     prof = clsas.compress(ds, gate_s=gate, backend="opencl")
     assert prof.on_device is not None
     image = clsas.backproject(prof, grid, backend=backend)

@@ -1,6 +1,7 @@
 """kernels/records.cl (the carrier records bp reads, made on the device) against its twin
 (clsas.formation.bp_numpy.carrier_records) and analytically; the resident path (compression ->
-records -> bp on device buffers, the image read once as complex64) against the step-by-step one."""
+records -> bp on device buffers, the image read once as complex64) against the step-by-step one;
+FFBP's leaves from the compression's rows (records made on the device in tree order)."""
 
 import numpy as np
 import pytest
@@ -66,6 +67,61 @@ def test_records_kernel_equals_twin_at_every_width(rng, vec, up):
     assert np.abs(got - want).max() / np.abs(want).max() < 1e-6
     got2, *_ = plan(data, tau0, dtau, FC)  # the host-profile call: the same records
     assert np.abs(got2 - want).max() / np.abs(want).max() < 1e-6
+
+
+@needs_opencl
+@pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
+def test_records_kernel_with_a_row_map_equals_twin_on_the_rows_reordered(rng, vec):
+    """Built with ROW_MAP, record row m is the twin's record of profile row row_of[m] (FFBP's tree
+    order), with tau0 given in the records' order; a map that is not a permutation is refused."""
+    from clsas import cl
+    from clsas.formation.bp_opencl import RecordsPlan
+
+    width_or_skip("carrier_records", vec)
+    n_meas, n_lags, n_data, stride, up = 2 * vec + 3, 41, 37, 44, 3
+    dtau = up * 0.55 / FC
+    data = _profiles(rng, n_meas, n_data)
+    tau0 = rng.uniform(1e-3, 9e-3, n_meas)
+    order = rng.permutation(n_meas)
+    want, *_ = carrier_records(data[order], n_lags, tau0[order], dtau, FC)
+    plan = RecordsPlan(n_meas, n_lags, up, queue=cl.get_queue(), vec=vec, row_map=True)
+    wide = np.zeros((n_meas, stride), np.complex64)
+    wide[:, :n_data] = data
+    d_prof = plan.upload(wide, np.complex64)
+    plan.begin()
+    plan.enqueue(d_prof, stride, n_data, tau0[order], dtau, FC, row_of=order)
+    got = plan.read(plan.d_pairs, want.shape, np.complex64)
+    assert np.abs(got - want).max() / np.abs(want).max() < 1e-6
+    with pytest.raises(ValueError, match="row_of must be a permutation"):
+        plan.enqueue(d_prof, stride, n_data, tau0, dtau, FC, row_of=np.zeros(n_meas, int))
+    with pytest.raises(ValueError, match="without row_map"):
+        RecordsPlan(n_meas, n_lags, up, queue=cl.get_queue()).enqueue(d_prof, stride, n_data, tau0, dtau, FC,
+                                                                        row_of=order)
+
+
+@needs_opencl
+def test_ffbp_forms_its_leaves_from_the_rows_compression_left_on_the_device(monkeypatch):
+    """FFBP on OpenCL takes the compression's rows on the device (no records made on the host) and
+    forms the image the host-records path forms; profiles without rows take the host path."""
+    import dataclasses
+
+    from clsas.formation import ffbp_opencl
+
+    ds = small_dataset([[0.02, -0.03, 0.6], [-0.05, 0.04, 0.7]], nx=12, ny=10)
+    grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.1, 0.1), (0.55, 0.75), 0.01)
+    prof = clsas.compress(ds, backend="opencl")
+    assert prof.on_device is not None
+    host = clsas.formation.form(dataclasses.replace(prof, on_device=None), grid, "ffbp", backend="opencl")
+    assert "ffbp_records_kernel" not in host.timings_s
+
+    def no_host_records(*args, **kwargs):
+        raise AssertionError("records made on the host")
+
+    monkeypatch.setattr(ffbp_opencl, "carrier_records", no_host_records)
+    resident = clsas.formation.form(prof, grid, "ffbp", backend="opencl")
+    assert resident.timings_s["ffbp_records_kernel"] > 0
+    ref = np.abs(host.values).max()
+    assert np.abs(resident.values - host.values).max() / ref < 1e-6
 
 
 @needs_opencl
@@ -172,7 +228,7 @@ def test_stale_rows_are_not_read():
     import pickle
     from dataclasses import replace
 
-    from clsas.compression.opencl import MatchedFilterPlan
+    from clsas.compression.compress_opencl import MatchedFilterPlan
 
     ds, grid = _scan()
     prof = clsas.compress(ds, backend="opencl", algorithm="direct")

@@ -178,7 +178,7 @@ def test_the_bar_names_the_stages_the_pipeline_announced(scan, tmp_path, capsys,
 
 
 def test_the_stage_bar_announces_each_stage_once_after_its_first_count():
-    from clsas.progress import Progress
+    from clsas.types.progress import Progress
 
     stages, seen = ("super-resolve (cbp-taylor)", "backproject"), []
     with stage_bar(enabled=False, announce=lambda stage, *a: seen.append((stage, *a[1:]))) as cb:
@@ -205,7 +205,7 @@ def test_a_job_over_a_minute_is_announced_with_the_faster_methods(capsys):
 def test_demo_checks_every_scene_memory_before_the_first_starts(tmp_path, monkeypatch, capsys):
     import clsas
     from clsas.formation import guard
-    from clsas.scenes import demo_configs, parse_config
+    from clsas.synthesis.scenes import demo_configs, parse_config
 
     sizes = [parse_config(t).grid.size for t in demo_configs(0.01).values()]
     assert sizes[0] < sizes[1]  # front fits, corner does not
@@ -248,7 +248,7 @@ def _docs_text(root: Path) -> str:
 
 def test_the_readme_scene_and_rig_files_are_shipped():
     from clsas import rig
-    from clsas.scenes import parse_config
+    from clsas.synthesis.scenes import parse_config
 
     root = Path(__file__).resolve().parents[2]
     readme = _docs_text(root)
@@ -341,7 +341,7 @@ def test_autofocus_reports_one_group_delay_with_one_sign(scan):
     import re
 
     import clsas
-    from clsas.scenes import stored_grid_and_truth
+    from clsas.synthesis.scenes import stored_grid_and_truth
 
     ds = clsas.load(scan)
     grid, _ = stored_grid_and_truth(ds.config)
@@ -397,7 +397,7 @@ def test_a_convex_method_over_a_minute_is_announced_before_any_work(scan, capsys
     the first recording starts, not after it ends."""
     import clsas
     from clsas.cli.common import announce_slow_method, estimated_sparse_s
-    from clsas.scenes import parse_config, stored_grid_and_truth
+    from clsas.synthesis.scenes import parse_config, stored_grid_and_truth
 
     root = Path(__file__).resolve().parents[2]
     cfg = parse_config((root / "examples" / "scene.toml").read_text())

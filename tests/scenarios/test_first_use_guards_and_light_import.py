@@ -36,7 +36,7 @@ def test_contract_names_at_the_top_level_are_lazy():
 def test_own_tukey_and_hilbert_equal_scipy(n, fraction):
     import scipy.signal
 
-    from clsas.signals import tukey_taper
+    from clsas.physics.signals import tukey_taper
 
     assert np.allclose(tukey_taper(n, fraction), scipy.signal.windows.tukey(n, fraction))
     x = np.random.default_rng(n).normal(size=(3, n))
@@ -58,7 +58,7 @@ def test_a_grid_that_does_not_fit_is_refused_with_the_numbers(monkeypatch, backe
     def no_work(*a, **k):
         raise AssertionError("work started before the guard")
 
-    monkeypatch.setattr(clsas.pipeline, "compress", no_work)
+    monkeypatch.setattr(clsas.pipeline.reconstruction, "compress", no_work)
     with pytest.raises(ValueError, match=r"21 x 21 x 21 = 9.26e\+03 voxels needs about .* a spacing of .* m or more"):
         clsas.reconstruct(ds, grid, backend=backend)
     monkeypatch.undo()

@@ -12,7 +12,7 @@ from conftest import BACKENDS, TOL, needs_opencl, width_or_skip
 
 import clsas
 from clsas import preprocess as pp
-from clsas.synthetic import turntable_scan
+from clsas.synthesis.synthetic import turntable_scan
 
 GRID = clsas.VoxelGrid.from_bounds((-0.15, 0.15), (-0.15, 0.15), (0.0, 0.0), 0.004)
 

@@ -25,9 +25,9 @@ from dataclasses import replace
 from typing import Any
 
 from ... import cl
-from ...geometry import VoxelGrid
-from ...image import Image
-from ...profiles import Profiles
+from ...physics.geometry import VoxelGrid
+from ...types.image import Image
+from ...types.profiles import Profiles
 from ..registry import FORMATIONS
 from .calibrate import calibrate_auto
 from .choice import choose, resolve

@@ -43,9 +43,9 @@ REPEAT_MAX = 7
 
 def calibration_case(n: int, seed: int = 0):
     """(dataset, grid) of the N x N-stop scan (see the module notes)."""
-    from ...geometry import Scene, VoxelGrid, raster_aperture
-    from ...signals import lfm_chirp
-    from ...simulation import simulate
+    from ...physics.geometry import Scene, VoxelGrid, raster_aperture
+    from ...physics.signals import lfm_chirp
+    from ...synthesis.simulation import simulate
 
     side = PITCH * (n - 1)
     ap = raster_aperture(n, n, side, side)
@@ -65,7 +65,7 @@ def calibration_case(n: int, seed: int = 0):
 def case_profiles(ds, grid, selection=None):
     """The case's profiles over its grid's delay gate (matched filter)."""
     from ...compression import compress
-    from ...rangegate import plan_reconstruction
+    from ...types.rangegate import plan_reconstruction
 
     plan = plan_reconstruction(ds, grid, [])
     return compress(ds, gate_s=plan.gate_s, backend=selection)

@@ -11,8 +11,8 @@ from __future__ import annotations
 import logging
 import math
 
-from ...geometry import VoxelGrid
-from ...profiles import Profiles
+from ...physics.geometry import VoxelGrid
+from ...types.profiles import Profiles
 from .predict import estimate
 from .rules import DEFAULT_MAX_ERROR_DB, Choice, by_rule, check_max_error_db
 from .timing import load_calibration

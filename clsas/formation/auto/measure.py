@@ -21,7 +21,7 @@ predicted error had been off by -7 to +10 dB; on the 128 x 128-stop dense case (
 -32.3 and -32.4 dB against -32.5 dB.
 
 Auto keeps the image where the upper bound is within the target and forms the next candidate
-otherwise (:func:`clsas.pipeline.reconstruct` records both).
+otherwise (:func:`clsas.pipeline.reconstruction.reconstruct` records both).
 """
 
 from __future__ import annotations
@@ -35,8 +35,8 @@ from typing import Any
 
 import numpy as np
 
-from ...geometry import VoxelGrid
-from ...profiles import Profiles
+from ...physics.geometry import VoxelGrid
+from ...types.profiles import Profiles
 
 __all__ = ["CHECK_VOXELS", "MAX_STRIDE", "Check", "form_choice", "measure_error", "sublattice"]
 

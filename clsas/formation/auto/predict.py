@@ -53,8 +53,8 @@ import time
 
 import numpy as np
 
-from ...geometry import VoxelGrid
-from ...profiles import Profiles
+from ...physics.geometry import VoxelGrid
+from ...types.profiles import Profiles
 from .rules import DEFAULT_MAX_ERROR_DB, check_max_error_db
 from .timing import BUILTIN, _device, _seconds, load_calibration, work_bp, work_ffbp, work_omega_k
 from .trust import CHECK_IF_UNDER, MARGIN_DB, Estimate, _near, _safe, check_seconds

@@ -23,7 +23,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ...profiles import Profiles
+from ...types.profiles import Profiles
 from .trust import Estimate
 
 __all__ = ["DEFAULT_MAX_ERROR_DB", "Choice", "by_rule", "check_max_error_db", "rule_reason"]
@@ -103,7 +103,7 @@ def rule_reason(method: str, *, tiled: bool = False, beams=None) -> str | None:
         What makes the profiles: a compression (``"matched"``, ``"fmcw"``) or a sparse method.
     tiled : bool
         Whether the grid is formed in tiles.
-    beams : clsas.beam.Beams or None
+    beams : clsas.physics.beam.Beams or None
         The dataset's beams (None: omnidirectional).
     """
     from ...sparse import SPARSE_METHODS  # imported when auto forms, not by `import clsas`

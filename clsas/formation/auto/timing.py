@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ...geometry import VoxelGrid
-from ...profiles import Profiles
+from ...physics.geometry import VoxelGrid
+from ...types.profiles import Profiles
 
 __all__ = ["BUILTIN", "FORMAT", "GPU_FIXED", "OMEGA_K_CORE_EXPONENT", "calibration_path", "load_calibration",
            "store_calibration", "work_bp", "work_ffbp", "work_omega_k"]
@@ -145,7 +145,7 @@ def work_bp(profiles: Profiles, grid: VoxelGrid) -> dict:
 def work_omega_k(sizes: dict, opencl: bool = True) -> dict:
     """Counted work of ω-k from :func:`clsas.formation.omega_k.plan_sizes` (the Stolt step's path as
     ω-k takes it on OpenCL, or on the NumPy twins where ``opencl`` is False)."""
-    from ..stolt import depth_path, direct_work
+    from ..stolt_numpy import depth_path, direct_work
 
     n_fft, n_f, nz = sizes["n_fft"], sizes["n_f"], sizes["nz"]
     pu, pv, _ = sizes["axes"]

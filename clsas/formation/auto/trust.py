@@ -12,8 +12,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from ...geometry import VoxelGrid
-from ...profiles import Profiles
+from ...physics.geometry import VoxelGrid
+from ...types.profiles import Profiles
 from .timing import _seconds
 
 __all__ = ["CHECK_ABOVE_DB", "CHECK_IF_UNDER", "CHECK_SHARE", "CHECK_UNPREDICTED_SHARE", "MARGIN_DB",

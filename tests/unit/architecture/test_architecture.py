@@ -113,6 +113,64 @@ def test_the_device_layer_imports_nothing_above_it():
     assert {m: ts for m, ts in above.items() if ts} == {}
 
 
+# The floors of clsas, bottom first: a folder (or ground module) imports only from its own floor
+# and the floors below it, at module level and inside functions alike. The extending guide draws
+# the same table.
+FLOORS = (
+    ("ground", ("validate", "version", "registry")),
+    ("physics", ("physics",)),
+    ("types", ("types",)),
+    ("device", ("cl",)),
+    ("data in", ("io", "synthesis")),
+    ("algorithms", ("compression", "formation", "sparse", "inverse")),
+    ("pipeline", ("pipeline",)),
+    ("after the pipeline", ("focus", "preprocess", "presenting")),
+    ("top", ("cli", "rig")),
+)
+# (from room, to room): the imports that still reach up a floor, each with its reason
+KNOWN_UPWARD = {
+    ("sparse", "pipeline"): "per-profile recovery on a Dask cluster connects through the pipeline's Dask helpers",
+}
+
+
+def _room(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else parts[0]
+
+
+def floor_violations(graph: dict[str, set[str]]) -> set[tuple[str, str]]:
+    """The (room, room) pairs where an import reaches a higher floor."""
+    level = {room: i for i, (_, rooms) in enumerate(FLOORS) for room in rooms}
+    out = set()
+    for a, targets in graph.items():
+        ra = _room(a)
+        if ra == "clsas":  # the package's __init__ gathers the public names of every floor
+            continue
+        for b in targets:
+            rb = _room(b)
+            if rb != "clsas" and level[rb] > level[ra]:
+                out.add((ra, rb))
+    return out
+
+
+def test_every_room_has_a_floor():
+    rooms = {_room(m) for m in _modules()} - {"clsas"}
+    placed = {room for _, rooms in FLOORS for room in rooms}
+    assert rooms == placed, f"not on a floor: {sorted(rooms - placed)}; gone: {sorted(placed - rooms)}"
+
+
+def test_each_floor_imports_only_floors_below_it():
+    found = floor_violations(import_graph())
+    assert found <= set(KNOWN_UPWARD), f"imports that reach a higher floor: {sorted(found - set(KNOWN_UPWARD))}"
+    stale = set(KNOWN_UPWARD) - found
+    assert not stale, f"no longer reach up, take them off KNOWN_UPWARD: {sorted(stale)}"
+
+
+def test_the_floor_check_sees_an_upward_import():
+    graph = {"clsas.physics.sound": {"clsas.pipeline.reconstruction"}, "clsas.pipeline.reconstruction": set()}
+    assert floor_violations(graph) == {("physics", "pipeline")}
+
+
 def test_every_module_imports_in_a_fresh_interpreter():
     """Each module imported first in a clean interpreter (no other clsas module loaded before it), so
     an import that works only in the order the test suite happens to use is caught."""

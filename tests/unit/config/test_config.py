@@ -9,8 +9,8 @@ import pytest
 
 from clsas import rig
 from clsas.cli import main
-from clsas.config import ConfigError, suggestion
-from clsas.scenes import demo_configs, load_config, parse_config, stored_grid_and_truth
+from clsas.io.config import ConfigError, suggestion
+from clsas.synthesis.scenes import demo_configs, load_config, parse_config, stored_grid_and_truth
 
 SCENE = """
 [chirp]
@@ -214,7 +214,7 @@ def test_stored_configurations_give_grid_and_truth():
 
 
 def test_scenes_do_not_import_the_rig():
-    code = "import sys, clsas.scenes, clsas.config; print('clsas.rig' in sys.modules)"
+    code = "import sys, clsas.synthesis.scenes, clsas.io.config; print('clsas.rig' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
 
@@ -256,7 +256,7 @@ def test_a_stored_configuration_refused_today_costs_only_grid_or_truth(caplog):
 
 
 def test_stored_scene_of_scene_and_rig_files():
-    from clsas.scenes import stored_scene
+    from clsas.synthesis.scenes import stored_scene
 
     scene = stored_scene(SCENE)
     assert len(scene.points_m) == 1 and len(scene.walls) == 1

@@ -10,7 +10,7 @@ from clsas.focus import FOCUS_METHODS, autofocus, score
 from clsas.focus import numpy as twin
 from clsas.focus.engine import FocusEngine
 from clsas.focus.metrics import metric_and_weight
-from clsas.scan_errors import HandMotion, hand_motion
+from clsas.physics.scan_errors import HandMotion, hand_motion
 
 FS = 96e3
 POINTS = [[0.02, -0.01, 0.6], [-0.05, 0.03, 0.65], [0.06, 0.04, 0.62], [-0.03, -0.05, 0.58]]
@@ -29,7 +29,7 @@ GRID = clsas.VoxelGrid.from_bounds((-0.09, 0.09), (-0.08, 0.07), (0.55, 0.69), 0
 @pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
 @pytest.mark.parametrize("shape", [(9, 7, 5), (13, 1, 11)], ids=["volume", "plane"])
 def test_gradient_kernel_equals_twin(rng, vec, shape):
-    from clsas.focus.opencl import FocusGradientPlan
+    from clsas.focus.gradient_opencl import FocusGradientPlan
 
     width_or_skip("focus_gradient", vec)
     ds = scan(nx=7, ny=5)

@@ -7,8 +7,8 @@ import pytest
 import clsas
 from clsas.focus import DEFAULT_METHODS, FOCUS_METHODS, autofocus
 from clsas.focus.split import agreement, magnitude_correlation
-from clsas.scan_errors import HandMotion
-from clsas.scene_family import HELD_OUT_SEEDS, KINDS, SEED_SETS, TUNING_SEEDS, family_scene
+from clsas.physics.scan_errors import HandMotion
+from clsas.synthesis.scene_family import HELD_OUT_SEEDS, KINDS, SEED_SETS, TUNING_SEEDS, family_scene
 
 FS = 96e3
 POINTS = np.array([[0.02, -0.01, 0.6], [-0.05, 0.03, 0.65], [0.06, 0.04, 0.62], [-0.03, -0.05, 0.58]])
@@ -169,7 +169,7 @@ def test_the_per_stop_ceiling_undoes_the_hand_motion_of_a_family_scene():
     # the truth applied as one delay per stop (towards the grid's centre) brings the brightest
     # voxel's local peak back to the error-free one: the per-stop model holds on this scene
     from bench.autofocus_family import local_peak_db, oracle_per_stop
-    from clsas.scene_family import family_scene
+    from clsas.synthesis.scene_family import family_scene
 
     fs = family_scene(6)
     clean = clsas.reconstruct(fs.clean, fs.grid)

@@ -8,7 +8,7 @@ import pytest
 import clsas
 from clsas.focus import autofocus, score
 from clsas.focus.points import MIN_COHERENCE, common_phases, pick_points
-from clsas.scene_family import family_scene
+from clsas.synthesis.scene_family import family_scene
 
 
 def test_common_phases_read_the_stops_phases_without_a_reference_point():

@@ -16,7 +16,7 @@ from clsas.focus.track import (
     region_agreement,
     track_phases,
 )
-from clsas.scan_errors import HandMotion
+from clsas.physics.scan_errors import HandMotion
 
 FS = 96e3
 # neighbouring stops see a compact target far away from almost the same direction: their images
@@ -215,7 +215,7 @@ def test_a_surface_whose_halves_decorrelate_is_determined_by_its_two_sides():
     # family seed 2002 (tuning-2): a plane at 1.77 m, 17 x 28 stops 30 x 9 mm apart, 3 mm of hand
     # motion. The even and odd stops (60 mm apart along the rows) track different paths; the
     # target's two sides, tracked with every stop, agree (issue 26, eleventh session)
-    from clsas.scene_family import family_scene
+    from clsas.synthesis.scene_family import family_scene
 
     fs = family_scene(2002, rms_m=3e-3)
     out, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "track"))
@@ -232,7 +232,7 @@ def test_a_surface_whose_halves_decorrelate_is_determined_by_its_two_sides():
 def test_track_replaces_points_on_a_surface_the_points_only_sample():
     # family seed 2001 (tuning-2): a sphere cap; "points" passes its check on speckle peaks and
     # leaves the peak 2.7 dB down; "track" passes its own and the sub-apertures agree better after it
-    from clsas.scene_family import family_scene
+    from clsas.synthesis.scene_family import family_scene
 
     fs = family_scene(2001, rms_m=3e-3)
     out, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "points", "track"))
@@ -243,7 +243,7 @@ def test_track_replaces_points_on_a_surface_the_points_only_sample():
 
 
 def test_points_stays_on_isolated_points_when_track_runs_too():
-    from clsas.scene_family import family_scene
+    from clsas.synthesis.scene_family import family_scene
 
     fs = family_scene(6, rms_m=3e-3)  # 12 points: "points" is the better of the two
     out, rep = autofocus(fs.dataset, fs.grid, methods=("direct", "points", "track"))

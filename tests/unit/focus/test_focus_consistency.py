@@ -6,7 +6,7 @@ import pytest
 
 import clsas
 from clsas.focus.consistency import Consistency, data_consistency
-from clsas.scan_errors import HandMotion
+from clsas.physics.scan_errors import HandMotion
 
 FS = 96e3
 POINTS = np.array([[0.02, -0.01, 0.6], [-0.03, 0.02, 0.62], [0.01, 0.025, 0.61]])

@@ -6,7 +6,7 @@ import pytest
 
 import clsas
 from clsas.focus.significance import beyond_uncertainty, delay_floor_s, delay_spread_s, judge
-from clsas.scene_family import TUNING_2_SEEDS, family_scene
+from clsas.synthesis.scene_family import TUNING_2_SEEDS, family_scene
 
 
 @pytest.fixture(scope="module")

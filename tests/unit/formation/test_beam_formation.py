@@ -12,9 +12,9 @@ import pytest
 from conftest import BACKENDS, needs_opencl, width_or_skip
 
 import clsas
-from clsas.beam import Beams, Cone, Omni, Piston, beam_weights
 from clsas.formation import bp_numpy as twin
-from clsas.specular import Surface
+from clsas.physics.beam import Beams, Cone, Omni, Piston, beam_weights
+from clsas.physics.specular import Surface
 
 
 @needs_opencl
@@ -217,8 +217,8 @@ def test_ffbp_applies_the_beams_as_bp_does(tilted_water_scan, backend, caplog):
 def test_ffbp_beam_options_are_checked_and_keep_the_planned_tree(tilted_water_scan):
     from dataclasses import replace
 
-    from clsas.beam import Beams
     from clsas.formation.ffbp import plan_tree
+    from clsas.physics.beam import Beams
 
     prof, grid = tilted_water_scan
     with pytest.raises(ValueError, match="beam"):

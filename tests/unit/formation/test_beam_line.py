@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.beam import Beams, Cone, Piston
 from clsas.formation import error_to_signal_db
+from clsas.physics.beam import Beams, Cone, Piston
 
 
 def _line_scan(n=40, pitch=0.15e-3, beams=None):

@@ -9,7 +9,7 @@ from conftest import BACKENDS, OPENCL_MISSING, TOL, needs_opencl, width_or_skip
 import clsas
 from clsas.formation import error_to_signal_db, form
 from clsas.formation.planar import NotPlanarUniform, planar_aperture, well_sampled_cone
-from clsas.formation.stolt import spread
+from clsas.formation.stolt_numpy import spread
 
 FS = 96e3
 F_TOP = 30e3
@@ -32,7 +32,7 @@ TARGETS = [[0.008, -0.004, 0.25], [-0.012, 0.012, 0.262]]
 def _profiles(ds, grid):
     """Compressed over the grid's gate (on OpenCL where there is a device: the NumPy twin of
     compression is slow, and it is not what is tested here)."""
-    return clsas.compress(ds, gate_s=clsas.rangegate.plan_reconstruction(ds, grid, []).gate_s)
+    return clsas.compress(ds, gate_s=clsas.types.rangegate.plan_reconstruction(ds, grid, []).gate_s)
 
 
 @pytest.fixture(scope="module")
@@ -110,7 +110,7 @@ def test_two_microphones_and_air_that_changes():
 def test_range_profiles_from_elsewhere_and_fmcw(scan):
     ds, _, _ = scan
     # analytic profiles at the recording's rate, as an outside deconvolution would give them
-    gate = clsas.rangegate.plan_reconstruction(ds, GRID, []).gate_s
+    gate = clsas.types.rangegate.plan_reconstruction(ds, GRID, []).gate_s
     prof = clsas.compress(ds, gate_s=gate, lag_step=1)
     ext = clsas.Profiles.from_range_profiles(prof.carrier(), tau0_s=prof.tau0_s, dtau_s=prof.dtau_s,
                                              tx_positions=ds.tx_positions, rx_positions=ds.rx_positions,
@@ -271,7 +271,7 @@ def test_cli_reconstruct_with_a_formation(tmp_path, capsys):
     assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "pad_time=2",
                  "--formation-option", "window=hann", "--out", str(out), "-q"]) == 0
     assert "peak (+0.008, -0.004, 0.250)" in capsys.readouterr().out
-    from clsas.image import Image
+    from clsas.types.image import Image
 
     assert Image.load(out).provenance["formation"] == "omega-k"
     assert main(["reconstruct", str(scan), "--formation", "omega-k", "--formation-option", "bogus=1", "-q"]) == 2
@@ -319,7 +319,7 @@ def test_formation_benchmark_writes_its_table(tmp_path):
 
 def test_stolt_interpolation_equals_the_direct_sum():
     # spreading + FFT + de-apodisation against the non-uniform DFT it stands for, term by term
-    from clsas.formation.stolt import columns_to_depths, stolt_strengths
+    from clsas.formation.stolt_numpy import columns_to_depths, stolt_strengths
     from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
@@ -337,7 +337,7 @@ def test_stolt_interpolation_equals_the_direct_sum():
 @pytest.mark.parametrize("n_z", [1, 6, 11, 12], ids=lambda n: f"nz{n}")
 def test_terms_to_depths_is_the_weighted_sum_of_columns_to_depths(n_z):
     # omega-k's fused step: the terms weighted per depth and summed, in the cells' precision
-    from clsas.formation.stolt import columns_to_depths, terms_to_depths
+    from clsas.formation.stolt_numpy import columns_to_depths, terms_to_depths
     from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
@@ -358,7 +358,7 @@ def test_terms_to_depths_is_the_weighted_sum_of_columns_to_depths(n_z):
 @pytest.mark.parametrize("dtype", [np.complex64, np.complex128], ids=["c64", "c128"])
 def test_dft_axis_direct_product_equals_the_chirp_z(monkeypatch, dtype):
     # small axes take the DFT matrix's product, large ones the chirp-z: the same values
-    from clsas.formation import omega_k as ok
+    from clsas.formation import omega_k_transforms as tr
 
     rng = np.random.default_rng(11)
     a = (rng.normal(size=(37, 5, 3)) + 1j * rng.normal(size=(37, 5, 3))).astype(dtype)
@@ -367,8 +367,8 @@ def test_dft_axis_direct_product_equals_the_chirp_z(monkeypatch, dtype):
     want = np.einsum("iq,q...->i...", np.exp(1j * np.outer(x, k)), a.astype(np.complex128))
     tol = 1e-5 if dtype == np.complex64 else 1e-10
     for direct_max in (0, 1 << 30):
-        monkeypatch.setattr(ok, "_DIRECT_MAX", direct_max)
-        got = ok._dft_axis(a, k, x, 1)
+        monkeypatch.setattr(tr, "DIRECT_MAX", direct_max)
+        got = tr.dft_axis(a, k, x, 1)
         assert got.dtype == dtype and np.abs(got - want).max() < tol * np.abs(want).max()
 
 
@@ -395,7 +395,7 @@ def test_planar_aperture_is_remembered_by_content_and_shared_read_only():
 
 
 def test_terms_to_depths_leaves_its_cells_and_refuses_more_depths_than_cells():
-    from clsas.formation.stolt import terms_to_depths
+    from clsas.formation.stolt_numpy import terms_to_depths
     from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
@@ -432,7 +432,7 @@ def _depth_factors(p, n_z, seed=7):
 def test_direct_sum_equals_the_spread_path(n_z):
     # the twin of stolt_depths against spread + FFT + de-apodisation + terms (which approximate the
     # same sum; a wide kernel makes that approximation tight)
-    from clsas.formation.stolt import direct, terms_to_depths
+    from clsas.formation.stolt_numpy import direct, terms_to_depths
     from clsas.formation.stolt_opencl import StoltPlan
 
     spec, k, ku, kv, p = StoltPlan.selftest_inputs()
@@ -449,7 +449,7 @@ def test_direct_sum_of_one_plane_wave_analytic():
     # one column at normal incidence (ku = kv = 0: kz = k), one frequency, no baseline: the sum is
     # d 2 pi / k (1 + i / (k zref)) exp(i k z) at each depth z = zc + (l - n_z // 2) dz
     from clsas import cl
-    from clsas.formation.stolt import StoltParams, direct
+    from clsas.formation.stolt_numpy import StoltParams, direct
     from clsas.formation.stolt_opencl import StoltDepthsPlan
 
     kk, d, n_z = 900.0, 0.3 - 0.2j, 45
@@ -471,7 +471,7 @@ def test_stolt_depths_kernel_equals_its_twin_at_every_width(vec):
     # samples, negative frequencies, three terms; 40 depths (two runs of rotations, the second
     # partial) and 5 (one short run); a second, larger call reuses the plan
     from clsas import cl
-    from clsas.formation.stolt import direct
+    from clsas.formation.stolt_numpy import direct
     from clsas.formation.stolt_opencl import StoltDepthsPlan
 
     width_or_skip("stolt_depths", vec)

@@ -211,7 +211,7 @@ def test_reconstruct_rejects_misused_inverse_options():
         clsas.reconstruct(data, grid, method="l1", formation="ffbp")
     with pytest.raises(ValueError, match="tiles"):
         clsas.reconstruct(data, grid, method="ls", tile_shape=(2, 1, 2))
-    from clsas.pipeline import methods
+    from clsas.pipeline.reconstruction import methods
 
     assert {"ls", "l1", "tv", "l1-tv"} <= set(methods())
 

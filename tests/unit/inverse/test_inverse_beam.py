@@ -13,11 +13,11 @@ import pytest
 from conftest import BACKENDS, ROOT, TESTS, needs_opencl, small_dataset, width_or_skip
 
 import clsas
-from clsas.beam import Beams, Cone, Piston, beam_weights, gate_level
 from clsas.formation import bp_numpy
 from clsas.inverse import ImagingOperator
 from clsas.inverse import project_numpy as twin
 from clsas.inverse.methods import check_options
+from clsas.physics.beam import Beams, Cone, Piston, beam_weights, gate_level
 
 MODES = ["weighted", "limited"]
 
@@ -68,7 +68,7 @@ def test_weighted_twin_is_the_exact_adjoint_of_the_weighted_backprojection_twin(
     e[17] = 1.0
     one = twin.project(e, tau0, dtau, 50, 25e3, tx, rx, c, pts, beam=w)
     bare = twin.project(e, tau0, dtau, 50, 25e3, tx, rx, c, pts)
-    from clsas.beam import pair_weights
+    from clsas.physics.beam import pair_weights
 
     for m in range(7):
         pw = pair_weights(w.luts, tx[m], rx[m], w.tx_dir[m], w.rx_dir[m], pts[17:18], w.gate)[0]
@@ -181,8 +181,8 @@ def test_model_based_methods_use_the_choice_bp_would(monkeypatch):
 def test_offgrid_point_model_carries_the_same_pair_weights(rng):
     """The off-grid method's continuous point model weights each measurement's echo by the operator's
     beam weight of that pair (the ADCG fit and the grid operator see the same beams)."""
-    from clsas.beam import pair_weights
     from clsas.inverse.offgrid import PointModel
+    from clsas.physics.beam import pair_weights
 
     prof, grid = _profiles(rng)
     wave = clsas.lfm_chirp(20e3, 30e3, 2e-3, 96e3, taper=0.1)

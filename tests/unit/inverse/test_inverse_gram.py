@@ -102,6 +102,6 @@ def test_l1_psf_through_reconstruct_and_its_options():
         with pytest.raises(TypeError, match="polish"):
             check_options({"polish": bad})
     assert check_options({"polish": 3})["polish"] == 3
-    from clsas.pipeline import methods
+    from clsas.pipeline.reconstruction import methods
 
     assert "l1-psf" in methods()

@@ -9,7 +9,7 @@ import scipy.io.wavfile
 import clsas
 import clsas.io
 from clsas.cli import main
-from clsas.geometry import Aperture
+from clsas.physics.geometry import Aperture
 
 FS = 100e3
 GD = 62.33  # samples
@@ -34,7 +34,7 @@ def _on_turntable(p, angles_deg):
 
 
 def _write_airsas(folder, *, pings=36, mics=1, temps=None, signals=None, seed=0):
-    """An AirSAS folder: a point target on a turntable, simulated with clsas.simulation."""
+    """An AirSAS folder: a point target on a turntable, simulated with clsas.synthesis.simulation."""
     folder.mkdir()
     angles = np.arange(pings) * 360.0 / pings
     temps = 20.0 + 2.0 * np.arange(pings) / pings if temps is None else temps

@@ -8,7 +8,7 @@ import pytest
 import clsas
 import clsas.io
 from clsas.cli import main
-from clsas.geometry import Aperture
+from clsas.physics.geometry import Aperture
 
 FS = 200e3
 C = float(clsas.speed_of_sound(20.0, 50.0))  # m/s, the air of the simulations (a Scene's default: 20 C, 50 % RH)

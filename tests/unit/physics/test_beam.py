@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.beam import (
+from clsas.io.config import ConfigError
+from clsas.physics.beam import (
     Beams,
     Cone,
     Omni,
@@ -20,9 +21,8 @@ from clsas.beam import (
     pair_weights,
     planar_boresights,
 )
-from clsas.config import ConfigError
-from clsas.dataset import AIR_FALLBACK
-from clsas.scenes import parse_config
+from clsas.synthesis.scenes import parse_config
+from clsas.types.dataset import AIR_FALLBACK
 
 
 def test_piston_pattern_is_one_on_axis_and_zero_at_its_first_null():
@@ -118,12 +118,12 @@ def test_beams_round_trip_through_the_file_and_subset(tmp_path):
 
 
 def test_dataset_says_loudly_when_it_assumes_air(caplog, tmp_path):
-    with caplog.at_level(logging.WARNING, logger="clsas.dataset"):
+    with caplog.at_level(logging.WARNING, logger="clsas.types.dataset"):
         ds = _dataset()
     assert any("c_mps" in r.message and "assuming air" in r.message for r in caplog.records)
     assert AIR_FALLBACK in ds.provenance and ds.c_mps == pytest.approx(343.84, abs=0.01)  # 20 C at the assumed 50 % RH
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="clsas.dataset"):
+    with caplog.at_level(logging.WARNING, logger="clsas.types.dataset"):
         _dataset(c_mps=1480.0)
         _dataset(temperature_c=25.0)
         clsas.load(ds.save(tmp_path / "a.h5"))  # the flag travels in the file; no second warning

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.physics import air_absorption_db_per_m, cramer_speed_of_sound, resolution_limits, speed_of_sound
+from clsas.physics.sound import air_absorption_db_per_m, cramer_speed_of_sound, resolution_limits, speed_of_sound
 
 
 def test_chirp_sweeps_from_f_start_to_f_stop():

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.progress import Progress, Reporter, takes_record
+from clsas.types.progress import Progress, Reporter, takes_record
 
 
 @pytest.fixture(scope="module")

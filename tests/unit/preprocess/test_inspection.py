@@ -1,4 +1,4 @@
-"""clsas.inspection: a look at a dataset before imaging it, with warnings where the geometry
+"""clsas.presenting.inspection: a look at a dataset before imaging it, with warnings where the geometry
 and the data disagree (on clsas.synthetic.turntable_scan)."""
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 
 import clsas
 from clsas import preprocess as pp
-from clsas.inspection import draw_inspection, inspect_dataset
-from clsas.synthetic import turntable_scan
+from clsas.presenting.inspection import draw_inspection, inspect_dataset
+from clsas.synthesis.synthetic import turntable_scan
 
 
 @pytest.fixture(scope="module")
@@ -65,3 +65,15 @@ def test_cli_inspect(scan, tmp_path, capsys):
     assert "no disagreement" in out and (tmp_path / "ok-inspect.png").exists()
     assert main(["inspect", str(tmp_path / "late.h5"), "--png", str(tmp_path / "l.png"), "--strict"]) == 1
     assert "warning: the direct sound arrives" in capsys.readouterr().out
+
+
+def test_drawing_leaves_the_callers_matplotlib_backend(scan, tmp_path):
+    import matplotlib
+
+    before = matplotlib.get_backend()
+    matplotlib.use("svg")  # a backend the drawing does not pick itself
+    try:
+        out = draw_inspection(inspect_dataset(scan.dataset, GRID), tmp_path / "look.png")
+        assert matplotlib.get_backend() == "svg" and out.read_bytes()[:4] == b"\x89PNG"
+    finally:
+        matplotlib.use(before)

@@ -7,7 +7,7 @@ import pytest
 
 import clsas
 from clsas import preprocess as pp
-from clsas.synthetic import turntable_scan
+from clsas.synthesis.synthetic import turntable_scan
 
 
 def _ring_and_target(image, scan):

@@ -1,4 +1,4 @@
-"""The request against the data before any work (clsas.sanity): a grid in millimetres, a grid
+"""The request against the data before any work (clsas.types.sanity): a grid in millimetres, a grid
 beside the target, positions in the wrong unit."""
 
 import logging
@@ -8,7 +8,7 @@ import pytest
 from conftest import small_dataset
 
 import clsas
-from clsas.sanity import check_grid_against_data, echo_share_in_grid
+from clsas.types.sanity import check_grid_against_data, echo_share_in_grid
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +38,7 @@ def test_a_grid_in_millimetres_is_refused_before_any_work(scan, monkeypatch):
     """The README's grid typed in millimetres: every voxel's delay lies seconds after the recordings
     end; reconstruct refuses it naming grid and the likely unit, before compressing anything."""
     mm = clsas.VoxelGrid.from_bounds((-100, 100), (-80, 80), (400, 600), 20)
-    import clsas.pipeline as pipeline
+    import clsas.pipeline.reconstruction as pipeline
 
     monkeypatch.setattr(pipeline, "compress", lambda *a, **k: pytest.fail("compressed before the check"))
     with pytest.raises(ValueError, match=r"^grid: .*millimetres"):
@@ -49,7 +49,7 @@ def test_a_grid_beside_the_target_warns_and_says_so_in_the_image(scan, caplog):
     """A grid whose delays overlap the recordings but not the echo: imaged, with one warning naming
     the share, kept in the image's provenance."""
     beside = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.15, 0.25), 0.02)
-    with caplog.at_level(logging.WARNING, logger="clsas.sanity"):
+    with caplog.at_level(logging.WARNING, logger="clsas.types.sanity"):
         image = clsas.reconstruct(scan, beside, backend="numpy", formation="bp")
     record = image.provenance["grid_check"]
     assert record["echo_share"] < 0.2 and len(record["warnings"]) == 1
@@ -67,7 +67,7 @@ def test_positions_in_millimetres_are_named(scan):
 
 
 def test_the_share_is_the_one_inspect_reports(scan):
-    from clsas.inspection import inspect_dataset
+    from clsas.presenting.inspection import inspect_dataset
 
     grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.45, 0.55), 0.02)
     assert inspect_dataset(scan, grid).in_gate_fraction == pytest.approx(echo_share_in_grid(scan, grid))
@@ -156,7 +156,7 @@ def test_a_plane_or_a_single_voxel_on_the_target_is_not_warned_about(scan):
 
 
 def test_the_delay_bounds_hold_every_voxel(scan):
-    from clsas.sanity import grid_delays
+    from clsas.types.sanity import grid_delays
 
     grid = clsas.VoxelGrid.from_bounds((-0.3, 0.2), (-0.08, 0.1), (0.2, 0.9), 0.05)
     bounds = grid_delays(scan, grid)

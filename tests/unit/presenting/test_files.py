@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.export import read_vti, to_npy, to_vti
-from clsas.image import Image, source_provenance
+from clsas.presenting.export import read_vti, to_npy, to_vti
+from clsas.types.image import Image, source_provenance
 
 xr = pytest.importorskip("xarray")
 pytest.importorskip("h5netcdf")

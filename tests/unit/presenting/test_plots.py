@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 import clsas
-from clsas.geometry import Scene, Wall
-from clsas.image import Image
+from clsas.physics.geometry import Scene, Wall
+from clsas.types.image import Image
 
 pytest.importorskip("matplotlib")
 

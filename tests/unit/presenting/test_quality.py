@@ -6,8 +6,8 @@ from conftest import small_dataset
 
 import clsas
 from clsas.cli import main
-from clsas.image import Image
-from clsas.quality import box_mask, compare, same_grid, tcr_db
+from clsas.presenting.quality import box_mask, compare, same_grid, tcr_db
+from clsas.types.image import Image
 
 SP = 0.01
 

@@ -16,15 +16,23 @@ it is tested here without a test file of its own:
 - importers: a folder in no format is not detected, and reading a missing path raises an error
   naming it.
 
-``test_a_new_entry_is_covered_by_the_same_checks`` shows it with toy entries (tests/unit/registry/test_registry.py's).
+``test_a_new_module_becomes_cases_of_this_file`` shows it: toy modules (tests/unit/registry/test_registry.py's),
+each imported before collection as a user's module would be, become cases of this file that the
+checks judge; ``test_a_new_entry_is_covered_by_the_same_checks`` runs the checks on them in process.
 """
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
 import numpy as np
 import pytest
-from conftest import OPENCL_MISSING, small_dataset
-from test_registry import toys  # noqa: F401 - the toy entries' fixture
+from conftest import OPENCL_MISSING, ROOT, small_dataset
+from test_registry import TOY_FORMATION, TOY_IMPORTER, TOY_SPARSE, toys  # noqa: F401 - the toy entries' fixture
 
 import clsas
 import clsas.io
@@ -161,3 +169,43 @@ def test_a_new_entry_is_covered_by_the_same_checks(toys, scan, tmp_path):  # noq
         check_importer("good-toy", tmp_path)
     finally:
         clsas.io.IMPORTERS.unregister("good-toy")
+
+
+# a well-behaved formation in one module: bp under another name
+TOY_BP = '''
+from clsas.formation import FORMATIONS, form
+
+@FORMATIONS.register("toy-bp")
+def toy_bp(profiles, grid, *, backend=None, device=None, progress=None, force=False):
+    """bp under another name."""
+    return form(profiles, grid, "bp", backend=backend, device=device, progress=progress, force=force)
+'''
+
+
+def test_a_new_module_becomes_cases_of_this_file(tmp_path):
+    """Four modules that each register one entry, imported before collection (``-p``, as an
+    installed plugin or a module of clsas would be), are cases of this file with no test file of
+    their own: the well-behaved formation passes, the three toys (a flat image, an echo in the
+    wrong place, an importer that reads a missing path) fail the checks."""
+    modules = {"toy_formation": TOY_FORMATION, "toy_sparse": TOY_SPARSE, "toy_importer": TOY_IMPORTER,
+               "toy_bp": TOY_BP}
+    for name, text in modules.items():
+        (tmp_path / f"{name}.py").write_text(textwrap.dedent(text))
+    plugins = [arg for name in modules for arg in ("-p", name)]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]),
+           "CLSAS_BACKEND": "numpy"}
+    run = subprocess.run([sys.executable, "-m", "pytest", "-p", "no:cacheprovider", *plugins, "-q", "-rA",
+                          "-k", "toy and every", str(Path(__file__).relative_to(ROOT))],
+                         cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    outcomes = {line.split("::", 1)[1].split("[", 1)[1].split("]", 1)[0]: line.split()[0]
+                for line in run.stdout.splitlines() if line.startswith(("PASSED", "FAILED", "ERROR")) and "::" in line}
+    want = {"toy-formation": "FAILED", "toy-format": "FAILED", "toy-bp": "PASSED", "toy-sparse": "FAILED"}
+    if not _installed("cvxpy", "nlopt"):  # the sparse cases skip without them
+        del want["toy-sparse"]
+    assert outcomes == want, run.stdout[-3000:] + run.stderr[-2000:]
+
+
+def _installed(*names: str) -> bool:
+    import importlib.util
+
+    return all(importlib.util.find_spec(n) is not None for n in names)

@@ -18,7 +18,7 @@ from clsas.registry import Registry
 TOY_FORMATION = '''
 import numpy as np
 from clsas.formation import FORMATIONS
-from clsas.image import Image
+from clsas.types.image import Image
 
 @FORMATIONS.register("toy-formation")
 def form(profiles, grid, *, backend=None, device=None, progress=None, force=False, **options):
@@ -112,7 +112,7 @@ def test_the_registries_hold_the_built_in_algorithms():
     from clsas.compression import COMPRESSIONS
     from clsas.formation import FORMATIONS
     from clsas.inverse import MODEL_METHODS
-    from clsas.pipeline import methods
+    from clsas.pipeline.reconstruction import methods
     from clsas.sparse import SPARSE_METHODS
 
     assert set(FORMATIONS) == {"auto", "bp", "omega-k", "ffbp"}

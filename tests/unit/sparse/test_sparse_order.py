@@ -75,7 +75,7 @@ def test_analytic_signal_has_half_the_degrees_of_freedom():
 
 
 def _analytic(x):
-    from clsas.signals import analytic
+    from clsas.physics.signals import analytic
 
     return analytic(x)
 
@@ -169,7 +169,7 @@ def test_noise_coloured_into_the_band_does_not_add_echoes(pulse, method):
 
 
 def test_colour_factor_is_one_for_white_noise_and_below_for_noise_in_the_band(pulse):
-    from clsas.signals import analytic
+    from clsas.physics.signals import analytic
     from clsas.sparse import colour_factor
     from clsas.sparse.bpdn import real_part_columns, real_part_target
 

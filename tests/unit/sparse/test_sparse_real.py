@@ -10,7 +10,6 @@ import pytest
 import scipy.signal
 
 import clsas
-from clsas.rangegate import path_bounds
 from clsas.sparse import (
     SPARSE_METHODS,
     Atom,
@@ -23,6 +22,7 @@ from clsas.sparse import (
     superres,
 )
 from clsas.sparse.varpro import VarPro
+from clsas.types.rangegate import path_bounds
 
 pytest.importorskip("nlopt", reason="the sparse methods need the 'sparse' extra (pip install 'clsas[sparse]')")
 pytest.importorskip("cvxpy", reason="the sparse methods need the 'sparse' extra (pip install 'clsas[sparse]')")
@@ -121,7 +121,7 @@ def test_refined_delays_stay_inside_the_bounds(rng):
 def test_the_recording_that_made_nlopt_raise_now_fits():
     """Echoes before and past a 1-3 ms gate, the window starting at the gate: the fitted delays
     used to leave the gate and the next fit raised nlopt's invalid_argument."""
-    from clsas.signals import analytic
+    from clsas.physics.signals import analytic
 
     r = np.random.default_rng(5)
     taus = np.r_[r.uniform(1.2e-3, 2.8e-3, 3), 3e-3 + r.uniform(0.05e-3, 0.8e-3, 2), 1e-3 - r.uniform(0, 0.5e-3)]
@@ -346,7 +346,7 @@ def test_pulse_option_is_validated():
 
 def test_super_resolved_profiles_carry_the_datasets_beams():
     # issue 33: the sparse methods' profiles keep the transducers' beams, so bp applies them
-    from clsas.beam import Beams, Cone
+    from clsas.physics.beam import Beams, Cone
     from clsas.sparse.profiles import superres_profiles
 
     ap = clsas.raster_aperture(3, 1, 0.04, 0.0)

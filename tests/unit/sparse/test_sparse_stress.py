@@ -249,7 +249,7 @@ def test_echo_before_the_window_with_a_margin_is_one_truncated_echo(pulse, metho
 
 
 def test_absorbed_pulse_matches_iso_9613_attenuation(pulse):
-    from clsas.physics import air_absorption_db_per_m
+    from clsas.physics.sound import air_absorption_db_per_m
     from clsas.sparse import absorbed_pulse
 
     np.testing.assert_allclose(absorbed_pulse(pulse, FS, 0.0), pulse, atol=1e-12)
@@ -338,7 +338,7 @@ def test_refined_gradient_is_the_objective_s_derivative(pulse, real_signal):
     """CBP-Polar's delay gradient agrees with central differences of its own RSS to 1e-6 (the
     interpolated derivative table disagreed by 2.7e-5, and L-BFGS's line search failed near
     minima with nlopt's runtime_error)."""
-    from clsas.signals import analytic
+    from clsas.physics.signals import analytic
     from clsas.sparse import Atom
     from clsas.sparse.varpro import VarPro
 

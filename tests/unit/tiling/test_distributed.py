@@ -1,4 +1,4 @@
-"""Reconstruction on a Dask cluster (clsas.tiling.dask): a LocalCluster of processes, no external service."""
+"""Reconstruction on a Dask cluster (clsas.pipeline.tiling.dask): a LocalCluster of processes, no external service."""
 
 import logging
 import os
@@ -43,7 +43,7 @@ def client():
 
 
 def test_missing_distributed_names_the_extra(scene, monkeypatch):
-    import clsas.tiling.dask  # noqa: F401 - imported with distributed present, as it would be in use
+    import clsas.pipeline.tiling.dask  # noqa: F401 - imported with distributed present, as it would be in use
 
     ds, grid, _ = scene
     monkeypatch.setitem(sys.modules, "distributed", None)
@@ -67,7 +67,7 @@ def test_cluster_image_equals_the_single_process_one(scene, client, tmp_path):
 
 
 def test_worker_device_plugin(client):
-    from clsas.tiling.dask import OpenCLDevicePlugin, worker_device
+    from clsas.pipeline.tiling.dask import OpenCLDevicePlugin, worker_device
 
     with pytest.raises(ValueError, match="devices"):
         OpenCLDevicePlugin([])
@@ -151,7 +151,7 @@ def test_a_worker_of_one_thread_gets_one_compute_unit(client):
     and the provenance says how many compute units each worker used."""
     import pyopencl as pcl
 
-    from clsas.tiling.dask import OpenCLDevicePlugin, worker_selection
+    from clsas.pipeline.tiling.dask import OpenCLDevicePlugin, worker_selection
 
     dev = _cpu_devices()[0]
     spec = next(f"{i}:{j}" for i, p in enumerate(pcl.get_platforms())
@@ -214,7 +214,7 @@ def _hold_the_first_tile():
 
     import distributed
 
-    from clsas.tiling import dask as tiling_dask
+    from clsas.pipeline.tiling import dask as tiling_dask
 
     def held(*args, **kwargs):
         distributed.Event(HELD).set()

@@ -1,12 +1,12 @@
-"""Tiled, out-of-core reconstruction (clsas.tiling) and lazily opened images."""
+"""Tiled, out-of-core reconstruction (clsas.pipeline.tiling) and lazily opened images."""
 
 import numpy as np
 import pytest
 from conftest import BACKENDS, TOL, needs_opencl, small_dataset
 
 import clsas
-from clsas.tiling import parse_bytes, tile_grid, tile_shape_for
-from clsas.tiling.tiles import chunk_shape
+from clsas.pipeline.tiling import parse_bytes, tile_grid, tile_shape_for
+from clsas.pipeline.tiling.tiles import chunk_shape
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +77,7 @@ def test_arguments_checked_before_any_work(scene, monkeypatch, kwargs, err, matc
     def no_work(*a, **k):
         raise AssertionError("work started before the arguments were checked")
 
-    monkeypatch.setattr("clsas.pipeline.plan_reconstruction", no_work)
+    monkeypatch.setattr("clsas.pipeline.reconstruction.plan_reconstruction", no_work)
     with pytest.raises(err, match=match):
         clsas.reconstruct(ds, grid, backend="numpy", **kwargs)
 
@@ -133,7 +133,7 @@ def test_lazy_image_answers_like_the_in_memory_one(scene, reference, tmp_path):
     assert np.abs(small.values).max() == pytest.approx(np.abs(mem.values).max())
     copy = clsas.Image.load(lazy.save(tmp_path / "copy.h5"))
     np.testing.assert_array_equal(copy.values, mem.values)
-    from clsas.export import export, read_vti
+    from clsas.presenting.export import export, read_vti
 
     export(lazy, tmp_path / "lazy.vti")
     np.testing.assert_allclose(read_vti(tmp_path / "lazy.vti")["magnitude"], np.abs(mem.values), rtol=1e-6)
@@ -197,7 +197,8 @@ def test_a_file_of_another_request_is_refused(scene, tmp_path):
 def test_budget_bounds_the_tiles(scene):
     ds, _ = scene
     grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.56), 0.005)
-    image = clsas.reconstruct(ds, grid, backend="numpy", max_memory=clsas.tiling.rss_bytes() + grid.size * 16 + 3e6)
+    budget = clsas.pipeline.tiling.rss_bytes() + grid.size * 16 + 3e6
+    image = clsas.reconstruct(ds, grid, backend="numpy", max_memory=budget)
     assert image.provenance["tiles"]["count"] > 1
     _same(image.values, clsas.reconstruct(ds, grid, backend="numpy").values)
     with pytest.raises(ValueError, match="max_memory"):
@@ -277,7 +278,7 @@ def test_zarr_store_equals_the_hdf5_file_and_resumes(scene, reference, tmp_path)
     ref = reference["numpy"]
     np.testing.assert_array_equal(image.values[:], ref.values.astype(np.complex64))
     assert [p.index for p in image.peaks(3, 0.03)] == [p.index for p in ref.peaks(3, 0.03)]
-    again = clsas.tiling.update_attrs(image, {"note": "kept"})
+    again = clsas.pipeline.tiling.update_attrs(image, {"note": "kept"})
     assert clsas.Image.open(tmp_path / "i.zarr").provenance["note"] == "kept" and again.lazy
 
 

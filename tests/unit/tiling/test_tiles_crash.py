@@ -1,4 +1,4 @@
-"""Out-of-core HDF5 files survive a writer killed mid-run (clsas.tiling.store): a tile is marked
+"""Out-of-core HDF5 files survive a writer killed mid-run (clsas.pipeline.tiling.store): a tile is marked
 done only after its values are flushed, a file killed at any moment opens, and the run started
 again forms exactly the tiles not marked, giving the image an uninterrupted run gives."""
 
@@ -30,7 +30,7 @@ WRITER = textwrap.dedent("""
     sys.path.insert(0, {tests!r})
     from conftest import small_dataset
     import clsas
-    from clsas.tiling import store
+    from clsas.pipeline.tiling import store
 
     if sys.argv[2] == "mid-tile":
         whole = store.TileFile.write
@@ -79,7 +79,7 @@ def _marked(path) -> np.ndarray:
 
 def _check_marked_tiles(path, ref) -> np.ndarray:
     """Every tile marked done holds its whole, final values."""
-    from clsas.tiling import tile_grid
+    from clsas.pipeline.tiling import tile_grid
 
     done = _marked(path)
     with h5py.File(path, "r") as f:

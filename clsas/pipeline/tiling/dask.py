@@ -1,0 +1,186 @@
+"""Tiles on a Dask cluster: one task per tile, the profiles sent to each worker once.
+
+``reconstruct(..., client=Client or "tcp://scheduler:8786")``. The client process compresses the
+recordings into range profiles, scatters them to every worker once (``broadcast=True``), and
+submits one task per tile; the tiles come back as they finish and are written to the file (or
+the in-memory image) there. A worker lost mid-run is replaced by Dask, which forms its tiles
+again elsewhere (a tile is a pure function of the profiles and its sub-grid, so the image is
+the same); each task may also be retried twice after an error.
+
+Which OpenCL device a worker uses: the one ``PYOPENCL_CTX`` names in the worker's environment
+(one worker per GPU: ``PYOPENCL_CTX=0:0 dask worker ADDRESS --nthreads 1``, then ``0:1`` for the
+next), or the one :class:`OpenCLDevicePlugin` assigns, else the preferred device. Give GPU
+workers one thread each so that a GPU forms one tile at a time (:func:`run_on_cluster` also
+takes Dask worker ``resources``, e.g. ``{"GPU": 1}`` with ``dask worker --resources GPU=1``;
+``reconstruct`` does not pass any).
+
+How many cores a worker uses on a CPU device: as many as it has threads. PoCL runs a kernel on
+every core of the host, so two 1-thread workers would each spread over both cores and contend;
+:func:`worker_selection` gives a worker of N threads a sub-device of N compute units (device
+fission), and the compute units each worker used are in ``image.provenance["tiles"]["devices"]``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+
+from ... import cl
+from ...validate import install_hint
+from .tiles import form_tile
+
+__all__ = ["OpenCLDevicePlugin", "connect", "import_distributed", "n_workers", "run_on_cluster", "worker_device",
+           "worker_selection"]
+
+log = logging.getLogger(__name__)
+
+try:  # the plugin must be a WorkerPlugin for Client.register_plugin; without distributed it is never registered
+    from distributed import WorkerPlugin as _PluginBase
+except ImportError:  # pragma: no cover - import_distributed() says what to install
+    _PluginBase = object
+
+_WORKER_DEVICE: dict = {"device": None}  # set on a worker by OpenCLDevicePlugin
+
+
+def import_distributed():
+    """``distributed``, or an ImportError that names the extra to install."""
+    try:
+        import distributed
+    except ImportError as exc:
+        raise ImportError("reconstruct(client=...) and --scheduler need dask.distributed: "
+                          f"{install_hint('distributed')}") from exc
+    return distributed
+
+
+class OpenCLDevicePlugin(_PluginBase):
+    """A Dask worker plugin that gives each worker its own OpenCL device.
+
+    ``client.register_plugin(OpenCLDevicePlugin(["0:0", "0:1"]))``: the worker named ``i`` (an
+    integer, as ``LocalCluster`` and ``dask worker --name i`` name them) gets ``devices[i % n]``;
+    other names get the device by a stable hash of the name.
+
+    Parameters
+    ----------
+    devices : list of str
+        OpenCL devices as ``"P:D"`` (see ``clsas devices``), or ``"numpy"``.
+    """
+
+    name = "clsas-opencl-device"
+
+    def __init__(self, devices: list[str]):
+        if not devices or not all(isinstance(d, str) for d in devices):
+            raise ValueError(f"devices must be a non-empty list of 'P:D' strings, got {devices!r}")
+        self.devices = list(devices)
+
+    def setup(self, worker) -> None:
+        name = str(worker.name)
+        i = int(name) if name.isdigit() else sum(name.encode())
+        _WORKER_DEVICE["device"] = self.devices[i % len(self.devices)]
+        log.info("worker %s: OpenCL device %s", name, _WORKER_DEVICE["device"])
+
+    def teardown(self, worker) -> None:
+        _WORKER_DEVICE["device"] = None
+
+
+def worker_device() -> str | None:
+    """The device this worker was given by :class:`OpenCLDevicePlugin` (None: the default)."""
+    return _WORKER_DEVICE["device"]
+
+
+def _worker_threads() -> int | None:
+    """Threads of the Dask worker this runs on (None outside a worker)."""
+    try:
+        from distributed import get_worker
+
+        return int(get_worker().state.nthreads)
+    except (ImportError, ValueError, AttributeError):
+        return None
+
+
+def worker_selection(requested, device=None, threads: int | None = None) -> tuple[cl.Selection, int | None]:
+    """The device selection of a worker with ``threads`` threads, and the compute units it uses.
+
+    A CPU device with more compute units than the worker has threads (PoCL makes one thread per
+    core) is split by device fission (``clCreateSubDevices``, ``CL_DEVICE_PARTITION_BY_COUNTS``)
+    and the worker gets a sub-device of ``threads`` compute units: a worker of 1 thread then
+    uses 1 core, so that 2 such workers on 2 cores do not both spread over both. A GPU, a device
+    that cannot be split, or ``threads=None`` keeps the whole device.
+
+    Parameters
+    ----------
+    requested : str
+        The backend request (``"auto"``, ``"opencl"``, ``"numpy"``).
+    device : None, "P:D" or "numpy"
+        The worker's device (see :class:`OpenCLDevicePlugin`).
+    threads : int, optional
+        The worker's threads (default: the Dask worker's, where this runs on one).
+
+    Returns
+    -------
+    (Selection, int or None)
+        The selection and its device's compute units (None on NumPy).
+    """
+    if device == "numpy":
+        return cl.select("numpy"), None
+    selection = cl.select(requested, device)
+    if not selection.opencl:
+        return selection, None
+    whole = selection.queue.device
+    threads = _worker_threads() if threads is None else int(threads)
+    if threads is None or not cl.is_cpu(whole) or whole.max_compute_units <= threads:
+        return selection, int(whole.max_compute_units)
+    queue = cl.sub_device_queue(whole.int_ptr, threads)
+    if queue is None:
+        return selection, int(whole.max_compute_units)
+    return cl.select(requested, queue), int(queue.device.max_compute_units)
+
+
+def _tile_task(profiles, grid, formation, options, requested, force):
+    """A task: form one tile on this worker's device (a sub-device of its threads' compute units)."""
+    selection, units = worker_selection(requested, worker_device())
+    vals, dev, seconds = form_tile(profiles, grid, formation, options, selection, force)
+    cu = "" if units is None else f", {units} CU"
+    return vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units
+
+
+def connect(client):
+    """A Client for ``client`` (itself, or a new one connected to the address), and whether we own it."""
+    distributed = import_distributed()
+    if isinstance(client, str):
+        return distributed.Client(client, timeout="20s"), True
+    return client, False
+
+
+def n_workers(client) -> int:
+    """Workers on the cluster (at least 1)."""
+    c, own = connect(client)
+    try:
+        return max(1, len(c.scheduler_info()["workers"]))
+    finally:
+        if own:
+            c.close()
+
+
+def run_on_cluster(client, profiles, tiles, pending, formation, options, requested, force, resources=None):
+    """Yield ``(tile, values, device, seconds, compute_units)`` for the ``pending`` tiles, formed on
+    the cluster (``device`` names the worker's process and compute units)."""
+    distributed = import_distributed()
+    c, own = connect(client)
+    try:
+        prof = c.scatter(profiles, broadcast=True, hash=False)
+        futures = {}
+        for i in pending:
+            f = c.submit(_tile_task, prof, tiles[i].grid, formation, options, requested, force, pure=False,
+                         retries=2, resources=resources, key=f"clsas-tile-{i}-{os.urandom(4).hex()}")
+            futures[f.key] = (f, i)
+        # as_completed waits on the loop it is given, else the *default* client's: with two clients in
+        # one process (a LocalCluster's and another) the default one's loop may never see these futures
+        for f, (vals, device, seconds, units) in distributed.as_completed([f for f, _ in futures.values()],
+                                                                            loop=c.loop, with_results=True):
+            _, i = futures.pop(f.key)
+            f.release()
+            yield tiles[i], vals, device, seconds, units
+        del prof
+    finally:
+        if own:
+            c.close()

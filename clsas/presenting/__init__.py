@@ -1,0 +1,1 @@
+"""Presenting results: export to other programs, a dataset's inspection, image quality."""
