@@ -37,7 +37,7 @@ import numpy as np
 
 from .device import _cl, describe
 from .program import is_simulator, kernel_source
-from .variants import _key, cache_dir, kernel_spec
+from .variants import CHOSEN_SHAPES, _key, cache_dir, kernel_spec
 
 __all__ = ["MARGIN", "TOLERANCE", "Shape", "Tuning", "candidate_shapes", "clear_shapes", "pick", "shapes_dir",
            "tune"]
@@ -94,8 +94,6 @@ def shapes_dir() -> Path:
 
 
 _MEMO: dict[str, Tuning] = {}
-# (device int_ptr, kernel) -> the label of the shape tuned for it in this process (provenance)
-CHOSEN: dict[tuple[int, str], str] = {}
 
 
 def clear_shapes() -> int:
@@ -253,5 +251,5 @@ def tune(queue: Any, name: str, vec: int, candidates: list[Shape], in_probe: boo
         log.info("kernel %s (VEC=%d) on %s: work-group shape %s (%s)", name, vec, describe(device),
                  tuning.shape.label, tuning.reason)
     _MEMO[digest] = tuning
-    CHOSEN[(device.int_ptr, name)] = tuning.shape.label
+    CHOSEN_SHAPES[(device.int_ptr, name)] = tuning.shape.label
     return tuning
