@@ -159,8 +159,8 @@ def test_compress_rejects_bad_input(chirp96):
 def test_every_compress_kernel_equals_twin_at_every_width(rng, chirp96, kernel, vec):
     """Each kernel at each vector width the device layer accepts (others skip with its reason)."""
     from clsas import cl
+    from clsas.compression import compress_numpy as twin
     from clsas.compression import fft_layout
-    from clsas.compression import numpy as twin
     from clsas.compression.compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 
     width_or_skip(kernel, vec)

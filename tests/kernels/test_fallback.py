@@ -17,7 +17,7 @@ import clsas
 import clsas.formation.ffbp  # noqa: F401 - a plan registers its kernel when its module is imported
 import clsas.formation.omega_k  # noqa: F401
 from clsas import cl
-from clsas.focus import numpy as focus_twin
+from clsas.focus import gradient_numpy as focus_twin
 from clsas.focus.engine import FocusEngine
 from clsas.formation import FORMATIONS, form
 from clsas.inverse import project_opencl  # noqa: F401 (its plan registers the project kernel)

@@ -1,6 +1,6 @@
 """Where the library reads the environment and where it draws (CONTRIBUTING's rules, read from the
 source): environment variables only in the device layer (``clsas/cl/``) and the command line
-(``clsas/cli/``); matplotlib only in the modules that present (``types/pictures.py``, 
+(``clsas/cli/``); matplotlib only in the modules that present (``types/pictures.py``,
 ``Image.plot``, ``inspection.py``'s ``draw_inspection``, the command line), and never a
 ``matplotlib.use``: the caller's backend is the caller's."""
 

@@ -7,7 +7,7 @@ from conftest import BACKENDS, needs_opencl, width_or_skip
 
 import clsas
 from clsas.focus import FOCUS_METHODS, autofocus, score
-from clsas.focus import numpy as twin
+from clsas.focus import gradient_numpy as twin
 from clsas.focus.engine import FocusEngine
 from clsas.focus.metrics import metric_and_weight
 from clsas.physics.scan_errors import HandMotion, hand_motion
