@@ -250,3 +250,23 @@ def test_records_made_on_the_device_run_the_plain_kernel_under_half_profiles(rng
     got = plan.from_device(Rows, records, tau0, 1 / fs, 25e3, tx, rx, c)
     want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
     assert np.abs(got - want).max() < TOL["backproject"] / 4 * np.abs(want).max()  # float records: no half rounding
+
+
+@needs_opencl
+@pytest.mark.parametrize("shape", [cl.Shape(16), cl.Shape(16, LOCAL), cl.Shape(None, "half_profiles")],
+                         ids=lambda s: s.label)
+@pytest.mark.parametrize("complex_image", [False, True], ids=["planes", "complex"])
+def test_every_variant_builds_with_a_beam_and_either_image(shape, complex_image):
+    """The variants with -DBEAM (a tilted piston speaker, a cone microphone) and with the complex
+    image: the beam twin's image, to the variant's tolerance."""
+    from clsas.formation.bp_opencl import HALF_TOLERANCE, BackprojectPlan, selftest_beam_weights, selftest_scene
+
+    if shape.variant == "half_profiles" and not _has_fp16():
+        pytest.skip(f"{cl.describe(cl.get_queue().device)} does not report cl_khr_fp16")
+    grid, prof, tau0, fs, tx, rx, c, rng = selftest_scene()
+    w = selftest_beam_weights(rng, "weighted")
+    plan = BackprojectPlan(grid, 3, 40, chunk=2, beam_lut=w.luts.shape[1], complex_image=complex_image, shape=shape)
+    got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c, beam=w)
+    want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points(), beam=w)
+    tol = HALF_TOLERANCE if shape.variant == "half_profiles" else TOL["backproject"]
+    assert np.abs(got - want).max() < tol * np.abs(want).max()
