@@ -8,7 +8,9 @@ timed before and after the shapes (the host's load moves; both are kept), then e
 time from profiling events (best and median of ``--repeats`` after a warm-up), and its error
 against the float64 NumPy twin on ``--check-voxels`` voxels drawn from the grid (every
 measurement), in dB: 20 log10 of the largest error over the largest value, and of the RMS error
-over the RMS value. ``tuned`` is the shape :mod:`clsas.cl.shapes` chose for this device;
+over the RMS value. ``tuned`` is the shape :mod:`clsas.cl.shapes` chose for this device among
+the variants as exact as the plain kernel; ``tuned-approximate`` among those within
+``HALF_TOLERANCE`` (half profiles where the device has them);
 ``plain/auto`` is the kernel as it was before shapes were tuned (the runtime's local size).
 The load average (``os.getloadavg``) is recorded next to every figure. Writes
 ``<date>-bp-shapes-<device>.json`` and ``.md`` under ``--out``.
@@ -61,7 +63,7 @@ def bench_side(n: int, n_meas: int, labels: list[str], repeats: int, check_voxel
     from bench import cpeer
     from bench import throughput as tp
     from clsas.formation import bp_numpy as twin
-    from clsas.formation.bp_opencl import BackprojectPlan
+    from clsas.formation.bp_opencl import HALF_TOLERANCE, BackprojectPlan
 
     grid = tp.cube_grid(n)
     wl = tp.backprojection_workload(grid, n_meas, rng)
@@ -86,9 +88,10 @@ def bench_side(n: int, n_meas: int, labels: list[str], repeats: int, check_voxel
 
     peer()
     for label in labels:
-        shape = "auto" if label == "tuned" else _shape(label)
+        shape = "auto" if label.startswith("tuned") else _shape(label)
+        max_error = HALF_TOLERANCE if label == "tuned-approximate" else None
         try:
-            plan = BackprojectPlan(grid, n_meas, wl["data"].shape[1], shape=shape)
+            plan = BackprojectPlan(grid, n_meas, wl["data"].shape[1], shape=shape, max_error=max_error)
         except ValueError as exc:  # a variant this device does not offer (half without cl_khr_fp16)
             row.setdefault("refused", {})[label] = str(exc)
             print(f"  {label:22s} not run: {exc}", flush=True)
@@ -138,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--measurements", type=int, default=1000)
     ap.add_argument("--shapes", nargs="+",
                     default=["tuned", "plain/auto", "plain/64", "local_profiles/64", "half_profiles/auto"],
-                    help="'tuned', or variant/local with variant plain or local_profiles, local auto or a number")
+                    help="'tuned', 'tuned-approximate', or variant/local with variant plain, local_profiles or "
+                         "half_profiles, local auto or a number")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--check-voxels", type=int, default=1500)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
@@ -146,7 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     if any(n < 2 for n in args.sides) or args.measurements < 1 or args.repeats < 1 or args.check_voxels < 1:
         ap.error("--sides must be at least 2; --measurements, --repeats, --check-voxels at least 1")
     for label in args.shapes:
-        if label != "tuned":
+        if label.startswith("tuned") and label not in ("tuned", "tuned-approximate"):
+            ap.error(f"--shapes {label!r}: 'tuned' or 'tuned-approximate'")
+        if not label.startswith("tuned"):
             try:
                 _shape(label)
             except ValueError as exc:

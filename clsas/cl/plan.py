@@ -13,8 +13,10 @@ from profiling events.
 A class that sets ``SHAPES = True`` launches with a tuned work-group shape (:mod:`.shapes`): it
 names its build variants in ``VARIANTS`` (name -> defines; ``""`` the plain kernel), those that
 need a local size in ``NEEDS_LOCAL``, those that need an OpenCL extension in ``NEEDS_EXTENSION``
-(tried only where the device reports it), and gives ``selftest(queue, vec, shape)`` and
-``time_shapes(queue, vec, shapes) -> seconds per shape``; :attr:`Plan.shape` is the outcome.
+(tried only where the device reports it), the error bound of those less exact than the plain
+kernel in ``ERROR_BOUND`` (tried only for a plan given that ``max_error``), and gives
+``selftest(queue, vec, shape)`` and ``time_shapes(queue, vec, shapes) -> seconds per shape``;
+:attr:`Plan.shape` is the outcome.
 """
 
 from __future__ import annotations
@@ -108,6 +110,10 @@ class Plan:
     shape : "auto" or Shape
         The work-group shape (local size, build variant). ``"auto"``: the tuned one where the
         class is tuned (``SHAPES``), else the runtime's local size and the plain kernel.
+    max_error : float, optional
+        The error against the twin, relative to the peak, that ``"auto"`` may trade for speed:
+        variants whose ``ERROR_BOUND`` exceeds it are not tried. Default None: only variants as
+        exact as the plain kernel.
     """
 
     KERNEL: ClassVar[str] = ""
@@ -116,15 +122,20 @@ class Plan:
     VARIANTS: ClassVar[dict[str, dict[str, Any]]] = {"": {}}  # build variant name -> its defines
     NEEDS_LOCAL: ClassVar[frozenset[str]] = frozenset()  # variants launched only with a local size
     NEEDS_EXTENSION: ClassVar[dict[str, str]] = {}  # variant -> the OpenCL extension the device must report
+    ERROR_BOUND: ClassVar[dict[str, float]] = {}  # variant -> its error bound, where above the plain kernel's
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if cls.__dict__.get("KERNEL"):  # a base without a kernel of its own registers nothing
             register_kernel(cls.KERNEL, cls.SOURCES, cls.__module__, cls.__qualname__)
 
-    def __init__(self, queue: Any = None, vec: int | None = None, shape: Shape | str = "auto"):
+    def __init__(self, queue: Any = None, vec: int | None = None, shape: Shape | str = "auto",
+                 max_error: float | None = None):
         if not self.KERNEL:
             raise TypeError(f"{type(self).__name__} names no KERNEL")
+        if max_error is not None and not (isinstance(max_error, (int, float)) and 0 < max_error < 1):
+            raise ValueError(f"max_error must be None or a fraction of the peak in (0, 1), got {max_error!r}")
+        self.max_error = max_error
         self.cl = _cl()
         self.queue = get_queue(queue)
         self.context = self.queue.context
@@ -139,9 +150,12 @@ class Plan:
 
     def candidate_shapes(self) -> list[Shape]:
         """The shapes the tuning tries on this plan's device: every variant whose extension the
-        device reports (:data:`NEEDS_EXTENSION`), at the local sizes of :func:`.shapes.candidate_shapes`."""
+        device reports (``NEEDS_EXTENSION``) and whose error bound (``ERROR_BOUND``, where it is
+        above the plain kernel's) is within ``max_error``, at the local sizes of
+        :func:`.shapes.candidate_shapes`."""
         has = set(self.queue.device.extensions.split()) | {""}
-        usable = {k: v for k, v in self.VARIANTS.items() if self.NEEDS_EXTENSION.get(k, "") in has}
+        usable = {k: v for k, v in self.VARIANTS.items() if self.NEEDS_EXTENSION.get(k, "") in has
+                  and self.ERROR_BOUND.get(k, 0.0) <= (self.max_error or 0.0)}
         return candidate_shapes(self.queue.device, min(256, int(self.queue.device.max_work_group_size)), usable,
                                 set(self.NEEDS_LOCAL))
 

@@ -165,9 +165,10 @@ class BackprojectPlan(BeamPlan):
     the same image), ``"half_profiles"`` (``-DHALF_PROFILES``: the records stored as half, scaled
     into its range; on devices with ``cl_khr_fp16`` only; the image within :data:`HALF_TOLERANCE`
     of its peak) or the plain kernel; ``"auto"``: the one tuned for the device
-    (:mod:`clsas.cl.shapes`). Where a geometry's staged run would not fit the device's local
-    memory, and for records made on the device (:meth:`from_device`) under half profiles, the
-    plain kernel runs with the same local size.
+    (:mod:`clsas.cl.shapes`), among the variants as exact as the plain kernel unless
+    ``max_error`` (relative to the peak) admits half profiles. Where a geometry's staged run would
+    not fit the device's local memory, and for records made on the device (:meth:`from_device`)
+    under half profiles, the plain kernel runs with the same local size.
     """
 
     KERNEL = "backproject"
@@ -176,12 +177,14 @@ class BackprojectPlan(BeamPlan):
     VARIANTS = {"": {}, "local_profiles": {"LOCAL_PROFILES": 1}, "half_profiles": {"HALF_PROFILES": 1}}
     NEEDS_LOCAL = frozenset({"local_profiles"})
     NEEDS_EXTENSION = {"half_profiles": "cl_khr_fp16"}
+    ERROR_BOUND = {"half_profiles": HALF_TOLERANCE}
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
-                 beam_lut: int = 0, complex_image: bool = False, shape: Shape | str = "auto"):
+                 beam_lut: int = 0, complex_image: bool = False, shape: Shape | str = "auto",
+                 max_error: float | None = None):
         self.beam_lut = int(beam_lut)  # samples per beam table; 0: omnidirectional (no -DBEAM)
         self.complex_image = bool(complex_image)
-        super().__init__(queue, vec, shape)
+        super().__init__(queue, vec, shape, max_error)
         self.grid, self.n_meas, self.n_lags = grid, n_meas, max(2, n_lags)
         self.n_vox = grid.size
         self.per_group = self.vec * (self.shape.local or 1)  # voxels per work-group (or per work-item)

@@ -227,8 +227,14 @@ def test_half_profiles_only_where_the_device_reports_fp16():
         with pytest.raises(ValueError, match="needs a device with cl_khr_fp16"):
             BackprojectPlan(grid, 3, 10, shape=cl.Shape(None, "half_profiles"))
     cands = BackprojectPlan(grid, 3, 10, shape=PLAIN).candidate_shapes()  # what the tuning tries here
-    assert any(c.variant == "half_profiles" for c in cands) == _has_fp16()
     assert PLAIN in cands and cl.Shape(16, LOCAL) in cands and cl.Shape(None, LOCAL) not in cands
+    assert not any(c.variant == "half_profiles" for c in cands)  # less exact: only where max_error admits it
+    cands = BackprojectPlan(grid, 3, 10, shape=PLAIN, max_error=1e-3).candidate_shapes()
+    assert any(c.variant == "half_profiles" for c in cands) == _has_fp16()
+    assert not any(c.variant == "half_profiles"
+                   for c in BackprojectPlan(grid, 3, 10, shape=PLAIN, max_error=1e-4).candidate_shapes())
+    with pytest.raises(ValueError, match="max_error must be"):
+        BackprojectPlan(grid, 3, 10, max_error=0.0)
 
 
 @needs_opencl
