@@ -20,7 +20,18 @@
  * Needs common.cl. Each work-item owns VEC consecutive voxels of the flattened grid
  * (C order, z fastest), so a single plane costs a plane; voxels past n_vox are padding.
  * Measurements are processed in chunks [m_begin, m_end); the host accumulates chunks. The
- * image is two float planes, or with -DCOMPLEX_IMAGE one interleaved complex array. */
+ * image is two float planes, or with -DCOMPLEX_IMAGE one interleaved complex array.
+ *
+ * -DLOCAL_PROFILES: per measurement, the work-group copies the run of seg_len records its voxels
+ * read (from the smallest left sample of its lanes inside the window and the grid, found with a
+ * local atomic_min) into local memory, and its lanes read them there: the same values, so the
+ * same image. The host sizes seg_len from the work-group's bounding box (its path spread in
+ * samples, plus 2); it needs a local size. Two barriers per measurement; the atomic's slot alternates with m's parity, so the
+ * slot of m + 1 is reset while m's is still read.
+ *
+ * -DHALF_PROFILES: the records are stored as half (4 per record, read with vload_half4, core
+ * OpenCL), scaled by the host into half's range (it scales the image back): half the bytes per
+ * pair gathered, float arithmetic. Not with -DLOCAL_PROFILES. */
 
 #ifdef COMPLEX_IMAGE /* the image as one interleaved complex array (re, im), read back as complex64 */
 #define IMAGE_ARGS __global float *image /* (n_vox_padded, 2) complex image, (re, im) per voxel */
@@ -29,15 +40,91 @@
                    __global float *image_im  /* (n_vox_padded,) imaginary part of the image */
 #endif
 
+#ifdef HALF_PROFILES /* the records as half, gathered with vload_half4 */
+#ifdef LOCAL_PROFILES
+#error "HALF_PROFILES and LOCAL_PROFILES do not combine"
+#endif
+#define PAIRS_T half
+#define RECORD_ELEMS 4
+#undef G4
+#define G4(src, li, l) vload_half4((int)(li).s[l], (src))
+/* lerp_pairs (common.cl) of a row of half records */
+inline void lerp_pairs_half(__global const half *row, const floatV idx, const float last, floatV *re, floatV *im,
+                            floatV *w_out)
+{
+    const intV inside = (idx >= 0.0f) & (idx <= last);
+    lanes_f li;
+    li.v = lag_floor(idx, last);
+    const floatV w = idx - li.v;
+    GATHER_PAIRS(row, li, are, aim, bre, bim)
+    *re = inside ? are + w * (bre - are) : (floatV)(0.0f);
+    *im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+    *w_out = inside ? w : (floatV)(0.5f);
+}
+#undef G4
+#define G4(src, li, l) (src)[(int)(li).s[l]]
+#define LERP_ROW lerp_pairs_half
+#else
+#define PAIRS_T float4
+#define RECORD_ELEMS 1
+#define LERP_ROW lerp_pairs
+#endif
+
+#ifdef LOCAL_PROFILES /* the records of a work-group's measurement staged in local memory */
+#define LOCAL_ARGS __local float4 *seg, /* (seg_len,) the records the work-group reads, from k_lo */ \
+                   const int seg_len,    /* records per staged run, >= the group's spread + 2       */ \
+                   const int n_vox,      /* voxels of the grid (lanes past it: padding, not staged)  */
+#else
+#define LOCAL_ARGS
+#endif
+
 #ifndef BEAM_WEIGHT /* built without beam.cl: omnidirectional */
 #define BEAM_ARGS
 #define BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m)
 #endif
 
+#ifdef LOCAL_PROFILES
+/* lerp_pairs (common.cl) reading the records from a run staged in local memory: the group's
+ * smallest left sample goes to k_lo[parity] (atomic_min), the run [k_lo, k_lo + seg_len) of
+ * `row` is copied to `seg` by the group's work-items, and each lane interpolates there. Every
+ * work-item of the group calls it once per measurement (it holds barriers); k_lo[1 - parity] is
+ * reset for the next measurement (nobody reads it until then). */
+inline void stage_and_lerp(__global const float4 *row, const int n_lags, const floatV idx, const float last,
+                           const intV real, __local float4 *seg, const int seg_len, __local int *k_lo,
+                           const int parity, floatV *re, floatV *im, floatV *w_out)
+{
+    const intV inside = (idx >= 0.0f) & (idx <= last);
+    lanes_f li;
+    li.v = lag_floor(idx, last);
+    lanes_i counted;
+    counted.v = inside & real;
+    float lo = last;
+    for (int l = 0; l < VEC; ++l) lo = (counted.s[l] && li.s[l] < lo) ? li.s[l] : lo;
+    atomic_min(&k_lo[parity], (int)lo);
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const int k0 = min(k_lo[parity], n_lags - 2); /* n_lags - 2 where no lane of the group counts */
+    const int n_seg = min(seg_len, n_lags - k0);  /* records of the run inside the row, >= 2 */
+    const int lid = (int)get_local_id(0), nl = (int)get_local_size(0);
+    if (lid == 0) k_lo[1 - parity] = n_lags;
+    for (int k = lid; k < n_seg; k += nl) seg[k] = row[k0 + k];
+    barrier(CLK_LOCAL_MEM_FENCE);
+    const floatV w = idx - li.v;
+    lanes_f rel;
+    rel.v = li.v - (float)k0; /* in [0, seg_len - 1] where the lane is inside */
+    rel.v = (rel.v > (float)(n_seg - 1)) ? (floatV)((float)(n_seg - 1)) : rel.v; /* lanes not counted: */
+    rel.v = (rel.v < 0.0f) ? (floatV)(0.0f) : rel.v;                                /* read, unused       */
+    GATHER_PAIRS(seg, rel, are, aim, bre, bim)
+    *re = inside ? are + w * (bre - are) : (floatV)(0.0f);
+    *im = inside ? aim + w * (bim - aim) : (floatV)(0.0f);
+    *w_out = inside ? w : (floatV)(0.5f);
+}
+#endif
+
 __kernel void backproject(
-    __global const float4 *pairs,    /* (n_meas, n_lags) records (q_k, r_k) above: the samples
+    __global const PAIRS_T *pairs,   /* (n_meas, n_lags) records (q_k, r_k) above: the samples
                                         k and k + 1 of the baseband profile rotated by R_mk,
-                                        as (re, im, re, im); p[n_lags] = 0                    */
+                                        as (re, im, re, im); p[n_lags] = 0; float4, or 4 half
+                                        with -DHALF_PROFILES                                  */
     const int n_lags,                /* samples per profile                                   */
     __global const float4 *tx,       /* (n_meas,) speaker position xyz, m; w: 1 / (c_m dtau),
                                         profile samples per metre of path                     */
@@ -51,6 +138,7 @@ __kernel void backproject(
     const int m_begin,               /* first measurement of this chunk                       */
     const int m_end,                 /* one past the last measurement of this chunk           */
     const int accumulate,            /* 0: overwrite the image, 1: add to it                  */
+    LOCAL_ARGS                       /* -DLOCAL_PROFILES: the staged run of records           */
     IMAGE_ARGS                       /* the image: two planes, or complex with -DCOMPLEX_IMAGE */
     BEAM_ARGS)                       /* beam.cl: the beam's buffers with -DBEAM, else nothing */
 {
@@ -72,6 +160,15 @@ __kernel void backproject(
 
     floatV acc_re = (floatV)(0.0f);
     floatV acc_im = (floatV)(0.0f);
+#ifdef LOCAL_PROFILES
+    const intV real = vox.v < n_vox; /* lanes of the grid, not padding */
+    __local int k_lo[2]; /* the group's smallest left sample, one slot per parity of m */
+    if (get_local_id(0) == 0) {
+        k_lo[0] = n_lags;
+        k_lo[1] = n_lags;
+    }
+    barrier(CLK_LOCAL_MEM_FENCE);
+#endif
 
     for (int m = m_begin; m < m_end; ++m) {
         const float4 t = tx[m];
@@ -82,7 +179,12 @@ __kernel void backproject(
                           + vsqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - s0[m];
         floatV re, im, f;
-        lerp_pairs(pairs + (size_t)m * n_lags, idx, last, &re, &im, &f);
+#ifdef LOCAL_PROFILES
+        stage_and_lerp(pairs + (size_t)m * n_lags, n_lags, idx, last, real, seg, seg_len, k_lo, m & 1, &re, &im,
+                       &f);
+#else
+        LERP_ROW(pairs + (size_t)m * n_lags * RECORD_ELEMS, idx, last, &re, &im, &f);
+#endif
         floatV c;
         floatV s = sincos_small(phi * (f - 0.5f), &c);
         BEAM_WEIGHT(c, s, dtx, dty, dtz, drx, dry, drz, m);

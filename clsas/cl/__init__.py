@@ -16,6 +16,8 @@ Selection is passed down (every function that takes ``backend`` takes one), and
   vector-ABI warning.
 - :mod:`.variants`: the vector width per device, verified once in a child process and cached
   on disk (:func:`cache_dir`, :func:`clear_cache`).
+- :mod:`.shapes`: the work-group shape (local size, build variant) per device, timed once in a
+  child process among candidates that equal the twin, kept on disk (:func:`shapes_dir`).
 - :mod:`.fission`: a sub-device of some compute units (Dask workers), a device's copy time.
 - :mod:`.plan`: the :class:`Plan` base class; each plan declares its ``KERNEL`` and ``SOURCES``
   and registers them in :data:`KERNELS` when its module is imported.
@@ -47,6 +49,7 @@ from .device import (
 from .fission import copy_seconds, sub_device_queue
 from .plan import DeviceRows, Plan, release_reused, reused, reused_plans
 from .program import BuildError, build, kernel, kernel_source, override_source
+from .shapes import Shape, Tuning, clear_shapes, shapes_dir
 from .trace import Tracer
 from .variants import (
     KERNELS,
@@ -70,7 +73,7 @@ __all__ = [
     "kernel_spec",
     "copy_queue", "copy_seconds", "list_devices", "override_source", "register_kernel", "release_reused",
     "resolve_backend", "reused", "reused_plans", "runtime_record", "select",
-    "sub_device_queue", "transfer_queue", "Tracer",
+    "Shape", "Tuning", "clear_shapes", "shapes_dir", "sub_device_queue", "transfer_queue", "Tracer",
 ]
 
 

@@ -9,6 +9,14 @@ kernel with the device layer (:data:`clsas.cl.KERNELS`). Extra build defines of 
 come from :meth:`Plan.defines`. It allocates in ``__init__`` after calling
 ``super().__init__`` and launches through :meth:`Plan.launch` so that kernel time is measured
 from profiling events.
+
+A class that sets ``SHAPES = True`` launches with a tuned work-group shape (:mod:`.shapes`): it
+names its build variants in ``VARIANTS`` (name -> defines; ``""`` the plain kernel), those that
+need a local size in ``NEEDS_LOCAL``, those that need an OpenCL extension in ``NEEDS_EXTENSION``
+(tried only where the device reports it), the error bound of those less exact than the plain
+kernel in ``ERROR_BOUND`` (tried only for a plan given that ``max_error``), and gives
+``selftest(queue, vec, shape)`` and ``time_shapes(queue, vec, shapes) -> seconds per shape``;
+:attr:`Plan.shape` is the outcome.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ import numpy as np
 
 from .device import _cl, describe, get_queue
 from .program import kernel, sources_hash
+from .shapes import DEFAULT, Shape, candidate_shapes, tune
 from .variants import choose, kernel_spec, register_kernel
 
 P = TypeVar("P")
@@ -104,28 +113,83 @@ class Plan:
     vec : int, optional
         Force a vector width (4, 8 or 16); it must pass the variant check, else
         :class:`~clsas.cl.BuildError`. Default: the widest width the device passes.
+    shape : "auto" or Shape
+        The work-group shape (local size, build variant). ``"auto"``: the tuned one where the
+        class is tuned (``SHAPES``), else the runtime's local size and the plain kernel.
+    max_error : float, optional
+        The error against the twin, relative to the peak, that ``"auto"`` may trade for speed:
+        variants whose ``ERROR_BOUND`` exceeds it are not tried. Default None: only variants as
+        exact as the plain kernel.
     """
 
     KERNEL: ClassVar[str] = ""
     SOURCES: ClassVar[tuple[str, ...]] = ()
+    SHAPES: ClassVar[bool] = False  # True: the work-group shape is tuned per device (:mod:`.shapes`)
+    VARIANTS: ClassVar[dict[str, dict[str, Any]]] = {"": {}}  # build variant name -> its defines
+    NEEDS_LOCAL: ClassVar[frozenset[str]] = frozenset()  # variants launched only with a local size
+    NEEDS_EXTENSION: ClassVar[dict[str, str]] = {}  # variant -> the OpenCL extension the device must report
+    ERROR_BOUND: ClassVar[dict[str, float]] = {}  # variant -> its error bound, where above the plain kernel's
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
         if cls.__dict__.get("KERNEL"):  # a base without a kernel of its own registers nothing
             register_kernel(cls.KERNEL, cls.SOURCES, cls.__module__, cls.__qualname__)
 
-    def __init__(self, queue: Any = None, vec: int | None = None):
+    def __init__(self, queue: Any = None, vec: int | None = None, shape: Shape | str = "auto",
+                 max_error: float | None = None):
         if not self.KERNEL:
             raise TypeError(f"{type(self).__name__} names no KERNEL")
+        if max_error is not None and not (isinstance(max_error, (int, float)) and 0 < max_error < 1):
+            raise ValueError(f"max_error must be None or a fraction of the peak in (0, 1), got {max_error!r}")
+        self.max_error = max_error
         self.cl = _cl()
         self.queue = get_queue(queue)
         self.context = self.queue.context
         self.vec = choose(self.queue, self.KERNEL, vec)
-        self.kernel = kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), "VEC": self.vec})
+        self.tuning = None  # the Tuning behind an "auto" shape of a tuned class (:mod:`.shapes`)
+        self.shape = self._shape(shape)
+        self.kernel = kernel(self.context, self.SOURCES, self.KERNEL,
+                             {**self.VARIANTS[self.shape.variant], **self.defines(), "VEC": self.vec})
         self.last_kernel_s = 0.0
         self._calls = [0]  # calls begun (:meth:`begin`), shared with the DeviceRows this plan made
         self._events: list = []
         self._written: dict[int, tuple] = {}  # id(buffer) -> (buffer, bytes) of :meth:`write_changed`
+
+    def candidate_shapes(self) -> list[Shape]:
+        """The shapes the tuning tries on this plan's device: every variant whose extension the
+        device reports (``NEEDS_EXTENSION``) and whose error bound (``ERROR_BOUND``, where it is
+        above the plain kernel's) is within ``max_error``, at the local sizes of
+        :func:`.shapes.candidate_shapes`."""
+        has = set(self.queue.device.extensions.split()) | {""}
+        usable = {k: v for k, v in self.VARIANTS.items() if self.NEEDS_EXTENSION.get(k, "") in has
+                  and self.ERROR_BOUND.get(k, 0.0) <= (self.max_error or 0.0)}
+        return candidate_shapes(self.queue.device, min(256, int(self.queue.device.max_work_group_size)), usable,
+                                set(self.NEEDS_LOCAL))
+
+    def _shape(self, shape: Shape | str) -> Shape:
+        """The shape asked for, checked; ``"auto"``: tuned (``SHAPES``) or the default."""
+        from . import variants
+
+        if isinstance(shape, str) and shape == "auto":
+            if not self.SHAPES:
+                return DEFAULT
+            self.tuning = tune(self.queue, self.KERNEL, self.vec, self.candidate_shapes(), in_probe=variants._IN_PROBE)
+            return self.tuning.shape
+        if not isinstance(shape, Shape):
+            raise TypeError(f"shape must be 'auto' or a clsas.cl.Shape, got {shape!r}")
+        if shape.variant not in self.VARIANTS:
+            raise ValueError(f"shape: {type(self).__name__} has no variant {shape.variant!r} "
+                             f"(it has {sorted(self.VARIANTS)})")
+        ext = self.NEEDS_EXTENSION.get(shape.variant)
+        if ext and ext not in self.queue.device.extensions.split():
+            raise ValueError(f"shape: the variant {shape.variant!r} needs a device with {ext}; "
+                             f"{self.queue.device.name.strip()} does not report it")
+        if shape.local is None and shape.variant in self.NEEDS_LOCAL:
+            raise ValueError(f"shape: the variant {shape.variant!r} needs a local size (got None)")
+        limit = int(self.queue.device.max_work_group_size)
+        if shape.local is not None and shape.local > limit:
+            raise ValueError(f"shape: local={shape.local} exceeds the device's {limit} work-items per group")
+        return shape
 
     def defines(self) -> dict[str, Any]:
         """Build defines of this instance besides ``VEC`` (the variant the probe verifies is
@@ -201,4 +265,4 @@ class Plan:
         return describe(self.queue.device)
 
     def __repr__(self) -> str:
-        return f"{type(self).__name__}({self.KERNEL}, VEC={self.vec}, {self.device})"
+        return f"{type(self).__name__}({self.KERNEL}, VEC={self.vec}, shape {self.shape.label}, {self.device})"

@@ -3,7 +3,9 @@
 Reads a JSON spec on stdin (platform and device names, kernel, width, the plan class's module
 and qualified name, source texts), runs the plan class's ``selftest`` (a small input against
 the NumPy twin) on that device and prints one JSON line ``{"ok": ..., "reason": ..., "log":
-...}``. A crash of the OpenCL runtime kills only this process; the parent reads that from the
+...}``. With ``"task": "shapes"`` and a list of shapes (:mod:`clsas.cl.shapes`) it checks each
+shape against the twin and times those that pass, printing ``{"rounds": {label: [s per round]},
+"refused": {label: why}}``. A crash of the OpenCL runtime kills only this process; the parent reads that from the
 exit status.
 """
 
@@ -17,6 +19,8 @@ import sys
 from . import variants
 from .device import _cl, make_queue
 from .program import BuildError, override_source
+from .shapes import TOLERANCE as shapes_tolerance
+from .shapes import Shape
 
 TOLERANCE = 1e-3  # relative to the peak: catches wrong code, not float32 rounding
 
@@ -49,6 +53,8 @@ def run(spec: dict) -> dict:
         for f, text in spec.get("sources", {}).items():
             stack.enter_context(override_source(f, text))
         plan_cls = _plan_class(spec["module"], spec["qualname"])
+        if spec.get("task") == "shapes":
+            return time_shapes(plan_cls, queue, vec, [Shape(**s) for s in spec["shapes"]])
         try:
             err = plan_cls.selftest(queue, vec)
         except BuildError as exc:
@@ -56,6 +62,24 @@ def run(spec: dict) -> dict:
     if not err < TOLERANCE:
         return {"ok": False, "reason": f"VEC={vec}: result differs from the NumPy twin by {err:.3g} of the peak"}
     return {"ok": True, "reason": f"VEC={vec}: equal to the twin to {err:.2g} of the peak"}
+
+
+def time_shapes(plan_cls, queue, vec: int, shapes: list[Shape]) -> dict:
+    """Each shape checked against the twin (``plan_cls.selftest(queue, vec, shape)``), those that
+    pass timed together (``plan_cls.time_shapes``); label -> seconds per round, label -> why refused."""
+    refused, passed = {}, []
+    for shape in shapes:
+        try:
+            err = plan_cls.selftest(queue, vec, shape)
+        except Exception as exc:  # noqa: BLE001 - any failure of a shape refuses it
+            refused[shape.label] = f"{type(exc).__name__}: {exc}"[:500]
+            continue
+        if err < shapes_tolerance:
+            passed.append(shape)
+        else:
+            refused[shape.label] = f"differs from the NumPy twin by {err:.3g} of the peak"
+    rounds = plan_cls.time_shapes(queue, vec, passed) if passed else []
+    return {"rounds": {s.label: t for s, t in zip(passed, rounds, strict=True)}, "refused": refused}
 
 
 def main() -> int:

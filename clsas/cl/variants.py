@@ -286,16 +286,20 @@ def check(queue: Any, name: str, vec: int) -> Verdict:
 
 # (device int_ptr, kernel) -> the width chosen for it in this process
 _CHOSEN: dict[tuple[int, str], int] = {}
+# (device int_ptr, kernel) -> the label of the work-group shape tuned for it in this process (.shapes)
+CHOSEN_SHAPES: dict[tuple[int, str], str] = {}
 
 
 def runtime_record(queue: Any) -> dict:
     """The OpenCL runtime a result came from, for provenance and benchmarks: platform and its
-    version, device, driver, and the vector width chosen for each kernel run on it so far."""
+    version, device, driver, and the vector width and the tuned work-group shape
+    (:mod:`.shapes`, as its label) chosen for each kernel run on it so far."""
     device = queue.device
     ident = device_identity(device)
     kernels = {k: w for (ptr, k), w in sorted(_CHOSEN.items(), key=lambda kv: kv[0][1]) if ptr == device.int_ptr}
+    shapes = {k: s for (ptr, k), s in sorted(CHOSEN_SHAPES.items(), key=lambda kv: kv[0][1]) if ptr == device.int_ptr}
     return {"platform": ident["platform"], "platform_version": ident["platform_version"], "device": ident["device"],
-            "driver": ident["driver"], "kernels_vec": kernels}
+            "driver": ident["driver"], "kernels_vec": kernels, "kernels_shape": shapes}
 
 
 def choose(queue: Any, name: str, vec: int | None = None) -> int:

@@ -9,6 +9,8 @@ def cmd_devices(args) -> int:
     if args.clear_cache:
         n = cl.clear_cache()
         print(f"removed {n} kernel-variant verdict(s) from {cl.cache_dir()}")
+        n = cl.clear_shapes()
+        print(f"removed {n} work-group tuning(s) from {cl.shapes_dir()}")
     rows = cl.list_devices()
     if not rows:
         from clsas.cl.device import FIX_CPU

@@ -7,7 +7,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..cl import DeviceRows, Plan, transfer_queue
+from ..cl import DeviceRows, Plan, Shape, transfer_queue
 from ..physics.geometry import VoxelGrid
 from .bp_numpy import (  # noqa: F401 - the twins of records.cl, imported from here by the projector
     MAX_CYCLES_PER_SAMPLE,
@@ -227,6 +227,11 @@ class PendingImage:
         return self._rows
 
 
+# the half-profiles variant's error against the float64 twin, relative to the peak (each record
+# rounded to half, 2^-11 of it; tests/kernels/test_shapes.py checks it, bench/bp_shapes.py states it)
+HALF_TOLERANCE = 1e-3
+
+
 class BackprojectPlan(BeamPlan):
     """Compiled kernel and device buffers for ``n_meas`` profiles of at most ``n_lags`` samples.
 
@@ -243,17 +248,34 @@ class BackprojectPlan(BeamPlan):
     so that the next grid's kernels run while the last image is read and collected; a grid
     whose last image was collected writes into the first buffer again (one buffer where nothing
     overlaps).
+
+    ``shape`` (:class:`clsas.cl.Shape`): the work-items per group and the build variant,
+    ``"local_profiles"`` (``-DLOCAL_PROFILES``: each group's run of records staged in local memory,
+    the same image), ``"half_profiles"`` (``-DHALF_PROFILES``: the records stored as half, scaled
+    into its range; on devices with ``cl_khr_fp16`` only; the image within :data:`HALF_TOLERANCE`
+    of its peak) or the plain kernel; ``"auto"``: the one tuned for the device
+    (:mod:`clsas.cl.shapes`), among the variants as exact as the plain kernel unless
+    ``max_error`` (relative to the peak) admits half profiles. Where a geometry's staged run would
+    not fit the device's local memory, and for records made on the device (:meth:`from_device`)
+    under half profiles, the plain kernel runs with the same local size.
     """
 
     KERNEL = "backproject"
     SOURCES = ("common.cl", "beam.cl", "backproject.cl")
+    SHAPES = True
+    VARIANTS = {"": {}, "local_profiles": {"LOCAL_PROFILES": 1}, "half_profiles": {"HALF_PROFILES": 1}}
+    NEEDS_LOCAL = frozenset({"local_profiles"})
+    NEEDS_EXTENSION = {"half_profiles": "cl_khr_fp16"}
+    ERROR_BOUND = {"half_profiles": HALF_TOLERANCE}
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
-                 beam_lut: int = 0, complex_image: bool = False):
+                 beam_lut: int = 0, complex_image: bool = False, shape: Shape | str = "auto",
+                 max_error: float | None = None):
         self.beam_lut = int(beam_lut)  # samples per beam table; 0: omnidirectional (no -DBEAM)
         self.complex_image = bool(complex_image)
-        super().__init__(queue, vec)
+        super().__init__(queue, vec, shape, max_error)
         self.n_meas, self.n_lags = n_meas, max(2, n_lags)
+        self.per_group = self.vec * (self.shape.local or 1)  # voxels per work-group (or per work-item)
         self._chunk = chunk
         self.d_prof, self.n_lags_dev = None, 0  # the host-made records (__call__), allocated on first use
         self.d_tx = self.alloc(16 * n_meas, "r")
@@ -272,7 +294,7 @@ class BackprojectPlan(BeamPlan):
         if not isinstance(grid, VoxelGrid):
             raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
         self.grid, self.n_vox = grid, grid.size
-        self.n_pad = -(-self.n_vox // self.vec) * self.vec
+        self.n_pad = -(-self.n_vox // self.per_group) * self.per_group
         self.chunk = self._chunk or int(np.clip(4e7 // self.n_pad, 4, 256))
         if self.n_pad > self.capacity or 4 * self.n_pad < self.capacity:
             self.capacity = self.n_pad
@@ -322,9 +344,17 @@ class BackprojectPlan(BeamPlan):
         if self.d_prof is None or n_lags != self.n_lags_dev:  # upsampled (fc dtau > MAX_CYCLES_PER_SAMPLE): larger
             self.d_prof, self.n_lags_dev = self.alloc(pairs.nbytes, "r"), n_lags
         self.begin()
-        self.write(self.d_prof, pairs, np.complex64)
-        return self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps, progress,
-                          beam).result()
+        if self.shape.variant != "half_profiles":
+            self.write(self.d_prof, pairs, np.complex64)
+            return self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps,
+                              progress, beam).result()
+        parts = np.ascontiguousarray(pairs, np.complex64).view(np.float32)
+        scale = float(np.abs(parts).max()) or 1.0  # into half's range (|x| <= 65504); the image scaled back
+        self.write(self.d_prof, parts / scale, np.float16)
+        image = self._form(self.d_prof, n_lags, tau0_s, dtau_s, phi, tx_positions, rx_positions, c_mps, progress,
+                           beam, half=True).result()
+        image *= np.float32(scale)
+        return image
 
     def _check_records(self, records: RecordsPlan, fc_hz: float, dtau_s: float) -> None:
         up = upsample_factor(fc_hz, dtau_s)
@@ -369,9 +399,10 @@ class BackprojectPlan(BeamPlan):
         return pending, source
 
     def _form(self, d_pairs, n_lags: int, tau0_s, dtau_s: float, phi: float, tx_positions, rx_positions, c_mps,
-              progress, beam, records_evt=None) -> PendingImage:
-        """The bp kernel over every chunk of measurements on records ``d_pairs`` (n_meas, n_lags)
-        at lag step ``dtau_s`` into the next image buffer, and its read back begun."""
+              progress, beam, records_evt=None, half: bool = False) -> PendingImage:
+        """The bp kernel over every chunk of measurements on records ``d_pairs`` (n_meas, n_lags;
+        float, or half with ``half``) at lag step ``dtau_s`` into the next image buffer, and its
+        read back begun."""
         self.write_geometry(tau0_s, dtau_s, tx_positions, rx_positions, c_mps)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
@@ -383,13 +414,14 @@ class BackprojectPlan(BeamPlan):
         beam_args = self.beam_args(beam)
         slot = self._slot()
         image, after = self._images[slot], self._reads[slot]  # the buffer's last image read before it is written
+        kern, local_args = self._staging(dtau_s, c_mps, half)
+        local = None if self.shape.local is None else (self.shape.local,)
         events = []
         for m0 in range(0, self.n_meas, self.chunk):
             m1 = min(self.n_meas, m0 + self.chunk)
-            evt = self.launch(
-                (self.n_pad // self.vec,), *fixed, np.int32(m0), np.int32(m1), np.int32(m0 > 0), *image,
-                *beam_args, wait_for=after if m0 == 0 else None,
-            )
+            evt = kern(self.queue, (self.n_pad // self.vec,), local, *fixed, np.int32(m0), np.int32(m1),
+                       np.int32(m0 > 0), *local_args, *image, *beam_args, wait_for=after if m0 == 0 else None)
+            self._events.append(evt)
             events.append(evt)
             if progress is not None:
                 evt.wait()
@@ -411,18 +443,102 @@ class BackprojectPlan(BeamPlan):
         self._reads[slot], self._pending[slot] = reads, pending
         return pending
 
+    def _staging(self, dtau_s: float, c_mps, half: bool = False) -> tuple:
+        """The kernel to launch on float records (or half ones, ``half``) and its -DLOCAL_PROFILES
+        arguments (none for the others): the staged run's records, sized by :func:`staged_records`.
+        The plain kernel where the run would not fit the device's local memory, and for float
+        records under -DHALF_PROFILES (the resident path's, made on the device)."""
+        if self.shape.variant == "half_profiles":
+            if not half:
+                return self._plain_kernel(), ()
+        elif half:
+            raise ValueError(f"half records, but this plan runs the {self.shape.label} kernel")
+        if self.shape.variant != "local_profiles":
+            return self.kernel, ()
+        per_m = float(np.max(1.0 / (np.asarray(c_mps, float) * dtau_s)))
+        seg_len = staged_records(self.grid, self.per_group, per_m)
+        if 16 * seg_len + 64 > int(self.queue.device.local_mem_size):
+            return self._plain_kernel(), ()
+        return self.kernel, (self.cl.LocalMemory(16 * seg_len), np.int32(seg_len), np.int32(self.n_vox))
+
+    def _plain_kernel(self):
+        """The plain kernel at this plan's width and defines (built once per context)."""
+        from ..cl import kernel
+
+        return kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), "VEC": self.vec})
+
     @classmethod
-    def selftest(cls, queue, vec: int) -> float:
+    def selftest(cls, queue, vec: int, shape: Shape | None = None) -> float:
         """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, voxels in and out of the window,
-        a different speed of sound for each measurement."""
+        a different speed of sound for each measurement; at ``shape`` (default: the plain kernel,
+        the runtime's local size)."""
         from . import bp_numpy as twin
 
         grid, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
-        got = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2)(prof, tau0, 1 / fs, 25e3, tx, rx, c)
+        plan = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=shape or Shape())
+        got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
         want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
         if not (np.any(want == 0) and np.any(want != 0)):
             raise RuntimeError("selftest scene must have voxels inside and outside the profile window")
         return float(np.abs(got - want).max() / np.abs(want).max())
+
+
+    @classmethod
+    def time_shapes(cls, queue, vec: int, shapes: list[Shape], rounds: int = 5) -> list[list[float]]:
+        """Kernel seconds of each shape in each of ``rounds`` interleaved rounds (after a warm-up)
+        on a 40^3 grid x 32 measurements (a raster in front of it, every pair inside the profiles)."""
+        grid, args = timing_scene(np.random.default_rng(1))
+        plans = [cls(grid, 32, args[0].shape[1], queue=queue, vec=vec, shape=s) for s in shapes]
+        for plan in plans:
+            plan(*args)
+        out = [[] for _ in plans]
+        for _ in range(rounds):
+            for times, plan in zip(out, plans, strict=True):
+                plan(*args)
+                times.append(plan.last_kernel_s)
+        return out
+
+
+def staged_records(grid: VoxelGrid, per_group: int, samples_per_m: float) -> int:
+    """Records a work-group of ``per_group`` consecutive voxels (C order) stages per measurement
+    under -DLOCAL_PROFILES: its largest bounding-box diagonal ``d`` over the grid's groups, then
+    ``ceil(2 d samples_per_m) + 2`` (the two distances of a path each change by at most ``d``
+    within the box; the left samples of two lanes differ by at most the ceiling of their lags')."""
+    if per_group < 1 or not samples_per_m > 0:
+        raise ValueError(f"per_group must be >= 1 and samples_per_m > 0, got {per_group}, {samples_per_m}")
+    nx, ny, nz = grid.shape
+    first = np.arange(0, grid.size, per_group)
+    last = np.minimum(first + per_group, grid.size) - 1
+    ix0, rest0 = np.divmod(first, ny * nz)
+    ix1, rest1 = np.divmod(last, ny * nz)
+    (iy0, iz0), (iy1, iz1) = np.divmod(rest0, nz), np.divmod(rest1, nz)
+    one_x = ix0 == ix1
+    one_y = one_x & (iy0 == iy1)
+    ext_x = ix1 - ix0
+    ext_y = np.where(one_x, iy1 - iy0, ny - 1)
+    ext_z = np.where(one_y, iz1 - iz0, nz - 1)
+    sx, sy, sz = (abs(s) if n > 1 else 0.0 for s, n in zip(grid.spacing(), grid.shape, strict=True))
+    diag = float(np.sqrt((ext_x * sx) ** 2 + (ext_y * sy) ** 2 + (ext_z * sz) ** 2).max())
+    return int(np.ceil(2 * diag * samples_per_m)) + 2
+
+
+def timing_scene(rng) -> tuple[VoxelGrid, tuple]:
+    """What :meth:`BackprojectPlan.time_shapes` times: a 40^3 grid of 1 cm voxels 0.5 m in front of
+    a 6 x 6 raster (32 positions used) of 1 m, profiles every 2 samples at 96 kHz covering every
+    pair, 25 kHz; returns ``(grid, (profiles, tau0, dtau, fc, tx, rx, c))``."""
+    ax = np.arange(40) * 0.01 - 0.195
+    grid = VoxelGrid(ax, ax, 0.7 + ax)
+    u = np.linspace(-0.5, 0.5, 6)
+    tx = np.c_[np.repeat(u, 6), np.tile(u, 6), np.zeros(36)][:32]
+    rx = tx + [0.03, 0.0, 0.0]
+    c, dtau = 343.0, 2 / 96e3
+    corners = np.array(np.meshgrid(*grid.bounds(), indexing="ij")).reshape(3, -1).T
+    near = grid.z_m[0]  # the grid's face nearest to the raster (at z = 0): no path is shorter than 2 near
+    far = np.linalg.norm(corners[:, None] - tx[None], axis=2).max() + 0.03  # nor longer than 2 far
+    tau0 = np.full(32, 2 * near / c - 4 * dtau)
+    n_lags = int(np.ceil((2 * far / c - tau0[0]) / dtau)) + 4
+    prof = (rng.normal(size=(32, n_lags)) + 1j * rng.normal(size=(32, n_lags))).astype(np.complex64)
+    return grid, (prof, tau0, dtau, 25e3, tx, rx, c)
 
 
 def beam_selftest(queue, vec: int, mode: str = "weighted") -> float:

@@ -1,7 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [gradient] [stolt] [stolt_depths] [ffbp]
-[records] [vec=N ...]. Checks each
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [backproject_local] [backproject_half] [gradient]
+[stolt] [stolt_depths] [ffbp] [records] [vec=N ...]. Checks each
 result against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
@@ -12,6 +12,7 @@ import numpy as np
 import pyopencl as cl
 
 import clsas
+from clsas.cl import Shape
 from clsas.compression import fft_layout
 from clsas.compression.compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 from clsas.focus.gradient_opencl import FocusGradientPlan
@@ -62,6 +63,34 @@ def check_backproject(queue, rng, vec):
     # the plan's selftest: 5 x 2 x 3 voxels (not a multiple of VEC), two chunks, voxels in and
     # out of the window (it raises if the scene has not both)
     assert BackprojectPlan.selftest(queue, vec) < 1e-4, "backproject"
+
+
+def check_backproject_local(queue, rng, vec):
+    # -DLOCAL_PROFILES (records staged in local memory per work-group, two barriers per
+    # measurement): 5 x 3 x 7 voxels in groups of 2 work-items (several groups, the last one part
+    # padding) over two chunks against the twin, then the selftest in groups of 4. (In the other
+    # order the uninitialised-value plugin reports the accumulators of the second plan's groups
+    # inside the window, whose values equal the twin's; either plan alone is clean.)
+    _, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 5), np.linspace(0.0, 0.05, 3), np.linspace(0.2, 0.6, 7))
+    plan = BackprojectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=Shape(2, "local_profiles"))
+    got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
+    close(got, bp_twin(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points()), 1e-4, "backproject local, 15 groups")
+    assert BackprojectPlan.selftest(queue, vec, Shape(4, "local_profiles")) < 1e-4, "backproject local, selftest"
+
+
+def check_backproject_half(queue, rng, vec):
+    # -DHALF_PROFILES (records stored as half, read with vload_half4): Oclgrind does not report
+    # cl_khr_fp16, but vload_half is core OpenCL, so this checking process lifts the plan's
+    # extension gate; 5 x 3 x 7 voxels in groups of 2 over two chunks, then the selftest (in that
+    # order, as for the local variant)
+    BackprojectPlan.NEEDS_EXTENSION = {}
+    _, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 5), np.linspace(0.0, 0.05, 3), np.linspace(0.2, 0.6, 7))
+    plan = BackprojectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=Shape(2, "half_profiles"))
+    got = plan(prof * 1e6, tau0, 1 / fs, 25e3, tx, rx, c)
+    close(got, bp_twin(prof * 1e6, tau0, 1 / fs, 25e3, tx, rx, c, grid.points()), 1e-3, "backproject half")
+    assert BackprojectPlan.selftest(queue, vec, Shape(None, "half_profiles")) < 1e-3, "backproject half, selftest"
 
 
 def check_records(queue, rng, vec):
@@ -136,6 +165,10 @@ def main(kernels: set[str]) -> int:
             check_fft(queue, rng, vec)
         if "backproject" in kernels:
             check_backproject(queue, rng, vec)
+        if "backproject_local" in kernels:
+            check_backproject_local(queue, rng, vec)
+        if "backproject_half" in kernels:
+            check_backproject_half(queue, rng, vec)
         if "gradient" in kernels:
             check_gradient(queue, rng, vec)
         if "stolt" in kernels:
@@ -151,5 +184,5 @@ def main(kernels: set[str]) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "gradient", "stolt", "stolt_depths", "ffbp",
-                                        "records"}))
+    sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "backproject_local", "backproject_half",
+                                        "gradient", "stolt", "stolt_depths", "ffbp", "records"}))

@@ -1,5 +1,6 @@
-"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl; autofocus.cl; stolt.cl; ffbp.cl:
-ffbp_leaf, ffbp_merge; records.cl, with backproject.cl's complex image after it) runs clean under Oclgrind."""
+"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl, plain, -DLOCAL_PROFILES, -DHALF_PROFILES;
+autofocus.cl; stolt.cl; ffbp.cl: ffbp_leaf, ffbp_merge; records.cl, with backproject.cl's complex image
+after it) runs clean under Oclgrind."""
 
 import os
 import subprocess
@@ -22,17 +23,23 @@ from conftest import oclgrind_missing as _oclgrind_available
 # (the selftest passes under Oclgrind); the same copy read as floats, or its other lane loops
 # unrolled, gave reports at every width or crashed Oclgrind. Its invalid accesses and races are
 # checked at every width. records.cl (with the resident path: backproject.cl writing the complex
-# image after it) is checked for uninitialised values at VEC 4 and 8, backproject.cl's widths.
+# image after it) is checked for uninitialised values at VEC 4 and 8, backproject.cl's widths, as is
+# backproject.cl's -DLOCAL_PROFILES variant (records staged in local memory, barriers: the race check
+# covers them at every width) and -DHALF_PROFILES variant; for both, a plan of several groups runs
+# before the selftest (in the other order the plugin reports the second plan's accumulators, whose
+# values equal the twin's; either alone is clean).
 WIDTHS = ("vec=4", "vec=8", "vec=16")
 CHECKS = [
     pytest.param({"OCLGRIND_DATA_RACES": "1"},
-                 ["compress", "fft", "backproject", "gradient", "stolt", "stolt_depths", "ffbp", "records", *WIDTHS],
+                 ["compress", "fft", "backproject", "backproject_local", "backproject_half", "gradient", "stolt",
+                  "stolt_depths", "ffbp", "records", *WIDTHS],
                  id="memcheck+races-all"),
 ] + [
     pytest.param({"OCLGRIND_UNINITIALIZED": "1"}, [kernels, f"vec={vec}"], id=f"uninitialized-{kernels}-vec{vec}")
     for kernels, vecs in [("compress", (4, 8, 16)), ("fft", (4, 8, 16)), ("backproject", (4, 8)),
-                           ("gradient", (4, 8)), ("stolt", (4, 16)), ("stolt_depths", (4,)), ("ffbp", (4, 8)),
-                           ("records", (4, 8))]
+                           ("backproject_local", (4, 8)), ("backproject_half", (4, 8)), ("gradient", (4, 8)),
+                           ("stolt", (4, 16)),
+                           ("stolt_depths", (4,)), ("ffbp", (4, 8)), ("records", (4, 8))]
     for vec in vecs
 ]
 
