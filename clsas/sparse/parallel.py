@@ -73,7 +73,7 @@ def echoes_on_cluster(job, client, n_lags: int, progress: Callable[[int, int], N
         The matched-filter rows of the recordings the method failed on (zero elsewhere), and
         every recording's echoes, in recording order.
     """
-    from ..pipeline.tiling.dask import connect, import_distributed
+    from ..cluster import connect, import_distributed
 
     if not isinstance(client, str) and not (hasattr(client, "submit") and hasattr(client, "scatter")):
         raise TypeError(f"client must be a distributed.Client or a scheduler address, got {type(client).__name__}")

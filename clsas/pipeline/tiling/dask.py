@@ -26,7 +26,7 @@ import logging
 import os
 
 from ... import cl
-from ...validate import install_hint
+from ...cluster import connect, import_distributed
 from .tiles import form_tile
 
 __all__ = ["OpenCLDevicePlugin", "connect", "import_distributed", "n_workers", "run_on_cluster", "worker_device",
@@ -40,16 +40,6 @@ except ImportError:  # pragma: no cover - import_distributed() says what to inst
     _PluginBase = object
 
 _WORKER_DEVICE: dict = {"device": None}  # set on a worker by OpenCLDevicePlugin
-
-
-def import_distributed():
-    """``distributed``, or an ImportError that names the extra to install."""
-    try:
-        import distributed
-    except ImportError as exc:
-        raise ImportError("reconstruct(client=...) and --scheduler need dask.distributed: "
-                          f"{install_hint('distributed')}") from exc
-    return distributed
 
 
 class OpenCLDevicePlugin(_PluginBase):
@@ -144,14 +134,6 @@ def _tile_task(profiles, grid, formation, options, requested, force):
     vals, dev, seconds, records = form_tile(profiles, grid, formation, options, selection, force)
     cu = "" if units is None else f", {units} CU"
     return vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units, records
-
-
-def connect(client):
-    """A Client for ``client`` (itself, or a new one connected to the address), and whether we own it."""
-    distributed = import_distributed()
-    if isinstance(client, str):
-        return distributed.Client(client, timeout="20s"), True
-    return client, False
 
 
 def n_workers(client) -> int:
