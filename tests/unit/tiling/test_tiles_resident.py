@@ -167,6 +167,7 @@ print(grid.size, t["count"], t["records"].get("kept", 0), budget, peak_rss_bytes
 """
 
 
+@pytest.mark.slow  # a child process that forms 101³ voxels twice; the margin is the budget's 25 MB
 def test_out_of_core_peak_memory_stays_within_the_budget():
     """In a process of its own: a 101³ grid whose image alone (56 bytes a voxel on OpenCL) would
     take more than twice the 25 MB the budget leaves, formed into a file in tiles through the
