@@ -99,7 +99,7 @@ def backproject_tiled(client, profiles, grid: VoxelGrid, n_tiles: int, backend: 
     parts = [Tile(i, (sl, slice(None), slice(None)), sub) for i, (sl, sub) in enumerate(tiles(grid, n_tiles))]
     out = None
     devices = [""] * len(parts)
-    for tile, vals, device, _, _ in run_on_cluster(client, profiles, parts, list(range(len(parts))), "bp", {},
+    for tile, vals, device, *_ in run_on_cluster(client, profiles, parts, list(range(len(parts))), "bp", {},
                                                 backend or "auto", False):
         out = np.zeros(grid.shape, vals.dtype) if out is None else out
         out[tile.slices] = vals
