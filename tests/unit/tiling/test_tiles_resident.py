@@ -43,7 +43,9 @@ def test_tiles_take_the_records_once_and_equal_the_whole_image(scene):
     assert tiled.provenance["tiles"]["overlap"] is True
     _close(tiled.values, whole.values)
     plans = _bp_plans()
-    assert len(plans) == 1 and plans[0].capacity < 2 * int(np.prod(shape)) < grid.size
+    # one tile's voxels, padded to whole work-groups (a tuned local size pads further)
+    assert len(plans) == 1 and plans[0].capacity < 2 * int(np.prod(shape)) + plans[0].per_group
+    assert 2 * int(np.prod(shape)) < grid.size
     assert plans[0].image_buffers == 2  # two image buffers took turns
 
 
@@ -61,7 +63,7 @@ def test_out_of_core_within_a_budget_is_resident_and_equals_the_whole_image(scen
     assert t["count"] > 1 and t["records"] == {"rows": 1, "kept": t["count"] - 1}
     _close(image.values[()], whole.values)
     (plan,) = _bp_plans()
-    assert plan.capacity <= int(np.prod(t["shape"])) + plan.vec
+    assert plan.capacity < int(np.prod(t["shape"])) + plan.per_group  # one tile, padded to whole work-groups
 
 
 def test_writeable_profiles_are_uploaded_once(scene):
