@@ -46,8 +46,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["COLUMNS", "DEFAULT_SIZE", "REPEATS", "STEPS", "devices", "finite_shares", "markdown", "measure_rates",
-           "table", "write"]
+__all__ = ["COLUMNS", "DEFAULT_SIZE", "REPEATS", "STEPS", "cpu_name", "devices", "finite_shares", "markdown",
+           "measure_rates", "table", "write"]
 
 DEFAULT_SIZE = 24
 REPEATS = 3
@@ -239,7 +239,7 @@ def table(res: dict) -> list[str]:
                             for line in body]
 
 
-def _cpu_name() -> str:
+def cpu_name() -> str:
     """The CPU's model name (Linux's /proc/cpuinfo), else what the platform module says."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -252,7 +252,7 @@ def _cpu_name() -> str:
 
 def markdown(res: dict) -> list[str]:
     """The run of :func:`measure_rates` as a Markdown report."""
-    md = [f"# Kernel and wall rates on {_cpu_name()} ({os.cpu_count()} cores), {res['date']}", "",
+    md = [f"# Kernel and wall rates on {cpu_name()} ({os.cpu_count()} cores), {res['date']}", "",
           "Command: `clsas bench` (`clsas/presenting/rates.py`; its notes define each column). " + _title(res) + ".",
           "", "| " + " | ".join(COLUMNS) + " |", "|" + "---|" * len(COLUMNS)]
     md += ["| " + " | ".join(_cells(r)) + " |" for r in res["rows"]]
@@ -272,7 +272,7 @@ def write(res: dict, out_dir: str | Path) -> Path:
     if out_dir.exists() and not out_dir.is_dir():
         raise ValueError(f"out_dir: {out_dir} exists and is not a folder")
     out_dir.mkdir(parents=True, exist_ok=True)
-    cpu = _cpu_name()
+    cpu = cpu_name()
     stem = out_dir / f"{dt.date.today()}-rates-{re.sub(r'[^A-Za-z0-9]+', '-', cpu).strip('-')[:40]}"
     stem.with_suffix(".json").write_text(json.dumps({**res, "cpu": cpu, "cores": os.cpu_count()}, indent=1,
                                                     default=str))
