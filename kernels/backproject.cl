@@ -31,7 +31,17 @@
  *
  * -DHALF_PROFILES: the records are stored as half (4 per record, read with vload_half4, core
  * OpenCL), scaled by the host into half's range (it scales the image back): half the bytes per
- * pair gathered, float arithmetic. Not with -DLOCAL_PROFILES. */
+ * pair gathered, float arithmetic. Not with -DLOCAL_PROFILES.
+ *
+ * -DRANGE_EXPANSION=R (R divides VEC): a work-item whose VEC voxels lie in one z row splits them
+ * into runs of R and evaluates the two distances exactly only at each run's middle point
+ * (between its first and last voxel); voxel s steps from it (s = place - (R - 1) / 2) takes
+ * the second-order Taylor expansion in s, d0 + s g + s^2 h with a = ref - p, d0 = |a|,
+ * g = a_z dz / d0, h = (dz^2 - g^2) / (2 d0), folded into the lag: idx = A + s (B + s C), two
+ * multiply-adds per voxel. Work-items across a row's end are exact. The path error (the
+ * remainder, third order in s dz / d0) is bounded per geometry by the host
+ * (clsas/formation/bp_numpy.py: range_expansion_error), which runs the plain kernel where the
+ * bound exceeds what the caller allows. */
 
 #ifdef COMPLEX_IMAGE /* the image as one interleaved complex array (re, im), read back as complex64 */
 #define IMAGE_ARGS __global float *image /* (n_vox_padded, 2) complex image, (re, im) per voxel */
@@ -76,6 +86,48 @@ inline void lerp_pairs_half(__global const half *row, const floatV idx, const fl
                    const int n_vox,      /* voxels of the grid (lanes past it: padding, not staged)  */
 #else
 #define LOCAL_ARGS
+#endif
+
+#ifdef RANGE_EXPANSION /* the distances by their expansion along z around each run's middle */
+#define RUN RANGE_EXPANSION
+#if VEC % RUN
+#error "RANGE_EXPANSION must divide VEC"
+#endif
+#define N_RUNS (VEC / RUN)
+/* sqrt of one value (vsqrt's choice of square root, common.cl) */
+inline float ssqrt(const float x)
+{
+#if defined(__clang__) && !defined(CLSAS_OPENCL_SQRT)
+    return __builtin_sqrtf(x);
+#else
+    return sqrt(x);
+#endif
+}
+
+/* The lags idx = |v - t| + |v - r| (profile samples per metre: w) - s0 of the lanes of a
+ * work-item in one z row: per run, the coefficients (A, B, C) of idx = A + s (B + s C) at its
+ * middle (ref_x, ref_y, ref_z[j]), spread over the run's lanes; S holds each lane's s. */
+inline floatV expanded_lags(const float ref_x, const float ref_y, const float *ref_z, const float dz,
+                            const float4 t, const float4 r, const float s0, const floatV S)
+{
+    const float tx = ref_x - t.x, ty = ref_y - t.y, rx = ref_x - r.x, ry = ref_y - r.y;
+    const float t_xy = tx * tx + ty * ty, r_xy = rx * rx + ry * ry;
+    lanes_f A, B, C;
+    for (int j = 0; j < N_RUNS; ++j) {
+        const float tz = ref_z[j] - t.z, rz = ref_z[j] - r.z;
+        const float it = 1.0f / ssqrt(t_xy + tz * tz), ir = 1.0f / ssqrt(r_xy + rz * rz);
+        const float gt = tz * dz * it, gr = rz * dz * ir;
+        const float a = ((t_xy + tz * tz) * it + (r_xy + rz * rz) * ir) * t.w - s0;
+        const float b = (gt + gr) * t.w;
+        const float c = 0.5f * ((dz * dz - gt * gt) * it + (dz * dz - gr * gr) * ir) * t.w;
+        for (int k = 0; k < RUN; ++k) {
+            A.s[j * RUN + k] = a;
+            B.s[j * RUN + k] = b;
+            C.s[j * RUN + k] = c;
+        }
+    }
+    return A.v + S * (B.v + S * C.v);
+}
 #endif
 
 #ifndef BEAM_WEIGHT /* built without beam.cl: omnidirectional */
@@ -157,6 +209,14 @@ __kernel void backproject(
     }
     const floatV X = fx.v, Y = fy.v, Z = fz.v;
     const float last = (float)(n_lags - 1);
+#ifdef RANGE_EXPANSION
+    const int along_z = (v0 - (v0 / nz) * nz) + VEC <= nz; /* the work-item's voxels in one z row */
+    lanes_f s_lane;
+    float ref_z[N_RUNS];
+    for (int l = 0; l < VEC; ++l) s_lane.s[l] = (float)(l - (l / RUN) * RUN) - 0.5f * (float)(RUN - 1);
+    for (int j = 0; j < N_RUNS; ++j) ref_z[j] = fz.s[j * RUN] + 0.5f * (float)(RUN - 1) * step.z;
+    const floatV S = s_lane.v;
+#endif
 
     floatV acc_re = (floatV)(0.0f);
     floatV acc_im = (floatV)(0.0f);
@@ -175,9 +235,15 @@ __kernel void backproject(
         const float4 r = rx[m];
         const floatV dtx = X - t.x, dty = Y - t.y, dtz = Z - t.z;
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
+#ifdef RANGE_EXPANSION
+        const floatV idx = along_z ? expanded_lags(fx.s[0], fy.s[0], ref_z, step.z, t, r, s0[m], S)
+                                   : (vsqrt(dtx * dtx + dty * dty + dtz * dtz)
+                                      + vsqrt(drx * drx + dry * dry + drz * drz)) * t.w - s0[m];
+#else
         const floatV path = vsqrt(dtx * dtx + dty * dty + dtz * dtz)
                           + vsqrt(drx * drx + dry * dry + drz * drz);
         const floatV idx = path * t.w - s0[m];
+#endif
         floatV re, im, f;
 #ifdef LOCAL_PROFILES
         stage_and_lerp(pairs + (size_t)m * n_lags, n_lags, idx, last, real, seg, seg_len, k_lo, m & 1, &re, &im,

@@ -14,6 +14,7 @@ from .bp_numpy import (  # noqa: F401 - the twins of records.cl, imported from h
     carrier_factors,
     carrier_records,
     carrier_rotation,
+    range_expansion_error,
     upsample,
     upsample_adjoint,
     upsample_factor,
@@ -230,6 +231,11 @@ class PendingImage:
 # the half-profiles variant's error against the float64 twin, relative to the peak (each record
 # rounded to half, 2^-11 of it; tests/kernels/test_shapes.py checks it, bench/bp_shapes.py states it)
 HALF_TOLERANCE = 1e-3
+# the range-expansion variant's largest admitted error against the float64 twin, relative to the peak
+# (-50 dB): the variant is tried only for plans that admit it, and each call checks its geometry's bound
+EXPANSION_LIMIT = 10 ** (-50 / 20)
+# voxels per expansion of the range-expansion variant: the shortest (the one built, self-tested and timed)
+SHORTEST_RUN = 4
 
 
 class BackprojectPlan(BeamPlan):
@@ -253,20 +259,28 @@ class BackprojectPlan(BeamPlan):
     ``"local_profiles"`` (``-DLOCAL_PROFILES``: each group's run of records staged in local memory,
     the same image), ``"half_profiles"`` (``-DHALF_PROFILES``: the records stored as half, scaled
     into its range; on devices with ``cl_khr_fp16`` only; the image within :data:`HALF_TOLERANCE`
-    of its peak) or the plain kernel; ``"auto"``: the one tuned for the device
-    (:mod:`clsas.cl.shapes`), among the variants as exact as the plain kernel unless
-    ``max_error`` (relative to the peak) admits half profiles. Where a geometry's staged run would
-    not fit the device's local memory, and for records made on the device (:meth:`from_device`)
-    under half profiles, the plain kernel runs with the same local size.
+    of its peak), ``"range_expansion"`` (``-DRANGE_EXPANSION=R``: the two distances exact once per
+    run of R voxels along z, expanded to second order within it; each call takes the longest run
+    R in VEC, VEC / 2, ... :data:`SHORTEST_RUN` whose predicted error for the call's geometry,
+    :func:`~clsas.formation.bp_numpy.range_expansion_error`, is within ``max_error``, or
+    :data:`EXPANSION_LIMIT` where it is None) or the plain kernel; ``"auto"``: the one tuned for
+    the device (:mod:`clsas.cl.shapes`), among the variants as exact as the plain kernel unless
+    ``max_error`` (relative to the peak) admits half profiles or the range expansion. Where a
+    geometry's staged run would not fit the device's local memory, for records made on the device
+    (:meth:`from_device`) under half profiles, and where no run's error bound is within the
+    limit, the plain kernel runs with the same local size. ``last_variant`` names the kernel the
+    last call ran (``"plain"`` or the variant), ``last_expansion_run`` its run (0: not expanded)
+    and ``last_error_bound`` the expansion's predicted error (0: exact).
     """
 
     KERNEL = "backproject"
     SOURCES = ("common.cl", "beam.cl", "backproject.cl")
     SHAPES = True
-    VARIANTS = {"": {}, "local_profiles": {"LOCAL_PROFILES": 1}, "half_profiles": {"HALF_PROFILES": 1}}
+    VARIANTS = {"": {}, "local_profiles": {"LOCAL_PROFILES": 1}, "half_profiles": {"HALF_PROFILES": 1},
+                "range_expansion": {"RANGE_EXPANSION": SHORTEST_RUN}}
     NEEDS_LOCAL = frozenset({"local_profiles"})
     NEEDS_EXTENSION = {"half_profiles": "cl_khr_fp16"}
-    ERROR_BOUND = {"half_profiles": HALF_TOLERANCE}
+    ERROR_BOUND = {"half_profiles": HALF_TOLERANCE, "range_expansion": EXPANSION_LIMIT}
 
     def __init__(self, grid: VoxelGrid, n_meas: int, n_lags: int, queue=None, vec=None, chunk=None,
                  beam_lut: int = 0, complex_image: bool = False, shape: Shape | str = "auto",
@@ -283,6 +297,9 @@ class BackprojectPlan(BeamPlan):
         self.d_s0 = self.alloc(4 * n_meas, "r")
         self.capacity = 0  # voxels each image buffer holds
         self.last_records_s = 0.0  # kernel time of the last call's records (:meth:`from_device`), s
+        self.last_variant, self.last_expansion_run, self.last_error_bound = "", 0, 0.0  # what the last call ran
+        # the runs the range-expansion variant may take, longest first (the timing takes the shortest only)
+        self.expansion_runs = tuple(r for r in (16, 8, 4) if SHORTEST_RUN <= r <= self.vec)
         self.retarget(grid)  # the image buffers before the beam tables: in the other order, Oclgrind's
         self.alloc_beam(n_meas)  # uninitialised-value plugin reports bp's image writes (test_beam_formation.py)
 
@@ -414,7 +431,7 @@ class BackprojectPlan(BeamPlan):
         beam_args = self.beam_args(beam)
         slot = self._slot()
         image, after = self._images[slot], self._reads[slot]  # the buffer's last image read before it is written
-        kern, local_args = self._staging(dtau_s, c_mps, half)
+        kern, local_args = self._staging(dtau_s, c_mps, half, (tx_positions, rx_positions, phi))
         local = None if self.shape.local is None else (self.shape.local,)
         events = []
         for m0 in range(0, self.n_meas, self.chunk):
@@ -443,41 +460,80 @@ class BackprojectPlan(BeamPlan):
         self._reads[slot], self._pending[slot] = reads, pending
         return pending
 
-    def _staging(self, dtau_s: float, c_mps, half: bool = False) -> tuple:
+    def _staging(self, dtau_s: float, c_mps, half: bool = False, geometry: tuple | None = None) -> tuple:
         """The kernel to launch on float records (or half ones, ``half``) and its -DLOCAL_PROFILES
         arguments (none for the others): the staged run's records, sized by :func:`staged_records`.
-        The plain kernel where the run would not fit the device's local memory, and for float
-        records under -DHALF_PROFILES (the resident path's, made on the device)."""
-        if self.shape.variant == "half_profiles":
+        The plain kernel where the run would not fit the device's local memory, for float
+        records under -DHALF_PROFILES (the resident path's, made on the device), and under
+        -DRANGE_EXPANSION where no run's error bound for ``geometry`` ((tx, rx, phi)) is within
+        the limit (:meth:`_expansion`). Sets ``last_variant``, ``last_expansion_run`` and
+        ``last_error_bound``."""
+        self.last_variant, self.last_expansion_run, self.last_error_bound = "plain", 0, 0.0
+        variant = self.shape.variant
+        if variant == "half_profiles":
             if not half:
                 return self._plain_kernel(), ()
         elif half:
             raise ValueError(f"half records, but this plan runs the {self.shape.label} kernel")
-        if self.shape.variant != "local_profiles":
+        if variant == "range_expansion":
+            return self._expansion(dtau_s, c_mps, *geometry), ()
+        if variant != "local_profiles":
+            self.last_variant = variant or "plain"
             return self.kernel, ()
         per_m = float(np.max(1.0 / (np.asarray(c_mps, float) * dtau_s)))
         seg_len = staged_records(self.grid, self.per_group, per_m)
         if 16 * seg_len + 64 > int(self.queue.device.local_mem_size):
             return self._plain_kernel(), ()
+        self.last_variant = variant
         return self.kernel, (self.cl.LocalMemory(16 * seg_len), np.int32(seg_len), np.int32(self.n_vox))
+
+    def _expansion(self, dtau_s: float, c_mps, tx_positions, rx_positions, phi: float):
+        """The -DRANGE_EXPANSION kernel at the longest run of ``expansion_runs`` whose predicted
+        error on this grid and geometry (:func:`range_expansion_error`, the envelope of profiles
+        at lag step ``dtau_s`` included) is within ``max_error`` (:data:`EXPANSION_LIMIT` where
+        None); else the plain kernel."""
+        limit = EXPANSION_LIMIT if self.max_error is None else self.max_error
+        fc_hz = phi / (2 * np.pi * dtau_s)
+        for run in self.expansion_runs:
+            bound = range_expansion_error(self.grid, tx_positions, rx_positions, c_mps, fc_hz, run, dtau_s)
+            if bound <= limit:
+                self.last_variant, self.last_expansion_run, self.last_error_bound = "range_expansion", run, bound
+                return self._kernel_with({"RANGE_EXPANSION": run}) if run != SHORTEST_RUN else self.kernel
+        return self._plain_kernel()
 
     def _plain_kernel(self):
         """The plain kernel at this plan's width and defines (built once per context)."""
+        return self._kernel_with({})
+
+    def _kernel_with(self, variant: dict):
+        """The kernel at this plan's width and defines with ``variant``'s defines (built once per context)."""
         from ..cl import kernel
 
-        return kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), "VEC": self.vec})
+        return kernel(self.context, self.SOURCES, self.KERNEL, {**self.defines(), **variant, "VEC": self.vec})
 
     @classmethod
     def selftest(cls, queue, vec: int, shape: Shape | None = None) -> float:
         """5 x 2 x 3 voxels (not a multiple of VEC), two chunks, voxels in and out of the window,
         a different speed of sound for each measurement; at ``shape`` (default: the plain kernel,
-        the runtime's local size)."""
+        the runtime's local size). The range-expansion variant on 3 x 2 x 37 voxels (work-items in
+        one z row, expanded, and across a row's end, exact) against its own twin
+        (:func:`~clsas.formation.bp_numpy.backproject_range_expansion`) at its shortest run."""
         from . import bp_numpy as twin
 
         grid, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
-        plan = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=shape or Shape())
-        got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
-        want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
+        shape = shape or Shape()
+        if shape.variant != "range_expansion":
+            plan = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=shape)
+            got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
+            want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
+        else:
+            grid = VoxelGrid(np.linspace(-0.1, 0.1, 3), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 37))
+            plan = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=shape, max_error=0.5)
+            plan.expansion_runs = (SHORTEST_RUN,)
+            got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
+            if plan.last_expansion_run != SHORTEST_RUN:
+                raise RuntimeError(f"the range-expansion selftest ran {plan.last_variant!r}, not the expansion")
+            want = twin.backproject_range_expansion(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid, SHORTEST_RUN, vec)
         if not (np.any(want == 0) and np.any(want != 0)):
             raise RuntimeError("selftest scene must have voxels inside and outside the profile window")
         return float(np.abs(got - want).max() / np.abs(want).max())
@@ -486,11 +542,15 @@ class BackprojectPlan(BeamPlan):
     @classmethod
     def time_shapes(cls, queue, vec: int, shapes: list[Shape], rounds: int = 5) -> list[list[float]]:
         """Kernel seconds of each shape in each of ``rounds`` interleaved rounds (after a warm-up)
-        on a 40^3 grid x 32 measurements (a raster in front of it, every pair inside the profiles)."""
+        on a 40^3 grid x 32 measurements (a raster in front of it, every pair inside the profiles);
+        the range-expansion variant at its shortest run (the slowest it runs)."""
         grid, args = timing_scene(np.random.default_rng(1))
         plans = [cls(grid, 32, args[0].shape[1], queue=queue, vec=vec, shape=s) for s in shapes]
         for plan in plans:
+            plan.expansion_runs = (SHORTEST_RUN,)
             plan(*args)
+            if plan.shape.variant == "range_expansion" != plan.last_variant:
+                raise RuntimeError(f"shape {plan.shape.label} ran the {plan.last_variant} kernel on the timing scene")
         out = [[] for _ in plans]
         for _ in range(rounds):
             for times, plan in zip(out, plans, strict=True):
