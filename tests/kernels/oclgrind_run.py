@@ -1,6 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
-Usage: python oclgrind_run.py [compress] [fft] [backproject] [backproject_local] [backproject_half] [gradient]
+Usage: python oclgrind_run.py [compress] [fft] [backproject] [backproject_local] [backproject_half]
+[backproject_expansion] [gradient]
 [stolt] [stolt_depths] [ffbp] [records] [vec=N ...]. Checks each
 result against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
@@ -17,6 +18,7 @@ from clsas.compression import fft_layout
 from clsas.compression.compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 from clsas.focus.gradient_opencl import FocusGradientPlan
 from clsas.formation.bp_numpy import backproject as bp_twin
+from clsas.formation.bp_numpy import backproject_range_expansion as bp_range_expansion
 from clsas.formation.bp_numpy import carrier_records
 from clsas.formation.bp_opencl import BackprojectPlan, RecordsPlan, selftest_scene, upsample_factor
 from clsas.formation.ffbp_opencl import FfbpLeafPlan, FfbpMergePlan
@@ -91,6 +93,23 @@ def check_backproject_half(queue, rng, vec):
     got = plan(prof * 1e6, tau0, 1 / fs, 25e3, tx, rx, c)
     close(got, bp_twin(prof * 1e6, tau0, 1 / fs, 25e3, tx, rx, c, grid.points()), 1e-3, "backproject half")
     assert BackprojectPlan.selftest(queue, vec, Shape(None, "half_profiles")) < 1e-3, "backproject half, selftest"
+
+
+def check_backproject_expansion(queue, rng, vec):
+    # -DRANGE_EXPANSION (the distances expanded along z per run of voxels): 3 x 2 x 37 voxels
+    # (work-items in one z row, expanded, and across a row's end, exact) in groups of 2 over two
+    # chunks against its twin at the longest run within 0.9 of the peak, then the selftest (the
+    # shortest run)
+    _, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 3), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 37))
+    plan = BackprojectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=Shape(2, "range_expansion"),
+                           max_error=0.9)
+    got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
+    run = plan.last_expansion_run
+    assert run >= min(vec, 8), (plan.last_variant, run)
+    want = bp_range_expansion(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid, run, vec)
+    close(got, want, 1e-4, "backproject range expansion")
+    assert BackprojectPlan.selftest(queue, vec, Shape(None, "range_expansion")) < 1e-4, "backproject expansion selftest"
 
 
 def check_records(queue, rng, vec):
@@ -169,6 +188,8 @@ def main(kernels: set[str]) -> int:
             check_backproject_local(queue, rng, vec)
         if "backproject_half" in kernels:
             check_backproject_half(queue, rng, vec)
+        if "backproject_expansion" in kernels:
+            check_backproject_expansion(queue, rng, vec)
         if "gradient" in kernels:
             check_gradient(queue, rng, vec)
         if "stolt" in kernels:
@@ -185,4 +206,5 @@ def main(kernels: set[str]) -> int:
 
 if __name__ == "__main__":
     sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "backproject_local", "backproject_half",
-                                        "gradient", "stolt", "stolt_depths", "ffbp", "records"}))
+                                        "backproject_expansion", "gradient", "stolt", "stolt_depths", "ffbp",
+                                        "records"}))

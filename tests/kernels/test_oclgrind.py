@@ -1,4 +1,5 @@
-"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl, plain, -DLOCAL_PROFILES, -DHALF_PROFILES;
+"""Every kernel (compress.cl: matched_filter, fmcw_dechirp; backproject.cl, plain, -DLOCAL_PROFILES, -DHALF_PROFILES,
+-DRANGE_EXPANSION;
 autofocus.cl; stolt.cl; ffbp.cl: ffbp_leaf, ffbp_merge; records.cl, with backproject.cl's complex image
 after it) runs clean under Oclgrind."""
 
@@ -25,19 +26,20 @@ from conftest import oclgrind_missing as _oclgrind_available
 # checked at every width. records.cl (with the resident path: backproject.cl writing the complex
 # image after it) is checked for uninitialised values at VEC 4 and 8, backproject.cl's widths, as is
 # backproject.cl's -DLOCAL_PROFILES variant (records staged in local memory, barriers: the race check
-# covers them at every width) and -DHALF_PROFILES variant; for both, a plan of several groups runs
+# covers them at every width), -DHALF_PROFILES and -DRANGE_EXPANSION variants; for each, a plan of several groups runs
 # before the selftest (in the other order the plugin reports the second plan's accumulators, whose
 # values equal the twin's; either alone is clean).
 WIDTHS = ("vec=4", "vec=8", "vec=16")
 CHECKS = [
     pytest.param({"OCLGRIND_DATA_RACES": "1"},
-                 ["compress", "fft", "backproject", "backproject_local", "backproject_half", "gradient", "stolt",
-                  "stolt_depths", "ffbp", "records", *WIDTHS],
+                 ["compress", "fft", "backproject", "backproject_local", "backproject_half", "backproject_expansion",
+                  "gradient", "stolt", "stolt_depths", "ffbp", "records", *WIDTHS],
                  id="memcheck+races-all"),
 ] + [
     pytest.param({"OCLGRIND_UNINITIALIZED": "1"}, [kernels, f"vec={vec}"], id=f"uninitialized-{kernels}-vec{vec}")
     for kernels, vecs in [("compress", (4, 8, 16)), ("fft", (4, 8, 16)), ("backproject", (4, 8)),
-                           ("backproject_local", (4, 8)), ("backproject_half", (4, 8)), ("gradient", (4, 8)),
+                           ("backproject_local", (4, 8)), ("backproject_half", (4, 8)),
+                           ("backproject_expansion", (4, 8)), ("gradient", (4, 8)),
                            ("stolt", (4, 16)),
                            ("stolt_depths", (4,)), ("ffbp", (4, 8)), ("records", (4, 8))]
     for vec in vecs
@@ -49,6 +51,8 @@ CHECKS = [
 @pytest.mark.parametrize("checks, kernels", CHECKS)
 def test_kernels_run_clean_under_oclgrind(checks, kernels):
     env = dict(os.environ, **checks)
+    root = str(Path(__file__).resolve().parents[2])  # this tree's clsas, not an installed one
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
     script = Path(__file__).with_name("oclgrind_run.py")
     res = subprocess.run([sys.executable, str(script), *kernels], capture_output=True, text=True, env=env, timeout=600)
     report = res.stderr
