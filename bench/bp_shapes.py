@@ -11,7 +11,12 @@ measurement), in dB: 20 log10 of the largest error over the largest value, and o
 over the RMS value. ``tuned`` is the shape :mod:`clsas.cl.shapes` chose for this device among
 the variants as exact as the plain kernel; ``tuned-approximate`` among those within
 ``HALF_TOLERANCE`` (half profiles where the device has them);
-``plain/auto`` is the kernel as it was before shapes were tuned (the runtime's local size).
+``plain/auto`` is the kernel as it was before shapes were tuned (the runtime's local size);
+``range_expansion/...`` the range-expansion variant, which each call runs at the longest run
+whose predicted error for the geometry is within -50 dB, or falls back to the plain kernel (the
+kernel that ran, its run and its predicted error are recorded). The shapes are timed in
+interleaved rounds (each shape once per round, after one warm-up each); ``x first`` is the
+median over rounds of the first shape's time over each shape's in the same round.
 The load average (``os.getloadavg``) is recorded next to every figure. Writes
 ``<date>-bp-shapes-<device>.json`` and ``.md`` under ``--out``.
 """
@@ -42,18 +47,27 @@ def _error_db(got, want) -> dict:
             "rms_db": float(20 * np.log10(np.sqrt(np.mean(np.abs(err) ** 2) / np.mean(np.abs(want) ** 2))))}
 
 
-def _time_shape(plan, args, repeats: int) -> dict:
+def _time_rounds(plans: dict, args, repeats: int) -> tuple[dict, dict]:
+    """Each plan once per round, ``repeats`` rounds after a warm-up of each: label -> stats, label -> image."""
     import numpy as np
 
-    plan(*args)  # warm-up (PoCL builds the work-group function for the local size at the first launch)
-    kern, wall = [], []
+    images = {label: plan(*args) for label, plan in plans.items()}  # warm-up (PoCL builds per local size)
+    kern = {label: [] for label in plans}
+    wall = {label: [] for label in plans}
+    loads = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        out = plan(*args)
-        wall.append(time.perf_counter() - t0)
-        kern.append(plan.last_kernel_s)
-    return {"kernel_best_s": min(kern), "kernel_median_s": float(np.median(kern)), "wall_median_s": float(
-        np.median(wall)), "load": os.getloadavg()[0]}, out
+        for label, plan in plans.items():
+            t0 = time.perf_counter()
+            images[label] = plan(*args)
+            wall[label].append(time.perf_counter() - t0)
+            kern[label].append(plan.last_kernel_s)
+        loads.append(os.getloadavg()[0])
+    first = next(iter(plans))
+    stats = {label: {"kernel_best_s": min(k), "kernel_median_s": float(np.median(k)),
+                     "wall_median_s": float(np.median(wall[label])), "load": float(np.median(loads)),
+                     "x_first": float(np.median(np.asarray(kern[first]) / np.asarray(k)))}
+             for label, k in kern.items()}
+    return stats, images
 
 
 def bench_side(n: int, n_meas: int, labels: list[str], repeats: int, check_voxels: int, rng) -> dict:
@@ -87,26 +101,33 @@ def bench_side(n: int, n_meas: int, labels: list[str], repeats: int, check_voxel
         row["peer"].append({"best_s": min(t), "rate_per_s": pairs / min(t), "load": os.getloadavg()[0]})
 
     peer()
+    plans = {}
     for label in labels:
         shape = "auto" if label.startswith("tuned") else _shape(label)
         max_error = HALF_TOLERANCE if label == "tuned-approximate" else None
         try:
-            plan = BackprojectPlan(grid, n_meas, wl["data"].shape[1], shape=shape, max_error=max_error)
+            plans[label] = BackprojectPlan(grid, n_meas, wl["data"].shape[1], shape=shape, max_error=max_error)
         except ValueError as exc:  # a variant this device does not offer (half without cl_khr_fp16)
             row.setdefault("refused", {})[label] = str(exc)
             print(f"  {label:22s} not run: {exc}", flush=True)
-            continue
-        stat, image = _time_shape(plan, args, repeats)
+    stats, images = _time_rounds(plans, args, repeats)
+    for label, plan in plans.items():
+        stat = stats[label]
         stat.update(shape=plan.shape.label, vec=plan.vec, rate_per_s=pairs / stat["kernel_best_s"],
-                    **_error_db(image[pick], want))
+                    ran=plan.last_variant, run=plan.last_expansion_run, **_error_db(images[label][pick], want))
+        if plan.shape.variant == "range_expansion":
+            stat["predicted_db"] = {r: float(20 * np.log10(twin.range_expansion_error(
+                grid, wl["tx"], wl["rx"], wl["c"], wl["fc"], r, wl["dtau"]))) for r in plan.expansion_runs}
         if plan.tuning is not None:
             stat["tuning"] = {"reason": plan.tuning.reason, "seconds": plan.tuning.seconds}
             print(f"  (tuning: {plan.tuning.reason})")
         row["shapes"][label] = stat
-        print(f"  {label:22s} {plan.shape.label:20s} VEC={plan.vec:<2d} kernel {stat['rate_per_s']:.3g} pairs/s "
-              f"(best of {repeats}), error {stat['peak_db']:.1f} dB peak / {stat['rms_db']:.1f} dB rms, "
-              f"load {stat['load']:.2f}", flush=True)
-        del plan
+        ran = stat["ran"] + (f" R={stat['run']}" if stat["run"] else "")
+        print(f"  {label:22s} {plan.shape.label:20s} VEC={plan.vec:<2d} ran {ran:20s} kernel "
+              f"{stat['rate_per_s']:.3g} pairs/s (best of {repeats}), x first {stat['x_first']:.3f}, error "
+              f"{stat['peak_db']:.1f} dB peak / {stat['rms_db']:.1f} dB rms, load {stat['load']:.2f}"
+              + (f", predicted {stat['predicted_db']}" if "predicted_db" in stat else ""), flush=True)
+    del plans
     peer()
     if row["peer"]:
         best_peer = max(p["rate_per_s"] for p in row["peer"])
@@ -125,12 +146,14 @@ def markdown(res: dict) -> list[str]:
     for row in res["rows"]:
         peers = ", ".join(f"{p['rate_per_s']:.3g} (load {p['load']:.2f})" for p in row["peer"]) or "n/a"
         md += [f"## {row['workload']}", "", f"C/OpenMP peer: {peers} pairs/s", "",
-               "| shape asked | shape run | VEC | kernel pairs/s | x peer | error peak dB | error rms dB | load |",
-               "|---|---|---|---|---|---|---|---|"]
+               "| shape asked | shape run | kernel that ran | VEC | kernel pairs/s | x first | x peer | error peak dB "
+               "| error rms dB | load |",
+               "|---|---|---|---|---|---|---|---|---|---|"]
         for label, s in row["shapes"].items():
-            md.append(f"| {label} | {s['shape']} | {s['vec']} | {s['rate_per_s']:.3g} | {s.get('x_peer', 0):.2f} | "
-                      f"{s['peak_db']:.1f} | {s['rms_db']:.1f} | {s['load']:.2f} |")
-        md += [f"| {label} | not run: {why} | | | | | | |" for label, why in row.get("refused", {}).items()]
+            ran = s["ran"] + (f", run {s['run']}" if s["run"] else "")
+            md.append(f"| {label} | {s['shape']} | {ran} | {s['vec']} | {s['rate_per_s']:.3g} | {s['x_first']:.3f} | "
+                      f"{s.get('x_peer', 0):.2f} | {s['peak_db']:.1f} | {s['rms_db']:.1f} | {s['load']:.2f} |")
+        md += [f"| {label} | not run: {why} | | | | | | | | |" for label, why in row.get("refused", {}).items()]
         md.append("")
     return md
 
@@ -141,8 +164,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--measurements", type=int, default=1000)
     ap.add_argument("--shapes", nargs="+",
                     default=["tuned", "plain/auto", "plain/64", "local_profiles/64", "half_profiles/auto"],
-                    help="'tuned', 'tuned-approximate', or variant/local with variant plain, local_profiles or "
-                         "half_profiles, local auto or a number")
+                    help="'tuned', 'tuned-approximate', or variant/local with variant plain, local_profiles, "
+                         "half_profiles or range_expansion, local auto or a number")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--check-voxels", type=int, default=1500)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
