@@ -38,7 +38,8 @@
  * (between its first and last voxel); voxel s steps from it (s = place - (R - 1) / 2) takes
  * the second-order Taylor expansion in s, d0 + s g + s^2 h with a = ref - p, d0 = |a|,
  * g = a_z dz / d0, h = (dz^2 - g^2) / (2 d0), folded into the lag: idx = A + s (B + s C), two
- * multiply-adds per voxel. Work-items across a row's end are exact. The path error (the
+ * multiply-adds per voxel. Work-items across a row's end are exact (with -DROWS_ALIGNED, for nz a
+ * multiple of VEC, there are none and the exact branch is left out). The path error (the
  * remainder, third order in s dz / d0) is bounded per geometry by the host
  * (clsas/formation/bp_numpy.py: range_expansion_error), which runs the plain kernel where the
  * bound exceeds what the caller allows. */
@@ -104,22 +105,38 @@ inline float ssqrt(const float x)
 #endif
 }
 
-/* The lags idx = |v - t| + |v - r| (profile samples per metre: w) - s0 of the lanes of a
- * work-item in one z row: per run, the coefficients (A, B, C) of idx = A + s (B + s C) at its
- * middle (ref_x, ref_y, ref_z[j]), spread over the run's lanes; S holds each lane's s. */
+/* The coefficients of idx = a + s (b + s c), the lags (profile samples per metre of path: t.w)
+ * of the voxels of a z row s voxel steps (dz) from the point (x, y, ref_z) with t_xy and r_xy its
+ * squared distances to tx and rx across z: two square roots, one division. */
+inline void run_coefficients(const float t_xy, const float r_xy, const float ref_z, const float dz, const float4 t,
+                             const float4 r, const float s0, float *a, float *b, float *c)
+{
+    const float tz = ref_z - t.z, rz = ref_z - r.z;
+    const float dt = ssqrt(t_xy + tz * tz), dr = ssqrt(r_xy + rz * rz);
+    const float inv = 1.0f / (dt * dr); /* 1 / dt = dr inv, 1 / dr = dt inv */
+    const float it = dr * inv, ir = dt * inv;
+    const float gt = tz * dz * it, gr = rz * dz * ir;
+    *a = (dt + dr) * t.w - s0;
+    *b = (gt + gr) * t.w;
+    *c = 0.5f * ((dz * dz - gt * gt) * it + (dz * dz - gr * gr) * ir) * t.w;
+}
+
+/* The lags of the lanes of a work-item in one z row: per run j, the coefficients at its middle
+ * (ref_x, ref_y, ref_z[j]) spread over the run's lanes; S holds each lane's s. */
 inline floatV expanded_lags(const float ref_x, const float ref_y, const float *ref_z, const float dz,
                             const float4 t, const float4 r, const float s0, const floatV S)
 {
     const float tx = ref_x - t.x, ty = ref_y - t.y, rx = ref_x - r.x, ry = ref_y - r.y;
     const float t_xy = tx * tx + ty * ty, r_xy = rx * rx + ry * ry;
+#if N_RUNS == 1
+    float a, b, c;
+    run_coefficients(t_xy, r_xy, ref_z[0], dz, t, r, s0, &a, &b, &c);
+    return a + S * (b + S * c);
+#else
     lanes_f A, B, C;
     for (int j = 0; j < N_RUNS; ++j) {
-        const float tz = ref_z[j] - t.z, rz = ref_z[j] - r.z;
-        const float it = 1.0f / ssqrt(t_xy + tz * tz), ir = 1.0f / ssqrt(r_xy + rz * rz);
-        const float gt = tz * dz * it, gr = rz * dz * ir;
-        const float a = ((t_xy + tz * tz) * it + (r_xy + rz * rz) * ir) * t.w - s0;
-        const float b = (gt + gr) * t.w;
-        const float c = 0.5f * ((dz * dz - gt * gt) * it + (dz * dz - gr * gr) * ir) * t.w;
+        float a, b, c;
+        run_coefficients(t_xy, r_xy, ref_z[j], dz, t, r, s0, &a, &b, &c);
         for (int k = 0; k < RUN; ++k) {
             A.s[j * RUN + k] = a;
             B.s[j * RUN + k] = b;
@@ -127,6 +144,7 @@ inline floatV expanded_lags(const float ref_x, const float ref_y, const float *r
         }
     }
     return A.v + S * (B.v + S * C.v);
+#endif
 }
 #endif
 
@@ -210,7 +228,11 @@ __kernel void backproject(
     const floatV X = fx.v, Y = fy.v, Z = fz.v;
     const float last = (float)(n_lags - 1);
 #ifdef RANGE_EXPANSION
+#ifdef ROWS_ALIGNED /* nz is a multiple of VEC: every work-item's voxels lie in one z row */
+    const int along_z = 1;
+#else
     const int along_z = (v0 - (v0 / nz) * nz) + VEC <= nz; /* the work-item's voxels in one z row */
+#endif
     lanes_f s_lane;
     float ref_z[N_RUNS];
     for (int l = 0; l < VEC; ++l) s_lane.s[l] = (float)(l - (l / RUN) * RUN) - 0.5f * (float)(RUN - 1);

@@ -491,14 +491,18 @@ class BackprojectPlan(BeamPlan):
         """The -DRANGE_EXPANSION kernel at the longest run of ``expansion_runs`` whose predicted
         error on this grid and geometry (:func:`range_expansion_error`, the envelope of profiles
         at lag step ``dtau_s`` included) is within ``max_error`` (:data:`EXPANSION_LIMIT` where
-        None); else the plain kernel."""
+        None), built without the exact branch (-DROWS_ALIGNED) where every work-item lies in one
+        z row; else the plain kernel."""
         limit = EXPANSION_LIMIT if self.max_error is None else self.max_error
         fc_hz = phi / (2 * np.pi * dtau_s)
         for run in self.expansion_runs:
             bound = range_expansion_error(self.grid, tx_positions, rx_positions, c_mps, fc_hz, run, dtau_s)
             if bound <= limit:
                 self.last_variant, self.last_expansion_run, self.last_error_bound = "range_expansion", run, bound
-                return self._kernel_with({"RANGE_EXPANSION": run}) if run != SHORTEST_RUN else self.kernel
+                aligned = {"ROWS_ALIGNED": 1} if self.grid.shape[2] % self.vec == 0 else {}
+                if run == SHORTEST_RUN and not aligned:
+                    return self.kernel
+                return self._kernel_with({"RANGE_EXPANSION": run, **aligned})
         return self._plain_kernel()
 
     def _plain_kernel(self):

@@ -1,7 +1,7 @@
 """Run clsas kernels on the Oclgrind simulator (used by test_oclgrind.py in a subprocess).
 
 Usage: python oclgrind_run.py [compress] [fft] [backproject] [backproject_local] [backproject_half]
-[backproject_expansion] [gradient]
+[backproject_expansion] [backproject_expansion_aligned] [gradient]
 [stolt] [stolt_depths] [ffbp] [records] [vec=N ...]. Checks each
 result against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
@@ -95,21 +95,28 @@ def check_backproject_half(queue, rng, vec):
     assert BackprojectPlan.selftest(queue, vec, Shape(None, "half_profiles")) < 1e-3, "backproject half, selftest"
 
 
-def check_backproject_expansion(queue, rng, vec):
+def check_backproject_expansion(queue, rng, vec, nzs=(37,)):
     # -DRANGE_EXPANSION (the distances expanded along z per run of voxels): 3 x 2 x 37 voxels
     # (work-items in one z row, expanded, and across a row's end, exact) in groups of 2 over two
     # chunks against its twin at the longest run within 0.9 of the peak, then the selftest (the
-    # shortest run)
+    # shortest run); check_backproject_expansion_aligned: on 3 x 2 x 32 voxels instead (rows aligned
+    # to every width: -DROWS_ALIGNED). (One program per process for the uninitialised-value plugin.)
     _, prof, tau0, fs, tx, rx, c, _ = selftest_scene()
-    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 3), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 37))
-    plan = BackprojectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=Shape(2, "range_expansion"),
-                           max_error=0.9)
-    got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
-    run = plan.last_expansion_run
-    assert run >= min(vec, 8), (plan.last_variant, run)
-    want = bp_range_expansion(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid, run, vec)
-    close(got, want, 1e-4, "backproject range expansion")
-    assert BackprojectPlan.selftest(queue, vec, Shape(None, "range_expansion")) < 1e-4, "backproject expansion selftest"
+    for nz in nzs:
+        grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 3), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, nz))
+        plan = BackprojectPlan(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=Shape(2, "range_expansion"),
+                               max_error=0.9)
+        got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
+        run = plan.last_expansion_run
+        assert run >= min(vec, 8), (plan.last_variant, run)
+        want = bp_range_expansion(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid, run, vec)
+        close(got, want, 1e-4, f"backproject range expansion, nz {nz}")
+    if nzs == (37,):  # the selftest builds the ragged-rows program again
+        assert BackprojectPlan.selftest(queue, vec, Shape(None, "range_expansion")) < 1e-4, "bp expansion selftest"
+
+
+def check_backproject_expansion_aligned(queue, rng, vec):
+    check_backproject_expansion(queue, rng, vec, (32,))
 
 
 def check_records(queue, rng, vec):
@@ -190,6 +197,8 @@ def main(kernels: set[str]) -> int:
             check_backproject_half(queue, rng, vec)
         if "backproject_expansion" in kernels:
             check_backproject_expansion(queue, rng, vec)
+        if "backproject_expansion_aligned" in kernels:
+            check_backproject_expansion_aligned(queue, rng, vec)
         if "gradient" in kernels:
             check_gradient(queue, rng, vec)
         if "stolt" in kernels:
@@ -206,5 +215,5 @@ def main(kernels: set[str]) -> int:
 
 if __name__ == "__main__":
     sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "backproject_local", "backproject_half",
-                                        "backproject_expansion", "gradient", "stolt", "stolt_depths", "ffbp",
-                                        "records"}))
+                                        "backproject_expansion", "backproject_expansion_aligned", "gradient",
+                                        "stolt", "stolt_depths", "ffbp", "records"}))
