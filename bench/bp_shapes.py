@@ -1,6 +1,6 @@
 """The bp kernel at each work-group shape (local size, build variant) against the C/OpenMP peer.
 
-    python -m bench.bp_shapes [--sides 64 128] [--measurements 1000] [--shapes tuned plain/auto ...]
+    python -m bench.bp_shapes [--sides 64 128] [--measurements 1000] [--shapes tuned plain/auto ...] [--vec N]
 
 On the device ``backend="auto"`` picks (or ``PYOPENCL_CTX``), for each N: the bench's bp workload
 (``bench.throughput.backprojection_workload``, N³ voxels x M measurements), the C/OpenMP peer
@@ -70,7 +70,7 @@ def _time_rounds(plans: dict, args, repeats: int) -> tuple[dict, dict]:
     return stats, images
 
 
-def bench_side(n: int, n_meas: int, labels: list[str], repeats: int, check_voxels: int, rng) -> dict:
+def bench_side(n: int, n_meas: int, labels: list[str], repeats: int, check_voxels: int, rng, vec=None) -> dict:
     """One workload: the peer, every shape, the peer again; rates per pair and errors in dB."""
     import numpy as np
 
@@ -106,7 +106,8 @@ def bench_side(n: int, n_meas: int, labels: list[str], repeats: int, check_voxel
         shape = "auto" if label.startswith("tuned") else _shape(label)
         max_error = HALF_TOLERANCE if label == "tuned-approximate" else None
         try:
-            plans[label] = BackprojectPlan(grid, n_meas, wl["data"].shape[1], shape=shape, max_error=max_error)
+            plans[label] = BackprojectPlan(grid, n_meas, wl["data"].shape[1], vec=vec, shape=shape,
+                                           max_error=max_error)
         except ValueError as exc:  # a variant this device does not offer (half without cl_khr_fp16)
             row.setdefault("refused", {})[label] = str(exc)
             print(f"  {label:22s} not run: {exc}", flush=True)
@@ -167,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="'tuned', 'tuned-approximate', or variant/local with variant plain, local_profiles, "
                          "half_profiles or range_expansion, local auto or a number")
     ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--vec", type=int, choices=[4, 8, 16], default=None,
+                    help="the kernel's vector width (default: the widest the device layer verified)")
     ap.add_argument("--check-voxels", type=int, default=1500)
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results")
     args = ap.parse_args(argv)
@@ -192,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for n in args.sides:
         print(f"{n}^3 x {args.measurements}:", flush=True)
-        rows.append(bench_side(n, args.measurements, args.shapes, args.repeats, args.check_voxels, rng))
+        rows.append(bench_side(n, args.measurements, args.shapes, args.repeats, args.check_voxels, rng, args.vec))
     res = {"date": dt.datetime.now().isoformat(timespec="seconds"), "device": device,
            "runtime": cl.runtime_record(queue), "rows": rows}
     args.out.mkdir(parents=True, exist_ok=True)
