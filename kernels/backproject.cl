@@ -33,7 +33,7 @@
  * OpenCL), scaled by the host into half's range (it scales the image back): half the bytes per
  * pair gathered, float arithmetic. Not with -DLOCAL_PROFILES.
  *
- * -DRANGE_EXPANSION=R (R divides VEC): a work-item whose VEC voxels lie in one z row splits them
+ * -DRANGE_EXPANSION=R (VEC / R = 1, 2 or 4): a work-item whose VEC voxels lie in one z row splits them
  * into runs of R and evaluates the two distances exactly only at each run's middle point
  * (between its first and last voxel); voxel s steps from it (s = place - (R - 1) / 2) takes
  * the second-order Taylor expansion in s, d0 + s g + s^2 h with a = ref - p, d0 = |a|,
@@ -105,46 +105,49 @@ inline float ssqrt(const float x)
 #endif
 }
 
-/* The coefficients of idx = a + s (b + s c), the lags (profile samples per metre of path: t.w)
- * of the voxels of a z row s voxel steps (dz) from the point (x, y, ref_z) with t_xy and r_xy its
- * squared distances to tx and rx across z: two square roots, one division. */
-inline void run_coefficients(const float t_xy, const float r_xy, const float ref_z, const float dz, const float4 t,
-                             const float4 r, const float s0, float *a, float *b, float *c)
-{
-    const float tz = ref_z - t.z, rz = ref_z - r.z;
-    const float dt = ssqrt(t_xy + tz * tz), dr = ssqrt(r_xy + rz * rz);
-    const float inv = 1.0f / (dt * dr); /* 1 / dt = dr inv, 1 / dr = dt inv */
-    const float it = dr * inv, ir = dt * inv;
-    const float gt = tz * dz * it, gr = rz * dz * ir;
-    *a = (dt + dr) * t.w - s0;
-    *b = (gt + gr) * t.w;
-    *c = 0.5f * ((dz * dz - gt * gt) * it + (dz * dz - gr * gr) * ir) * t.w;
-}
+/* runT: one lane per run of the work-item (float where there is one); RUN_SQRT: its lanes' square
+ * roots; RUN_FIRST: the run's first lane of a lanes_f; SPREAD: each run's value over its lanes */
+#if N_RUNS == 1
+#define runT float
+#define RUN_SQRT(q) ssqrt(q)
+#define RUN_FIRST(f) ((f).s[0])
+#define SPREAD(x) (x)
+#elif N_RUNS == 2
+#define runT float2
+#define RUN_SQRT(q) ((float2)(ssqrt((q).s0), ssqrt((q).s1)))
+#define RUN_FIRST(f) ((float2)((f).s[0], (f).s[RUN]))
+#if VEC == 8
+#define SPREAD(x) ((x).s00001111)
+#else
+#define SPREAD(x) ((x).s0000000011111111)
+#endif
+#elif N_RUNS == 4 && VEC == 16
+#define runT float4
+#define RUN_SQRT(q) ((float4)(ssqrt((q).s0), ssqrt((q).s1), ssqrt((q).s2), ssqrt((q).s3)))
+#define RUN_FIRST(f) ((float4)((f).s[0], (f).s[RUN], (f).s[2 * RUN], (f).s[3 * RUN]))
+#define SPREAD(x) ((x).s0000111122223333)
+#else
+#error "RANGE_EXPANSION: runs of 4 voxels or more (1, 2 or 4 runs per work-item)"
+#endif
 
-/* The lags of the lanes of a work-item in one z row: per run j, the coefficients at its middle
- * (ref_x, ref_y, ref_z[j]) spread over the run's lanes; S holds each lane's s. */
-inline floatV expanded_lags(const float ref_x, const float ref_y, const float *ref_z, const float dz,
-                            const float4 t, const float4 r, const float s0, const floatV S)
+/* The lags idx = (|v - t| + |v - r|) t.w - s0 (t.w: profile samples per metre of path) of the
+ * lanes of a work-item in one z row: idx = a + s (b + s c) per run, from the run's middle
+ * (ref_x, ref_y, ref_z) (t_xy, r_xy its squared distances to tx and rx across z), two square
+ * roots and one division per run; S holds each lane's s (voxel steps dz from its run's middle). */
+inline floatV expanded_lags(const float ref_x, const float ref_y, const runT ref_z, const float dz, const float4 t,
+                            const float4 r, const float s0, const floatV S)
 {
     const float tx = ref_x - t.x, ty = ref_y - t.y, rx = ref_x - r.x, ry = ref_y - r.y;
     const float t_xy = tx * tx + ty * ty, r_xy = rx * rx + ry * ry;
-#if N_RUNS == 1
-    float a, b, c;
-    run_coefficients(t_xy, r_xy, ref_z[0], dz, t, r, s0, &a, &b, &c);
-    return a + S * (b + S * c);
-#else
-    lanes_f A, B, C;
-    for (int j = 0; j < N_RUNS; ++j) {
-        float a, b, c;
-        run_coefficients(t_xy, r_xy, ref_z[j], dz, t, r, s0, &a, &b, &c);
-        for (int k = 0; k < RUN; ++k) {
-            A.s[j * RUN + k] = a;
-            B.s[j * RUN + k] = b;
-            C.s[j * RUN + k] = c;
-        }
-    }
-    return A.v + S * (B.v + S * C.v);
-#endif
+    const runT tz = ref_z - t.z, rz = ref_z - r.z;
+    const runT dt = RUN_SQRT(t_xy + tz * tz), dr = RUN_SQRT(r_xy + rz * rz);
+    const runT inv = 1.0f / (dt * dr); /* 1 / dt = dr inv, 1 / dr = dt inv */
+    const runT it = dr * inv, ir = dt * inv;
+    const runT gt = tz * dz * it, gr = rz * dz * ir;
+    const runT a = (dt + dr) * t.w - s0;
+    const runT b = (gt + gr) * t.w;
+    const runT c = 0.5f * ((dz * dz - gt * gt) * it + (dz * dz - gr * gr) * ir) * t.w;
+    return SPREAD(a) + S * (SPREAD(b) + S * SPREAD(c));
 }
 #endif
 
@@ -234,10 +237,9 @@ __kernel void backproject(
     const int along_z = (v0 - (v0 / nz) * nz) + VEC <= nz; /* the work-item's voxels in one z row */
 #endif
     lanes_f s_lane;
-    float ref_z[N_RUNS];
     for (int l = 0; l < VEC; ++l) s_lane.s[l] = (float)(l - (l / RUN) * RUN) - 0.5f * (float)(RUN - 1);
-    for (int j = 0; j < N_RUNS; ++j) ref_z[j] = fz.s[j * RUN] + 0.5f * (float)(RUN - 1) * step.z;
     const floatV S = s_lane.v;
+    const runT ref_z = RUN_FIRST(fz) + 0.5f * (float)(RUN - 1) * step.z; /* each run's middle */
 #endif
 
     floatV acc_re = (floatV)(0.0f);
