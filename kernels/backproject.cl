@@ -95,37 +95,42 @@ inline void lerp_pairs_half(__global const half *row, const floatV idx, const fl
 #error "RANGE_EXPANSION must divide VEC"
 #endif
 #define N_RUNS (VEC / RUN)
-/* sqrt of one value (vsqrt's choice of square root, common.cl) */
-inline float ssqrt(const float x)
-{
-#if defined(__clang__) && !defined(CLSAS_OPENCL_SQRT)
-    return __builtin_sqrtf(x);
-#else
-    return sqrt(x);
-#endif
-}
 
 /* runT: one lane per run of the work-item (float where there is one); RUN_SQRT: its lanes' square
- * roots; RUN_FIRST: the run's first lane of a lanes_f; SPREAD: each run's value over its lanes */
+ * roots; RUN_FIRST: the run's first lane of a lanes_f; SPREAD: each run's value over its lanes,
+ * selected by R (intV, each lane's run), with vector ?: (Oclgrind's uninitialised-value plugin
+ * crashes on swizzles such as .s00001111 and on vector constructors of float2 lanes) */
+/* the square roots as vsqrt takes them (common.cl): lane by lane with the compiler's own, else
+ * (Oclgrind: CLSAS_OPENCL_SQRT) the builtin */
 #if N_RUNS == 1
 #define runT float
-#define RUN_SQRT(q) ssqrt(q)
+#if defined(__clang__) && !defined(CLSAS_OPENCL_SQRT)
+#define RUN_SQRT(q) __builtin_sqrtf(q)
+#else
+#define RUN_SQRT(q) sqrt(q)
+#endif
 #define RUN_FIRST(f) ((f).s[0])
 #define SPREAD(x) (x)
 #elif N_RUNS == 2
 #define runT float2
-#define RUN_SQRT(q) ((float2)(ssqrt((q).s0), ssqrt((q).s1)))
-#define RUN_FIRST(f) ((float2)((f).s[0], (f).s[RUN]))
-#if VEC == 8
-#define SPREAD(x) ((x).s00001111)
+#if defined(__clang__) && !defined(CLSAS_OPENCL_SQRT)
+#define RUN_SQRT(q) ((float2)(__builtin_sqrtf((q).s0), __builtin_sqrtf((q).s1)))
 #else
-#define SPREAD(x) ((x).s0000000011111111)
+#define RUN_SQRT(q) sqrt(q)
 #endif
+#define RUN_FIRST(f) ((float2)((f).s[0], (f).s[RUN]))
+#define SPREAD(x) ((R == 0) ? (floatV)((x).s0) : (floatV)((x).s1))
 #elif N_RUNS == 4 && VEC == 16
 #define runT float4
-#define RUN_SQRT(q) ((float4)(ssqrt((q).s0), ssqrt((q).s1), ssqrt((q).s2), ssqrt((q).s3)))
+#if defined(__clang__) && !defined(CLSAS_OPENCL_SQRT)
+#define RUN_SQRT(q) ((float4)(__builtin_sqrtf((q).s0), __builtin_sqrtf((q).s1), __builtin_sqrtf((q).s2), \
+                              __builtin_sqrtf((q).s3)))
+#else
+#define RUN_SQRT(q) sqrt(q)
+#endif
 #define RUN_FIRST(f) ((float4)((f).s[0], (f).s[RUN], (f).s[2 * RUN], (f).s[3 * RUN]))
-#define SPREAD(x) ((x).s0000111122223333)
+#define SPREAD(x) ((R < 2) ? ((R == 0) ? (floatV)((x).s0) : (floatV)((x).s1)) \
+                           : ((R == 2) ? (floatV)((x).s2) : (floatV)((x).s3)))
 #else
 #error "RANGE_EXPANSION: runs of 4 voxels or more (1, 2 or 4 runs per work-item)"
 #endif
@@ -133,9 +138,10 @@ inline float ssqrt(const float x)
 /* The lags idx = (|v - t| + |v - r|) t.w - s0 (t.w: profile samples per metre of path) of the
  * lanes of a work-item in one z row: idx = a + s (b + s c) per run, from the run's middle
  * (ref_x, ref_y, ref_z) (t_xy, r_xy its squared distances to tx and rx across z), two square
- * roots and one division per run; S holds each lane's s (voxel steps dz from its run's middle). */
+ * roots and one division per run; S holds each lane's s (voxel steps dz from its run's middle), R
+ * its run. */
 inline floatV expanded_lags(const float ref_x, const float ref_y, const runT ref_z, const float dz, const float4 t,
-                            const float4 r, const float s0, const floatV S)
+                            const float4 r, const float s0, const floatV S, const intV R)
 {
     const float tx = ref_x - t.x, ty = ref_y - t.y, rx = ref_x - r.x, ry = ref_y - r.y;
     const float t_xy = tx * tx + ty * ty, r_xy = rx * rx + ry * ry;
@@ -237,8 +243,13 @@ __kernel void backproject(
     const int along_z = (v0 - (v0 / nz) * nz) + VEC <= nz; /* the work-item's voxels in one z row */
 #endif
     lanes_f s_lane;
-    for (int l = 0; l < VEC; ++l) s_lane.s[l] = (float)(l - (l / RUN) * RUN) - 0.5f * (float)(RUN - 1);
+    lanes_i run_of;
+    for (int l = 0; l < VEC; ++l) {
+        run_of.s[l] = l / RUN;
+        s_lane.s[l] = (float)(l - run_of.s[l] * RUN) - 0.5f * (float)(RUN - 1);
+    }
     const floatV S = s_lane.v;
+    const intV R = run_of.v;
     const runT ref_z = RUN_FIRST(fz) + 0.5f * (float)(RUN - 1) * step.z; /* each run's middle */
 #endif
 
@@ -260,7 +271,7 @@ __kernel void backproject(
         const floatV dtx = X - t.x, dty = Y - t.y, dtz = Z - t.z;
         const floatV drx = X - r.x, dry = Y - r.y, drz = Z - r.z;
 #ifdef RANGE_EXPANSION
-        const floatV idx = along_z ? expanded_lags(fx.s[0], fy.s[0], ref_z, step.z, t, r, s0[m], S)
+        const floatV idx = along_z ? expanded_lags(fx.s[0], fy.s[0], ref_z, step.z, t, r, s0[m], S, R)
                                    : (vsqrt(dtx * dtx + dty * dty + dtz * dtz)
                                       + vsqrt(drx * drx + dry * dry + drz * drz)) * t.w - s0[m];
 #else

@@ -27,7 +27,8 @@ from conftest import oclgrind_missing as _oclgrind_available
 # image after it) is checked for uninitialised values at VEC 4 and 8, backproject.cl's widths, as is
 # backproject.cl's -DLOCAL_PROFILES variant (records staged in local memory, barriers: the race check
 # covers them at every width), -DHALF_PROFILES and -DRANGE_EXPANSION variants (the latter's
-# -DROWS_ALIGNED build in a process of its own); for each, a plan of several groups runs
+# -DROWS_ALIGNED build in a process of its own; its builds with 2 or 4 runs per work-item crash the
+# plugin, so it checks one run per work-item there; the race check covers every run); for each, a plan of several groups runs
 # before the selftest (in the other order the plugin reports the second plan's accumulators, whose
 # values equal the twin's; either alone is clean).
 WIDTHS = ("vec=4", "vec=8", "vec=16")
