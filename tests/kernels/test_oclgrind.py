@@ -31,14 +31,14 @@ from conftest import oclgrind_missing as _oclgrind_available
 WIDTHS = ("vec=4", "vec=8", "vec=16")
 CHECKS = [
     pytest.param({"OCLGRIND_DATA_RACES": "1"},
-                 ["compress", "fft", "backproject", "backproject_local", "backproject_half", "gradient", "stolt",
-                  "stolt_depths", "ffbp", "records", *WIDTHS],
+                 ["compress", "fft", "backproject", "backproject_local", "backproject_half", "gradient", "metric",
+                  "stolt", "stolt_depths", "ffbp", "records", *WIDTHS],
                  id="memcheck+races-all"),
 ] + [
     pytest.param({"OCLGRIND_UNINITIALIZED": "1"}, [kernels, f"vec={vec}"], id=f"uninitialized-{kernels}-vec{vec}")
     for kernels, vecs in [("compress", (4, 8, 16)), ("fft", (4, 8, 16)), ("backproject", (4, 8)),
                            ("backproject_local", (4, 8)), ("backproject_half", (4, 8)), ("gradient", (4, 8)),
-                           ("stolt", (4, 16)),
+                           ("metric", (4, 16)), ("stolt", (4, 16)),
                            ("stolt_depths", (4,)), ("ffbp", (4, 8)), ("records", (4, 8))]
     for vec in vecs
 ]
