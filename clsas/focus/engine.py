@@ -49,11 +49,16 @@ class FocusEngine:
         (``backend`` may be a :class:`clsas.cl.Selection`, resolved once and shared by the
         compression, the backprojection and the gradient; each kernel that will not build
         falls back to its twin on ``"auto"`` with one warning and raises on ``"opencl"``).
+    metric_on_device : bool
+        On OpenCL, compute the focus metric and its weight from the image the backprojection left
+        on the device (default); False: on the host from the image read back, the weight written
+        back (kept for comparison: ``python -m bench.focus_step``).
     """
 
     def __init__(self, dataset: Dataset, grid: VoxelGrid, *, margin_s: float = 5e-4, rel_margin: float = 0.0,
                  metric: str = "sharpness",
-                 backend: str | _cl.Selection | None = None, device: Any = None, force: bool = False):
+                 backend: str | _cl.Selection | None = None, device: Any = None, force: bool = False,
+                 metric_on_device: bool = True):
         self.ds, self.grid, self.metric = dataset, grid, metric
         self.selection = _cl.select(backend, device)
         plan = plan_reconstruction(dataset, grid, [])
@@ -65,7 +70,8 @@ class FocusEngine:
         self._stop_bp: Backprojector | None = None
         self._moments: FocusMomentsPlan | None = None
         self._weights: FocusWeightPlan | None = None
-        self._metric_selection = self.selection  # NumPy once a metric kernel fell back
+        # NumPy once a metric kernel fell back (or asked for)
+        self._metric_selection = self.selection if metric_on_device else _cl.select("numpy")
         self.n_images = 0
         self.n_gradients = 0
         self.n_device_metrics = 0  # evaluations whose metric (and weight) came from the image on the device

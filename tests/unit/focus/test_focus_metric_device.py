@@ -87,6 +87,10 @@ def test_an_autofocus_step_stays_on_the_device(rng, metric):
     assert np.abs(sums - want_sums).max() <= 1e-5 * np.abs(want_sums).max()
     m_only, none, _ = engine.evaluate(shift, ds.c_per_meas, gradient=False)
     assert none is None and m_only == pytest.approx(want_m, rel=1e-6) and engine.n_device_metrics == 2
+    on_host = FocusEngine(ds, grid, backend="opencl", metric=metric, metric_on_device=False)
+    m_host, sums_host, _ = on_host.evaluate(shift, ds.c_per_meas)
+    assert on_host.n_device_metrics == 0 and m_host == pytest.approx(m, rel=1e-6)
+    assert np.abs(sums_host - sums).max() <= 1e-5 * np.abs(sums).max()
 
 
 def test_numpy_engine_computes_the_metric_on_the_host(rng):
