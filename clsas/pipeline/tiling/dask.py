@@ -27,7 +27,6 @@ fission), and the compute units each worker used are in ``image.provenance["tile
 from __future__ import annotations
 
 import logging
-import math
 import os
 
 from ... import cl
@@ -153,14 +152,14 @@ def tile_runs(pending: list[int], workers: int, most: int = MAX_TILES_PER_TASK) 
 
     >>> tile_runs(list(range(8)), workers=2)
     [[0, 1], [2, 3], [4, 5], [6, 7]]
-    >>> tile_runs([1, 2, 5, 6, 7], workers=1)
-    [[1, 2, 5], [6, 7]]
+    >>> tile_runs([1, 2, 5, 6, 7, 8], workers=1)
+    [[1, 2, 5], [6, 7, 8]]
     """
     if not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers must be a positive integer, got {workers!r}")
     if not isinstance(most, int) or most < 1:
         raise ValueError(f"most must be a positive integer, got {most!r}")
-    size = max(1, min(most, math.ceil(len(pending) / (2 * workers))))
+    size = max(1, min(most, len(pending) // (2 * workers)))
     return [list(pending[k:k + size]) for k in range(0, len(pending), size)]
 
 
