@@ -187,3 +187,49 @@ def test_out_of_core_peak_memory_stays_within_the_budget():
     voxels, count, kept, budget, peak = (float(x) for x in res.stdout.split()[-5:])
     assert voxels * 56 > 2 * 25e6 and count > 1 and kept == count - 1
     assert peak <= budget, f"peak RSS {peak / 1e6:.0f} MB over the budget {budget / 1e6:.0f} MB"
+
+
+def test_tiles_formed_in_turn_take_at_most_one_grid_ahead(scene):
+    """form_in_turn takes each grid only as the previous image is handed on (bp's form_tiles holds
+    one tile's kernels enqueued beside the last one's read back, no more), so that threads sharing
+    a queue of tiles keep sharing it; the overlapped tiles equal the sequential ones."""
+    from clsas.pipeline.tiling.tiles import form_in_turn
+
+    ds, grid, whole = scene
+    prof = clsas.compress(ds, backend="opencl", gate_s=whole.plan.gate_s)
+    tiles = tile_grid(grid, (3, 17, 17))
+    for overlap in (True, False):
+        taken = []
+
+        def grids(taken=taken):
+            for t in tiles:
+                taken.append(t.index)
+                yield t.grid
+
+        handed = 0
+        for vals, _, seconds, records, overlapped in form_in_turn(prof, grids(), "bp", {}, cl.select("opencl"),
+                                                                  overlap=overlap):
+            handed += 1
+            assert len(taken) <= handed + (1 if overlap else 0), (len(taken), handed)
+            assert overlapped is overlap and seconds >= 0 and records in ("uploaded", "rows", "kept")
+            _close(vals, whole.values[tiles[handed - 1].slices])
+        assert handed == len(tiles) == len(taken)
+
+
+@pytest.mark.parametrize("overlap", [True, False], ids=["overlapped", "sequential"])
+def test_several_device_threads_form_their_tiles_in_turn(scene, overlap):
+    """Two entries of one OpenCL device (two threads sharing its queue, taking turns on it): each
+    thread forms the tiles it takes in turn (overlapped where asked), every tile once, the records
+    made once per thread and kept for its other tiles; the image equals the untiled one within
+    bp's tolerance."""
+    ds, grid, whole = scene
+    prof = clsas.compress(ds, backend="opencl", gate_s=whole.plan.gate_s)
+    dev = cl.get_queue().device
+    shape = (2, 17, 17)
+    image = form_tiled(prof, grid, "bp", {}, cl.select("opencl"),
+                       TiledRequest(tile_shape=shape, devices=(dev, dev), overlap=overlap))
+    t = image.provenance["tiles"]
+    assert t["overlap"] is overlap
+    assert sum(d["tiles"] for d in t["devices"].values()) == t["count"] == len(tile_grid(grid, shape))
+    assert sum(t["records"].values()) == t["count"] and t["records"].get("kept", 0) >= t["count"] - 2, t
+    _close(image.values, whole.values)
