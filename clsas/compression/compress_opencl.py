@@ -2,12 +2,11 @@
 
 Each plan's ``selftest(queue, vec)`` runs it on a small input against its NumPy twin and
 returns the error relative to the peak; the device layer runs it in a child process to
-verify a kernel variant before it is used (:mod:`clsas.cl.variants`). :meth:`enqueue` runs the
-kernel and leaves the profiles on the device, :class:`clsas.cl.DeviceRows` (also :attr:`rows`),
-for the next plan on the same queue (backprojection), reading nothing back: their host copy is
-read when something asks for it (:attr:`clsas.cl.DeviceRows.host`), or before the plan's next
-call overwrites them. A call (``plan(signals)``) is :meth:`enqueue` and that host copy
-(read-only).
+verify a kernel variant before it is used (:mod:`clsas.cl.variants`). ``enqueue(signals)`` runs
+the kernel and leaves the profiles on the device as :class:`clsas.cl.DeviceRows` for the next
+plan on the same queue (backprojection), reading nothing back: their host copy is read when
+something asks for it (:attr:`clsas.cl.DeviceRows.host`), or before the plan's next call
+overwrites them. A call, ``plan(signals)``, is ``enqueue`` and that host copy (read-only).
 """
 
 from __future__ import annotations
@@ -63,19 +62,18 @@ class _RowPlan(Plan):
         self.stride = -(-n_lags // self.vec) * self.vec
         self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
         self.d_out = self.alloc(8 * n_meas * self.stride, "rw")
-        self.rows: DeviceRows | None = None
         self.args: list = []  # the kernel's arguments between the recordings' and the output (each plan's own)
 
     def enqueue(self, signals: np.ndarray) -> DeviceRows:
-        """Compress ``signals`` ((n_meas, n_samples) real) into rows left on the device (:attr:`rows`),
-        once the kernel has ended (``last_kernel_s``, s); nothing is read back."""
+        """Compress ``signals`` ((n_meas, n_samples) real) into rows left on the device, once the
+        kernel has ended (``last_kernel_s``, s); nothing is read back. The plan keeps no reference
+        to the rows: those nobody holds any more are not read before its next call."""
         self.begin()
         self.write(self.d_sig, signals, np.float32)
         self.launch((self.stride // self.vec, self.n_meas), self.d_sig, np.int32(self.n_samples), *self.args,
                     self.d_out)
         self.finish()
-        self.rows = self.lend(self.d_out, self.n_meas, self.n_lags, self.stride)
-        return self.rows
+        return self.lend(self.d_out, self.n_meas, self.n_lags, self.stride)
 
     def __call__(self, signals: np.ndarray) -> np.ndarray:
         """The profiles of ``signals``, (n_meas, n_lags) complex64, read-only (:meth:`enqueue`, read back)."""
@@ -165,7 +163,6 @@ class FftMatchedPlan(Plan):
         self.d_work = self.alloc(self.items * per_item)
         self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
         self.d_out = self.alloc(8 * n_meas * self.n_lags, "rw")
-        self.rows: DeviceRows | None = None
         self.d_tw, self.d_spec, self.d_post = (self.upload(a, np.complex64)
                                                for a in (layout.twiddles, layout.spec, layout.post))
         self.d_rot0 = self.upload(rot0, np.complex64)
@@ -175,8 +172,8 @@ class FftMatchedPlan(Plan):
         self.write(self.d_rot0, rot0, np.complex64)
 
     def enqueue(self, signals: np.ndarray) -> DeviceRows:
-        """Compress ``signals`` ((n_meas, n_samples) real) into rows left on the device (:attr:`rows`),
-        once the kernels have ended (``last_kernel_s``, s); nothing is read back."""
+        """Compress ``signals`` ((n_meas, n_samples) real) into rows left on the device, once the
+        kernels have ended (``last_kernel_s``, s); nothing is read back (:meth:`_RowPlan.enqueue`)."""
         lay = self.layout
         self.begin()
         self.write(self.d_sig, signals, np.float32)
@@ -190,8 +187,7 @@ class FftMatchedPlan(Plan):
                 self.d_post, self.d_rot0, self.d_work, np.int32(self.n_lags), self.d_out,
             )
         self.finish()
-        self.rows = self.lend(self.d_out, self.n_meas, self.n_lags, self.n_lags)
-        return self.rows
+        return self.lend(self.d_out, self.n_meas, self.n_lags, self.n_lags)
 
     def __call__(self, signals: np.ndarray) -> np.ndarray:
         """The profiles of ``signals``, (n_meas, n_lags) complex64, read-only (:meth:`enqueue`, read back)."""
