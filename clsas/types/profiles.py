@@ -114,7 +114,7 @@ class Profiles:
     on_device: Any = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
-        if self.__dict__["_data"] is None and self.on_device is None:
+        if self._held() is None and self.on_device is None:
             raise ValueError("data: an (n_meas, n_lags) array is needed, or the device rows holding it (on_device)")
 
     def __getstate__(self) -> dict:
@@ -130,9 +130,13 @@ class Profiles:
     def n_lags(self) -> int:
         return self._shape()[1]
 
+    def _held(self) -> np.ndarray | None:
+        """``data`` as given or read so far, without reading it: None while it is on the device only."""
+        return self.__dict__["_data"]
+
     def _shape(self) -> tuple[int, ...]:
         """``data``'s shape, without reading it where it is still on the device."""
-        data = self.__dict__["_data"]
+        data = self._held()
         return (self.on_device.n_rows, self.on_device.n_cols) if data is None else data.shape
 
     def device_rows(self) -> Any:
@@ -145,13 +149,13 @@ class Profiles:
         rows = self.on_device
         if rows is None:
             return None
-        return rows if rows.valid(rows.queue, self.__dict__["_data"]) else None
+        return rows if rows.valid(rows.queue, self._held()) else None
 
     def with_fields(self, **changes: Any) -> Profiles:
         """``dataclasses.replace(self, **changes)``, except that ``data`` still on the device stays
         there (unread) where ``changes`` do not give it; ``dataclasses.replace`` reads it (it
         copies every field through its attribute)."""
-        if "data" not in changes and self.__dict__["_data"] is None:
+        if "data" not in changes and self._held() is None:
             changes["data"] = None
         return replace(self, **changes)
 
