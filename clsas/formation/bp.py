@@ -180,7 +180,9 @@ class Backprojector:
         tx = v.array("tx_positions", profiles.tx_positions if tx_positions is None else tx_positions, shape=(n, 3))
         rx = v.array("rx_positions", profiles.rx_positions if rx_positions is None else rx_positions, shape=(n, 3))
         c = v.speeds("c_mps", profiles.c_mps if c_mps is None else c_mps, n)
-        data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
+        rows = profiles.device_rows() if self.resident else None  # read there by the kernels, never here
+        data = None if rows is not None else v.array("profiles.data", profiles.data, ndim=2, dtype=None,
+                                                     allow_complex=True)
         tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
         dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
         fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
@@ -190,16 +192,19 @@ class Backprojector:
             raise ValueError(f"beams must have {n} boresights (one per measurement), got {len(weights.tx_dir)}")
         t_start = time.perf_counter()
         lut = 0 if weights is None else weights.luts.shape[1]
-        plan = self._opencl_plan(n, data.shape[1], lut) if self.selection.opencl else None
+        plan = self._opencl_plan(n, profiles.n_lags, lut) if self.selection.opencl else None
         records = None
         if plan is not None and self.resident:
             records = self._records_plan(n, plan.n_lags, upsample_factor(fc, dtau))
             plan = None if records is None else plan  # None: the records kernel fell back to the twin
         bp_record = {}
+        if records is None and data is None:  # the host's way after all: the rows read back
+            data = profiles.data
         if records is not None:
-            # profiles.data itself (not the checked copy): the records are kept for this very array
-            pending, bp_record["records"] = plan.enqueue_resident(profiles.data, profiles.on_device, records, tau0,
-                                                                  dtau, fc, tx, rx, c, progress, beam=weights)
+            # profiles.data itself (not the checked copy), or None for the rows: the records are kept for it
+            pending, bp_record["records"] = plan.enqueue_resident(None if rows is not None else profiles.data, rows,
+                                                                  records, tau0, dtau, fc, tx, rx, c, progress,
+                                                                  beam=weights)
         elif plan is not None:
             values = plan(data, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
             pending = _Done(values, {"backproject_kernel": plan.last_kernel_s})
