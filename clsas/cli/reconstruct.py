@@ -33,7 +33,8 @@ def cmd_reconstruct(args) -> int:
         print(image.plan.describe())
     print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
     _print_formation_choice(image.provenance.get("formation_auto"))
-    _print_bp_variant(image.provenance.get("bp"))
+    if bp_variant_line(image.provenance.get("bp")):
+        print(bp_variant_line(image.provenance.get("bp")))
     _print_peaks(image, ds, args.peaks)
     if partial:
         print(f"(imaged from a partial scan: {partial.split(':')[1].split(';')[0].strip()})")
@@ -86,13 +87,15 @@ def _print_formation_choice(auto: dict | None) -> None:
               f"{err} dB (upper bound {up} dB): " + ("kept" if c["kept"] else "over the target, not kept"))
 
 
-def _print_bp_variant(record: dict | None) -> None:
-    """bp's kernel variant where it is less exact than the plain float kernel (its stated bound)."""
+def bp_variant_line(record: dict | None) -> str:
+    """The line ``clsas reconstruct`` prints for bp's kernel variant (``image.provenance["bp"]``,
+    :func:`clsas.formation.bp.variant_record`) where it is less exact than the plain float kernel:
+    the variant, its shape, its stated bound and the allowance; ``""`` for the exact ones."""
     if not record or record.get("error_bound") is None:
-        return
+        return ""
     bound = float(record["error_bound"])
-    print(f"bp kernel: {record['variant']} ({record['shape']}), stated error against the float64 twin at most "
-          f"{bound:.2g} of the peak ({20 * np.log10(bound):.0f} dB), allowed {record['max_error_db']:g} dB")
+    return (f"bp kernel: {record['variant']} ({record['shape']}), stated error against the float64 twin at most "
+            f"{bound:.2g} of the peak ({20 * np.log10(bound):.0f} dB), allowed {record['max_error_db']:g} dB")
 
 
 def _print_peaks(image, ds, n: int) -> None:

@@ -79,13 +79,12 @@ def test_reconstruct_gives_bp_a_target_only_where_the_caller_gave_one(scan, tmp_
     assert "exact, or a kernel variant stated within -33 dB" in image.provenance["formation_auto"]["reason"]
 
 
-def test_cli_names_a_bp_variant_less_exact_than_the_float_kernel(capsys):
-    from clsas.cli.reconstruct import _print_bp_variant
+def test_cli_names_a_bp_variant_less_exact_than_the_float_kernel():
+    from clsas.cli.reconstruct import bp_variant_line
 
-    _print_bp_variant({"variant": "plain", "shape": "plain/auto", "error_bound": None, "max_error_db": -33.0})
-    _print_bp_variant(None)
-    assert capsys.readouterr().out == ""
-    _print_bp_variant({"variant": "half_profiles", "shape": "half_profiles/64", "error_bound": 1e-3,
-                       "max_error_db": -33.0})
-    out = capsys.readouterr().out
-    assert out.startswith("bp kernel: half_profiles (half_profiles/64)") and "(-60 dB), allowed -33 dB" in out
+    exact = {"variant": "plain", "shape": "plain/auto", "error_bound": None, "max_error_db": -33.0}
+    assert bp_variant_line(exact) == ""
+    assert bp_variant_line(None) == ""
+    line = bp_variant_line({"variant": "half_profiles", "shape": "half_profiles/64", "error_bound": 1e-3,
+                            "max_error_db": -33.0})
+    assert line.startswith("bp kernel: half_profiles (half_profiles/64)") and "(-60 dB), allowed -33 dB" in line
