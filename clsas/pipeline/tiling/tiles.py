@@ -83,13 +83,17 @@ def profile_bytes(profiles: Profiles) -> int:
     memory): the profiles, and the OpenCL path's copy of them and carrier records (complex64
     pairs, upsampled), kept for every tile; at least four times the complex128 data."""
     records = 16 * profiles.n_meas * ((profiles.n_lags - 1) * upsample_factor(profiles.fc_hz, profiles.dtau_s) + 1)
-    return int(max(4 * profiles.data.nbytes, 2 * profiles.data.nbytes + records) + 64 * profiles.n_meas)
+    # complex64 rows still on the device are not read to count them
+    data = 8 * profiles.n_meas * profiles.n_lags if profiles.device_rows() is not None else profiles.data.nbytes
+    return int(max(4 * data, 2 * data + records) + 64 * profiles.n_meas)
 
 
 def read_only(profiles: Profiles) -> Profiles:
     """``profiles`` with read-only data (a view where it was writeable): the OpenCL path keeps
-    the records it made on the device for the next tile only for an array that cannot change."""
-    if not profiles.data.flags.writeable:
+    the records it made on the device for the next tile only for an array that cannot change.
+    Profiles whose rows are still on the device are returned as they are (not read: their host
+    copy, when read, is read-only)."""
+    if profiles.device_rows() is not None or not profiles.data.flags.writeable:
         return profiles
     view = profiles.data.view()
     view.flags.writeable = False

@@ -9,6 +9,7 @@ from conftest import TOL, needs_opencl, small_dataset
 import clsas
 from clsas import cl
 from clsas.pipeline.tiling import TiledRequest, form_tiled, tile_grid
+from clsas.pipeline.tiling.tiles import profile_bytes
 
 pytestmark = needs_opencl
 
@@ -47,6 +48,31 @@ def test_tiles_take_the_records_once_and_equal_the_whole_image(scene):
     assert len(plans) == 1 and plans[0].capacity < 2 * int(np.prod(shape)) + plans[0].per_group
     assert 2 * int(np.prod(shape)) < grid.size
     assert plans[0].image_buffers == 2  # two image buffers took turns
+
+
+def test_tiles_in_memory_read_no_profile_back(scene, monkeypatch):
+    """Tiles formed in memory on the device that compressed the profiles take them from the
+    device rows for every tile: sizing the tiles and keeping the records read nothing back."""
+    from clsas.cl import DeviceRows
+
+    ds, grid, whole = scene
+    reads = []
+    read = DeviceRows._read
+
+    def counted(rows):
+        reads.append(rows.n_rows)
+        return read(rows)
+
+    monkeypatch.setattr(DeviceRows, "_read", counted)
+    prof = clsas.compress(ds, backend="opencl")
+    shape = (5, 9, 17)
+    tiled = form_tiled(prof, grid, "bp", {}, cl.select("opencl"), TiledRequest(tile_shape=shape))
+    n = len(tile_grid(grid, shape))
+    assert tiled.provenance["tiles"]["records"] == {"rows": 1, "kept": n - 1}
+    unread = profile_bytes(prof)  # what sizing the tiles counts for them
+    assert reads == [] and not prof.on_device.is_read, "the profiles were read back"
+    _close(tiled.values, whole.values)
+    assert prof.data.dtype == np.complex64 and profile_bytes(prof) == unread  # the same count once read
 
 
 def test_out_of_core_within_a_budget_is_resident_and_equals_the_whole_image(scene, tmp_path):
