@@ -133,16 +133,16 @@ def worker_selection(requested, device=None, threads: int | None = None) -> tupl
 
 def _tiles_task(profiles, grids, formation, options, requested, force, overlap):
     """A task: form a run of tiles in turn on this worker's device (a sub-device of its threads'
-    compute units); one ``(values, device, seconds, compute_units, records, overlapped)`` per tile."""
+    compute units); one ``(values, device, seconds, compute_units, bp, overlapped)`` per tile."""
     selection, units = worker_selection(requested, worker_device())
     # the worker's own copy of the profiles, shared by its tasks, made read-only: bp's resident path then
     # uploads it and makes its records on the device for the first tile, and keeps them for the others
     profiles.data.flags.writeable = False
     cu = "" if units is None else f", {units} CU"
     overlap = overlap and len(grids) > 1  # one tile has nothing to overlap
-    return [(vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units, records, overlapped)
-            for vals, dev, seconds, records, overlapped in form_in_turn(profiles, grids, formation, options,
-                                                                        selection, force, overlap)]
+    return [(vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units, bp, overlapped)
+            for vals, dev, seconds, bp, overlapped in form_in_turn(profiles, grids, formation, options,
+                                                                   selection, force, overlap)]
 
 
 def tile_runs(pending: list[int], workers: int, most: int = MAX_TILES_PER_TASK) -> list[list[int]]:
@@ -175,10 +175,10 @@ def n_workers(client) -> int:
 
 def run_on_cluster(client, profiles, tiles, pending, formation, options, requested, force, resources=None,
                    overlap: bool = True):
-    """Yield ``(tile, values, device, seconds, compute_units, records, overlapped)`` for the ``pending``
+    """Yield ``(tile, values, device, seconds, compute_units, bp, overlapped)`` for the ``pending``
     tiles, formed on the cluster in runs of a few tiles per task (:func:`tile_runs`), each task's
     tiles as soon as it finishes (``device`` names the worker's process and compute units;
-    ``records``: :func:`clsas.pipeline.tiling.tiles.records_source`; ``overlapped``: formed with
+    ``bp``: :func:`clsas.pipeline.tiling.tiles.bp_record`; ``overlapped``: formed with
     the next tile's kernels beside its read back)."""
     distributed = import_distributed()
     c, own = connect(client)
@@ -196,8 +196,8 @@ def run_on_cluster(client, profiles, tiles, pending, formation, options, request
                                                   with_results=True):
             _, run = futures.pop(f.key)
             f.release()
-            for i, (vals, device, seconds, units, records, overlapped) in zip(run, formed, strict=True):
-                yield tiles[i], vals, device, seconds, units, records, overlapped
+            for i, (vals, device, seconds, units, bp, overlapped) in zip(run, formed, strict=True):
+                yield tiles[i], vals, device, seconds, units, bp, overlapped
         del prof
     finally:
         if own:

@@ -63,13 +63,19 @@ class _Tally:
     pairs: dict = field(default_factory=dict)
     units: dict = field(default_factory=dict)
     records: dict = field(default_factory=dict)  # tiles per source of bp's device records
+    variants: dict = field(default_factory=dict)  # tiles per bp kernel variant
+    bounds: dict = field(default_factory=dict)  # bp kernel variant -> its stated error bound
     overlapped: int = 0  # tiles formed with the next tile's kernels beside their read back
 
     def add(self, device: str, seconds: float, pairs: float, units: int | None = None,
-            records: str | None = None, overlapped: bool = False) -> None:
+            bp: dict | None = None, overlapped: bool = False) -> None:
         self.overlapped += bool(overlapped)
-        if records is not None:
-            self.records[records] = self.records.get(records, 0) + 1
+        bp = bp or {}
+        if bp.get("records") is not None:
+            self.records[bp["records"]] = self.records.get(bp["records"], 0) + 1
+        if bp.get("variant") is not None:
+            self.variants[bp["variant"]] = self.variants.get(bp["variant"], 0) + 1
+            self.bounds[bp["variant"]] = bp.get("error_bound")
         self.tiles[device] = self.tiles.get(device, 0) + 1
         self.seconds[device] = self.seconds.get(device, 0.0) + seconds
         self.pairs[device] = self.pairs.get(device, 0.0) + pairs
@@ -113,13 +119,13 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
     try:
         if progress is not None:
             progress(done, len(tiles))
-        for tile, vals, device, seconds, units, records, overlapped in _run(profiles, tiles, pending, formation,
-                                                                            options, selections, request, force):
+        for tile, vals, device, seconds, units, bp, overlapped in _run(profiles, tiles, pending, formation,
+                                                                       options, selections, request, force):
             if store is not None:
                 store.write(tile, vals)
             else:
                 values[tile.slices] = vals
-            tally.add(device, seconds, float(tile.size) * profiles.n_meas, units, records, overlapped)
+            tally.add(device, seconds, float(tile.size) * profiles.n_meas, units, bp, overlapped)
             done += 1
             if progress is not None:
                 progress(done, len(tiles))
@@ -132,6 +138,9 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
     if tally.records:  # bp's resident path: where each tile's carrier records came from
         prov["tiles"]["records"] = dict(tally.records)
         prov["tiles"]["overlap"] = tally.overlapped > 0
+    if tally.variants:  # bp's kernel variants, tiles each, and the error each states
+        prov["tiles"]["bp_variants"] = {k: {"tiles": n, "error_bound": tally.bounds[k]}
+                                        for k, n in tally.variants.items()}
     return Image(values, grid, "bp", kind, "; ".join(devices),
                  {"form_tiles": time.perf_counter() - t0}, provenance=prov)
 
@@ -189,8 +198,8 @@ def _units(selection: cl.Selection) -> int | None:
 
 
 def _run(profiles, tiles, pending, formation, options, selections, request, force):
-    """Yield ``(tile, values, device, seconds, compute_units, records, overlapped)`` for each pending
-    tile, as they finish (``records``: :func:`clsas.pipeline.tiling.tiles.records_source`;
+    """Yield ``(tile, values, device, seconds, compute_units, bp, overlapped)`` for each pending
+    tile, as they finish (``bp``: :func:`clsas.pipeline.tiling.tiles.bp_record`;
     ``overlapped``: formed with the next tile's kernels running beside its read back)."""
     if request.client is not None:
         from .dask import run_on_cluster
@@ -210,8 +219,8 @@ def _run_one(profiles, tiles, pending, formation, options, selection, overlap: b
     grids = (tiles[i].grid for i in pending)
     for i, formed in zip(pending, form_in_turn(profiles, grids, formation, options, selection, force, overlap),
                          strict=True):
-        vals, device, seconds, records, overlapped = formed
-        yield tiles[i], vals, device, seconds, units, records, overlapped
+        vals, device, seconds, bp, overlapped = formed
+        yield tiles[i], vals, device, seconds, units, bp, overlapped
 
 
 def _run_threads(profiles, tiles, pending, formation, options, selections, overlap: bool, force):
@@ -247,8 +256,8 @@ def _run_threads(profiles, tiles, pending, formation, options, selections, overl
                     out = next(formed, None)
                 if out is None:
                     return
-                vals, device, seconds, records, overlapped = out
-                results.put((tiles[taken.popleft()], vals, device, seconds, _units(sel), records, overlapped))
+                vals, device, seconds, bp, overlapped = out
+                results.put((tiles[taken.popleft()], vals, device, seconds, _units(sel), bp, overlapped))
         except Exception as exc:  # noqa: BLE001 - handed to the caller's thread and raised there
             results.put(exc)
         finally:

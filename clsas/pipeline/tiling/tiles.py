@@ -20,7 +20,7 @@ from ...formation.guard import bytes_per_voxel
 from ...physics.geometry import VoxelGrid
 from ...types.profiles import Profiles
 
-__all__ = ["Tile", "form_in_turn", "form_tile", "read_only", "records_source", "tile_grid", "tile_shape_for",
+__all__ = ["Tile", "form_in_turn", "form_tile", "read_only", "bp_record", "tile_grid", "tile_shape_for",
            "rss_bytes", "peak_rss_bytes", "profile_bytes"]
 
 # what a tile costs on the host beyond the formation's own bytes per voxel: the values handed
@@ -147,19 +147,20 @@ def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = Non
 
 def form_tile(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, selection,
               force: bool = False) -> tuple[np.ndarray, str, float, str | None]:
-    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds, records)``,
-    ``records`` where bp's resident path took its carrier records (:func:`records_source`)."""
+    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds, bp)``,
+    ``bp`` what bp recorded of it (:func:`bp_record`)."""
     from ...formation import form
 
     t0 = time.perf_counter()
     image = form(profiles, grid, formation, backend=selection, force=force, **options)
-    return np.asarray(image.values), image.device, time.perf_counter() - t0, records_source(image)
+    return np.asarray(image.values), image.device, time.perf_counter() - t0, bp_record(image)
 
 
 def form_in_turn(profiles: Profiles, grids: Iterable[VoxelGrid], formation: str, options: dict, selection,
                  force: bool = False,
                  overlap: bool = True) -> Iterator[tuple[np.ndarray, str, float, str | None, bool]]:
-    """Each grid of ``grids`` formed in turn: ``(values, device, seconds, records, overlapped)``.
+    """Each grid of ``grids`` formed in turn: ``(values, device, seconds, bp, overlapped)`` (``bp``:
+    :func:`bp_record`).
 
     A formation that forms tiles itself (``form_tiles``, bp: the next tile's kernels enqueued
     before the last tile's image is read back and handed on) does so on OpenCL, taking each grid
@@ -181,14 +182,14 @@ def form_in_turn(profiles: Profiles, grids: Iterable[VoxelGrid], formation: str,
         t1 = time.perf_counter()
         seconds, t0 = t1 - t0, t1
         overlapped = overlap and image.backend == "opencl"  # not where the twin took over
-        yield np.asarray(image.values), image.device, seconds, records_source(image), overlapped
+        yield np.asarray(image.values), image.device, seconds, bp_record(image), overlapped
 
 
-def records_source(image) -> str | None:
-    """Where bp's resident OpenCL path took a tile's carrier records (``"rows"``: the
-    compression's device rows, ``"uploaded"``, ``"kept"``: from an earlier tile); None: not
-    that path."""
-    return image.provenance.get("bp", {}).get("records")
+def bp_record(image) -> dict | None:
+    """What bp recorded of a tile (``image.provenance["bp"]``: the kernel variant and its stated
+    error, and on the resident OpenCL path where its carrier records came from: ``"rows"``, the
+    compression's device rows, ``"uploaded"``, ``"kept"`` from an earlier tile); None: not bp."""
+    return image.provenance.get("bp")
 
 
 def rss_bytes() -> int:

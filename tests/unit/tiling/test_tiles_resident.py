@@ -42,6 +42,8 @@ def test_tiles_take_the_records_once_and_equal_the_whole_image(scene):
     n = len(tile_grid(grid, shape))
     assert tiled.provenance["tiles"]["records"] == {"rows": 1, "kept": n - 1}
     assert tiled.provenance["tiles"]["overlap"] is True
+    # the kernel every tile ran and its stated error (the exact float kernel: no bound)
+    assert tiled.provenance["tiles"]["bp_variants"] == {"plain": {"tiles": n, "error_bound": None}}
     _close(tiled.values, whole.values)
     plans = _bp_plans()
     # one tile's voxels, padded to whole work-groups (a tuned local size pads further)
@@ -233,11 +235,11 @@ def test_tiles_formed_in_turn_take_at_most_one_grid_ahead(scene):
                 yield t.grid
 
         handed = 0
-        for vals, _, seconds, records, overlapped in form_in_turn(prof, grids(), "bp", {}, cl.select("opencl"),
-                                                                  overlap=overlap):
+        for vals, _, seconds, bp, overlapped in form_in_turn(prof, grids(), "bp", {}, cl.select("opencl"),
+                                                             overlap=overlap):
             handed += 1
             assert len(taken) <= handed + (1 if overlap else 0), (len(taken), handed)
-            assert overlapped is overlap and seconds >= 0 and records in ("uploaded", "rows", "kept")
+            assert overlapped is overlap and seconds >= 0 and bp["records"] in ("uploaded", "rows", "kept")
             _close(vals, whole.values[tiles[handed - 1].slices])
         assert handed == len(tiles) == len(taken)
 
