@@ -1,4 +1,4 @@
-"""Does the data pin the stops' paths on extended targets? A data-consistency probe (issue 26).
+"""Does the data pin the stops' paths on extended targets? A data-consistency probe.
 
     python -m bench.autofocus_consistency [--seeds 0 1 2 3 4 5] [--rms-mm 3] [--alphas 0 0.3 0.6 1]
                                           [--out bench/results]
@@ -139,7 +139,7 @@ def probe_scene(seed: int, rms_m: float, alphas) -> list[dict]:
 
 
 def markdown(rows: list[dict], args) -> str:
-    out = [f"# Data-consistency probe on the autofocus family (issue 26), {args.rms_mm:g} mm hand motion\n",
+    out = [f"# Data-consistency probe on the autofocus family, {args.rms_mm:g} mm hand motion\n",
            f"Seeds {', '.join(map(str, args.seeds))}; true clock and speed of sound; {PASSES} passes of "
            f"{INNER} LSQR iterations; device: {', '.join(sorted({r['device'] for r in rows}))}; "
            f"{sum(r['time_s'] for r in rows):.0f} s. `python -m bench.autofocus_consistency`.\n",

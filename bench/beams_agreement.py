@@ -1,4 +1,4 @@
-"""Why beam-limited bp and omega-k disagree on the directional-transducer case (issue 33).
+"""Why beam-limited bp and omega-k disagree on the directional-transducer case.
 
     python -m bench.beams_agreement [--out bench/results]
 
@@ -92,7 +92,7 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     stem = args.out / f"{dt.date.today()}-beams-agreement"
     stem.with_suffix(".json").write_text(json.dumps(jsonable(res), indent=1))
-    md = [f"# Beam-limited bp against omega-k on the directional case (issue 33), {res['date']}", "",
+    md = [f"# Beam-limited bp against omega-k on the directional case, {res['date']}", "",
           f"Device: {res['device']}; load before {res['load_before']}; {res['time_s']:.0f} s. Script: "
           "`bench/beams_agreement.py` (see its docstring).", "",
           "## 1. Pitch: the error does not close at half the pitch", "",

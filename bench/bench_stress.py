@@ -1,4 +1,4 @@
-"""Stress figures of the sparse methods (issue 17): CBP-Polar's nlopt stops, extra echoes on
+"""Stress figures of the sparse methods: CBP-Polar's nlopt stops, extra echoes on
 real recordings (tapered and hard-edged chirps), and the false-alarm rate on pure noise.
 
     python -m bench.bench_stress [--stalls 50] [--edges 20] [--noise 200] [--out bench/results]

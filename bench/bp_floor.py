@@ -2,7 +2,7 @@
 
     python -m bench.bp_floor [--side 64] [--measurements 1024] [--vec 8] [--out bench/results]
 
-Issue 31 asks for bp at >= 2.5x the C/OpenMP peer (``bench/backproject_omp.c``). This
+The formation work asked for bp at >= 2.5x the C/OpenMP peer (``bench/backproject_omp.c``). This
 script times, on ``throughput.backprojection_workload`` (the bench's cube grid), the shipped
 kernel and three copies of it with parts taken out:
 

@@ -1,4 +1,4 @@
-"""Issue 17's BPDN budget (default <= 1 s per 1000-sample profile): ``superres(..., method="bpdn")``
+"""The BPDN budget (default <= 1 s per 1000-sample profile): ``superres(..., method="bpdn")``
 on the stress suite's 1000-sample profile (five echoes of the paper's chirp, two of them 2.8
 samples apart, in white noise), one seed per profile, with the working-set solver's Newton
 polish (the default) and without it (FISTA alone, the solver before), in the same run.

@@ -2,8 +2,8 @@
 
 A sweep is split into one task per trial (method x setting x seed); the results come back in
 the serial order, so a sweep on Dask equals the same sweep run serially, field for field (run
-times aside). A volume is split into tiles along x; each tile is backprojected on a worker
-(on its OpenCL device where it has one) and the tiles are joined into the image a single call
+times aside). A volume is split into tiles along x; runs of tiles are backprojected on the workers
+(on their OpenCL device where they have one) and the tiles are joined into the image a single call
 would give.
 """
 
@@ -89,7 +89,8 @@ def tiles(grid: VoxelGrid, n_tiles: int) -> list[tuple[slice, VoxelGrid]]:
 
 def backproject_tiled(client, profiles, grid: VoxelGrid, n_tiles: int, backend: str | None = "auto"):
     """Backproject ``profiles`` onto ``grid`` in ``n_tiles`` tiles on the cluster, through the library's
-    tiling (:func:`clsas.pipeline.tiling.dask.run_on_cluster`: the profiles scattered once, one task per tile).
+    tiling (:func:`clsas.pipeline.tiling.dask.run_on_cluster`: the profiles scattered once, one task per run
+    of a few tiles, each formed in turn with the next tile's kernels beside the last one's read back).
 
     Returns ``(values (nx, ny, nz) complex, devices)``: the joined image and the device each tile ran on.
     """

@@ -5,7 +5,7 @@
     python -m bench.ffbp_sweep --scale 0.25    # the dense scan shrunk to 32 x 32 stops (a quick look)
     python -m bench.ffbp_sweep --cases circular --settings "depth=3,oversample=2" "oversample=3"
 
-The cases are those of the formation benchmark (issue 13, part A): ``dense`` is N x N stops
+The cases are those of the formation benchmark: ``dense`` is N x N stops
 at 0.75 m / 127 pitch (N = 128 x scale) and 2N x 2N x N voxels of half that pitch from 1 m
 away, six reflectors; ``circular`` is 360 stops on a 1 m circle around three reflectors, a
 0.4 x 0.4 x 0.1 m grid of 5 mm. Where :mod:`bench.formation` is installed its

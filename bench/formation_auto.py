@@ -1,4 +1,4 @@
-"""Issue 31's formation figures in one run: the crossover table (bp, omega-k, FFBP, auto over N = 16-128
+"""The formation figures in one run: the crossover table (bp, omega-k, FFBP, auto over N = 16-128
 stops a side, grids growing with N; it calibrates auto's cost model on this device), then auto on the
 demo, circular and dense cases (calibrated model), written to bench/results/<date>-formation-auto-<tag>.*
 
@@ -36,7 +36,7 @@ def main() -> int:
     out = Path(args.out)
     stem = f"{dt.date.today()}-formation-auto-{args.tag}"
     (out / f"{stem}.json").write_text(json.dumps(jsonable(res), indent=1))
-    md = [f"# formation='auto' and the crossover table (issue 31), {res['date']}", "",
+    md = [f"# formation='auto' and the crossover table, {res['date']}", "",
           f"Device: {res['device']}. Host: {res['host']}. Load average (1, 5, 15 min) before "
           f"{res['uptime_before']}, after {res['uptime_after']}.", ""]
     md += bf.markdown({"cases": res["cases"], "crossover": res["crossover"]})

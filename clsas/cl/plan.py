@@ -22,6 +22,7 @@ kernel in ``ERROR_BOUND`` (tried only for a plan given that ``max_error``), and 
 from __future__ import annotations
 
 import threading
+import weakref
 from collections.abc import Callable, Sequence
 from typing import Any, ClassVar, TypeVar
 
@@ -48,7 +49,8 @@ def reused(queue: Any, kernel: str, key: tuple, factory: Callable[[Any], P]) -> 
     One plan per kernel is kept per queue and thread (a different key replaces it, freeing its
     buffers), so calls with the same shapes skip the allocations and the table uploads; a plan
     is never shared between threads. Its rows left on the device for the previous call
-    (:class:`DeviceRows`) become invalid at the next call, as for any plan.
+    (:class:`DeviceRows`) become invalid at the next call, as for any plan (those it lent,
+    :meth:`Plan.lend`, are read to the host first where still held and unread).
     """
     slot = (threading.get_ident(), id(queue), kernel)
     key = (key, sources_hash(kernel_spec(kernel).sources))  # a source override builds anew
@@ -76,30 +78,84 @@ def release_reused() -> int:
 
 class DeviceRows:
     """Rows a plan left on the device for the next plan on the same queue: ``n_rows`` rows of
-    ``n_cols`` complex64 values, ``stride`` values apart, in ``buffer``; and the host copy read
-    from them (``host``, read-only). Valid while the plan that wrote them has not been called
-    again (:meth:`valid`): a plan reuses its buffers from call to call. Holds the buffer, not
-    the plan (whose other buffers go when it does). A pickled copy (sent to another process)
-    holds nothing and is never valid."""
+    ``n_cols`` complex64 values, ``stride`` values apart, in ``buffer``.
 
-    def __init__(self, plan: Plan, buffer: Any, n_rows: int, n_cols: int, stride: int, host: np.ndarray):
+    Their host copy, :attr:`host` ((n_rows, n_cols), read-only), is read from the device the first
+    time something asks for it, after the launches that wrote the rows, and then kept: rows that
+    only kernels read never cross to the host. A plan that lends its output this way
+    (:meth:`Plan.lend`) reads the rows still held and unread before its next call overwrites them
+    (:meth:`Plan.begin`), so a host copy asked for later is the one the rows held. Rows made with
+    a ``host`` already (an array the caller read itself) keep it.
+
+    The rows are valid while the plan that wrote them has not been called again (:meth:`valid`):
+    a plan reuses its buffers from call to call. Holds the buffer, not the plan (whose other
+    buffers go when it does). A pickled copy (sent to another process) holds nothing and is never
+    valid; whatever holds the rows' data across processes pickles :attr:`host`.
+    """
+
+    def __init__(self, plan: Plan, buffer: Any, n_rows: int, n_cols: int, stride: int,
+                 host: np.ndarray | None = None):
         self.buffer, self.queue = buffer, plan.queue
         self.n_rows, self.n_cols, self.stride = int(n_rows), int(n_cols), int(stride)
-        self.host = host
+        self._host = host
+        self._after = list(plan._events)  # the launches that write the rows: the read waits for them
+        self._lock = threading.Lock()  # one read, whichever thread asks first
         self._calls, self._generation = plan._calls, plan._calls[0]
 
-    def valid(self, queue: Any, host: np.ndarray) -> bool:
-        """Whether the rows still hold ``host`` (the very array read from them, unchanged since:
-        it is read-only) and may be read by a kernel enqueued on ``queue`` (in order after them)."""
-        return (self.buffer is not None and self._calls[0] == self._generation and host is self.host
-                and not host.flags.writeable and queue is self.queue)
+    @property
+    def is_read(self) -> bool:
+        """Whether the host copy exists (given, or read from the device)."""
+        return self._host is not None
+
+    @property
+    def host(self) -> np.ndarray | None:
+        """The rows on the host, (n_rows, n_cols) complex64, read-only: read from the device on
+        first use (:meth:`keep`), the same array afterwards. None for a pickled copy."""
+        return self.keep()
+
+    @host.setter
+    def host(self, values: np.ndarray) -> None:
+        """The host copy, where the caller read the rows itself (the array is kept as it is)."""
+        with self._lock:
+            self._host = values
+
+    def keep(self) -> np.ndarray | None:
+        """Read the rows to the host unless that was done (or the copy was given): the host copy,
+        kept from then on (:attr:`host`)."""
+        with self._lock:
+            if self._host is None and self.buffer is not None:
+                self._host = self._read()
+            return self._host
+
+    def _read(self) -> np.ndarray:
+        """The rows copied back, once the launches that wrote them have ended; only while they
+        still hold what those launches wrote."""
+        if self._calls[0] != self._generation:
+            raise RuntimeError("DeviceRows: the plan that wrote these rows has overwritten them before they were "
+                               "read (rows a plan lends are read before its next call: Plan.lend)")
+        out = np.empty((self.n_rows, self.stride), np.complex64)
+        _cl().enqueue_copy(self.queue, out, self.buffer, wait_for=self._after or None)
+        out = out[:, : self.n_cols]
+        out.flags.writeable = False
+        return out
+
+    def valid(self, queue: Any, host: np.ndarray | None = None) -> bool:
+        """Whether a kernel enqueued on ``queue`` (in order after the rows) may read the rows for
+        the data it is given: the plan that wrote them has not been called since, and ``host`` is
+        the very array read from them (unchanged since: it is read-only) or None (the caller
+        holds no host copy and takes the rows as the data: :meth:`clsas.Profiles.device_rows`).
+        Never reads the rows."""
+        if self.buffer is None or self._calls[0] != self._generation or queue is not self.queue:
+            return False
+        return host is None or (host is self._host and not host.flags.writeable)
 
     def __getstate__(self) -> dict:
         return {}
 
     def __setstate__(self, state: dict) -> None:
-        self.buffer = self.queue = self.host = None
+        self.buffer = self.queue = self._host = None
         self.n_rows = self.n_cols = self.stride = 0
+        self._after, self._lock = [], threading.Lock()
         self._calls, self._generation = [0], -1
 
 
@@ -153,6 +209,7 @@ class Plan:
         self.last_kernel_s = 0.0
         self._calls = [0]  # calls begun (:meth:`begin`), shared with the DeviceRows this plan made
         self._events: list = []
+        self._lent: list[weakref.ref] = []  # the rows :meth:`lend` gave out since :meth:`begin`
         self._written: dict[int, tuple] = {}  # id(buffer) -> (buffer, bytes) of :meth:`write_changed`
 
     def candidate_shapes(self) -> list[Shape]:
@@ -240,6 +297,23 @@ class Plan:
         self.last_kernel_s = sum(self.seconds(e) for e in events)
         return out
 
+    def lend(self, buffer: Any, n_rows: int, n_cols: int, stride: int) -> DeviceRows:
+        """This call's output in ``buffer`` (``n_rows`` rows of ``n_cols`` complex64 values,
+        ``stride`` apart), left on the device for the next plan on the queue, as
+        :class:`DeviceRows` whose host copy is read only when asked for. Should they still be held
+        and unread when this plan is called again, :meth:`begin` reads them first."""
+        rows = DeviceRows(self, buffer, n_rows, n_cols, stride)
+        self._lent.append(weakref.ref(rows))
+        return rows
+
+    def finish(self) -> float:
+        """Wait for the launches since :meth:`begin` to end, reading nothing back;
+        ``last_kernel_s`` becomes their kernel time, s (returned)."""
+        for evt in self._events:
+            evt.wait()
+        self.last_kernel_s = sum(self.seconds(e) for e in self._events)
+        return self.last_kernel_s
+
     @staticmethod
     def seconds(event: Any) -> float:
         """Kernel time of a finished launch's event (profiling counters), s."""
@@ -247,8 +321,15 @@ class Plan:
 
     # -- launches ------------------------------------------------------------------------
     def begin(self) -> None:
-        """Start a call: the kernel time of the next :meth:`read` covers launches from here (and
-        rows an earlier call left on the device, :class:`DeviceRows`, are no longer valid)."""
+        """Start a call: the kernel time of the next :meth:`read` covers launches from here, and
+        rows an earlier call left on the device (:class:`DeviceRows`) are no longer valid. Rows
+        it lent (:meth:`lend`) that are still held and unread are read to the host first (their
+        buffer is about to be overwritten)."""
+        lent, self._lent = self._lent, []
+        for ref in lent:
+            rows = ref()
+            if rows is not None:
+                rows.keep()
         self._events = []
         self._calls[0] += 1
 

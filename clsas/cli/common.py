@@ -231,7 +231,6 @@ def reconstruct_image(ds, grid, args, progress=True):
     """``ds`` imaged on ``grid`` with the command's flags, its progress on stderr named by the
     stages the pipeline reports."""
     import clsas
-    from clsas.formation.auto import DEFAULT_MAX_ERROR_DB
 
     method = getattr(args, "method", "bp")
     announce_slow_method(ds, grid, method)
@@ -241,7 +240,7 @@ def reconstruct_image(ds, grid, args, progress=True):
                                  backend=args.backend, device=getattr(args, "device", None), progress=cb,
                                  force=getattr(args, "force", False), formation=getattr(args, "formation", "bp"),
                                  formation_options=formation_options(getattr(args, "formation_option", None)) or None,
-                                 max_error_db=getattr(args, "max_error_db", DEFAULT_MAX_ERROR_DB))
+                                 max_error_db=getattr(args, "max_error_db", None))
 
 
 def add_device_options(sp) -> None:

@@ -33,6 +33,8 @@ def cmd_reconstruct(args) -> int:
         print(image.plan.describe())
     print(f"device: {image.device}; total {image.timings_s['total']:.3f} s")
     _print_formation_choice(image.provenance.get("formation_auto"))
+    if bp_variant_line(image.provenance.get("bp")):
+        print(bp_variant_line(image.provenance.get("bp")))
     _print_peaks(image, ds, args.peaks)
     if partial:
         print(f"(imaged from a partial scan: {partial.split(':')[1].split(';')[0].strip()})")
@@ -83,6 +85,17 @@ def _print_formation_choice(auto: dict | None) -> None:
         err, up = (f"{float(c[k]):.1f}" for k in ("error_db", "upper_db"))  # "inf" is stored as a string
         print(f"  measured {c['formation']} against bp on {c['voxels']} voxels (a stride of {c['stride']}): "
               f"{err} dB (upper bound {up} dB): " + ("kept" if c["kept"] else "over the target, not kept"))
+
+
+def bp_variant_line(record: dict | None) -> str:
+    """The line ``clsas reconstruct`` prints for bp's kernel variant (``image.provenance["bp"]``,
+    :func:`clsas.formation.bp.variant_record`) where it is less exact than the plain float kernel:
+    the variant, its shape, its stated bound and the allowance; ``""`` for the exact ones."""
+    if not record or record.get("error_bound") is None:
+        return ""
+    bound = float(record["error_bound"])
+    return (f"bp kernel: {record['variant']} ({record['shape']}), stated error against the float64 twin at most "
+            f"{bound:.2g} of the peak ({20 * np.log10(bound):.0f} dB), allowed {record['max_error_db']:g} dB")
 
 
 def _print_peaks(image, ds, n: int) -> None:
@@ -173,9 +186,10 @@ def add_parser(sub) -> None:
                    help="how the profiles become an image: auto (default: the fastest whose predicted error meets "
                    "--max-error-db, said in the log and kept in the image file), bp (exact backprojection), omega-k "
                    "(planar uniform apertures, much faster), ... (see docs/guide/fast-formation.md)")
-    r.add_argument("--max-error-db", type=float, default=DEFAULT_MAX_ERROR_DB, metavar="DB",
-                   help="with --formation auto: the largest error against exact backprojection allowed (default "
-                   f"{DEFAULT_MAX_ERROR_DB:g})")
+    r.add_argument("--max-error-db", type=float, default=None, metavar="DB",
+                   help="the largest error against exact backprojection allowed: the target of --formation auto "
+                   f"(default {DEFAULT_MAX_ERROR_DB:g}), and, where given, what --formation bp's kernel may trade "
+                   "for speed (half-precision records on devices that have them; default: exact)")
     r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
                    help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     add_preprocess_options(r)

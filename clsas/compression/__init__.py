@@ -9,7 +9,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -89,7 +88,7 @@ def compress(data: Dataset | np.ndarray, waveform: np.ndarray | None = None, fs_
     sel = _cl.select(backend, device)
     t_start = time.perf_counter()
     prof = compression(signals, wave, fs, t0, fc, gate, sel, lag_step=lag_step, algorithm=algorithm, chirp=chirp)
-    return replace(prof, timings_s={**prof.timings_s, "compress": time.perf_counter() - t_start}, **positions)
+    return prof.with_fields(timings_s={**prof.timings_s, "compress": time.perf_counter() - t_start}, **positions)
 
 
 def _checked_recordings(data, waveform, fs_hz, t0_s, chirp):
@@ -216,15 +215,16 @@ def _matched(signals, wave, fs, t0, fc, gate, sel, lag_step, algorithm, chirp=No
             key = table_key(n_meas, n_in, ref_conj, lag_read, n_lags, rot, d)
             plan, sel = sel.plan(lambda q: _cl.reused(q, "matched_filter", key, lambda q: MatchedFilterPlan(
                 n_meas, n_in, ref_conj, lag_read, n_lags, rot, rot0, d, queue=q)))
+    rows = out = None
     if plan is not None:
         plan.set_rot0(rot0)  # a plan reused from an earlier call was built with its t0
-        out = plan(signals)
+        rows = plan.enqueue(signals)  # left on the device: read when the host asks for Profiles.data
         timings["compress_kernel"] = plan.last_kernel_s
         log.info("matched filter on OpenCL: %s algorithm, VEC=%d", algorithm, plan.vec)
     else:
         out = twin.matched_filter(signals, ref_conj, lag_read, n_lags, rot, rot0, d)
     return Profiles(out, t0 + lag0 / fs, d / fs, fc, "matched", sel.kind, timings_s=timings, device=sel.device,
-                    on_device=None if plan is None else plan.rows)
+                    on_device=rows)
 
 
 def choose_algorithm(device: Any, n_meas: int, n_lags: int, n_ref: int, layout: FftLayout) -> str:
@@ -293,11 +293,12 @@ def _fmcw(signals, wave, fs, t0, fc, gate, sel, lag_step=1, algorithm="auto", ch
     key = table_key(signals.shape[0], n_samples, ref, slope, fs, taus, rvp)
     plan, sel = sel.plan(lambda q: _cl.reused(q, "fmcw_dechirp", key, lambda q: FmcwPlan(
         signals.shape[0], n_samples, ref, slope, fs, taus, rvp, queue=q)))
+    rows = out = None
     if plan is not None:
-        out = plan(signals)
+        rows = plan.enqueue(signals)  # left on the device: read when the host asks for Profiles.data
         timings["compress_kernel"] = plan.last_kernel_s
     else:
         out = twin.fmcw_dechirp(signals, ref, slope, fs, taus, rvp)
     tau0 = np.full(signals.shape[0], taus[0])
     return Profiles(out, tau0, 1 / fs, fc, "fmcw", sel.kind, timings_s=timings, device=sel.device,
-                    on_device=None if plan is None else plan.rows)
+                    on_device=rows)

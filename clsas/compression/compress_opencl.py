@@ -2,9 +2,11 @@
 
 Each plan's ``selftest(queue, vec)`` runs it on a small input against its NumPy twin and
 returns the error relative to the peak; the device layer runs it in a child process to
-verify a kernel variant before it is used (:mod:`clsas.cl.variants`). A call returns the
-profiles read back (read-only) and leaves them on the device as well, :attr:`rows`
-(:class:`clsas.cl.DeviceRows`), for the next plan on the same queue (backprojection).
+verify a kernel variant before it is used (:mod:`clsas.cl.variants`). ``enqueue(signals)`` runs
+the kernel and leaves the profiles on the device as :class:`clsas.cl.DeviceRows` for the next
+plan on the same queue (backprojection), reading nothing back: their host copy is read when
+something asks for it (:attr:`clsas.cl.DeviceRows.host`), or before the plan's next call
+overwrites them. A call, ``plan(signals)``, is ``enqueue`` and that host copy (read-only).
 """
 
 from __future__ import annotations
@@ -60,16 +62,22 @@ class _RowPlan(Plan):
         self.stride = -(-n_lags // self.vec) * self.vec
         self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
         self.d_out = self.alloc(8 * n_meas * self.stride, "rw")
-        self.rows: DeviceRows | None = None
+        self.args: list = []  # the kernel's arguments between the recordings' and the output (each plan's own)
 
-    def _run(self, signals: np.ndarray, args: list) -> np.ndarray:
+    def enqueue(self, signals: np.ndarray) -> DeviceRows:
+        """Compress ``signals`` ((n_meas, n_samples) real) into rows left on the device, once the
+        kernel has ended (``last_kernel_s``, s); nothing is read back. The plan keeps no reference
+        to the rows: those nobody holds any more are not read before its next call."""
         self.begin()
         self.write(self.d_sig, signals, np.float32)
-        self.launch((self.stride // self.vec, self.n_meas), self.d_sig, np.int32(self.n_samples), *args, self.d_out)
-        out = self.read(self.d_out, (self.n_meas, self.stride), np.complex64)[:, : self.n_lags]
-        out.flags.writeable = False
-        self.rows = DeviceRows(self, self.d_out, self.n_meas, self.n_lags, self.stride, out)
-        return out
+        self.launch((self.stride // self.vec, self.n_meas), self.d_sig, np.int32(self.n_samples), *self.args,
+                    self.d_out)
+        self.finish()
+        return self.lend(self.d_out, self.n_meas, self.n_lags, self.stride)
+
+    def __call__(self, signals: np.ndarray) -> np.ndarray:
+        """The profiles of ``signals``, (n_meas, n_lags) complex64, read-only (:meth:`enqueue`, read back)."""
+        return self.enqueue(signals).host
 
 
 class MatchedFilterPlan(_RowPlan):
@@ -91,9 +99,6 @@ class MatchedFilterPlan(_RowPlan):
     def set_rot0(self, rot0: np.ndarray) -> None:
         """The per-recording rotation of the next calls ((n_meas,) complex), written in place."""
         self.write(self.d_rot0, rot0, np.complex64)
-
-    def __call__(self, signals: np.ndarray) -> np.ndarray:
-        return self._run(signals, self.args)
 
     @classmethod
     def selftest(cls, queue, vec: int) -> float:
@@ -127,9 +132,6 @@ class FmcwPlan(_RowPlan):
             np.int32(self.stride),
         ]
 
-    def __call__(self, signals: np.ndarray) -> np.ndarray:
-        return self._run(signals, self.args)
-
     @classmethod
     def selftest(cls, queue, vec: int) -> float:
         rng, ref_a, sig = _selftest_inputs()
@@ -161,7 +163,6 @@ class FftMatchedPlan(Plan):
         self.d_work = self.alloc(self.items * per_item)
         self.d_sig = self.alloc(4 * n_meas * n_samples, "r")
         self.d_out = self.alloc(8 * n_meas * self.n_lags, "rw")
-        self.rows: DeviceRows | None = None
         self.d_tw, self.d_spec, self.d_post = (self.upload(a, np.complex64)
                                                for a in (layout.twiddles, layout.spec, layout.post))
         self.d_rot0 = self.upload(rot0, np.complex64)
@@ -170,7 +171,9 @@ class FftMatchedPlan(Plan):
         """The per-recording rotation of the next calls ((n_meas,) complex), written in place."""
         self.write(self.d_rot0, rot0, np.complex64)
 
-    def __call__(self, signals: np.ndarray) -> np.ndarray:
+    def enqueue(self, signals: np.ndarray) -> DeviceRows:
+        """Compress ``signals`` ((n_meas, n_samples) real) into rows left on the device, once the
+        kernels have ended (``last_kernel_s``, s); nothing is read back (:meth:`_RowPlan.enqueue`)."""
         lay = self.layout
         self.begin()
         self.write(self.d_sig, signals, np.float32)
@@ -183,10 +186,12 @@ class FftMatchedPlan(Plan):
                 self.d_tw, np.int32(lay.bin0), self.d_spec, np.int32(lay.idx0), np.int32(self.n_lags),
                 self.d_post, self.d_rot0, self.d_work, np.int32(self.n_lags), self.d_out,
             )
-        out = self.read(self.d_out, (self.n_meas, self.n_lags), np.complex64)
-        out.flags.writeable = False
-        self.rows = DeviceRows(self, self.d_out, self.n_meas, self.n_lags, self.n_lags, out)
-        return out
+        self.finish()
+        return self.lend(self.d_out, self.n_meas, self.n_lags, self.n_lags)
+
+    def __call__(self, signals: np.ndarray) -> np.ndarray:
+        """The profiles of ``signals``, (n_meas, n_lags) complex64, read-only (:meth:`enqueue`, read back)."""
+        return self.enqueue(signals).host
 
     @classmethod
     def selftest(cls, queue, vec: int) -> float:

@@ -17,14 +17,11 @@ It answers two questions that a focus metric cannot:
   that removes the motion takes the excess to the model's floor; one that sharpens a wrong image
   leaves it (or raises it).
 
-Measured on the scene family (``bench/results/2026-11-28-consistency-*.md``, 30 iterations): the
-recorded scans left 0.04-0.90 of the data unexplained where their true geometry left 0.01-0.59
-(the high values at the lowest SNRs); the data determined the errors in 29 of 30 scenes of
-each of tuning-2 and held-out-2, so the failures of :func:`clsas.autofocus` there are in the
-search, not in what the data say. Where the grid is large for the target (a few points in a big
-box), a target in the grid can absorb the motion, and the data cannot see it. At a fixed
-``max_iter`` the excess also holds what the fit has not converged to (an error-free scan can
-show an excess of twice its floor at 30 iterations): compare scans at the same ``max_iter``.
+Where the grid is large for the target (a few points in a big box), a target in the grid can
+absorb the motion, and the data cannot see it. At a fixed ``max_iter`` the excess also holds what
+the fit has not converged to: compare scans at the same ``max_iter``. The scene family's figures
+(what the recorded and the true geometries leave unexplained, how often the data determine the
+errors) are on the consistency pages of ``bench/results``.
 
 The fit costs ``2 max_iter`` projections and as many backprojections (the scan's and the noise
 draw's fits): tens of seconds to minutes on a CPU for the family's scans; an estimate is logged

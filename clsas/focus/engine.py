@@ -19,9 +19,11 @@ from ..compression import Profiles, compress
 from ..formation.bp import Backprojector
 from ..physics.geometry import VoxelGrid
 from ..types.dataset import Dataset
+from ..types.image import Image
 from ..types.rangegate import plan_reconstruction
 from . import gradient_numpy as twin
 from .gradient_opencl import FocusGradientPlan
+from .metric_opencl import FocusMomentsPlan, FocusWeightPlan, device_metric
 from .metrics import metric_and_weight
 
 __all__ = ["FocusEngine"]
@@ -47,11 +49,16 @@ class FocusEngine:
         (``backend`` may be a :class:`clsas.cl.Selection`, resolved once and shared by the
         compression, the backprojection and the gradient; each kernel that will not build
         falls back to its twin on ``"auto"`` with one warning and raises on ``"opencl"``).
+    metric_on_device : bool
+        On OpenCL, compute the focus metric and its weight from the image the backprojection left
+        on the device (default); False: on the host from the image read back, the weight written
+        back (kept for comparison: ``python -m bench.focus_step``).
     """
 
     def __init__(self, dataset: Dataset, grid: VoxelGrid, *, margin_s: float = 5e-4, rel_margin: float = 0.0,
                  metric: str = "sharpness",
-                 backend: str | _cl.Selection | None = None, device: Any = None, force: bool = False):
+                 backend: str | _cl.Selection | None = None, device: Any = None, force: bool = False,
+                 metric_on_device: bool = True):
         self.ds, self.grid, self.metric = dataset, grid, metric
         self.selection = _cl.select(backend, device)
         plan = plan_reconstruction(dataset, grid, [])
@@ -61,8 +68,13 @@ class FocusEngine:
         self._grad_plan = None
         self._grad_selection = self.selection  # NumPy once the gradient kernel fell back
         self._stop_bp: Backprojector | None = None
+        self._moments: FocusMomentsPlan | None = None
+        self._weights: FocusWeightPlan | None = None
+        # NumPy once a metric kernel fell back (or asked for)
+        self._metric_selection = self.selection if metric_on_device else _cl.select("numpy")
         self.n_images = 0
         self.n_gradients = 0
+        self.n_device_metrics = 0  # evaluations whose metric (and weight) came from the image on the device
 
     @property
     def backend(self) -> str:
@@ -81,13 +93,16 @@ class FocusEngine:
     def image(self, shift_s: np.ndarray, c_mps: np.ndarray, tx: np.ndarray | None = None,
               rx: np.ndarray | None = None) -> np.ndarray:
         """(n_vox,) complex image with per-measurement shifts (s), speeds (m/s) and positions."""
+        return np.asarray(self._form(shift_s, c_mps, tx, rx).values).ravel()
+
+    def _form(self, shift_s, c_mps, tx, rx) -> Image:
         p = self.prof
         data, tau0 = self._shifted(shift_s)
         prof = Profiles(data, tau0, p.dtau_s, p.fc_hz, p.method, p.backend,
                         tx_positions=self.ds.tx_positions if tx is None else tx,
                         rx_positions=self.ds.rx_positions if rx is None else rx, c_mps=c_mps)
         self.n_images += 1
-        return np.asarray(self.bp(prof).values).ravel()
+        return self.bp(prof)
 
     def stop_images(self, shift_s: np.ndarray, c_mps: np.ndarray, stop: np.ndarray, voxels: np.ndarray | None = None,
                     tx: np.ndarray | None = None, rx: np.ndarray | None = None) -> np.ndarray:
@@ -124,16 +139,60 @@ class FocusEngine:
         args = (data, tau0, p.dtau_s, p.fc_hz, self.ds.tx_positions if tx is None else tx,
                 self.ds.rx_positions if rx is None else rx, c_mps)
         self.n_gradients += 1
+        plan = self._gradient_plan()
+        if plan is not None:
+            return plan(*args, weight)
+        if weight is None:
+            raise ValueError("weight: None only where the gradient kernel runs (its planes hold the weight)")
+        return twin.focus_gradient(*args, self.grid.points(), weight)
+
+    def _gradient_plan(self) -> FocusGradientPlan | None:
+        """The gradient kernel's plan (built on first use), None on NumPy."""
         if self._grad_plan is None and self._grad_selection.opencl:
+            p = self.prof
             self._grad_plan, self._grad_selection = self._grad_selection.plan(
                 lambda q: FocusGradientPlan(self.grid, p.n_meas, p.n_lags, queue=q))
-        if self._grad_plan is not None:
-            return self._grad_plan(*args, weight)
-        return twin.focus_gradient(*args, self.grid.points(), weight)
+        return self._grad_plan
 
     def evaluate(self, shift_s: np.ndarray, c_mps: np.ndarray, gradient: bool = True, tx: np.ndarray | None = None,
                  rx: np.ndarray | None = None):
-        """``(M, sums or None, image)`` at these shifts, speeds and positions."""
-        values = self.image(shift_s, c_mps, tx, rx)
+        """``(M, sums or None, image)`` at these shifts, speeds and positions.
+
+        On OpenCL, where the backprojection leaves the image on the device, the metric and its
+        weight are computed there (kernels/focus_metric.cl) and the weight goes to the gradient
+        kernel without leaving the device (``n_device_metrics`` counts these); elsewhere on the host
+        (:func:`clsas.focus.metrics.metric_and_weight`, the same metric in double precision).
+        """
+        image = self._form(shift_s, c_mps, tx, rx)
+        values = np.asarray(image.values).ravel()
+        m = self._metric_on_device(image, gradient)
+        if m is not None:
+            self.n_device_metrics += 1
+            return m, (self.sums(shift_s, c_mps, None, tx, rx) if gradient else None), values
         m, g = metric_and_weight(values, self.metric)
         return m, (self.sums(shift_s, c_mps, g, tx, rx) if gradient else None), values
+
+    def _metric_on_device(self, image: Image, gradient: bool) -> float | None:
+        """The metric of ``image`` from its device buffer, its weight written into the gradient
+        plan's planes (``gradient``); None where the image or a kernel is not there."""
+        rows = image.on_device
+        if rows is None or not self._metric_selection.opencl:
+            return None
+        grad = self._gradient_plan() if gradient else None
+        if gradient and grad is None:
+            return None
+        queue = rows.queue if grad is None else grad.queue
+        if not rows.valid(queue, image.values) or (self._moments is not None and self._moments.queue is not queue):
+            return None
+        if self._moments is None:
+            n_vox = self.grid.size
+            self._moments, self._metric_selection = self._metric_selection.plan(lambda q: FocusMomentsPlan(n_vox, q))
+        if gradient and self._weights is None and self._moments is not None:
+            n_vox, n_pad, entropy = self.grid.size, grad.n_pad, self.metric == "entropy"
+            self._weights, self._metric_selection = self._metric_selection.plan(
+                lambda q: FocusWeightPlan(n_vox, n_pad, entropy, q))
+        if self._moments is None or (gradient and self._weights is None):
+            return None
+        if gradient:
+            return device_metric(self._moments, self._weights, rows, self.metric, grad.d_wre, grad.d_wim)
+        return device_metric(self._moments, None, rows, self.metric)

@@ -8,15 +8,12 @@ explained. It needs no truth and trusts no image. (The bench's ratio,
 :func:`bench.consistency_family.excess_ratio`, divides by the scan as recorded instead;
 the two differ only on scans with direct sound.)
 
-On the scene family's tuning-2 seeds (2000-2029, 3 mm hand motion, 30 iterations;
-``bench/results/2026-11-28-consistency-tuning-2.md``) every correction with a ratio at most 0.19
-left the local peak within 1 dB of the error-free image's (16 of 16), and every one at 0.26 or
-more did not (14 of 14; those at 0.95-1.0 were the direct sound's delay alone, the motion not
-determined). The thresholds below were set on those seeds; on the held-out seeds (held-out-2,
-3000-3029) 11 of 11 at most 0.16 were within 1 dB, and 17 of 18 at 0.26 or more were not. A
-correction is withdrawn only "over 1.1" (the data contradict it), not over 0.9, which discards
-right corrections the data cannot see; no applied motion on either family set had a ratio over
-0.36.
+The thresholds below were set on the scene family's tuning seeds (3 mm hand motion) and checked
+on held-out seeds: a low ratio marks a correction that took the local peak to within 1 dB of the
+error-free image's, a high one a correction that did not (the figures are on the consistency
+pages of ``bench/results``). A correction is withdrawn only over :data:`REVERT_RATIO` (the data
+contradict it), not as soon as the data stop confirming it, which would discard right
+corrections the data cannot see.
 """
 
 from __future__ import annotations

@@ -33,12 +33,14 @@ class FocusGradientPlan(Plan):
         self.d_tx = self.alloc(16 * n_meas, "r")
         self.d_rx = self.alloc(16 * n_meas, "r")
         self.d_s0 = self.alloc(4 * n_meas, "r")
-        self.d_wre = self.alloc(4 * self.n_pad, "r")
-        self.d_wim = self.alloc(4 * self.n_pad, "r")
+        self.d_wre = self.alloc(4 * self.n_pad, "rw")  # written here or by FocusWeightPlan
+        self.d_wim = self.alloc(4 * self.n_pad, "rw")
         self.d_out = self.alloc(4 * 5 * n_meas * self.n_items, "w")
 
     def __call__(self, data, tau0_s, dtau_s, fc_hz, tx_positions, rx_positions, c_mps, weight) -> np.ndarray:
-        """(n_meas, 5) float64 sums (see the NumPy twin)."""
+        """(n_meas, 5) float64 sums (see the NumPy twin). ``weight`` None: the planes
+        ``d_wre``/``d_wim`` hold it already, written on this plan's queue
+        (:class:`clsas.focus.metric_opencl.FocusWeightPlan`)."""
         prof = np.zeros((self.n_meas, self.n_lags + 1), np.complex64)
         prof[:, : data.shape[1]] = data
         pairs = np.empty((self.n_meas, self.n_lags, 2), np.complex64)
@@ -50,15 +52,16 @@ class FocusGradientPlan(Plan):
         pos4[0, :, 3] = 1.0 / (c * dtau_s)
         pos4[1, :, :3] = rx_positions
         pos4[1, :, 3] = fc_hz / c
-        w = np.zeros(self.n_pad, np.complex64)
-        w[: self.n_vox] = np.asarray(weight).ravel()
         self.begin()
         self.write(self.d_prof, pairs, np.complex64)
         self.write(self.d_tx, pos4[0], np.float32)
         self.write(self.d_rx, pos4[1], np.float32)
         self.write(self.d_s0, np.asarray(tau0_s) / dtau_s, np.float32)
-        self.write(self.d_wre, w.real, np.float32)
-        self.write(self.d_wim, w.imag, np.float32)
+        if weight is not None:
+            w = np.zeros(self.n_pad, np.complex64)
+            w[: self.n_vox] = np.asarray(weight).ravel()
+            self.write(self.d_wre, w.real, np.float32)
+            self.write(self.d_wim, w.imag, np.float32)
         g = self.grid
         origin = np.array([g.x_m[0], g.y_m[0], g.z_m[0], 0], np.float32)
         step = np.array([*g.spacing(), 0], np.float32)

@@ -1,9 +1,17 @@
 """Backprojection: the NumPy twin (``bp_numpy.py``) and the OpenCL plan (``bp_opencl.py``) behind one
-dispatcher, and the ``"bp"`` formation (exact, the reference every other formation is measured against)."""
+dispatcher, and the ``"bp"`` formation (exact, the reference every other formation is measured against).
+
+By default the OpenCL plan runs only kernel variants as exact as the plain float kernel. A caller
+that allows an error against the float64 twin (``max_error_db``) lets the plan's variant machinery
+(:mod:`clsas.cl.shapes`) also try the variants whose stated bound (``BackprojectPlan.ERROR_BOUND``,
+relative to the image's peak) is within it; ``image.provenance["bp"]`` names the variant that ran
+and its bound (:func:`variant_record`)."""
 
 from __future__ import annotations
 
 import logging
+import math
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -22,11 +30,52 @@ from .bp_opencl import BackprojectPlan, RecordsPlan, upsample_factor
 from .guard import check_grid
 from .registry import FORMATIONS
 
-__all__ = ["Backprojector", "PendingBackprojection", "backproject", "form", "form_tiles", "BP_OPTIONS"]
+__all__ = ["Backprojector", "PendingBackprojection", "backproject", "form", "form_tiles", "BP_OPTIONS",
+           "allowed_error", "variant_record"]
 
-BP_OPTIONS = ("beam", "beam_floor_db")  # the options the formation declares
+BP_OPTIONS = ("beam", "beam_floor_db", "max_error_db")  # the options the formation declares
 
 log = logging.getLogger(__name__)
+
+
+def allowed_error(max_error_db) -> float | None:
+    """``max_error_db`` checked (None, or a finite number of dB below 0) as the plan's ``max_error``:
+    the error against the float64 twin a kernel variant may have, as a fraction of the image's peak,
+    ``10 ** (max_error_db / 20)``; None (only variants as exact as the plain float kernel) for None."""
+    if max_error_db is None:
+        return None
+    if isinstance(max_error_db, bool) or not isinstance(max_error_db, int | float | np.integer | np.floating):
+        raise TypeError(f"max_error_db must be None or a number of dB below 0 (e.g. -60), "
+                        f"got {type(max_error_db).__name__}")
+    db = float(max_error_db)
+    if not math.isfinite(db) or db >= 0:
+        raise ValueError(f"max_error_db must be None or a finite number of dB below 0 (e.g. -60), got {max_error_db!r}")
+    # the plan takes a fraction in (0, 1): the far ends of the dB scale round into it
+    return min(max(10.0 ** (db / 20.0), sys.float_info.min), math.nextafter(1.0, 0.0))
+
+
+def variant_record(plan: BackprojectPlan | None, max_error_db: float | None) -> dict:
+    """What ``image.provenance["bp"]`` says of the kernel that formed an image.
+
+    ``variant``: the plan's build variant (``"plain"``: the plain float kernel; ``"local_profiles"``,
+    the same image, runs as the plain kernel on geometries whose staged run exceeds the device's
+    local memory; ``"half_profiles"``: the records in half precision), or ``"twin"`` (the float64
+    NumPy twin, ``plan`` None); ``shape``: its label with the local size (None for the twin);
+    ``error_bound``: the variant's stated error against the float64 twin relative to the image's
+    peak (``BackprojectPlan.ERROR_BOUND``) where it is less exact than the plain kernel, else None
+    (the float kernels match the twin to their float32 rounding, about 1e-4 of the peak);
+    ``max_error_db``: the allowance it was chosen under (None: exact variants only).
+    """
+    if plan is None:
+        return {"variant": "twin", "shape": None, "error_bound": None, "max_error_db": max_error_db}
+    variant = plan.shape.variant
+    return {"variant": variant or "plain", "shape": plan.shape.label, "error_bound": plan.ERROR_BOUND.get(variant),
+            "max_error_db": max_error_db}
+
+
+def _half(plan: BackprojectPlan | None) -> bool:
+    """Whether ``plan`` runs on half-precision records (made on the host: the device's are float)."""
+    return plan is not None and plan.shape.variant == "half_profiles"
 
 
 class Backprojector:
@@ -71,7 +120,17 @@ class Backprojector:
         read-only profiles array (tiles of a grid, a Dask worker's tiles), whatever its grid;
         ``image.provenance["bp"]["records"]`` says where they came from (``"rows"``,
         ``"uploaded"``, ``"kept"``). False: the step-by-step path (records made on the host and
-        written, the image read as two planes and joined), kept for comparison.
+        written, the image read as two planes and joined), kept for comparison. A plan whose variant
+        stores the records in half precision (``max_error_db``) takes the records made on the host
+        (``records`` ``"host"``).
+    max_error_db : float, optional
+        The error against the float64 twin the OpenCL kernel may have, dB relative to the image's
+        peak (a finite number below 0): the plan's variant machinery also tries the variants whose
+        stated bound (``BackprojectPlan.ERROR_BOUND``; ``half_profiles``: 1e-3, -60 dB, on devices
+        with ``cl_khr_fp16``) is at most ``10 ** (max_error_db / 20)``, and takes one where it is
+        faster. Default None: only variants as exact as the plain float kernel (bp is the reference
+        the other formations are measured against). ``image.provenance["bp"]`` names the variant that
+        ran and its bound (:func:`variant_record`).
 
     Examples
     --------
@@ -92,7 +151,7 @@ class Backprojector:
 
     def __init__(self, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
                  chunk: int | None = None, force: bool = False, beam: str | None = None,
-                 beam_floor_db: float = -12.0, resident: bool = True):
+                 beam_floor_db: float = -12.0, resident: bool = True, max_error_db: float | None = None):
         if not isinstance(grid, VoxelGrid):
             raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
         if chunk is not None:
@@ -104,6 +163,8 @@ class Backprojector:
         if not isinstance(resident, bool):
             raise TypeError(f"resident must be True or False, got {resident!r}")
         self.resident = resident
+        self.max_error = allowed_error(max_error_db)
+        self.max_error_db = None if max_error_db is None else float(max_error_db)
         self.selection = _cl.select(backend, device)
         check_grid(grid, self.selection.kind, self.selection.cl_device, force=force)
         self._force = force
@@ -118,10 +179,11 @@ class Backprojector:
         p = self._plan
         if p is None or p.n_meas != n_meas or p.n_lags < n_lags or p.beam_lut != beam_lut:
             was = self.selection.kind
-            key = (n_meas, n_lags, self.chunk, beam_lut, self.resident)  # any grid: the plan is retargeted
+            # any grid: the plan is retargeted; the allowance picks the variants it may be built with
+            key = (n_meas, n_lags, self.chunk, beam_lut, self.resident, self.max_error)
             self._plan, self.selection = self.selection.plan(lambda q: _cl.reused(q, "backproject", key, lambda q:
                 BackprojectPlan(self.grid, n_meas, n_lags, queue=q, chunk=self.chunk, beam_lut=beam_lut,
-                                complex_image=self.resident)))
+                                complex_image=self.resident, max_error=self.max_error)))
             if self.selection.kind != was:  # fell back to the twin: its memory is the host's, per voxel more
                 check_grid(self.grid, self.selection.kind, None, force=self._force)
         if self._plan is not None:
@@ -180,7 +242,9 @@ class Backprojector:
         tx = v.array("tx_positions", profiles.tx_positions if tx_positions is None else tx_positions, shape=(n, 3))
         rx = v.array("rx_positions", profiles.rx_positions if rx_positions is None else rx_positions, shape=(n, 3))
         c = v.speeds("c_mps", profiles.c_mps if c_mps is None else c_mps, n)
-        data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
+        rows = profiles.device_rows() if self.resident else None  # read there by the kernels, never here
+        data = None if rows is not None else v.array("profiles.data", profiles.data, ndim=2, dtype=None,
+                                                     allow_complex=True)
         tau0 = v.array("profiles.tau0_s", profiles.tau0_s, shape=(n,))
         dtau = v.positive("profiles.dtau_s", profiles.dtau_s)
         fc = v.non_negative("profiles.fc_hz", profiles.fc_hz)
@@ -190,19 +254,24 @@ class Backprojector:
             raise ValueError(f"beams must have {n} boresights (one per measurement), got {len(weights.tx_dir)}")
         t_start = time.perf_counter()
         lut = 0 if weights is None else weights.luts.shape[1]
-        plan = self._opencl_plan(n, data.shape[1], lut) if self.selection.opencl else None
+        plan = self._opencl_plan(n, profiles.n_lags, lut) if self.selection.opencl else None
         records = None
-        if plan is not None and self.resident:
+        if plan is not None and self.resident and not _half(plan):
             records = self._records_plan(n, plan.n_lags, upsample_factor(fc, dtau))
             plan = None if records is None else plan  # None: the records kernel fell back to the twin
-        bp_record = {}
+        bp_record = variant_record(plan, self.max_error_db)
+        if records is None and data is None:  # the host's way after all: the rows read back
+            data = profiles.data
         if records is not None:
-            # profiles.data itself (not the checked copy): the records are kept for this very array
-            pending, bp_record["records"] = plan.enqueue_resident(profiles.data, profiles.on_device, records, tau0,
-                                                                  dtau, fc, tx, rx, c, progress, beam=weights)
+            # profiles.data itself (not the checked copy), or None for the rows: the records are kept for it
+            pending, bp_record["records"] = plan.enqueue_resident(None if rows is not None else profiles.data, rows,
+                                                                  records, tau0, dtau, fc, tx, rx, c, progress,
+                                                                  beam=weights)
         elif plan is not None:
             values = plan(data, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
             pending = _Done(values, {"backproject_kernel": plan.last_kernel_s})
+            if self.resident:  # half records: made on the host, the resident path's are float
+                bp_record["records"] = "host"
         else:
             values = twin.backproject(data.astype(np.complex128), tau0, dtau, fc, tx, rx, c, self.grid.points(),
                                       progress, beam=weights)
@@ -212,8 +281,7 @@ class Backprojector:
             mode = "none" if weights is None else ("weighted" if weights.gate is None else "limited")
             bp_record.update(beam=mode, beam_floor_db=self.beam_floor_db)
         sel = self.selection
-        return PendingBackprojection(pending, self.grid, sel.kind, sel.device, t_start,
-                                     {"bp": bp_record} if bp_record else {})
+        return PendingBackprojection(pending, self.grid, sel.kind, sel.device, t_start, {"bp": bp_record})
 
 
 class _Done:
@@ -257,7 +325,7 @@ class PendingBackprojection:
 
 def form_tiles(profiles: Profiles, grids: Iterable[VoxelGrid], *, backend: str | _cl.Selection | None = None,
                device: Any = None, force: bool = False, beam: str | None = None, beam_floor_db: float = -12.0,
-               overlap: bool = True) -> Iterator[Image]:
+               overlap: bool = True, max_error_db: float | None = None) -> Iterator[Image]:
     """The bp image of ``profiles`` on each grid of ``grids`` (tiles of one grid), in order.
 
     Each grid is one :class:`Backprojector` call; on OpenCL they share one plan (same profile
@@ -271,18 +339,20 @@ def form_tiles(profiles: Profiles, grids: Iterable[VoxelGrid], *, backend: str |
     profiles : Profiles
     grids : iterable of VoxelGrid
         Taken one at a time, as the previous image is handed on.
-    backend, device, force, beam, beam_floor_db : see :class:`Backprojector`.
+    backend, device, force, beam, beam_floor_db, max_error_db : see :class:`Backprojector`.
     overlap : bool
     """
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
     if not isinstance(overlap, bool):
         raise TypeError(f"overlap must be True or False, got {overlap!r}")
+    allowed_error(max_error_db)  # checked before the first tile
     selection = _cl.select(backend, device)
     depth = 2 if overlap else 1
     pending: deque = deque()
     for grid in grids:
-        bp = Backprojector(grid, backend=selection, force=force, beam=beam, beam_floor_db=beam_floor_db)
+        bp = Backprojector(grid, backend=selection, force=force, beam=beam, beam_floor_db=beam_floor_db,
+                           max_error_db=max_error_db)
         pending.append(bp.enqueue(profiles))
         selection = bp.selection  # a fallback to the twin holds for the next tiles
         if len(pending) == depth:
@@ -304,6 +374,7 @@ def backproject(
     progress: Callable[[int, int], None] | None = None,
     beam: str | None = None,
     beam_floor_db: float = -12.0,
+    max_error_db: float | None = None,
 ) -> Image:
     """Bistatic delay-and-sum of complex baseband profiles onto ``grid``.
 
@@ -320,6 +391,9 @@ def backproject(
         Default ``$CLSAS_BACKEND``, else ``"auto"`` (see :class:`Backprojector`).
     device : None, "P:D", pyopencl.Device or pyopencl.CommandQueue, optional
     beam, beam_floor_db : apodization by the profiles' transducer beams (see :class:`Backprojector`).
+    max_error_db : float, optional
+        The error against the float64 twin the kernel may trade for speed, dB relative to the peak
+        (see :class:`Backprojector`); default None: exact float kernels only.
 
     Returns
     -------
@@ -341,16 +415,21 @@ def backproject(
     """
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
-    bp = Backprojector(grid, backend=backend, device=device, chunk=chunk, beam=beam, beam_floor_db=beam_floor_db)
+    bp = Backprojector(grid, backend=backend, device=device, chunk=chunk, beam=beam, beam_floor_db=beam_floor_db,
+                       max_error_db=max_error_db)
     return bp(profiles, tx_positions=tx_positions, rx_positions=rx_positions, c_mps=c_mps, progress=progress)
 
 
 @FORMATIONS.register("bp")
 def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | _cl.Selection | None = None, device: Any = None,
          progress: Callable[[int, int], None] | None = None, force: bool = False, beam: str | None = None,
-         beam_floor_db: float = -12.0) -> Image:
-    """The ``"bp"`` formation: :class:`Backprojector` with its options ``beam`` and ``beam_floor_db``."""
-    bp = Backprojector(grid, backend=backend, device=device, force=force, beam=beam, beam_floor_db=beam_floor_db)
+         beam_floor_db: float = -12.0, max_error_db: float | None = None) -> Image:
+    """The ``"bp"`` formation: :class:`Backprojector` with its options ``beam``, ``beam_floor_db`` and
+    ``max_error_db`` (default None: exact float kernels only; ``formation="auto"`` gives its target
+    less its margin where it forms by bp, :func:`clsas.reconstruct` its ``max_error_db`` where the
+    caller gives one)."""
+    bp = Backprojector(grid, backend=backend, device=device, force=force, beam=beam, beam_floor_db=beam_floor_db,
+                       max_error_db=max_error_db)
     return bp(profiles, progress=progress)
 
 

@@ -76,6 +76,13 @@ def selftest_beam_weights(rng, mode: str, n_meas: int = 3):
     return beam_weights(beams, mode, 25e3, 343.0, -12.0)
 
 
+def _profiles_shape(data: np.ndarray | None, rows) -> tuple[int, ...]:
+    """The shape of the profiles ``data``, or of those ``rows`` hold where ``data`` is None."""
+    if data is None and rows is None:
+        raise ValueError("data: None stands for the profiles rows hold, and rows is None too")
+    return (rows.n_rows, rows.n_cols) if data is None else data.shape
+
+
 class RecordsPlan(Plan):
     """kernels/records.cl: the carrier records of ``n_meas`` profiles of ``n_lags`` samples,
     upsampled ``up`` times, made on the device (the twin: :func:`carrier_records`). With
@@ -118,30 +125,31 @@ class RecordsPlan(Plan):
                           *self._row_of(row_of))
         return evt, fine, 2 * np.pi * fc_hz * fine
 
-    def records_of(self, data: np.ndarray, rows, tau0_s, dtau_s: float, fc_hz: float):
-        """The records of the host profiles ``data`` ((n_meas, n_data) baseband) in :attr:`d_pairs`,
-        made once: kept from the last call where they were made from this very array (read-only,
-        hence unchanged) at the same delays; else made from ``rows`` (a
-        :class:`clsas.cl.DeviceRows` of ``data`` on this queue) where they are valid; else from
-        ``data`` uploaded. Returns ``(event or None, dtau / up, phi, source)``, ``source`` one of
-        ``"kept"``, ``"rows"``, ``"uploaded"``."""
-        key = (np.asarray(tau0_s, float).tobytes(), float(dtau_s), float(fc_hz), data.shape)
+    def records_of(self, data: np.ndarray | None, rows, tau0_s, dtau_s: float, fc_hz: float):
+        """The records of the profiles ``data`` ((n_meas, n_data) baseband; None: those ``rows``
+        hold, not read to the host) in :attr:`d_pairs`, made once: kept from the last call where
+        they were made from this very array (read-only, hence unchanged) or these very rows at the
+        same delays; else made from ``rows`` (a :class:`clsas.cl.DeviceRows` of ``data`` on this
+        queue) where they are valid; else from ``data`` (the rows' host copy for None) uploaded.
+        Returns ``(event or None, dtau / up, phi, source)``, ``source`` one of ``"kept"``,
+        ``"rows"``, ``"uploaded"``."""
+        key = (np.asarray(tau0_s, float).tobytes(), float(dtau_s), float(fc_hz), _profiles_shape(data, rows))
         fine, phi = dtau_s / self.up, 2 * np.pi * fc_hz * dtau_s / self.up
-        held = self._held
-        if held is not None and held[0]() is data and held[1] == key and not data.flags.writeable:
+        held, ident = self._held, rows if data is None else data
+        if held is not None and held[0]() is ident and held[1] == key and (data is None or not data.flags.writeable):
             return None, fine, phi, "kept"
         if rows is not None and rows.valid(self.queue, data):
             evt, fine, phi = self.enqueue(rows.buffer, rows.stride, rows.n_cols, tau0_s, dtau_s, fc_hz)
             source = "rows"
         else:
-            host = np.ascontiguousarray(data, np.complex64)
+            host = np.ascontiguousarray(rows.host if data is None else data, np.complex64)
             if self.d_host is None or self._host_bytes < host.nbytes:
                 self.d_host, self._host_bytes = self.alloc(host.nbytes, "r"), host.nbytes
             self.write(self.d_host, host, np.complex64)
             evt, fine, phi = self.enqueue(self.d_host, host.shape[1], host.shape[1], tau0_s, dtau_s, fc_hz)
             source = "uploaded"
-        if not data.flags.writeable:
-            self._held = (weakref.ref(data), key)
+        if data is None or not data.flags.writeable:
+            self._held = (weakref.ref(ident), key)
         return evt, fine, phi, source
 
     def _row_of(self, row_of) -> tuple:
@@ -397,16 +405,18 @@ class BackprojectPlan(BeamPlan):
         return self._form(records.d_pairs, records.n_rec, tau0_s, fine, phi, tx_positions, rx_positions, c_mps,
                           progress, beam, evt).result()
 
-    def enqueue_resident(self, data: np.ndarray, rows, records: RecordsPlan, tau0_s, dtau_s: float, fc_hz: float,
-                         tx_positions, rx_positions, c_mps, progress: Callable[[int, int], None] | None = None,
-                         beam=None) -> tuple[PendingImage, str]:
-        """Backproject the host profiles ``data`` ((n_meas, <= n_lags)) from records on the device
-        (:meth:`RecordsPlan.records_of`: kept from an earlier call on the same read-only array,
-        else made from ``rows``, the compression's rows on the device, else from ``data``
-        uploaded) without waiting for the image. Returns ``(PendingImage, source)``, ``source``
-        what the records came from (``"kept"``, ``"rows"``, ``"uploaded"``)."""
-        if data.shape[0] != self.n_meas or data.shape[1] > self.n_lags:
-            raise ValueError(f"data: {data.shape[0]} rows of {data.shape[1]} samples do not fit a plan for "
+    def enqueue_resident(self, data: np.ndarray | None, rows, records: RecordsPlan, tau0_s, dtau_s: float,
+                         fc_hz: float, tx_positions, rx_positions, c_mps,
+                         progress: Callable[[int, int], None] | None = None, beam=None) -> tuple[PendingImage, str]:
+        """Backproject the host profiles ``data`` ((n_meas, <= n_lags); None: those ``rows`` hold,
+        never read to the host) from records on the device (:meth:`RecordsPlan.records_of`: kept
+        from an earlier call on the same read-only array or rows, else made from ``rows``, the
+        compression's rows on the device, else from ``data`` uploaded) without waiting for the
+        image. Returns ``(PendingImage, source)``, ``source`` what the records came from
+        (``"kept"``, ``"rows"``, ``"uploaded"``)."""
+        n_rows, n_data = _profiles_shape(data, rows)
+        if n_rows != self.n_meas or n_data > self.n_lags:
+            raise ValueError(f"data: {n_rows} rows of {n_data} samples do not fit a plan for "
                              f"{self.n_meas} profiles of at most {self.n_lags}")
         self._check_records(records, fc_hz, dtau_s)
         self.begin()

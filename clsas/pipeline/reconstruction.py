@@ -20,7 +20,7 @@ from .. import cl
 from .. import validate as v
 from ..compression import COMPRESSIONS, compress
 from ..formation import FORMATIONS, check_options, declared_options
-from ..formation.auto import DEFAULT_MAX_ERROR_DB, check_max_error_db, rule_reason
+from ..formation.auto import check_max_error_db, rule_reason
 from ..formation.guard import check_grid, checked_once
 from ..physics.geometry import VoxelGrid
 from ..types.dataset import Dataset
@@ -50,7 +50,7 @@ def reconstruct(
     backend: str | None = None, device: Any = None, progress: Callable[[Progress], None] | None = None,
     sparse: dict | None = None, force: bool = False, formation: str = "auto", formation_options: dict | None = None,
     out: str | Path | None = None, max_memory: float | str | None = None, client: Any = None,
-    tile_shape: tuple[int, int, int] | None = None, max_error_db: float = DEFAULT_MAX_ERROR_DB,
+    tile_shape: tuple[int, int, int] | None = None, max_error_db: float | None = None,
     inverse: dict | None = None,
 ) -> Image:
     """Image a dataset on a grid: profiles over the grid's exact delay gate only (``image.plan.describe()``).
@@ -85,7 +85,10 @@ def reconstruct(
         ``"auto"`` (default) or one of :data:`clsas.formation.FORMATIONS` (``"bp"``, exact; ``"omega-k"``;
         ``"ffbp"``). ``"auto"`` takes the fastest whose predicted error meets ``max_error_db``
         (:mod:`clsas.formation.auto`; logged, kept in ``image.provenance["formation_auto"]``);
-        sparse methods, tiled requests and directional beams take ``"bp"``.
+        sparse methods, tiled requests and directional beams take ``"bp"``. Where auto forms by bp,
+        bp's kernel may take a variant stated within ``max_error_db`` less auto's 3 dB margin
+        (half-precision records where the device has them and they are faster);
+        ``image.provenance["bp"]`` names the variant that ran and its bound.
     formation_options : dict, optional
         Passed to the formation (see its module); ``"auto"`` takes none (its target is ``max_error_db``).
     out : str or Path, optional
@@ -97,9 +100,13 @@ def reconstruct(
         recordings (:mod:`clsas.sparse.parallel`) run there. Needs the ``distributed`` extra.
     tile_shape : (int, int, int), optional
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
-    max_error_db : float
-        ``formation="auto"``'s largest error against exact bp (error-to-signal over the grid, dB), given
-        to any formation that takes an error target.
+    max_error_db : float, optional
+        The largest error against exact bp allowed (dB, a finite number below 0), given to any
+        formation that takes an error target: ``"auto"`` (default -30 dB where None) and ``"bp"``,
+        whose kernel may then take a variant whose stated error against the float64 twin, relative
+        to the image's peak, is within it (:class:`clsas.Backprojector`). None (default): ``"bp"``
+        named by the caller runs its exact float kernels. The one source of the target:
+        ``formation_options`` may not hold it.
     inverse : dict, optional
         Options of a model-based method (:data:`clsas.inverse.methods.INVERSE_OPTIONS`).
 
@@ -140,7 +147,7 @@ class Request:
     progress: Reporter  # the caller's callback, told the stages below
     force: bool
     tiled: tiling.TiledRequest | None
-    max_error_db: float
+    max_error_db: float | None  # None: not given (auto's default target; bp exact)
     inverse: dict | None
     stages: tuple[str, ...]  # what the request runs, in order, as its progress reports name them
 
@@ -149,7 +156,7 @@ def _request(dataset, grid, method, *, compression, backend, device, progress, s
              formation_options, out, max_memory, client, tile_shape, max_error_db, inverse) -> Request:
     """Every argument of :func:`reconstruct` checked before any work, as one :class:`Request`."""
     fopts = _check_request(dataset, grid, method, compression, sparse, formation, formation_options, inverse)
-    max_error_db = check_max_error_db(max_error_db)
+    max_error_db = None if max_error_db is None else check_max_error_db(max_error_db)
     tiled = tiling.check_request(grid, out=out, max_memory=max_memory, client=client, tile_shape=tile_shape,
                                  device=device)
     stages = _stages(dataset, method, compression, formation, tiled is not None)
@@ -343,8 +350,9 @@ def _form(prof: Profiles, req: Request) -> Image:
 
 
 def _formation_options(req: Request) -> dict:
-    """The request's formation options, with its error target where the formation takes one."""
-    if "max_error_db" in (declared_options(FORMATIONS[req.formation]) or ()):
+    """The request's formation options, with its error target where one was given and the formation
+    takes one (without, auto keeps its default target and bp its exact kernels)."""
+    if req.max_error_db is not None and "max_error_db" in (declared_options(FORMATIONS[req.formation]) or ()):
         return {**req.formation_options, "max_error_db": req.max_error_db}
     return dict(req.formation_options)
 

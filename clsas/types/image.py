@@ -71,7 +71,8 @@ class Image:
         ``values`` as bp's resident OpenCL path left them on the device (one row of complex64,
         voxels in C order; ``values`` is then read-only), for a next step on the same device
         to read there while it still holds them (:meth:`clsas.cl.DeviceRows.valid`: until
-        the plan's next call); None: on the host only. Not saved.
+        the plan's next call; autofocus computes its metric there); None: on the host only.
+        Not saved.
 
     Examples
     --------

@@ -2,11 +2,17 @@
 
 What pulse compression (:func:`clsas.compress`) and the per-profile sparse methods produce and
 every image formation consumes; immutable once built.
+
+Profiles compressed on OpenCL stay on the device (``on_device``, a :class:`clsas.cl.DeviceRows`)
+and reach the host only when something there asks for ``data``: the field is a descriptor
+(:class:`_HostData`, a descriptor-typed dataclass field) that reads the rows on first access and
+keeps the array, so that backprojection on the same device, which reads the rows there
+(:meth:`Profiles.device_rows`), costs no read back at all.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -15,6 +21,32 @@ from .. import validate as v
 from ..physics.signals import analytic
 
 __all__ = ["Profiles", "center_frequency"]
+
+
+class _HostData:
+    """The ``data`` field of :class:`Profiles`: the host array, given or read from the device.
+
+    A descriptor-typed dataclass field: the value given to the constructor is stored (in the
+    instance's ``_data``); an array is returned as it is; None (profiles whose rows are on the
+    device, ``on_device``) is resolved on first access to the rows' host copy
+    (:attr:`clsas.cl.DeviceRows.host`: read once, read-only, the same array for every holder of
+    those rows) and stored. Reading the attribute is the only way to the host copy, so
+    everything that uses ``data`` (``dataclasses.replace`` without ``data``, ``==``, ``repr``,
+    pickling) sees the array; :meth:`Profiles.device_rows` and ``n_meas``/``n_lags`` do not read.
+    """
+
+    def __get__(self, obj: Profiles | None, owner: type | None = None) -> np.ndarray:
+        if obj is None:
+            raise AttributeError("data")  # the class has no default: the field is required
+        data = obj.__dict__["_data"]
+        if data is None:
+            data = obj.on_device.host
+            obj.__dict__["_data"] = data
+        return data
+
+    def __set__(self, obj: Profiles, value: np.ndarray | None) -> None:
+        # only the dataclass __init__ gets here (the frozen class refuses assignments)
+        obj.__dict__["_data"] = value
 
 
 @dataclass(frozen=True)
@@ -26,8 +58,9 @@ class Profiles:
 
     Parameters
     ----------
-    data : numpy.ndarray
-        (n_meas, n_lags) complex baseband profiles.
+    data : numpy.ndarray or None
+        (n_meas, n_lags) complex baseband profiles. None: the rows ``on_device`` hold them, and
+        ``data`` is read from there the first time it is asked for (then kept).
     tau0_s : numpy.ndarray
         (n_meas,) delay of each row's first sample after the transmit start, s.
     dtau_s : float
@@ -48,7 +81,8 @@ class Profiles:
         The transducers' beams (from the dataset); None: omnidirectional.
     on_device : clsas.cl.DeviceRows, optional
         ``data`` as the OpenCL compression left it on the device, which backprojection on the
-        same device reads there (while it still holds ``data``); None: on the host only.
+        same device reads there (:meth:`device_rows`: while it still holds ``data``); None: on
+        the host only.
 
     Examples
     --------
@@ -64,7 +98,7 @@ class Profiles:
     (64, 'matched')
     """
 
-    data: np.ndarray
+    data: np.ndarray = _HostData()  # type: ignore[assignment]  # None given: read from on_device when asked
     tau0_s: np.ndarray
     dtau_s: float
     fc_hz: float
@@ -79,13 +113,51 @@ class Profiles:
     # clsas.cl.DeviceRows: ``data`` as the OpenCL compression left it on the device (None: host only)
     on_device: Any = field(default=None, compare=False, repr=False)
 
+    def __post_init__(self) -> None:
+        if self._held() is None and self.on_device is None:
+            raise ValueError("data: an (n_meas, n_lags) array is needed, or the device rows holding it (on_device)")
+
+    def __getstate__(self) -> dict:
+        """The fields for pickling, ``data`` as its host array (read from the device here if it
+        was not yet): another process cannot reach the device rows."""
+        return {**self.__dict__, "_data": self.data}
+
     @property
     def n_meas(self) -> int:
-        return self.data.shape[0]
+        return self._shape()[0]
 
     @property
     def n_lags(self) -> int:
-        return self.data.shape[1]
+        return self._shape()[1]
+
+    def _held(self) -> np.ndarray | None:
+        """``data`` as given or read so far, without reading it: None while it is on the device only."""
+        return self.__dict__["_data"]
+
+    def _shape(self) -> tuple[int, ...]:
+        """``data``'s shape, without reading it where it is still on the device."""
+        data = self._held()
+        return (self.on_device.n_rows, self.on_device.n_cols) if data is None else data.shape
+
+    def device_rows(self) -> Any:
+        """The rows on the device that hold ``data`` (:class:`clsas.cl.DeviceRows`, which a kernel
+        on their queue may read instead of ``data``), or None: none were left there, the plan
+        that wrote them has overwritten them since, or ``data`` is another array than theirs
+        (given to ``dataclasses.replace``). Reads nothing from the device. The rows were
+        computed on the device from checked (finite) recordings, so a kernel that reads them
+        needs no host check of ``data``."""
+        rows = self.on_device
+        if rows is None:
+            return None
+        return rows if rows.valid(rows.queue, self._held()) else None
+
+    def with_fields(self, **changes: Any) -> Profiles:
+        """``dataclasses.replace(self, **changes)``, except that ``data`` still on the device stays
+        there (unread) where ``changes`` do not give it; ``dataclasses.replace`` reads it (it
+        copies every field through its attribute)."""
+        if "data" not in changes and self._held() is None:
+            changes["data"] = None
+        return replace(self, **changes)
 
     def delays_s(self, m: int = 0) -> np.ndarray:
         """Delays of row ``m``'s samples after the transmit start, s."""

@@ -100,7 +100,7 @@ def test_sample_config_scans_on_the_real_firmware_with_simulated_audio(uno, tmp_
 
 
 def test_rig_beams_are_stored_per_stop_on_the_real_firmware(uno, tmp_path, capsys):
-    """A rig file with [beams] (issue 33) on the real firmware: every stop's boresights follow the
+    """A rig file with [beams] on the real firmware: every stop's boresights follow the
     axis rule from the position the firmware reports, stored with the stop."""
     from clsas.cli import main
 
@@ -176,7 +176,7 @@ README_EDITS = ["$22=1", "$20=1", "$21=1", "$130=1000", "$131=1000"]  # $20 afte
 
 @pytest.mark.slow
 def test_sample_config_scans_a_stock_board_after_the_readme_edits(grbl_exe, tmp_path, capsys):
-    """Issue 29: the sample's feed_mm_min = 3000 on a stock board, which moves at $110 = 500 mm/min.
+    """The sample's feed_mm_min = 3000 on a stock board, which moves at $110 = 500 mm/min.
     The moves below take about 108 s and 96 s; a timeout from the feed alone (95 s) stopped the
     scan at its first stop, and every resume the same way. About 4 minutes."""
     from clsas.cli import main

@@ -1,4 +1,4 @@
-"""A rig file's ``[beams]`` (issue 33): checked by name, stored a stop at a time with the scan,
+"""A rig file's ``[beams]``: checked by name, stored a stop at a time with the scan,
 read back as the dataset's beams, applied by the simulated microphone, kept across a resume."""
 
 import h5py

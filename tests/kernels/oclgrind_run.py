@@ -2,7 +2,7 @@
 
 Usage: python oclgrind_run.py [compress] [fft] [backproject] [backproject_local] [backproject_half]
 [backproject_expansion] [backproject_expansion_aligned] [gradient]
-[stolt] [stolt_depths] [ffbp] [records] [vec=N ...]. Checks each
+[metric] [stolt] [stolt_depths] [ffbp] [records] [vec=N ...]. Checks each
 result against its NumPy twin; Oclgrind's own diagnostics (invalid or uninitialised access, data races) go to
 stderr, which the test inspects.
 """
@@ -18,6 +18,7 @@ from clsas.cl import Shape
 from clsas.compression import fft_layout
 from clsas.compression.compress_opencl import FftMatchedPlan, FmcwPlan, MatchedFilterPlan
 from clsas.focus.gradient_opencl import FocusGradientPlan
+from clsas.focus.metric_opencl import FocusMomentsPlan, FocusWeightPlan
 from clsas.formation.bp_numpy import backproject as bp_twin
 from clsas.formation.bp_numpy import backproject_range_expansion as bp_range_expansion
 from clsas.formation.bp_numpy import carrier_records
@@ -160,6 +161,13 @@ def check_gradient(queue, rng, vec):
     assert FocusGradientPlan.selftest(queue, vec) < 1e-4, "focus_gradient"
 
 
+def check_metric(queue, rng, vec):
+    # the plans' selftests: voxels not a multiple of VEC, more blocks than work-items, a zero
+    # voxel, padding after the voxels (written as zeros), both metrics' weights
+    assert FocusMomentsPlan.selftest(queue, vec) < 1e-5, "focus_moments"
+    assert FocusWeightPlan.selftest(queue, vec) < 1e-5, "focus_weight"
+
+
 def check_stolt(queue, rng, vec):
     # the plan's selftest: columns with evanescent, windowed and kept samples, three terms,
     # positions that fold around the kz axis, VEC columns per work-item with a ragged last one
@@ -207,6 +215,8 @@ def main(kernels: set[str]) -> int:
             check_backproject_expansion_aligned(queue, rng, vec)
         if "gradient" in kernels:
             check_gradient(queue, rng, vec)
+        if "metric" in kernels:
+            check_metric(queue, rng, vec)
         if "stolt" in kernels:
             check_stolt(queue, rng, vec)
         if "stolt_depths" in kernels:
@@ -222,4 +232,4 @@ def main(kernels: set[str]) -> int:
 if __name__ == "__main__":
     sys.exit(main(set(sys.argv[1:]) or {"compress", "fft", "backproject", "backproject_local", "backproject_half",
                                         "backproject_expansion", "backproject_expansion_aligned", "gradient",
-                                        "stolt", "stolt_depths", "ffbp", "records"}))
+                                        "metric", "stolt", "stolt_depths", "ffbp", "records"}))

@@ -19,6 +19,7 @@ import clsas.formation.omega_k  # noqa: F401
 from clsas import cl
 from clsas.focus import gradient_numpy as focus_twin
 from clsas.focus.engine import FocusEngine
+from clsas.focus.metrics import metric_and_weight
 from clsas.formation import FORMATIONS, form
 from clsas.inverse import project_opencl  # noqa: F401 (its plan registers the project kernel)
 
@@ -26,7 +27,9 @@ pytestmark = [pytest.mark.opencl, needs_opencl]
 
 MARK = "clsas_fallback_test_undeclared"  # the identifier the compiler's log must name
 ALL_KERNELS = ("matched_filter", "fmcw_dechirp", "matched_fft", "backproject", "focus_gradient", "stolt_spread",
-               "stolt_depths", "ffbp_leaf", "ffbp_merge", "project", "carrier_records")
+               "stolt_depths", "ffbp_leaf", "ffbp_merge", "project", "carrier_records", "focus_moments",
+               "focus_weight")
+SELF_CHECKED = ("focus_gradient", "focus_moments", "focus_weight")  # cases that compare with the twin themselves
 
 
 def broken_source(kernel: str, only_with: str | None = None) -> tuple[str, str]:
@@ -123,6 +126,16 @@ def _gradient(scene, backend):
     return got, eng.backend
 
 
+def _metric(scene, backend):
+    """An autofocus step's metric: on the device from the image bp left there, or (the fallback)
+    on the host from the image read back; either way the host's metric of that image."""
+    ds, grid, _ = scene
+    eng = FocusEngine(ds, grid, backend=backend)
+    m, _, values = eng.evaluate(np.zeros(ds.n_meas), ds.c_per_meas)
+    assert m == pytest.approx(metric_and_weight(values, "sharpness")[0], rel=1e-6)
+    return m, "opencl" if eng.n_device_metrics else "numpy"
+
+
 def _project(scene, backend):
     """The model-based methods' forward projector (clsas.inverse.ImagingOperator.matvec)."""
     from clsas.inverse import ImagingOperator
@@ -145,6 +158,8 @@ CASES = {
     "ffbp_merge": ("TAPS", _formation("ffbp", depth=1, order=1)),  # the leaf kernel still builds
     "project": (None, _project),
     "carrier_records": (None, _resident),
+    "focus_moments": (None, _metric),
+    "focus_weight": (None, _metric),
 }
 
 
@@ -163,14 +178,14 @@ def test_auto_falls_back_with_one_warning_and_the_twins_result(scene, caplog, ke
     only_with, call = CASES[kernel]
     # the real kernel builds here: the fallback below is the injected source's doing, not the device's
     assert cl.choose(cl.get_queue(), kernel) in cl.candidate_widths(cl.get_queue().device)
-    if kernel != "focus_gradient":  # (the gradient case compares with the twin itself)
+    if kernel not in SELF_CHECKED:
         want, kind = call(scene, "numpy")
         assert kind == "numpy"
     name, text = broken_source(kernel, only_with)
     with cl.override_source(name, text), caplog.at_level(logging.WARNING, logger="clsas"):
         got, kind = call(scene, request_())
     assert kind == "numpy"
-    if kernel != "focus_gradient":
+    if kernel not in SELF_CHECKED:
         assert np.array_equal(got, want)
     warned = _fallback_warnings(caplog)
     assert len(warned) == 1, warned

@@ -28,14 +28,15 @@ from conftest import oclgrind_missing as _oclgrind_available
 # backproject.cl's -DLOCAL_PROFILES variant (records staged in local memory, barriers: the race check
 # covers them at every width), -DHALF_PROFILES and -DRANGE_EXPANSION variants (the latter's
 # -DROWS_ALIGNED build in a process of its own; its builds with 2 or 4 runs per work-item crash the
-# plugin, so it checks one run per work-item there; the race check covers every run); for each, a plan of several groups runs
-# before the selftest (in the other order the plugin reports the second plan's accumulators, whose
-# values equal the twin's; either alone is clean).
+# plugin, so it checks one run per work-item there; the race check covers every run); for each, a
+# plan of several groups runs before the selftest (in the other order the plugin reports the second
+# plan's accumulators, whose values equal the twin's; either alone is clean).
 WIDTHS = ("vec=4", "vec=8", "vec=16")
 CHECKS = [
     pytest.param({"OCLGRIND_DATA_RACES": "1"},
                  ["compress", "fft", "backproject", "backproject_local", "backproject_half", "backproject_expansion",
-                  "backproject_expansion_aligned", "gradient", "stolt", "stolt_depths", "ffbp", "records", *WIDTHS],
+                  "backproject_expansion_aligned", "gradient", "metric", "stolt", "stolt_depths", "ffbp", "records",
+                  *WIDTHS],
                  id="memcheck+races-all"),
 ] + [
     pytest.param({"OCLGRIND_UNINITIALIZED": "1"}, [kernels, f"vec={vec}"], id=f"uninitialized-{kernels}-vec{vec}")
@@ -43,7 +44,7 @@ CHECKS = [
                            ("backproject_local", (4, 8)), ("backproject_half", (4, 8)),
                            ("backproject_expansion", (4, 8)), ("backproject_expansion_aligned", (4, 8)),
                            ("gradient", (4, 8)),
-                           ("stolt", (4, 16)),
+                           ("metric", (4, 16)), ("stolt", (4, 16)),
                            ("stolt_depths", (4,)), ("ffbp", (4, 8)), ("records", (4, 8))]
     for vec in vecs
 ]

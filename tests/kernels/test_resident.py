@@ -238,11 +238,12 @@ def test_stale_rows_are_not_read():
     assert not replace(prof, data=prof.data.copy()).on_device.valid(q, prof.data.copy())
     assert not pickle.loads(pickle.dumps(rows)).valid(q, prof.data)
     plan = MatchedFilterPlan(2, 50, np.ones(4), 0, 10, np.ones(10), np.ones(2), queue=q)
-    plan(np.zeros((2, 50)))
-    rows2 = plan.rows
-    assert rows2.valid(q, rows2.host)
-    plan(np.zeros((2, 50)))  # the same plan again: its buffer holds the new rows
-    assert not rows2.valid(q, rows2.host) and plan.rows.valid(q, plan.rows.host)
+    rows2 = plan.enqueue(np.zeros((2, 50)))
+    assert rows2.valid(q) and rows2.valid(q, rows2.host)
+    rows3 = plan.enqueue(np.zeros((2, 50)))  # the same plan again: its buffer holds the new rows
+    assert not rows2.valid(q, rows2.host) and not rows2.valid(q) and rows3.valid(q, rows3.host)
+    writable = rows3.host.copy()
+    assert not rows3.valid(q, writable)  # a copy, even of the same values, is not the rows' array
 
 
 @needs_opencl
@@ -305,3 +306,76 @@ def test_resident_default_reads_one_complex_image_and_leaves_it_on_the_device():
     assert not step._plan.complex_image and "COMPLEX_IMAGE" not in step._plan.defines()
     assert old.on_device is None and np.abs(old.values - image.values).max() <= TOL["backproject"] * np.abs(
         old.values).max()
+
+
+def _count_reads(monkeypatch) -> list:
+    """Every read of device rows back to the host (clsas.cl.DeviceRows), recorded from here on."""
+    from clsas.cl.plan import DeviceRows
+
+    reads, read = [], DeviceRows._read
+
+    def counted(rows):
+        reads.append((rows.n_rows, rows.n_cols))
+        return read(rows)
+
+    monkeypatch.setattr(DeviceRows, "_read", counted)
+    return reads
+
+
+@needs_opencl
+@pytest.mark.parametrize("algorithm", ["fft", "direct"])
+def test_compress_then_bp_reads_no_profile_back_and_forms_the_same_image(monkeypatch, algorithm):
+    """Compression on OpenCL leaves its profiles on the device and bp reads them there: neither
+    ``compress``, ``Backprojector`` nor ``reconstruct`` reads them back. The image is bit-identical
+    to the one formed from the rows once their host copy was read (the path before the rows were
+    read lazily), and to the one formed from that host copy uploaded; asking for ``data`` reads
+    the rows once, and equals the NumPy twin's profiles."""
+    from dataclasses import replace
+
+    from clsas.formation.bp import Backprojector
+
+    ds, grid = _scan()
+    reads = _count_reads(monkeypatch)
+    prof = clsas.compress(ds, backend="opencl", algorithm=algorithm)
+    image = Backprojector(grid, backend="opencl")(prof)
+    assert image.provenance["bp"]["records"] == "rows" and prof.timings_s["compress_kernel"] > 0
+    assert reads == [] and not prof.on_device.is_read, "the profiles were read back"
+    whole = clsas.reconstruct(ds, grid, backend="opencl", formation="bp")
+    assert whole.provenance["bp"]["records"] == "rows" and reads == []
+
+    data = prof.data
+    assert reads == [(prof.n_meas, prof.n_lags)] and prof.data is data is prof.on_device.host  # read once
+    read_first = Backprojector(grid, backend="opencl")(prof)
+    uploaded = Backprojector(grid, backend="opencl")(replace(prof, data=data.copy()))
+    assert read_first.provenance["bp"]["records"] == "rows" and uploaded.provenance["bp"]["records"] == "uploaded"
+    assert np.array_equal(image.values, read_first.values) and np.array_equal(image.values, uploaded.values)
+    assert len(reads) == 1
+    twin = clsas.compress(ds, backend="numpy", algorithm=algorithm)
+    assert np.abs(prof.data - twin.data).max() / np.abs(twin.data).max() < TOL["compress_fft"]
+
+
+@needs_opencl
+def test_a_plan_reads_the_rows_it_lent_before_overwriting_them(monkeypatch):
+    """Profiles whose rows a later call of the same (reused) plan overwrites keep their data: the
+    plan reads the rows still held and unread first, so each keeps its own profiles (not the later
+    call's), never offers the overwritten rows, and pickles with its data; rows nobody holds any
+    more are not read."""
+    import pickle
+
+    ds, grid = _scan()
+    shifted = clsas.Dataset(ds.signals, ds.tx_positions, ds.rx_positions, ds.fs_hz, ds.waveform,
+                            t0_s=np.asarray(ds.t0_s) + 3e-5, c_mps=ds.c_mps)
+    reads = _count_reads(monkeypatch)
+    first = clsas.compress(ds, backend="opencl", algorithm="direct")
+    clsas.compress(shifted, backend="opencl", algorithm="direct")  # dropped at once: nothing holds its rows
+    assert first.on_device.is_read and len(reads) == 1 and first.device_rows() is None
+    second = clsas.compress(shifted, backend="opencl", algorithm="direct")
+    assert len(reads) == 1 and second.on_device.buffer is first.on_device.buffer and second.device_rows() is not None
+    for prof, data in ((first, ds), (second, shifted)):
+        want = clsas.compress(data, backend="numpy", algorithm="direct").data
+        assert np.abs(prof.data - want).max() / np.abs(want).max() < TOL["compress_fft"]
+    third = clsas.compress(ds, backend="opencl", algorithm="direct")
+    back = pickle.loads(pickle.dumps(third))  # another process: the data travels, the rows do not
+    assert np.array_equal(back.data, third.data) and back.device_rows() is None
+    image = clsas.Backprojector(grid, backend="opencl")(first)  # from its host copy, uploaded
+    assert image.provenance["bp"]["records"] == "uploaded"

@@ -1,4 +1,4 @@
-"""A user's first day, round two (issue 29): no silent downgrades, honest progress, guards before
+"""A user's first day: no silent downgrades, honest progress, guards before
 work, one exit-code table, and the README's hurdles."""
 
 import os
@@ -243,7 +243,7 @@ def test_limits_refuses_a_band_given_high_to_low(capsys):
 
 
 def _docs_text(root: Path) -> str:
-    """The README and the guide's pages (the README's sections live there since issue 32)."""
+    """The README and the guide's pages (where the README's sections live)."""
     return "\n".join(p.read_text() for p in [root / "README.md", *sorted((root / "docs" / "guide").glob("*.md"))])
 
 
@@ -262,7 +262,7 @@ def test_the_readme_scene_and_rig_files_are_shipped():
 
 
 def test_fig4_errors_in_the_readme_are_what_the_example_gives(tmp_path):
-    """Issue 29, item 8: the README and examples/out/fig4.md quoted convex CBP-Polar at 6.8e-4 with
+    """The README and examples/out/fig4.md quoted convex CBP-Polar at 6.8e-4 with
     two echoes; the example gives 0.0727 with three. The quoted figures must be the example's."""
     pytest.importorskip("cvxpy")
     pytest.importorskip("nlopt")

@@ -1,4 +1,4 @@
-"""Issue 29 on the rig: moves planned from the rate GRBL really uses, the emulator capping the feed as
+"""The rig: moves planned from the rate GRBL really uses, the emulator capping the feed as
 the firmware does, connect-time refusals that say what to fix (and leave nothing to delete by hand)."""
 
 import time

@@ -16,6 +16,12 @@ image by another registered one. Its stages, one module each, in the order they 
 
 The choice, its reason and any measurement are logged and kept in the image's provenance
 (``provenance["formation_auto"]``); ``provenance["formation"]`` names the formation kept.
+
+Where auto forms by bp, it gives bp its target less :data:`MARGIN_DB` (:func:`.trust.bp_options`,
+in the choice's options): bp's kernel may then take a variant whose stated error against the
+float64 twin is within it (half-precision records on devices with ``cl_khr_fp16``), and the image's
+``provenance["bp"]`` names the variant that ran. The bp that measures a formed image's error
+(:mod:`.measure`) stays exact.
 """
 
 from __future__ import annotations
@@ -35,10 +41,11 @@ from .measure import Check, form_choice, measure_error
 from .predict import alias_fraction, estimate, predict_time
 from .rules import DEFAULT_MAX_ERROR_DB, Choice, by_rule, check_max_error_db, rule_reason
 from .timing import BUILTIN, calibration_path, load_calibration, store_calibration
-from .trust import MARGIN_DB, Estimate
+from .trust import MARGIN_DB, Estimate, bp_options
 
 __all__ = [
-    "BUILTIN", "DEFAULT_MAX_ERROR_DB", "MARGIN_DB", "Check", "Choice", "Estimate", "alias_fraction", "by_rule",
+    "BUILTIN", "DEFAULT_MAX_ERROR_DB", "MARGIN_DB", "Check", "Choice", "Estimate", "alias_fraction", "bp_options",
+    "by_rule",
     "calibrate_auto", "calibration_path", "check_max_error_db", "choose", "estimate", "form", "form_choice",
     "load_calibration", "measure_error", "predict_time", "resolve", "rule_reason", "store_calibration",
 ]
@@ -62,7 +69,8 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | cl.Selection | N
     force : bool
         Passed to the formation chosen.
     max_error_db : float
-        The largest error against exact bp (error-to-signal over the grid, dB; default -30).
+        The largest error against exact bp (error-to-signal over the grid, dB; default -30). Where
+        bp is formed, its kernel may take a variant stated within ``max_error_db - MARGIN_DB``.
 
     Returns
     -------

@@ -81,7 +81,8 @@ def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db:
     bp = next(e for e in ests if e.formation == "bp")
     others = "; ".join(f"{e.formation}{_opts(e.options)}: {_describe(e, target)}" for e in ests if e is not first)
     if first.formation == "bp":
-        reason = f"bp (exact, predicted {bp.time_s:.3g} s) is the fastest that meets {target:g} dB; {others}"
+        reason = (f"bp{_opts(bp.options)} ({_exactness(bp)}, predicted {bp.time_s:.3g} s) is the fastest that "
+                  f"meets {target:g} dB; {others}")
     else:
         speedup = bp.time_s / first.time_s
         if first.unpredicted and measured:
@@ -102,12 +103,19 @@ def _opts(options: dict) -> str:
     return "" if not options else " (" + ", ".join(f"{k}={val}" for k, val in options.items()) + ")"
 
 
+def _exactness(e: Estimate) -> str:
+    """How exact a formation predicted exact is: bp formed with an allowance (:func:`.trust.bp_options`)
+    may run a kernel variant stated within it."""
+    allowed = e.options.get("max_error_db")
+    return "exact" if allowed is None else f"exact, or a kernel variant stated within {allowed:g} dB"
+
+
 def _describe(e: Estimate, target: float) -> str:
     if not e.feasible:
         return f"cannot run ({e.note})"
     if math.isnan(e.error_db):
         return e.note
-    err = "exact" if e.error_db == -math.inf else f"{e.error_db:.0f} dB"
+    err = _exactness(e) if e.error_db == -math.inf else f"{e.error_db:.0f} dB"
     if e.error_db > target - MARGIN_DB:
         over = " (over the target)"
     else:

@@ -31,7 +31,8 @@ more. Sizing ω-k and planning an FFBP tree cost time themselves (0.03 s and 0.0
 stops), lost where that formation is not chosen: each is done only where a lower bound of its time
 is under ``PLAN_IF_UNDER`` (0.7) times the best time so far.
 
-Error. ``bp`` is the reference (exact). ``omega-k`` is refused for apertures that are not
+Error. ``bp`` is the reference (exact; auto forms it with :func:`.trust.bp_options`, which lets its
+kernel take a variant stated within the target less the margin). ``omega-k`` is refused for apertures that are not
 planar-uniform (:class:`~clsas.formation.planar.NotPlanarUniform`); otherwise its error is its
 method's (:data:`OMEGA_K_BASE_DB`, measured -44 to -48 dB inside the well-sampled cone; worse on lattices
 of fewer than 16 stops a side, :data:`OMEGA_K_DB_PER_STOP`) plus the
@@ -57,7 +58,7 @@ from ...physics.geometry import VoxelGrid
 from ...types.profiles import Profiles
 from .rules import DEFAULT_MAX_ERROR_DB, check_max_error_db
 from .timing import BUILTIN, _device, _seconds, load_calibration, work_bp, work_ffbp, work_omega_k
-from .trust import CHECK_IF_UNDER, MARGIN_DB, Estimate, _near, _safe, check_seconds
+from .trust import CHECK_IF_UNDER, MARGIN_DB, Estimate, _near, _safe, bp_options, check_seconds
 
 __all__ = ["alias_fraction", "estimate", "lattice_aliases", "predict_time"]
 
@@ -261,11 +262,12 @@ def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_d
              factors: dict | None = None, formations=("bp", "omega-k", "ffbp")) -> list[Estimate]:
     """Predicted time and error of each formation (FFBP: several trees) for this request."""
     factors = load_calibration(selection) if factors is None else factors
-    target = check_max_error_db(max_error_db) - MARGIN_DB
+    goal = check_max_error_db(max_error_db)
+    target = goal - MARGIN_DB
     out = []
     if "bp" in formations:
         out.append(Estimate("bp", _seconds("bp", work_bp(profiles, grid), selection, factors), -math.inf,
-                            note="exact (the reference)"))
+                            bp_options(goal), note="exact (the reference)"))
     if "omega-k" in formations:
         n_fft = 1.5 * profiles.n_lags
         floor = _seconds("omega-k", {"fixed": 1, "delay": profiles.n_meas * n_fft * math.log2(max(n_fft, 2))},

@@ -12,7 +12,9 @@ anything is predicted, for
   bp's beam gate by more than the target).
 
 Otherwise :func:`.choice.choose` weighs the predictions. Either way the result is a
-:class:`Choice`, logged and kept in the image's provenance (``formation_auto``).
+:class:`Choice`, logged and kept in the image's provenance (``formation_auto``); bp is formed
+with :func:`.trust.bp_options` (its kernel may take a variant stated within the target less the
+margin).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ...types.profiles import Profiles
-from .trust import Estimate
+from .trust import Estimate, bp_options
 
 __all__ = ["DEFAULT_MAX_ERROR_DB", "Choice", "by_rule", "check_max_error_db", "rule_reason"]
 
@@ -90,7 +92,8 @@ def by_rule(profiles: Profiles, max_error_db: float, *, tiled: bool = False) -> 
     if reason is None:
         return None
     log.info("formation auto: %s", reason)
-    return Choice("bp", {}, reason, check_max_error_db(max_error_db), "rule", ())
+    target = check_max_error_db(max_error_db)
+    return Choice("bp", bp_options(target), reason, target, "rule", ())
 
 
 def rule_reason(method: str, *, tiled: bool = False, beams=None) -> str | None:

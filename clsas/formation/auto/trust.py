@@ -17,7 +17,7 @@ from ...types.profiles import Profiles
 from .timing import _seconds
 
 __all__ = ["CHECK_ABOVE_DB", "CHECK_IF_UNDER", "CHECK_SHARE", "CHECK_UNPREDICTED_SHARE", "MARGIN_DB",
-           "Estimate", "check_seconds"]
+           "Estimate", "bp_options", "check_seconds"]
 
 MARGIN_DB = 3.0  # a formation is chosen only where its predicted error is this far under the target
 # Measuring instead of predicting (clsas.formation.auto.measure: exact bp on a sub-lattice, within 0.6 dB of the
@@ -53,6 +53,14 @@ class Estimate:
     @property
     def feasible(self) -> bool:
         return math.isfinite(self.time_s)
+
+
+def bp_options(max_error_db: float) -> dict:
+    """The options auto forms bp with under the target ``max_error_db``: its kernel may take a
+    variant whose stated error against the float64 twin is at most the target less
+    :data:`MARGIN_DB` (:class:`clsas.formation.bp.Backprojector`; the exact float kernels where the
+    device has none, or none is faster). The image's ``provenance["bp"]`` names the one that ran."""
+    return {"max_error_db": max_error_db - MARGIN_DB}
 
 
 def check_seconds(profiles: Profiles, grid: VoxelGrid, selection, factors: dict) -> float:

@@ -10,7 +10,7 @@ host (:mod:`clsas.pipeline.tiling.run`).
 - :mod:`.tiles`: tiles of a grid, their size from a memory budget, the process's memory.
 - :mod:`.store`: the chunked file and its record of the tiles written.
 - :mod:`.run`: forming the tiles here (one device or several) or on the cluster.
-- :mod:`.dask`: the cluster side (one task per tile, profiles scattered once, worker devices).
+- :mod:`.dask`: the cluster side (one task per run of a few tiles, profiles scattered once, worker devices).
 """
 
 from __future__ import annotations

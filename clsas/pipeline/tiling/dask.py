@@ -1,11 +1,15 @@
-"""Tiles on a Dask cluster: one task per tile, the profiles sent to each worker once.
+"""Tiles on a Dask cluster: one task per run of a few tiles, the profiles sent to each worker once.
 
 ``reconstruct(..., client=Client or "tcp://scheduler:8786")``. The client process compresses the
 recordings into range profiles, scatters them to every worker once (``broadcast=True``), and
-submits one task per tile; the tiles come back as they finish and are written to the file (or
-the in-memory image) there. A worker lost mid-run is replaced by Dask, which forms its tiles
-again elsewhere (a tile is a pure function of the profiles and its sub-grid, so the image is
-the same); each task may also be retried twice after an error.
+submits one task per run of consecutive pending tiles (:func:`tile_runs`: up to
+:data:`MAX_TILES_PER_TASK`, and at least two tasks per worker where there are tiles enough). A
+worker forms its run in turn (:func:`clsas.pipeline.tiling.tiles.form_in_turn`: bp on OpenCL
+runs the next tile's kernels while the last tile is read back); a task's tiles come back when it
+finishes and are written to the file (or the in-memory image) there, each once, so a rerun of an
+interrupted file forms only the tiles not written. A worker lost mid-run is replaced by Dask,
+which forms its tiles again elsewhere (a tile is a pure function of the profiles and its
+sub-grid, so the image is the same); each task may also be retried twice after an error.
 
 Which OpenCL device a worker uses: the one ``PYOPENCL_CTX`` names in the worker's environment
 (one worker per GPU: ``PYOPENCL_CTX=0:0 dask worker ADDRESS --nthreads 1``, then ``0:1`` for the
@@ -27,12 +31,14 @@ import os
 
 from ... import cl
 from ...cluster import connect, import_distributed
-from .tiles import form_tile
+from .tiles import form_in_turn
 
-__all__ = ["OpenCLDevicePlugin", "connect", "import_distributed", "n_workers", "run_on_cluster", "worker_device",
-           "worker_selection"]
+__all__ = ["MAX_TILES_PER_TASK", "OpenCLDevicePlugin", "connect", "import_distributed", "n_workers",
+           "run_on_cluster", "tile_runs", "worker_device", "worker_selection"]
 
 log = logging.getLogger(__name__)
+
+MAX_TILES_PER_TASK = 4  # a worker holds this many tiles' values until its task returns
 
 try:  # the plugin must be a WorkerPlugin for Client.register_plugin; without distributed it is never registered
     from distributed import WorkerPlugin as _PluginBase
@@ -125,15 +131,36 @@ def worker_selection(requested, device=None, threads: int | None = None) -> tupl
     return cl.select(requested, queue), int(queue.device.max_compute_units)
 
 
-def _tile_task(profiles, grid, formation, options, requested, force):
-    """A task: form one tile on this worker's device (a sub-device of its threads' compute units)."""
+def _tiles_task(profiles, grids, formation, options, requested, force, overlap):
+    """A task: form a run of tiles in turn on this worker's device (a sub-device of its threads'
+    compute units); one ``(values, device, seconds, compute_units, bp, overlapped)`` per tile."""
     selection, units = worker_selection(requested, worker_device())
     # the worker's own copy of the profiles, shared by its tasks, made read-only: bp's resident path then
     # uploads it and makes its records on the device for the first tile, and keeps them for the others
     profiles.data.flags.writeable = False
-    vals, dev, seconds, records = form_tile(profiles, grid, formation, options, selection, force)
     cu = "" if units is None else f", {units} CU"
-    return vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units, records
+    overlap = overlap and len(grids) > 1  # one tile has nothing to overlap
+    return [(vals, f"{dev} (pid {os.getpid()}{cu})", seconds, units, bp, overlapped)
+            for vals, dev, seconds, bp, overlapped in form_in_turn(profiles, grids, formation, options,
+                                                                   selection, force, overlap)]
+
+
+def tile_runs(pending: list[int], workers: int, most: int = MAX_TILES_PER_TASK) -> list[list[int]]:
+    """``pending`` cut into runs of consecutive entries, one task each: as long as leaves at least
+    two tasks per worker (so that every worker has work and a slow one does not hold the end),
+    between 1 and ``most`` tiles.
+
+    >>> tile_runs(list(range(8)), workers=2)
+    [[0, 1], [2, 3], [4, 5], [6, 7]]
+    >>> tile_runs([1, 2, 5, 6, 7, 8], workers=1)
+    [[1, 2, 5], [6, 7, 8]]
+    """
+    if not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers must be a positive integer, got {workers!r}")
+    if not isinstance(most, int) or most < 1:
+        raise ValueError(f"most must be a positive integer, got {most!r}")
+    size = max(1, min(most, len(pending) // (2 * workers)))
+    return [list(pending[k:k + size]) for k in range(0, len(pending), size)]
 
 
 def n_workers(client) -> int:
@@ -146,26 +173,31 @@ def n_workers(client) -> int:
             c.close()
 
 
-def run_on_cluster(client, profiles, tiles, pending, formation, options, requested, force, resources=None):
-    """Yield ``(tile, values, device, seconds, compute_units, records)`` for the ``pending`` tiles,
-    formed on the cluster (``device`` names the worker's process and compute units; ``records``:
-    :func:`clsas.pipeline.tiling.tiles.records_source`)."""
+def run_on_cluster(client, profiles, tiles, pending, formation, options, requested, force, resources=None,
+                   overlap: bool = True):
+    """Yield ``(tile, values, device, seconds, compute_units, bp, overlapped)`` for the ``pending``
+    tiles, formed on the cluster in runs of a few tiles per task (:func:`tile_runs`), each task's
+    tiles as soon as it finishes (``device`` names the worker's process and compute units;
+    ``bp``: :func:`clsas.pipeline.tiling.tiles.bp_record`; ``overlapped``: formed with
+    the next tile's kernels beside its read back)."""
     distributed = import_distributed()
     c, own = connect(client)
     try:
         prof = c.scatter(profiles, broadcast=True, hash=False)
         futures = {}
-        for i in pending:
-            f = c.submit(_tile_task, prof, tiles[i].grid, formation, options, requested, force, pure=False,
-                         retries=2, resources=resources, key=f"clsas-tile-{i}-{os.urandom(4).hex()}")
-            futures[f.key] = (f, i)
+        for run in tile_runs(list(pending), max(1, len(c.scheduler_info()["workers"]))):
+            f = c.submit(_tiles_task, prof, [tiles[i].grid for i in run], formation, options, requested, force,
+                         overlap, pure=False, retries=2, resources=resources,
+                         key=f"clsas-tiles-{run[0]}-{run[-1]}-{os.urandom(4).hex()}")
+            futures[f.key] = (f, run)
         # as_completed waits on the loop it is given, else the *default* client's: with two clients in
         # one process (a LocalCluster's and another) the default one's loop may never see these futures
-        for f, (vals, device, seconds, units, records) in distributed.as_completed(
-                [f for f, _ in futures.values()], loop=c.loop, with_results=True):
-            _, i = futures.pop(f.key)
+        for f, formed in distributed.as_completed([f for f, _ in futures.values()], loop=c.loop,
+                                                  with_results=True):
+            _, run = futures.pop(f.key)
             f.release()
-            yield tiles[i], vals, device, seconds, units, records
+            for i, (vals, device, seconds, units, bp, overlapped) in zip(run, formed, strict=True):
+                yield tiles[i], vals, device, seconds, units, bp, overlapped
         del prof
     finally:
         if own:

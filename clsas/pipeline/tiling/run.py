@@ -8,8 +8,11 @@ are computed from each tile's own origin). The tiles go to a chunked file
 
 Several devices (``device=[...]``): one thread per device takes the next tile as soon as it is
 free, so each device forms a share of the tiles proportional to its measured throughput (the
-tiles and pairs/s of each are reported in ``image.provenance["tiles"]``). Two entries naming
-the same device share its queue and take turns on it.
+tiles and pairs/s of each are reported in ``image.provenance["tiles"]``). Each thread forms its
+tiles in turn as one device does (:func:`~clsas.pipeline.tiling.tiles.form_in_turn`: bp on OpenCL
+runs the next tile's kernels while the last one is read back), taking a tile from the shared
+queue only as it hands the previous one on. Two entries naming the same device share its queue
+and take turns on it.
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import logging
 import queue as _queue
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -29,7 +33,7 @@ from ...physics.geometry import VoxelGrid
 from ...types.image import Image
 from ...types.profiles import Profiles
 from .store import open_store, request_digest
-from .tiles import form_tile, profile_bytes, read_only, records_source, rss_bytes, tile_grid, tile_shape_for
+from .tiles import form_in_turn, profile_bytes, read_only, rss_bytes, tile_grid, tile_shape_for
 
 __all__ = ["TiledRequest", "form_tiled"]
 
@@ -47,7 +51,7 @@ class TiledRequest:
     client: object = None  # a distributed.Client, a scheduler address, or None
     tile_shape: tuple[int, int, int] | None = None
     devices: tuple = ()  # several devices on this host (empty: the one selection)
-    overlap: bool = True  # one device: the next tile's kernels run while the last tile is read and written
+    overlap: bool = True  # per device or worker: the next tile's kernels run while the last one is read and written
 
 
 @dataclass
@@ -59,11 +63,19 @@ class _Tally:
     pairs: dict = field(default_factory=dict)
     units: dict = field(default_factory=dict)
     records: dict = field(default_factory=dict)  # tiles per source of bp's device records
+    variants: dict = field(default_factory=dict)  # tiles per bp kernel variant
+    bounds: dict = field(default_factory=dict)  # bp kernel variant -> its stated error bound
+    overlapped: int = 0  # tiles formed with the next tile's kernels beside their read back
 
     def add(self, device: str, seconds: float, pairs: float, units: int | None = None,
-            records: str | None = None) -> None:
-        if records is not None:
-            self.records[records] = self.records.get(records, 0) + 1
+            bp: dict | None = None, overlapped: bool = False) -> None:
+        self.overlapped += bool(overlapped)
+        bp = bp or {}
+        if bp.get("records") is not None:
+            self.records[bp["records"]] = self.records.get(bp["records"], 0) + 1
+        if bp.get("variant") is not None:
+            self.variants[bp["variant"]] = self.variants.get(bp["variant"], 0) + 1
+            self.bounds[bp["variant"]] = bp.get("error_bound")
         self.tiles[device] = self.tiles.get(device, 0) + 1
         self.seconds[device] = self.seconds.get(device, 0.0) + seconds
         self.pairs[device] = self.pairs.get(device, 0.0) + pairs
@@ -107,13 +119,13 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
     try:
         if progress is not None:
             progress(done, len(tiles))
-        for tile, vals, device, seconds, units, records in _run(profiles, tiles, pending, formation, options,
-                                                                selections, request, force):
+        for tile, vals, device, seconds, units, bp, overlapped in _run(profiles, tiles, pending, formation,
+                                                                       options, selections, request, force):
             if store is not None:
                 store.write(tile, vals)
             else:
                 values[tile.slices] = vals
-            tally.add(device, seconds, float(tile.size) * profiles.n_meas, units, records)
+            tally.add(device, seconds, float(tile.size) * profiles.n_meas, units, bp, overlapped)
             done += 1
             if progress is not None:
                 progress(done, len(tiles))
@@ -125,7 +137,10 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
                       "resumed": len(tiles) - len(pending), "devices": tally.report()}}
     if tally.records:  # bp's resident path: where each tile's carrier records came from
         prov["tiles"]["records"] = dict(tally.records)
-        prov["tiles"]["overlap"] = _overlaps(request, selections)
+        prov["tiles"]["overlap"] = tally.overlapped > 0
+    if tally.variants:  # bp's kernel variants, tiles each, and the error each states
+        prov["tiles"]["bp_variants"] = {k: {"tiles": n, "error_bound": tally.bounds[k]}
+                                        for k, n in tally.variants.items()}
     return Image(values, grid, "bp", kind, "; ".join(devices),
                  {"form_tiles": time.perf_counter() - t0}, provenance=prov)
 
@@ -154,9 +169,14 @@ def _n_parallel(client, selections) -> int:
 
 
 def _auto_shape(grid, profiles, kind, request: TiledRequest, n_parallel: int) -> tuple[int, int, int]:
-    """Tiles within the budget, and at least 4 per worker (Dask) or device (where there are several)."""
+    """Tiles within the budget, and at least 4 per worker (Dask) or device (where there are several);
+    a Dask worker holds the values of the run of tiles its task returns together (``max_memory`` is
+    each worker's budget there)."""
+    held = 1
     if request.client is not None:
-        fixed = _WORKER_BASE_BYTES + profile_bytes(profiles)
+        from .dask import MAX_TILES_PER_TASK
+
+        fixed, held = _WORKER_BASE_BYTES + profile_bytes(profiles), MAX_TILES_PER_TASK
     else:
         fixed = rss_bytes() + profile_bytes(profiles)
         if request.out is None:  # the image itself is held in memory
@@ -168,7 +188,8 @@ def _auto_shape(grid, profiles, kind, request: TiledRequest, n_parallel: int) ->
     if budget is None and request.out is not None:  # a file without a budget: tiles of a tenth of free memory
         avail = available_memory_bytes()
         budget = fixed + 0.1 * avail if avail else None
-    return tile_shape_for(grid, kind, max_memory=budget, fixed_bytes=int(fixed), min_tiles=min_tiles)
+    return tile_shape_for(grid, kind, max_memory=budget, fixed_bytes=int(fixed), min_tiles=min_tiles,
+                          held_tiles=held)
 
 
 def _units(selection: cl.Selection) -> int | None:
@@ -177,46 +198,35 @@ def _units(selection: cl.Selection) -> int | None:
 
 
 def _run(profiles, tiles, pending, formation, options, selections, request, force):
-    """Yield ``(tile, values, device, seconds, compute_units, records)`` for each pending tile, as they
-    finish (``records``: :func:`clsas.pipeline.tiling.tiles.records_source`)."""
+    """Yield ``(tile, values, device, seconds, compute_units, bp, overlapped)`` for each pending
+    tile, as they finish (``bp``: :func:`clsas.pipeline.tiling.tiles.bp_record`;
+    ``overlapped``: formed with the next tile's kernels running beside its read back)."""
     if request.client is not None:
         from .dask import run_on_cluster
 
         yield from run_on_cluster(request.client, profiles, tiles, pending, formation, options,
-                                  selections[0].requested, force)
+                                  selections[0].requested, force, overlap=request.overlap)
     elif len(selections) == 1:
         yield from _run_one(profiles, tiles, pending, formation, options, selections[0], request.overlap, force)
     else:
-        yield from _run_threads(profiles, tiles, pending, formation, options, selections, force)
-
-
-def _overlaps(request: TiledRequest, selections) -> bool:
-    """Whether the tiles' kernels overlapped the read back and writing of the previous tile."""
-    return request.overlap and request.client is None and len(selections) == 1 and selections[0].opencl
+        yield from _run_threads(profiles, tiles, pending, formation, options, selections, request.overlap, force)
 
 
 def _run_one(profiles, tiles, pending, formation, options, selection, overlap: bool, force):
-    """The tiles on one device, one after the other; a formation that forms tiles itself
-    (``form_tiles``, bp: the next tile's kernels overlapping the last one's read back) on OpenCL."""
-    from ...formation import FORMATIONS
-
-    form_tiles = getattr(FORMATIONS[formation], "form_tiles", None)
+    """The tiles on one device, one after the other (:func:`~clsas.pipeline.tiling.tiles.form_in_turn`:
+    bp on OpenCL forms the next tile's kernels while the last one is read back and written)."""
     units = _units(selection)
-    if form_tiles is None or not selection.opencl:
-        for i in pending:
-            vals, device, seconds, records = form_tile(profiles, tiles[i].grid, formation, options, selection, force)
-            yield tiles[i], vals, device, seconds, units, records
-        return
-    t0 = time.perf_counter()
-    images = form_tiles(profiles, (tiles[i].grid for i in pending), backend=selection, force=force,
-                        overlap=overlap, **options)
-    for i, image in zip(pending, images, strict=True):
-        seconds, t0 = time.perf_counter() - t0, time.perf_counter()  # the tile's share of the run's time
-        yield tiles[i], np.asarray(image.values), image.device, seconds, units, records_source(image)
+    grids = (tiles[i].grid for i in pending)
+    for i, formed in zip(pending, form_in_turn(profiles, grids, formation, options, selection, force, overlap),
+                         strict=True):
+        vals, device, seconds, bp, overlapped = formed
+        yield tiles[i], vals, device, seconds, units, bp, overlapped
 
 
-def _run_threads(profiles, tiles, pending, formation, options, selections, force):
-    """One thread per device, each taking the next tile when it is free; results as they finish."""
+def _run_threads(profiles, tiles, pending, formation, options, selections, overlap: bool, force):
+    """One thread per device, each taking the next tile from a shared queue when it is free (at most
+    one tile ahead of the one it hands on: :func:`~clsas.pipeline.tiling.tiles.form_in_turn`);
+    results as they finish."""
     todo: _queue.Queue = _queue.Queue()
     for i in pending:
         todo.put(i)
@@ -228,19 +238,30 @@ def _run_threads(profiles, tiles, pending, formation, options, selections, force
 
     def worker(sel):
         lock = locks[id(sel.queue) if sel.opencl else id(sel)]
-        while not stop.is_set():
-            try:
-                i = todo.get_nowait()
-            except _queue.Empty:
-                return
-            try:
-                with lock:
-                    out = form_tile(profiles, tiles[i].grid, formation, options, sel, force)
-            except Exception as exc:  # noqa: BLE001 - handed to the caller's thread and raised there
-                results.put(exc)
-                return
-            vals, device, seconds, records = out
-            results.put((tiles[i], vals, device, seconds, _units(sel), records))
+        taken: deque = deque()  # the tiles this thread took, in the order their images come
+
+        def grids():
+            while not stop.is_set():
+                try:
+                    i = todo.get_nowait()
+                except _queue.Empty:
+                    return
+                taken.append(i)
+                yield tiles[i].grid
+
+        formed = form_in_turn(profiles, grids(), formation, options, sel, force, overlap)
+        try:
+            while True:
+                with lock:  # the enqueues of the next tile and the wait for this one's image
+                    out = next(formed, None)
+                if out is None:
+                    return
+                vals, device, seconds, bp, overlapped = out
+                results.put((tiles[taken.popleft()], vals, device, seconds, _units(sel), bp, overlapped))
+        except Exception as exc:  # noqa: BLE001 - handed to the caller's thread and raised there
+            results.put(exc)
+        finally:
+            formed.close()
 
     threads = [threading.Thread(target=worker, args=(s,), daemon=True) for s in selections]
     for t in threads:
@@ -253,7 +274,7 @@ def _run_threads(profiles, tiles, pending, formation, options, selections, force
             yield item
     finally:
         stop.set()
-        while any(t.is_alive() for t in threads):  # let each finish its tile; drop what they still hand in
+        while any(t.is_alive() for t in threads):  # let each finish its tiles; drop what they still hand in
             try:
                 results.get(timeout=0.1)
             except _queue.Empty:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -19,8 +20,8 @@ from ...formation.guard import bytes_per_voxel
 from ...physics.geometry import VoxelGrid
 from ...types.profiles import Profiles
 
-__all__ = ["Tile", "form_tile", "read_only", "records_source", "tile_grid", "tile_shape_for", "rss_bytes",
-           "peak_rss_bytes", "profile_bytes"]
+__all__ = ["Tile", "form_in_turn", "form_tile", "read_only", "bp_record", "tile_grid", "tile_shape_for",
+           "rss_bytes", "peak_rss_bytes", "profile_bytes"]
 
 # what a tile costs on the host beyond the formation's own bytes per voxel: the values handed
 # to the writer (complex64) and the writer's conversion to HDF5's compound (complex64)
@@ -82,13 +83,17 @@ def profile_bytes(profiles: Profiles) -> int:
     memory): the profiles, and the OpenCL path's copy of them and carrier records (complex64
     pairs, upsampled), kept for every tile; at least four times the complex128 data."""
     records = 16 * profiles.n_meas * ((profiles.n_lags - 1) * upsample_factor(profiles.fc_hz, profiles.dtau_s) + 1)
-    return int(max(4 * profiles.data.nbytes, 2 * profiles.data.nbytes + records) + 64 * profiles.n_meas)
+    # complex64 rows still on the device are not read to count them
+    data = 8 * profiles.n_meas * profiles.n_lags if profiles.device_rows() is not None else profiles.data.nbytes
+    return int(max(4 * data, 2 * data + records) + 64 * profiles.n_meas)
 
 
 def read_only(profiles: Profiles) -> Profiles:
     """``profiles`` with read-only data (a view where it was writeable): the OpenCL path keeps
-    the records it made on the device for the next tile only for an array that cannot change."""
-    if not profiles.data.flags.writeable:
+    the records it made on the device for the next tile only for an array that cannot change.
+    Profiles whose rows are still on the device are returned as they are (not read: their host
+    copy, when read, is read-only)."""
+    if profiles.device_rows() is not None or not profiles.data.flags.writeable:
         return profiles
     view = profiles.data.view()
     view.flags.writeable = False
@@ -96,7 +101,7 @@ def read_only(profiles: Profiles) -> Profiles:
 
 
 def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = None, fixed_bytes: int = 0,
-                   min_tiles: int = 1) -> tuple[int, int, int]:
+                   min_tiles: int = 1, held_tiles: int = 1) -> tuple[int, int, int]:
     """The largest tile shape whose forming fits ``max_memory`` and that gives ``min_tiles`` tiles.
 
     Whole (y, z) planes of several x-planes where they fit, else planes split along y, then z.
@@ -114,8 +119,14 @@ def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = Non
         What the process holds whatever the tile (its current size, the profiles), bytes.
     min_tiles : int
         At least this many tiles (to spread over workers or devices).
+    held_tiles : int
+        Tiles whose values the process holds at once (a Dask task returns its run of tiles
+        together): each beyond the first costs its values (complex64 on OpenCL, complex128 on
+        NumPy) on top of the tile being formed.
     """
-    per_voxel = bytes_per_voxel(kind) + _WRITE_BYTES
+    if not isinstance(held_tiles, int) or held_tiles < 1:
+        raise ValueError(f"held_tiles must be a positive integer, got {held_tiles!r}")
+    per_voxel = bytes_per_voxel(kind) + _WRITE_BYTES + (held_tiles - 1) * (8 if kind == "opencl" else 16)
     cap = grid.size
     if max_memory is not None:
         room = _TILE_SHARE * (float(max_memory) - fixed_bytes)
@@ -136,20 +147,49 @@ def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = Non
 
 def form_tile(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, selection,
               force: bool = False) -> tuple[np.ndarray, str, float, str | None]:
-    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds, records)``,
-    ``records`` where bp's resident path took its carrier records (:func:`records_source`)."""
+    """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds, bp)``,
+    ``bp`` what bp recorded of it (:func:`bp_record`)."""
     from ...formation import form
 
     t0 = time.perf_counter()
     image = form(profiles, grid, formation, backend=selection, force=force, **options)
-    return np.asarray(image.values), image.device, time.perf_counter() - t0, records_source(image)
+    return np.asarray(image.values), image.device, time.perf_counter() - t0, bp_record(image)
 
 
-def records_source(image) -> str | None:
-    """Where bp's resident OpenCL path took a tile's carrier records (``"rows"``: the
-    compression's device rows, ``"uploaded"``, ``"kept"``: from an earlier tile); None: not
-    that path."""
-    return image.provenance.get("bp", {}).get("records")
+def form_in_turn(profiles: Profiles, grids: Iterable[VoxelGrid], formation: str, options: dict, selection,
+                 force: bool = False,
+                 overlap: bool = True) -> Iterator[tuple[np.ndarray, str, float, str | None, bool]]:
+    """Each grid of ``grids`` formed in turn: ``(values, device, seconds, bp, overlapped)`` (``bp``:
+    :func:`bp_record`).
+
+    A formation that forms tiles itself (``form_tiles``, bp: the next tile's kernels enqueued
+    before the last tile's image is read back and handed on) does so on OpenCL, taking each grid
+    only as the previous image is handed on, so that it holds at most one grid ahead of the
+    caller (a shared queue of tiles stays shared); ``seconds`` is then the tile's share of the
+    run's wall time and ``overlapped`` is ``overlap`` (False for a tile that fell back to the
+    twin). Elsewhere one :func:`form_tile` after the
+    other (``overlapped`` False).
+    """
+    from ...formation import FORMATIONS
+
+    form_tiles = getattr(FORMATIONS[formation], "form_tiles", None)
+    if form_tiles is None or not selection.opencl:
+        for grid in grids:
+            yield (*form_tile(profiles, grid, formation, options, selection, force), False)
+        return
+    t0 = time.perf_counter()
+    for image in form_tiles(profiles, grids, backend=selection, force=force, overlap=overlap, **options):
+        t1 = time.perf_counter()
+        seconds, t0 = t1 - t0, t1
+        overlapped = overlap and image.backend == "opencl"  # not where the twin took over
+        yield np.asarray(image.values), image.device, seconds, bp_record(image), overlapped
+
+
+def bp_record(image) -> dict | None:
+    """What bp recorded of a tile (``image.provenance["bp"]``: the kernel variant and its stated
+    error, and on the resident OpenCL path where its carrier records came from: ``"rows"``, the
+    compression's device rows, ``"uploaded"``, ``"kept"`` from an earlier tile); None: not bp."""
+    return image.provenance.get("bp")
 
 
 def rss_bytes() -> int:

@@ -1,4 +1,4 @@
-"""The shape of the package (issue 25): no import cycle, the device layer imports nothing above it,
+"""The shape of the package: no import cycle, the device layer imports nothing above it,
 no function shadows a package, every module imports in a fresh interpreter, and the test markers
 select what they say."""
 

@@ -1,4 +1,4 @@
-"""The K-echo benchmark task (issue 17's table): the references and the table's shape."""
+"""The K-echo benchmark task: the references and the table's shape."""
 
 import numpy as np
 

@@ -288,7 +288,7 @@ def test_stop_images_sum_to_the_image(backend):
 
 def test_phase_step_recovers_jitter_where_the_local_search_fails():
     # 3 mm RMS of hand-like motion, mostly along the line of sight: about 2.5 rad RMS of two-way
-    # phase at 25 kHz; the gradient search alone climbs to a wrong optimum (part 1 of issue 14)
+    # phase at 25 kHz; the gradient search alone climbs to a wrong optimum
     ds = scan(position_error=HandMotion(0.003, seed=4, weights=(0.3, 0.3, 1.0)))
     out, rep = autofocus(ds, GRID, methods=("phase",))
     s = score(rep, ds)

@@ -1,4 +1,4 @@
-"""Autofocus estimates only what the scan determines (issue 26): the failures of sharpness alone
+"""Autofocus estimates only what the scan determines: the failures of sharpness alone
 on scenes nobody tuned it on, each on a small scene, and the seeded scene family."""
 
 import numpy as np

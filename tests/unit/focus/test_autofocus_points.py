@@ -1,4 +1,4 @@
-"""The ``"points"`` motion step (issue 26, fifth session): the phases the strong points share,
+"""The ``"points"`` motion step: the phases the strong points share,
 rank one, unwrapped in time, determined only on isolated points, applied only where disjoint
 sub-apertures agree better."""
 

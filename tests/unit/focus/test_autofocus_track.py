@@ -1,4 +1,4 @@
-"""The ``"track"`` motion step (issue 26): phases of neighbouring stops integrated, no free
+"""The ``"track"`` motion step: phases of neighbouring stops integrated, no free
 unwrapping, determined only where the even and odd stops agree, and a check on positions."""
 
 import numpy as np
@@ -34,7 +34,7 @@ def scan(nx=15, ny=11, width=0.3, height=0.2, **kw):
 def test_integrated_phases_are_not_wrapped():
     # a path that drifts over several wavelengths: per-stop phases wrap many times, their
     # neighbours' differences do not; integrating the differences gives the path back, where
-    # unwrapping noisy per-stop phases left whole-wavelength jumps (issue 26)
+    # unwrapping noisy per-stop phases left whole-wavelength jumps
     rng = np.random.default_rng(0)
     n = 120
     xy = np.c_[np.tile(np.arange(12.0), 10), np.repeat(np.arange(10.0), 12)] * 0.02
@@ -202,7 +202,7 @@ def test_speckle_at_close_range_is_not_determined_and_the_input_comes_back():
     assert m.uncertainty > 0.5 * 2.5e-3  # half the closer split's difference, over half the tolerance
     assert out is ds and not rep.improved
     assert any("not determined" in n for n in rep.notes) and any("input is returned" in n for n in rep.notes)
-    # and it says why: the closest stops' images are too unlike (issue 26, eleventh session)
+    # and it says why: the closest stops' images are too unlike
     assert any("closest stops' images agree" in n for n in rep.notes)
 
 
@@ -214,7 +214,7 @@ def _peak_db(out, fs):
 def test_a_surface_whose_halves_decorrelate_is_determined_by_its_two_sides():
     # family seed 2002 (tuning-2): a plane at 1.77 m, 17 x 28 stops 30 x 9 mm apart, 3 mm of hand
     # motion. The even and odd stops (60 mm apart along the rows) track different paths; the
-    # target's two sides, tracked with every stop, agree (issue 26, eleventh session)
+    # target's two sides, tracked with every stop, agree
     from clsas.synthesis.scene_family import family_scene
 
     fs = family_scene(2002, rms_m=3e-3)

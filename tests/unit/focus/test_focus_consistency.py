@@ -1,4 +1,4 @@
-"""The data-consistency test (issue 26, thirteenth session): a least-squares target in the grid
+"""The data-consistency test: a least-squares target in the grid
 explains a static scan to the noise, and leaves a scan with motion largely unexplained."""
 
 import numpy as np

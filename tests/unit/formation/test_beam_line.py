@@ -1,4 +1,4 @@
-"""Omega-k for 2-D line scans (issue 33): the 2-D Stolt step against exact backprojection."""
+"""Omega-k for 2-D line scans: the 2-D Stolt step against exact backprojection."""
 
 import numpy as np
 import pytest

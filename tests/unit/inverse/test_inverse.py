@@ -1,5 +1,5 @@
 """The forward projector (kernels/project.cl and its twin), the imaging operator and the model-based
-methods of clsas.inverse (issue 28)."""
+methods of clsas.inverse."""
 
 from dataclasses import replace
 

@@ -1,4 +1,4 @@
-"""Transducer beams in the model-based operator (issue 33, item 2): the forward projector weights each
+"""Transducer beams in the model-based operator: the forward projector weights each
 voxel-measurement pair as beam-weighted backprojection does, so it stays the exact adjoint; the kernel's
 -DBEAM variant against its twin, the operator's A^H against clsas.backproject, the methods' default
 choice, validation by name, and Oclgrind on the BEAM build of kernels/project.cl."""

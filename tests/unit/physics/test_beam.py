@@ -1,4 +1,4 @@
-"""Beam models, boresights, the dataset file, the configuration table and the c_mps warning (issue 33)."""
+"""Beam models, boresights, the dataset file, the configuration table and the c_mps warning."""
 
 import logging
 
@@ -111,7 +111,7 @@ def test_beams_round_trip_through_the_file_and_subset(tmp_path):
     assert back.beams.specs() == beams.specs()
     np.testing.assert_allclose(back.beams.tx_boresight, beams.tx_boresight)
     np.testing.assert_allclose(back.subset(slice(1, 3)).beams.tx_boresight, beams.tx_boresight[1:3])
-    # a file without beams (every file before issue 33) loads as omnidirectional
+    # a file without beams (every file written before beams were stored) loads as omnidirectional
     assert clsas.load(_dataset(c_mps=1480.0).save(tmp_path / "o.h5")).beams is None
     with pytest.raises(ValueError, match="n_meas=4"):
         _dataset(beams=Beams(Omni(), Omni(), (0, 0, 1), (0, 0, 1), 3), c_mps=1480.0)

@@ -1,4 +1,4 @@
-"""One registry pattern (issue 25): a toy formation, sparse method and importer, each one module that
+"""One registry pattern: a toy formation, sparse method and importer, each one module that
 registers itself, are found by ``reconstruct``, ``clsas import`` and the command line's choices."""
 
 from __future__ import annotations

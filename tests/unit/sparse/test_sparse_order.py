@@ -1,4 +1,4 @@
-"""Model order and weak echoes (issue 17, part B): the order test's threshold holds its stated
+"""Model order and weak echoes: the order test's threshold holds its stated
 false-alarm rate, an analytic signal's noise is counted with its true degrees of freedom, and
 BPDN's debias-and-detect step finds weak echoes that the convex solve leaves under lam."""
 

@@ -314,7 +314,7 @@ def _three_echoes_of_the_heard_pulse():
 
 @pytest.mark.parametrize("method", ["bpdn", "cbp-polar"])
 def test_the_heard_pulse_as_the_atom_removes_the_mismatch_echoes(method):
-    """Issue 17, the atom matches the physics: with the transmit chirp as the atom, the
+    """The atom matches the physics: with the transmit chirp as the atom, the
     transducers' colouring leaves a residual at every echo and the methods add echoes beside
     the three (measured: bpdn 8-9, cbp-polar 6); with ``pulse=`` the heard pulse, exactly the
     three, on their delays."""
@@ -345,7 +345,7 @@ def test_pulse_option_is_validated():
 
 
 def test_super_resolved_profiles_carry_the_datasets_beams():
-    # issue 33: the sparse methods' profiles keep the transducers' beams, so bp applies them
+    # the sparse methods' profiles keep the transducers' beams, so bp applies them
     from clsas.physics.beam import Beams, Cone
     from clsas.sparse.profiles import superres_profiles
 

@@ -1,4 +1,4 @@
-"""Stress cases of the sparse methods (issue 17): trivial inputs answered without a solve, pure
+"""Stress cases of the sparse methods: trivial inputs answered without a solve, pure
 noise ("nothing here" at a stated false-alarm rate), scale invariance from 1e-200 to 1e200,
 echoes cut by the window's edges, a DC offset, a single nonzero sample, cvxpy memory refused."""
 
@@ -154,7 +154,7 @@ def test_dc_offset_does_not_merge_echoes(pulse, method, amplitudes):
 def test_single_nonzero_sample(pulse, method, amplitudes):
     """An impulse is no echo of a chirp: no echo larger than the impulse could explain (no
     cancelling pairs). Every method spreads it over a few echoes (at most the default cap);
-    fewer is issue 17's open part."""
+    fewer is an open question."""
     x = np.zeros(N)
     x[80] = 1.0
     e = _run(method, amplitudes, x, pulse)
@@ -212,7 +212,7 @@ def _long_profile(pulse, rng, n=1000):
 
 def test_bpdn_default_reaches_its_gap_on_a_1000_sample_profile(pulse):
     """BPDN at superres's default tol certifies its gap on a 1000-sample profile within a bounded
-    amount of work (issue 17's budget of 1 s per 1000 samples is a benchmark figure,
+    amount of work (the budget of 1 s per 1000 samples is a benchmark figure,
     bench/bpdn_budget.py, not tested: over 20 profiles 0.17-0.33 s, median 0.27 s and 300-450
     FISTA steps with the Newton polish on a 2-core VM; FISTA alone took 0.35-1.40 s and up to
     11,000 steps, and before the working-set fix minutes and 6 million)."""

@@ -189,8 +189,68 @@ def test_workers_form_their_tiles_from_records_uploaded_once(scene, client):
     workers = len(tiles["devices"])
     assert tiles["count"] >= 8 and 1 <= workers <= 2
     assert tiles["records"] == {"uploaded": workers, "kept": tiles["count"] - workers}, tiles
-    assert tiles["overlap"] is False  # one task per tile: nothing to overlap within a worker
+    assert tiles["overlap"] is True  # runs of tiles per task, each formed with the next one's kernels beside it
     np.testing.assert_allclose(image.values, ref.values, rtol=0, atol=TOL["backproject"] * np.abs(ref.values).max())
+
+
+def test_tile_runs_give_every_worker_work():
+    from clsas.pipeline.tiling.dask import MAX_TILES_PER_TASK, tile_runs
+
+    assert tile_runs(list(range(8)), 2) == [[0, 1], [2, 3], [4, 5], [6, 7]]
+    assert tile_runs(list(range(4)), 2) == [[0], [1], [2], [3]]  # two tasks per worker before runs of two
+    assert tile_runs([0, 3, 4, 9, 10], 1) == [[0, 3], [4, 9], [10]]  # runs of what is pending, across gaps
+    assert tile_runs([], 3) == []
+    for n, workers in [(1, 1), (7, 3), (40, 2), (100, 1), (9, 16)]:
+        runs = tile_runs(list(range(n)), workers)
+        assert [i for r in runs for i in r] == list(range(n))  # every tile once, in order
+        assert all(1 <= len(r) <= MAX_TILES_PER_TASK for r in runs)
+        assert len(runs) >= min(n, 2 * workers)
+    with pytest.raises(ValueError, match="workers"):
+        tile_runs([0], 0)
+
+
+class _Stop(Exception):
+    pass
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("opencl", marks=needs_opencl)])
+def test_a_run_interrupted_inside_a_task_resumes_with_its_other_tiles(scene, client, tmp_path, monkeypatch, backend):
+    """Tasks of several tiles, the run stopped after the first tile of the first task that came back
+    (its other tiles formed but not written): the rerun forms every tile not written, each tile is
+    written to the file once over both runs, and the file equals the untiled image (to bp's tolerance
+    on OpenCL)."""
+    from clsas.pipeline.tiling.dask import tile_runs
+    from clsas.pipeline.tiling.store import TileFile
+
+    ds, grid, _ = scene
+    ref = clsas.reconstruct(ds, grid, backend=backend, formation="bp")
+    shape = (2, 9, 17)
+    n = len(clsas.pipeline.tiling.tile_grid(grid, shape))
+    assert all(len(r) >= 2 for r in tile_runs(list(range(n)), 2))  # the first task back holds 2+ tiles
+    written = []
+    real = TileFile.write
+    monkeypatch.setattr(TileFile, "write", lambda self, tile, values: (written.append(tile.index),
+                                                                      real(self, tile, values)))
+
+    def stop_after_1(done, total):
+        if done >= 1:
+            raise _Stop
+
+    path = tmp_path / f"resume-{backend}.h5"
+    with pytest.raises(_Stop):
+        clsas.reconstruct(ds, grid, backend=backend, client=client, out=path, tile_shape=shape,
+                          formation="bp", progress=stop_after_1)
+    assert len(written) == 1
+    seen = []
+    image = clsas.reconstruct(ds, grid, backend=backend, client=client, out=path, tile_shape=shape,
+                              formation="bp", progress=lambda d, t: seen.append(d))
+    t = image.provenance["tiles"]
+    assert seen[0] == 1 and t["formed_now"] == n - 1 and t["resumed"] == 1
+    assert sorted(written) == list(range(n))  # each tile written once over both runs
+    if backend == "opencl":
+        assert t["overlap"] is True
+    tol = TOL["backproject"] if backend == "opencl" else 1e-6
+    np.testing.assert_allclose(image.values[()], ref.values, rtol=0, atol=tol * np.abs(ref.values).max())
 
 
 def test_scheduler_address_from_the_command_line(client, tmp_path, capsys):
@@ -224,7 +284,7 @@ HELD = "clsas-test-victim-holds-a-tile"
 
 
 def _hold_the_first_tile():
-    """Run on the victim worker: its first tile task says so (a cluster event) and never returns, so
+    """Run on the victim worker: its first task says so (a cluster event) and never returns, so
     that the kill lands while it holds a tile, and the run cannot end before the kill."""
     import threading
 
@@ -236,7 +296,7 @@ def _hold_the_first_tile():
         distributed.Event(HELD).set()
         threading.Event().wait()
 
-    tiling_dask._tile_task = held  # the task is sent by name and found here, in this process
+    tiling_dask._tiles_task = held  # the task is sent by name and found here, in this process
 
 
 def _kill_one_worker_mid_run(scene, client):

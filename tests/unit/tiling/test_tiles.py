@@ -53,6 +53,17 @@ def test_tile_shape_follows_the_budget():
     assert np.prod(chunk_shape((100, 50, 40))) * 8 <= 4 << 20
 
 
+def test_tile_shape_leaves_room_for_the_tiles_a_worker_holds():
+    """A Dask worker returns a run of tiles together: with 4 held, each voxel costs its forming
+    (56 bytes on OpenCL) and the values of 3 more tiles (8 bytes each), all within the budget."""
+    grid = clsas.VoxelGrid(np.arange(100.0), np.arange(50.0), np.arange(40.0))
+    held = tile_shape_for(grid, "opencl", max_memory=10e6, fixed_bytes=2e6, held_tiles=4)
+    assert np.prod(held) * (56 + 3 * 8) <= 0.6 * 8e6 < (held[0] + 1) * 50 * 40 * (56 + 3 * 8)
+    assert np.prod(held) < np.prod(tile_shape_for(grid, "opencl", max_memory=10e6, fixed_bytes=2e6))
+    with pytest.raises(ValueError, match="held_tiles"):
+        tile_shape_for(grid, "opencl", held_tiles=0)
+
+
 @pytest.mark.parametrize("text, n", [("2GB", 2e9), ("500 MB", 5e8), ("1.5GiB", 1.5 * 2**30), (1e6, 1e6)],
                          ids=["GB", "MB", "GiB", "number"])
 def test_parse_bytes(text, n):

@@ -9,6 +9,7 @@ from conftest import TOL, needs_opencl, small_dataset
 import clsas
 from clsas import cl
 from clsas.pipeline.tiling import TiledRequest, form_tiled, tile_grid
+from clsas.pipeline.tiling.tiles import profile_bytes
 
 pytestmark = needs_opencl
 
@@ -41,12 +42,39 @@ def test_tiles_take_the_records_once_and_equal_the_whole_image(scene):
     n = len(tile_grid(grid, shape))
     assert tiled.provenance["tiles"]["records"] == {"rows": 1, "kept": n - 1}
     assert tiled.provenance["tiles"]["overlap"] is True
+    # the kernel every tile ran and its stated error (the exact float kernel: no bound)
+    assert tiled.provenance["tiles"]["bp_variants"] == {"plain": {"tiles": n, "error_bound": None}}
     _close(tiled.values, whole.values)
     plans = _bp_plans()
     # one tile's voxels, padded to whole work-groups (a tuned local size pads further)
     assert len(plans) == 1 and plans[0].capacity < 2 * int(np.prod(shape)) + plans[0].per_group
     assert 2 * int(np.prod(shape)) < grid.size
     assert plans[0].image_buffers == 2  # two image buffers took turns
+
+
+def test_tiles_in_memory_read_no_profile_back(scene, monkeypatch):
+    """Tiles formed in memory on the device that compressed the profiles take them from the
+    device rows for every tile: sizing the tiles and keeping the records read nothing back."""
+    from clsas.cl import DeviceRows
+
+    ds, grid, whole = scene
+    reads = []
+    read = DeviceRows._read
+
+    def counted(rows):
+        reads.append(rows.n_rows)
+        return read(rows)
+
+    monkeypatch.setattr(DeviceRows, "_read", counted)
+    prof = clsas.compress(ds, backend="opencl")
+    shape = (5, 9, 17)
+    tiled = form_tiled(prof, grid, "bp", {}, cl.select("opencl"), TiledRequest(tile_shape=shape))
+    n = len(tile_grid(grid, shape))
+    assert tiled.provenance["tiles"]["records"] == {"rows": 1, "kept": n - 1}
+    unread = profile_bytes(prof)  # what sizing the tiles counts for them
+    assert reads == [] and not prof.on_device.is_read, "the profiles were read back"
+    _close(tiled.values, whole.values)
+    assert prof.data.dtype == np.complex64 and profile_bytes(prof) == unread  # the same count once read
 
 
 def test_out_of_core_within_a_budget_is_resident_and_equals_the_whole_image(scene, tmp_path):
@@ -187,3 +215,49 @@ def test_out_of_core_peak_memory_stays_within_the_budget():
     voxels, count, kept, budget, peak = (float(x) for x in res.stdout.split()[-5:])
     assert voxels * 56 > 2 * 25e6 and count > 1 and kept == count - 1
     assert peak <= budget, f"peak RSS {peak / 1e6:.0f} MB over the budget {budget / 1e6:.0f} MB"
+
+
+def test_tiles_formed_in_turn_take_at_most_one_grid_ahead(scene):
+    """form_in_turn takes each grid only as the previous image is handed on (bp's form_tiles holds
+    one tile's kernels enqueued beside the last one's read back, no more), so that threads sharing
+    a queue of tiles keep sharing it; the overlapped tiles equal the sequential ones."""
+    from clsas.pipeline.tiling.tiles import form_in_turn
+
+    ds, grid, whole = scene
+    prof = clsas.compress(ds, backend="opencl", gate_s=whole.plan.gate_s)
+    tiles = tile_grid(grid, (3, 17, 17))
+    for overlap in (True, False):
+        taken = []
+
+        def grids(taken=taken):
+            for t in tiles:
+                taken.append(t.index)
+                yield t.grid
+
+        handed = 0
+        for vals, _, seconds, bp, overlapped in form_in_turn(prof, grids(), "bp", {}, cl.select("opencl"),
+                                                             overlap=overlap):
+            handed += 1
+            assert len(taken) <= handed + (1 if overlap else 0), (len(taken), handed)
+            assert overlapped is overlap and seconds >= 0 and bp["records"] in ("uploaded", "rows", "kept")
+            _close(vals, whole.values[tiles[handed - 1].slices])
+        assert handed == len(tiles) == len(taken)
+
+
+@pytest.mark.parametrize("overlap", [True, False], ids=["overlapped", "sequential"])
+def test_several_device_threads_form_their_tiles_in_turn(scene, overlap):
+    """Two entries of one OpenCL device (two threads sharing its queue, taking turns on it): each
+    thread forms the tiles it takes in turn (overlapped where asked), every tile once, the records
+    made once per thread and kept for its other tiles; the image equals the untiled one within
+    bp's tolerance."""
+    ds, grid, whole = scene
+    prof = clsas.compress(ds, backend="opencl", gate_s=whole.plan.gate_s)
+    dev = cl.get_queue().device
+    shape = (2, 17, 17)
+    image = form_tiled(prof, grid, "bp", {}, cl.select("opencl"),
+                       TiledRequest(tile_shape=shape, devices=(dev, dev), overlap=overlap))
+    t = image.provenance["tiles"]
+    assert t["overlap"] is overlap
+    assert sum(d["tiles"] for d in t["devices"].values()) == t["count"] == len(tile_grid(grid, shape))
+    assert sum(t["records"].values()) == t["count"] and t["records"].get("kept", 0) >= t["count"] - 2, t
+    _close(image.values, whole.values)
