@@ -97,11 +97,9 @@ inline void lerp_pairs_half(__global const half *row, const floatV idx, const fl
 #define N_RUNS (VEC / RUN)
 
 /* runT: one lane per run of the work-item (float where there is one); RUN_SQRT: its lanes' square
- * roots; RUN_FIRST: the run's first lane of a lanes_f; SPREAD: each run's value over its lanes,
- * selected by R (intV, each lane's run), with vector ?: (Oclgrind's uninitialised-value plugin
- * crashes on swizzles such as .s00001111 and on vector constructors of float2 lanes) */
-/* the square roots as vsqrt takes them (common.cl): lane by lane with the compiler's own, else
- * (Oclgrind: CLSAS_OPENCL_SQRT) the builtin */
+ * roots, as vsqrt takes them (common.cl: lane by lane with the compiler's own, else the builtin);
+ * RUN_FIRST: the runs' first lanes of a lanes_f; SPREAD: each run's value over its lanes, selected
+ * by R (intV, each lane's run) with vector ?: rather than a swizzle such as .s00001111 */
 #if N_RUNS == 1
 #define runT float
 #if defined(__clang__) && !defined(CLSAS_OPENCL_SQRT)
