@@ -55,22 +55,28 @@ def allowed_error(max_error_db) -> float | None:
 
 
 def variant_record(plan: BackprojectPlan | None, max_error_db: float | None) -> dict:
-    """What ``image.provenance["bp"]`` says of the kernel that formed an image.
+    """What ``image.provenance["bp"]`` says of the kernel that formed an image, read from the plan
+    after its last call (what ran, not what was planned).
 
-    ``variant``: the plan's build variant (``"plain"``: the plain float kernel; ``"local_profiles"``,
-    the same image, runs as the plain kernel on geometries whose staged run exceeds the device's
-    local memory; ``"half_profiles"``: the records in half precision), or ``"twin"`` (the float64
-    NumPy twin, ``plan`` None); ``shape``: its label with the local size (None for the twin);
-    ``error_bound``: the variant's stated error against the float64 twin relative to the image's
-    peak (``BackprojectPlan.ERROR_BOUND``) where it is less exact than the plain kernel, else None
-    (the float kernels match the twin to their float32 rounding, about 1e-4 of the peak);
-    ``max_error_db``: the allowance it was chosen under (None: exact variants only).
+    ``variant``: the kernel that ran (``"plain"``: the plain float kernel, also where a variant
+    fell back to it; ``"local_profiles"``: the same image, records staged in local memory;
+    ``"half_profiles"``: the records in half precision; ``"range_expansion"``: the distances by
+    their expansion along z in runs of ``expansion_run`` voxels), or ``"twin"`` (the float64
+    NumPy twin, ``plan`` None); ``shape``: the plan's tuned shape (None for the twin);
+    ``error_bound``: the stated error against the float64 twin relative to the image's peak where
+    the kernel is less exact than the plain one (half: ``BackprojectPlan.ERROR_BOUND``; the range
+    expansion: its bound predicted for this grid and geometry), else None (the float kernels match
+    the twin to their float32 rounding, about 1e-4 of the peak); ``max_error_db``: the allowance
+    it was chosen under (None: exact variants only).
     """
     if plan is None:
         return {"variant": "twin", "shape": None, "error_bound": None, "max_error_db": max_error_db}
-    variant = plan.shape.variant
-    return {"variant": variant or "plain", "shape": plan.shape.label, "error_bound": plan.ERROR_BOUND.get(variant),
-            "max_error_db": max_error_db}
+    variant = plan.last_variant or plan.shape.variant or "plain"
+    record = {"variant": variant, "shape": plan.shape.label, "error_bound": plan.ERROR_BOUND.get(variant),
+              "max_error_db": max_error_db}
+    if variant == "range_expansion":
+        record.update(error_bound=float(plan.last_error_bound), expansion_run=int(plan.last_expansion_run))
+    return record
 
 
 def _half(plan: BackprojectPlan | None) -> bool:
@@ -259,23 +265,24 @@ class Backprojector:
         if plan is not None and self.resident and not _half(plan):
             records = self._records_plan(n, plan.n_lags, upsample_factor(fc, dtau))
             plan = None if records is None else plan  # None: the records kernel fell back to the twin
-        bp_record = variant_record(plan, self.max_error_db)
         if records is None and data is None:  # the host's way after all: the rows read back
             data = profiles.data
+        source = None
         if records is not None:
             # profiles.data itself (not the checked copy), or None for the rows: the records are kept for it
-            pending, bp_record["records"] = plan.enqueue_resident(None if rows is not None else profiles.data, rows,
-                                                                  records, tau0, dtau, fc, tx, rx, c, progress,
-                                                                  beam=weights)
+            pending, source = plan.enqueue_resident(None if rows is not None else profiles.data, rows, records, tau0,
+                                                    dtau, fc, tx, rx, c, progress, beam=weights)
         elif plan is not None:
             values = plan(data, tau0, dtau, fc, tx, rx, c, progress, beam=weights)
             pending = _Done(values, {"backproject_kernel": plan.last_kernel_s})
-            if self.resident:  # half records: made on the host, the resident path's are float
-                bp_record["records"] = "host"
+            source = "host" if self.resident else None  # half records: made on the host, the device's are float
         else:
             values = twin.backproject(data.astype(np.complex128), tau0, dtau, fc, tx, rx, c, self.grid.points(),
                                       progress, beam=weights)
             pending = _Done(values, {})
+        bp_record = variant_record(plan, self.max_error_db)  # after the launch: what ran
+        if source is not None:
+            bp_record["records"] = source
         # with beams, the mode applied (the default resolves to "limited") is kept with the image
         if beams is not None:
             mode = "none" if weights is None else ("weighted" if weights.gate is None else "limited")

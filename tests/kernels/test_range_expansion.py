@@ -149,6 +149,7 @@ def test_range_expansion_equals_its_twin(rng, vec, local, nz):
     width_or_skip("backproject", vec)
     grid, args = _bp_case(rng, nz)
     plan = BackprojectPlan(grid, 12, 40, vec=vec, chunk=5, shape=cl.Shape(local, EXPANSION), max_error=0.9)
+    plan.expansion_limit = 0.9  # errors far above the -50 dB a plan admits, to tell the expansion apart
     exact = twin.backproject(*args, grid.points())
     assert np.any(exact == 0) and np.any(exact != 0)
     runs = [r for r in (16, 8, 4) if r <= vec and twin.range_expansion_error(
@@ -183,6 +184,10 @@ def test_plan_expands_only_where_the_geometrys_bound_is_within_max_error(rng):
     assert np.abs(got - exact).max() < TOL["backproject"] * np.abs(exact).max()
     limit = (bounds[4] * bounds[8]) ** 0.5  # between the runs' bounds: run 4 is taken, not 8
     plan = BackprojectPlan(grid, 12, 40, vec=8, chunk=5, shape=cl.Shape(None, EXPANSION), max_error=limit)
+    plan(*args)
+    # an allowance above -50 dB never lets the expansion err more than -50 dB
+    assert (plan.last_variant, plan.last_expansion_run) == ("plain", 0)
+    plan.expansion_limit = 1.0  # lifted: the longest run within max_error
     got = plan(*args)
     assert (plan.last_variant, plan.last_expansion_run) == (EXPANSION, 4)
     assert np.abs(got - exact).max() < (bounds[4] + TOL["backproject"]) * np.abs(exact).max()
@@ -213,6 +218,7 @@ def test_range_expansion_builds_with_a_beam_and_either_image(complex_image):
     w = selftest_beam_weights(rng, "weighted")
     plan = BackprojectPlan(grid, 3, 40, chunk=2, beam_lut=w.luts.shape[1], complex_image=complex_image,
                            shape=cl.Shape(16, EXPANSION), max_error=0.9)
+    plan.expansion_limit = 0.9  # the kernel's arithmetic against its twin, at errors far above -50 dB
     got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c, beam=w)
     assert plan.last_variant == EXPANSION
     want = twin.backproject_range_expansion(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid, plan.last_expansion_run,

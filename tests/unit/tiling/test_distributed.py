@@ -184,7 +184,7 @@ def test_workers_form_their_tiles_from_records_uploaded_once(scene, client):
     the tiles' own provenance); the image equals the single-process one within bp's tolerance."""
     ds, grid, _ = scene
     ref = clsas.reconstruct(ds, grid, backend="opencl", formation="bp")
-    image = clsas.reconstruct(ds, grid, backend="opencl", client=client)
+    image = clsas.reconstruct(ds, grid, backend="opencl", formation="bp", client=client)
     tiles = image.provenance["tiles"]
     workers = len(tiles["devices"])
     assert tiles["count"] >= 8 and 1 <= workers <= 2

@@ -38,7 +38,7 @@ def test_tiles_take_the_records_once_and_equal_the_whole_image(scene):
     assert whole.provenance["bp"]["records"] == "rows"
     cl.release_reused()
     shape = (5, 9, 17)
-    tiled = clsas.reconstruct(ds, grid, backend="opencl", tile_shape=shape)
+    tiled = clsas.reconstruct(ds, grid, backend="opencl", formation="bp", tile_shape=shape)
     n = len(tile_grid(grid, shape))
     assert tiled.provenance["tiles"]["records"] == {"rows": 1, "kept": n - 1}
     assert tiled.provenance["tiles"]["overlap"] is True
@@ -83,10 +83,11 @@ def test_out_of_core_within_a_budget_is_resident_and_equals_the_whole_image(scen
     ds, _, _ = scene
     grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.56), 0.005)  # 45k voxels, 2.5 MB
     whole = clsas.reconstruct(ds, grid, backend="opencl", formation="bp")
-    clsas.reconstruct(ds, grid, backend="opencl", out=tmp_path / "warm.h5", tile_shape=(10, 33, 33))  # h5py, plans
+    # h5py, plans
+    clsas.reconstruct(ds, grid, backend="opencl", formation="bp", out=tmp_path / "warm.h5", tile_shape=(10, 33, 33))
     cl.release_reused()
     budget = clsas.pipeline.tiling.rss_bytes() + 2e6
-    image = clsas.reconstruct(ds, grid, backend="opencl", out=tmp_path / "image.h5", max_memory=budget)
+    image = clsas.reconstruct(ds, grid, backend="opencl", formation="bp", out=tmp_path / "image.h5", max_memory=budget)
     t = image.provenance["tiles"]
     assert t["count"] > 1 and t["records"] == {"rows": 1, "kept": t["count"] - 1}
     _close(image.values[()], whole.values)
@@ -105,7 +106,7 @@ def test_writeable_profiles_are_uploaded_once(scene):
     assert given.data.flags.writeable and given.on_device is None
     alone = clsas.backproject(given, grid, backend="opencl")
     assert alone.provenance["bp"]["records"] == "uploaded"
-    tiled = clsas.reconstruct(given, grid, backend="opencl", tile_shape=(11, 17, 5))
+    tiled = clsas.reconstruct(given, grid, backend="opencl", formation="bp", tile_shape=(11, 17, 5))
     n = tiled.provenance["tiles"]["count"]
     assert tiled.provenance["tiles"]["records"] == {"uploaded": 1, "kept": n - 1}
     assert given.data.flags.writeable  # the caller's array is left as it was
@@ -183,15 +184,16 @@ from clsas.pipeline.tiling import peak_rss_bytes, rss_bytes
 ds = small_dataset([[0.02, -0.01, 0.5]], nx=6, ny=5)
 warm = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.56), 0.01)
 d = tempfile.mkdtemp()
-clsas.reconstruct(ds, warm, backend="opencl", out=os.path.join(d, "warm.h5"), tile_shape=(5, 17, 17))
+clsas.reconstruct(ds, warm, backend="opencl", formation="bp", out=os.path.join(d, "warm.h5"), tile_shape=(5, 17, 17))
 grid = clsas.VoxelGrid.from_bounds((-0.25, 0.25), (-0.25, 0.25), (0.3, 0.8), 0.005)
 budget = rss_bytes() + 25e6
 # the tiles the budget gives; the first run also compiles what the runtime specialises for their launches
-first = clsas.reconstruct(ds, grid, backend="opencl", out=os.path.join(d, "first.h5"), max_memory=budget)
+first = clsas.reconstruct(ds, grid, backend="opencl", formation="bp", out=os.path.join(d, "first.h5"),
+                          max_memory=budget)
 with open("/proc/self/clear_refs", "w") as f:
     f.write("5")  # the peak resident memory (VmHWM) restarts from the current one
 shape = tuple(first.provenance["tiles"]["shape"])
-image = clsas.reconstruct(ds, grid, backend="opencl", out=os.path.join(d, "again.h5"), tile_shape=shape)
+image = clsas.reconstruct(ds, grid, backend="opencl", formation="bp", out=os.path.join(d, "again.h5"), tile_shape=shape)
 t = image.provenance["tiles"]
 print(grid.size, t["count"], t["records"].get("kept", 0), budget, peak_rss_bytes())
 """
