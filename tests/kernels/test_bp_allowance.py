@@ -160,3 +160,50 @@ def test_cli_reconstruct_names_the_bp_variant_auto_ran(half_fastest, tmp_path, c
     assert "bp kernel: half_profiles (half_profiles/" in out and "allowed -33 dB" in out
     assert main([*args, "--formation", "bp", "--overwrite"]) == 0
     assert "bp kernel:" not in capsys.readouterr().out  # bp named: exact float kernels, nothing to say
+
+
+@pytest.fixture
+def expansion_fastest(tmp_path, monkeypatch):
+    """As :func:`half_fastest`, for the range-expansion variant."""
+    from clsas.cl import variants
+
+    def child(device, name, vec, candidates):
+        return {"rounds": {c.label: [0.5, 0.5] if c.variant == "range_expansion" else [1.0, 1.0]
+                           for c in candidates}, "refused": {}}
+
+    monkeypatch.setenv("CLSAS_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(shapes, "_run_child", child)
+    monkeypatch.setattr(shapes, "busy", lambda device: None)
+    saved = dict(shapes._MEMO), dict(variants._MEMO)
+    shapes._MEMO.clear()
+    cl.release_reused()
+    yield
+    cl.release_reused()
+    shapes._MEMO.clear()
+    shapes._MEMO.update(saved[0])
+    variants._MEMO.update(saved[1])
+
+
+@needs_opencl
+def test_provenance_names_the_expansion_that_ran_or_the_plain_kernel_it_fell_back_to(expansion_fastest):
+    """Under -40 dB the tuning takes the range expansion; the image's provenance then says which
+    kernel each geometry ran: the expansion with its run and its bound for that geometry (within
+    -50 dB, the image within it of the float64 twin), or the plain kernel where no run's bound is."""
+    from clsas.formation.bp_opencl import EXPANSION_LIMIT
+
+    ds, _ = _scene()
+    prof = clsas.compress(ds, backend="opencl")
+    xy = np.linspace(-0.05, 0.05, 3)
+    fine = clsas.VoxelGrid(xy, xy, 0.45 + 0.005 * np.arange(24))  # run 4 at -64 dB on this scan
+    coarse = clsas.VoxelGrid(xy, xy, 0.4 + 0.015 * np.arange(32))  # run 4 near -34 dB: none within -50 dB
+    for grid, ran in [(fine, "range_expansion"), (coarse, "plain")]:
+        image = clsas.Backprojector(grid, backend="opencl", max_error_db=-40)(prof)
+        bp = image.provenance["bp"]
+        assert bp["shape"].startswith("range_expansion") and bp["variant"] == ran, bp
+        want = _twin(prof, grid)
+        if ran == "plain":
+            assert bp["error_bound"] is None and "expansion_run" not in bp
+            assert _error(image, want) < TOL["backproject"]
+        else:
+            assert 0 < bp["error_bound"] <= EXPANSION_LIMIT and bp["expansion_run"] >= 4
+            assert _error(image, want) <= bp["error_bound"] + TOL["backproject"]
