@@ -165,10 +165,10 @@ def test_a_worker_of_one_thread_gets_one_compute_unit(client):
 
     ds = small_dataset([[0.02, -0.01, 0.5]], nx=6, ny=5)
     grid = clsas.VoxelGrid.from_bounds((-0.1, 0.1), (-0.08, 0.08), (0.4, 0.56), 0.01)
-    ref = clsas.reconstruct(ds, grid, backend="opencl", device=spec)
+    ref = clsas.reconstruct(ds, grid, backend="opencl", device=spec, formation="bp")
     client.register_plugin(OpenCLDevicePlugin([spec]))
     try:
-        image = clsas.reconstruct(ds, grid, backend="opencl", client=client)
+        image = clsas.reconstruct(ds, grid, backend="opencl", client=client, formation="bp")
     finally:
         client.unregister_worker_plugin(OpenCLDevicePlugin.name)
     devices = image.provenance["tiles"]["devices"]

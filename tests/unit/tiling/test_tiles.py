@@ -105,7 +105,7 @@ def test_tiled_numpy_equals_the_whole_image(scene, reference):
 @needs_opencl
 def test_tiled_opencl_equals_the_whole_image_to_float32(scene, reference):
     ds, grid = scene
-    tiled = clsas.reconstruct(ds, grid, backend="opencl", tile_shape=(5, 17, 17))
+    tiled = clsas.reconstruct(ds, grid, backend="opencl", formation="bp", tile_shape=(5, 17, 17))
     ref = reference["numpy"].values
     assert tiled.backend == "opencl" and tiled.values.dtype == np.complex64
     assert np.abs(tiled.values - ref).max() <= TOL["backproject"] * np.abs(ref).max()
@@ -224,7 +224,8 @@ def test_several_devices_share_the_tiles(scene, reference):
 
     ds, grid = scene
     dev = cl.get_queue().device
-    image = clsas.reconstruct(ds, grid, backend="auto", device=[dev, dev, "numpy"], tile_shape=(2, 17, 17))
+    image = clsas.reconstruct(ds, grid, backend="auto", device=[dev, dev, "numpy"], formation="bp",
+                              tile_shape=(2, 17, 17))
     ref = reference["numpy"].values
     assert np.abs(image.values - ref).max() <= TOL["backproject"] * np.abs(ref).max()
     devices = image.provenance["tiles"]["devices"]
