@@ -91,7 +91,7 @@ def bp_variant_line(record: dict | None) -> str:
     """The line ``clsas reconstruct`` prints for bp's kernel variant (``image.provenance["bp"]``,
     :func:`clsas.formation.bp.variant_record`) where it is less exact than the plain float kernel:
     the variant, its shape, its stated bound and the allowance; ``""`` for the exact ones."""
-    if not record or record.get("error_bound") is None:
+    if not record or not record.get("error_bound"):
         return ""
     bound = float(record["error_bound"])
     return (f"bp kernel: {record['variant']} ({record['shape']}), stated error against the float64 twin at most "
@@ -188,8 +188,8 @@ def add_parser(sub) -> None:
                    "(planar uniform apertures, much faster), ... (see docs/guide/fast-formation.md)")
     r.add_argument("--max-error-db", type=float, default=None, metavar="DB",
                    help="the largest error against exact backprojection allowed: the target of --formation auto "
-                   f"(default {DEFAULT_MAX_ERROR_DB:g}), and, where given, what --formation bp's kernel may trade "
-                   "for speed (half-precision records on devices that have them; default: exact)")
+                   f"(default {DEFAULT_MAX_ERROR_DB:g}), and, where given, what bp's kernel (chosen or named) may "
+                   "trade for speed (half-precision records, the range expansion; default: exact)")
     r.add_argument("--formation-option", action="append", metavar="KEY=VALUE",
                    help="an option of the formation, e.g. --formation-option upsample=2 (repeatable)")
     add_preprocess_options(r)

@@ -59,6 +59,8 @@ class FocusEngine:
                  metric: str = "sharpness",
                  backend: str | _cl.Selection | None = None, device: Any = None, force: bool = False,
                  metric_on_device: bool = True):
+        if not isinstance(metric_on_device, bool):
+            raise TypeError(f"metric_on_device must be True or False, got {metric_on_device!r}")
         self.ds, self.grid, self.metric = dataset, grid, metric
         self.selection = _cl.select(backend, device)
         plan = plan_reconstruction(dataset, grid, [])

@@ -62,7 +62,11 @@ class FocusMomentsPlan(Plan):
         if not 0 < sums[0] < np.inf:
             return sums, self.scale  # zeros, or beyond float's range: the caller decides
         self.scale = 1.0 / float(sums[0])
-        return self.run(image, self.scale), self.scale
+        sums = self.run(image, self.scale)
+        scale = self.scale
+        if not np.isfinite(sums).all():  # a peak beyond what float can rescale: not kept for the next image
+            self.scale = 1.0
+        return sums, scale
 
     @classmethod
     def selftest(cls, queue, vec: int) -> float:

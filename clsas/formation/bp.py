@@ -266,7 +266,7 @@ class Backprojector:
             records = self._records_plan(n, plan.n_lags, upsample_factor(fc, dtau))
             plan = None if records is None else plan  # None: the records kernel fell back to the twin
         if records is None and data is None:  # the host's way after all: the rows read back
-            data = profiles.data
+            data = v.array("profiles.data", profiles.data, ndim=2, dtype=None, allow_complex=True)
         source = None
         if records is not None:
             # profiles.data itself (not the checked copy), or None for the rows: the records are kept for it

@@ -507,7 +507,11 @@ class BackprojectPlan(BeamPlan):
         the plain kernel."""
         limit = min(self.expansion_limit, EXPANSION_LIMIT if self.max_error is None else self.max_error)
         fc_hz = phi / (2 * np.pi * dtau_s)
+        if self.grid.shape[2] < self.vec:  # no work-item's voxels lie in one z row: none would be expanded
+            return self._plain_kernel()
         for run in self.expansion_runs:
+            if run > self.grid.shape[2]:
+                continue
             bound = range_expansion_error(self.grid, tx_positions, rx_positions, c_mps, fc_hz, run, dtau_s)
             if bound <= limit:
                 self.last_variant, self.last_expansion_run, self.last_error_bound = "range_expansion", run, bound
@@ -543,17 +547,33 @@ class BackprojectPlan(BeamPlan):
             got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
             want = twin.backproject(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid.points())
         else:
-            grid = VoxelGrid(np.linspace(-0.1, 0.1, 3), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, 37))
-            plan = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=shape, max_error=0.5)
-            plan.expansion_runs = (SHORTEST_RUN,)
-            plan.expansion_limit = 0.5  # the arithmetic against its own twin, on a near grid (errors above -50 dB)
-            got = plan(prof, tau0, 1 / fs, 25e3, tx, rx, c)
-            if plan.last_expansion_run != SHORTEST_RUN:
-                raise RuntimeError(f"the range-expansion selftest ran {plan.last_variant!r}, not the expansion")
-            want = twin.backproject_range_expansion(prof, tau0, 1 / fs, 25e3, tx, rx, c, grid, SHORTEST_RUN, vec)
+            return cls._expansion_selftest(queue, vec, shape, (prof, tau0, 1 / fs, 25e3, tx, rx, c))
         if not (np.any(want == 0) and np.any(want != 0)):
             raise RuntimeError("selftest scene must have voxels inside and outside the profile window")
         return float(np.abs(got - want).max() / np.abs(want).max())
+
+    @classmethod
+    def _expansion_selftest(cls, queue, vec: int, shape: Shape, args: tuple) -> float:
+        """The range-expansion variant against its twin at every build a call may take at this
+        width: each run (4 up to VEC), on rows of 37 voxels (work-items across a row's end: the
+        exact branch) and of 32 (aligned: -DROWS_ALIGNED); the largest error relative to the peak."""
+        from . import bp_numpy as twin
+
+        err = 0.0
+        for nz in (37, 32):
+            grid = VoxelGrid(np.linspace(-0.1, 0.1, 3), np.array([0.0, 0.05]), np.linspace(0.2, 0.6, nz))
+            for run in (r for r in (4, 8, 16) if r <= vec):
+                plan = cls(grid, 3, 40, queue=queue, vec=vec, chunk=2, shape=shape, max_error=0.5)
+                # the arithmetic against its own twin, on a near grid: whatever the expansion's error
+                plan.expansion_runs, plan.expansion_limit, plan.max_error = (run,), np.inf, np.inf
+                got = plan(*args)
+                if plan.last_expansion_run != run:
+                    raise RuntimeError(f"the range-expansion selftest ran {plan.last_variant!r}, not run {run}")
+                want = twin.backproject_range_expansion(*args, grid, run, vec)
+                if not (np.any(want == 0) and np.any(want != 0)):
+                    raise RuntimeError("selftest scene must have voxels inside and outside the profile window")
+                err = max(err, float(np.abs(got - want).max() / np.abs(want).max()))
+        return err
 
 
     @classmethod
@@ -566,7 +586,7 @@ class BackprojectPlan(BeamPlan):
         for plan in plans:
             plan.expansion_runs = (SHORTEST_RUN,)
             plan(*args)
-            if plan.shape.variant == "range_expansion" != plan.last_variant:
+            if plan.shape.variant == "range_expansion" and plan.last_variant != "range_expansion":
                 raise RuntimeError(f"shape {plan.shape.label} ran the {plan.last_variant} kernel on the timing scene")
         out = [[] for _ in plans]
         for _ in range(rounds):

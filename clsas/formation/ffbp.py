@@ -344,8 +344,7 @@ def _exact(profiles, grid, backend, device, force, progress, beam: str, beam_flo
 def _rows_of(profiles: Profiles):
     """The rows the OpenCL compression left on the device with ``profiles.data`` (valid on their own
     queue: :meth:`clsas.cl.DeviceRows.valid`), or None."""
-    rows = profiles.on_device
-    return rows if rows is not None and rows.valid(rows.queue, profiles.data) else None
+    return profiles.device_rows()
 
 
 def _device_records(pipe: FfbpPipeline, rows, n_lags: int, dtau: float, fc: float):

@@ -85,10 +85,10 @@ def reconstruct(
         ``"auto"`` (default) or one of :data:`clsas.formation.FORMATIONS` (``"bp"``, exact; ``"omega-k"``;
         ``"ffbp"``). ``"auto"`` takes the fastest whose predicted error meets ``max_error_db``
         (:mod:`clsas.formation.auto`; logged, kept in ``image.provenance["formation_auto"]``);
-        sparse methods, tiled requests and directional beams take ``"bp"``. Where auto forms by bp,
-        bp's kernel may take a variant stated within ``max_error_db`` less auto's 3 dB margin
-        (half-precision records where the device has them and they are faster);
-        ``image.provenance["bp"]`` names the variant that ran and its bound.
+        sparse methods, tiled requests and directional beams take ``"bp"``. Where auto forms by bp
+        under a ``max_error_db`` the caller gave, bp's kernel may take a variant stated within it
+        less auto's 3 dB margin (half-precision records, the range expansion, where the device runs
+        them faster); ``image.provenance["bp"]`` names the kernel that ran and its bound.
     formation_options : dict, optional
         Passed to the formation (see its module); ``"auto"`` takes none (its target is ``max_error_db``).
     out : str or Path, optional
@@ -102,11 +102,11 @@ def reconstruct(
         Voxels per tile along x, y, z (default from ``max_memory`` and the workers or devices).
     max_error_db : float, optional
         The largest error against exact bp allowed (dB, a finite number below 0), given to any
-        formation that takes an error target: ``"auto"`` (default -30 dB where None) and ``"bp"``,
-        whose kernel may then take a variant whose stated error against the float64 twin, relative
-        to the image's peak, is within it (:class:`clsas.Backprojector`). None (default): ``"bp"``
-        named by the caller runs its exact float kernels. The one source of the target:
-        ``formation_options`` may not hold it.
+        formation that takes an error target: ``"auto"`` and ``"bp"``, whose kernel may then take a
+        variant whose stated error against the float64 twin, relative to the image's peak, is
+        within it (:class:`clsas.Backprojector`: half-precision records, the range expansion).
+        None (default): auto aims at -30 dB and bp, named or chosen, runs its exact float kernels.
+        The one source of the target: ``formation_options`` may not hold it.
     inverse : dict, optional
         Options of a model-based method (:data:`clsas.inverse.methods.INVERSE_OPTIONS`).
 

@@ -156,7 +156,8 @@ class Profiles:
         there (unread) where ``changes`` do not give it; ``dataclasses.replace`` reads it (it
         copies every field through its attribute)."""
         if "data" not in changes and self._held() is None:
-            changes["data"] = None
+            # without the rows (on_device=None given) the data must come along: read it here
+            changes["data"] = self.data if changes.get("on_device", self.on_device) is None else None
         return replace(self, **changes)
 
     def delays_s(self, m: int = 0) -> np.ndarray:

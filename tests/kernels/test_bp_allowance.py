@@ -114,11 +114,15 @@ def test_plans_are_reused_per_allowance(half_fastest):
 
 @needs_opencl
 def test_reconstruct_auto_gives_bp_its_target_and_records_the_variant(half_fastest):
+    """A target given to reconstruct reaches auto's bp, less the margin; none given: bp exact."""
     ds, grid = _scene()
     sel = cl.select("opencl")
     # the other formations made slow in this fresh cache: auto forms by bp
     clsas.formation.auto.store_calibration({"omega-k": 1e3, "ffbp": 1e3}, sel)
-    image = clsas.reconstruct(ds, grid, backend="opencl")
+    exact = clsas.reconstruct(ds, grid, backend="opencl")
+    assert exact.provenance["formation"] == "bp" and exact.provenance["bp"]["max_error_db"] is None
+    assert exact.provenance["bp"]["variant"] != HALF and exact.provenance["bp"]["error_bound"] is None
+    image = clsas.reconstruct(ds, grid, backend="opencl", max_error_db=-30)
     choice = image.provenance["formation_auto"]
     assert image.provenance["formation"] == "bp" and choice["max_error_db"] == -30
     assert image.provenance["formation_options"] == {"max_error_db": -30 - clsas.formation.auto.MARGIN_DB}
@@ -155,6 +159,9 @@ def test_cli_reconstruct_names_the_bp_variant_auto_ran(half_fastest, tmp_path, c
     args = ["reconstruct", str(tmp_path / "scan.h5"), f"--grid={x0},{x1},{y0},{y1},{z0},{z1}", "--spacing", "0.01",
             "--backend", "opencl", "-q", "--out", str(tmp_path / "img.h5")]
     assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "formation: bp (auto, error target -30 dB" in out and "bp kernel:" not in out  # no target: exact
+    assert main([*args, "--max-error-db", "-30", "--overwrite"]) == 0
     out = capsys.readouterr().out
     assert "formation: bp (auto, error target -30 dB" in out
     assert "bp kernel: half_profiles (half_profiles/" in out and "allowed -33 dB" in out

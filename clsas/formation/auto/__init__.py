@@ -54,7 +54,7 @@ __all__ = [
 @FORMATIONS.register("auto")
 def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | cl.Selection | None = None, device: Any = None,
          progress: Callable[[int, int], None] | None = None, force: bool = False,
-         max_error_db: float = DEFAULT_MAX_ERROR_DB) -> Image:
+         max_error_db: float | None = None) -> Image:
     """Image ``profiles`` on ``grid`` with the fastest formation that meets ``max_error_db``.
 
     Parameters
@@ -68,9 +68,11 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | cl.Selection | N
         Passed to the formation chosen.
     force : bool
         Passed to the formation chosen.
-    max_error_db : float
-        The largest error against exact bp (error-to-signal over the grid, dB; default -30). Where
-        bp is formed, its kernel may take a variant stated within ``max_error_db - MARGIN_DB``.
+    max_error_db : float, optional
+        The largest error against exact bp (error-to-signal over the grid, dB). None:
+        :data:`DEFAULT_MAX_ERROR_DB` (-30), and bp, where formed, stays exact. Given: where bp is
+        formed, its kernel may take a variant stated within ``max_error_db - MARGIN_DB`` of the
+        peak per voxel (:func:`.trust.bp_options`).
 
     Returns
     -------
@@ -83,15 +85,15 @@ def form(profiles: Profiles, grid: VoxelGrid, *, backend: str | cl.Selection | N
         raise TypeError(f"profiles must be clsas.Profiles (from clsas.compress), got {type(profiles).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    target = check_max_error_db(max_error_db)
+    given = None if max_error_db is None else check_max_error_db(max_error_db)
     selection = cl.select(backend, device)
-    choice = resolve(profiles, grid, selection, max_error_db=target)
+    choice = resolve(profiles, grid, selection, max_error_db=given)
     image, record = form_choice(profiles, grid, choice, backend=selection, progress=progress, force=force)
     return replace(image, provenance={**image.provenance, "formation_auto": record})
 
 
 def for_tiles(profiles: Profiles, grid: VoxelGrid, *, backend: Any = None, device: Any = None,
-              max_error_db: float = DEFAULT_MAX_ERROR_DB) -> tuple[str, dict, dict]:
+              max_error_db: float | None = None) -> tuple[str, dict, dict]:
     """What the tiles of a grid formed in tiles are formed by: (formation, its options, the
     provenance to add), bp by rule (:func:`.rules.by_rule`)."""
     choice = resolve(profiles, grid, cl.select(backend, device), max_error_db=max_error_db, tiled=True)

@@ -23,7 +23,7 @@ __all__ = ["choose", "resolve"]
 log = logging.getLogger(__name__)
 
 
-def resolve(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float = DEFAULT_MAX_ERROR_DB,
+def resolve(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float | None = None,
             tiled: bool = False) -> Choice:
     """What ``formation="auto"`` forms for this request: bp where a rule takes it (:func:`.rules.by_rule`),
     else :func:`choose`'s choice.
@@ -34,18 +34,20 @@ def resolve(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db
     grid : VoxelGrid
     selection : clsas.cl.Selection, optional
         Where the formations would run (None: the NumPy twins).
-    max_error_db : float
-        Error target against exact backprojection, dB (default -30).
+    max_error_db : float, optional
+        Error target against exact backprojection, dB. None: :data:`DEFAULT_MAX_ERROR_DB` (-30),
+        and bp, where formed, stays exact (a target given lets its kernel take a variant stated
+        within it less the margin, :func:`.trust.bp_options`).
     tiled : bool
         Whether the grid is formed in tiles (then by bp, by rule).
     """
     if not isinstance(profiles, Profiles):
         raise TypeError(f"profiles must be clsas.Profiles, got {type(profiles).__name__}")
-    target = check_max_error_db(max_error_db)
-    return by_rule(profiles, target, tiled=tiled) or choose(profiles, grid, selection, max_error_db=target)
+    given = None if max_error_db is None else check_max_error_db(max_error_db)
+    return by_rule(profiles, given, tiled=tiled) or choose(profiles, grid, selection, max_error_db=given)
 
 
-def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float = DEFAULT_MAX_ERROR_DB,
+def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float | None = None,
            formations=("bp", "omega-k", "ffbp")) -> Choice:
     """The fastest formation whose predicted error is at most ``max_error_db - MARGIN_DB``, or one
     predicted near the target whose error is then measured (:attr:`Choice.steps`).
@@ -70,11 +72,11 @@ def choose(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db:
         raise TypeError(f"profiles must be clsas.Profiles, got {type(profiles).__name__}")
     if not isinstance(grid, VoxelGrid):
         raise TypeError(f"grid must be a clsas.VoxelGrid, got {type(grid).__name__}")
-    target = check_max_error_db(max_error_db)
+    target = check_max_error_db(DEFAULT_MAX_ERROR_DB if max_error_db is None else max_error_db)
     formations = tuple(dict.fromkeys(("bp", *formations)))
     factors = load_calibration(selection)
     model = "calibrated on this device by python -m bench" if factors else "built-in (not calibrated on this device)"
-    ests = estimate(profiles, grid, selection, max_error_db=target, factors=factors, formations=formations)
+    ests = estimate(profiles, grid, selection, max_error_db=max_error_db, factors=factors, formations=formations)
     fast = any(e.feasible and e.formation != "bp" and e.error_db <= target + CHECK_ABOVE_DB for e in ests)
     steps = _steps(ests, target, check_seconds(profiles, grid, selection, factors) if fast else math.inf)
     first, measured = steps[0]

@@ -258,16 +258,17 @@ def _ffbp_estimates(profiles, grid, selection, factors, target_db: float, best_s
     return out or [Estimate("ffbp", math.inf, math.inf, note="too few measurements for a tree")]
 
 
-def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float = DEFAULT_MAX_ERROR_DB,
+def estimate(profiles: Profiles, grid: VoxelGrid, selection=None, *, max_error_db: float | None = None,
              factors: dict | None = None, formations=("bp", "omega-k", "ffbp")) -> list[Estimate]:
-    """Predicted time and error of each formation (FFBP: several trees) for this request."""
+    """Predicted time and error of each formation (FFBP: several trees) for this request
+    (``max_error_db`` None: :data:`DEFAULT_MAX_ERROR_DB`, bp exact)."""
     factors = load_calibration(selection) if factors is None else factors
-    goal = check_max_error_db(max_error_db)
+    goal = check_max_error_db(DEFAULT_MAX_ERROR_DB if max_error_db is None else max_error_db)
     target = goal - MARGIN_DB
     out = []
     if "bp" in formations:
         out.append(Estimate("bp", _seconds("bp", work_bp(profiles, grid), selection, factors), -math.inf,
-                            bp_options(goal), note="exact (the reference)"))
+                            bp_options(None if max_error_db is None else goal), note="exact (the reference)"))
     if "omega-k" in formations:
         n_fft = 1.5 * profiles.n_lags
         floor = _seconds("omega-k", {"fixed": 1, "delay": profiles.n_meas * n_fft * math.log2(max(n_fft, 2))},

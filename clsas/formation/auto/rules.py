@@ -76,15 +76,15 @@ def check_max_error_db(max_error_db) -> float:
     return val
 
 
-def by_rule(profiles: Profiles, max_error_db: float, *, tiled: bool = False) -> Choice | None:
+def by_rule(profiles: Profiles, max_error_db: float | None, *, tiled: bool = False) -> Choice | None:
     """The :class:`Choice` of bp where a rule (see the module notes) takes it, logged; else None.
 
     Parameters
     ----------
     profiles : Profiles
         What would be formed (its ``method`` names a sparse method where one rendered it).
-    max_error_db : float
-        The error target, dB (recorded in the Choice).
+    max_error_db : float or None
+        The error target, dB (recorded in the Choice); None: :data:`DEFAULT_MAX_ERROR_DB`, bp exact.
     tiled : bool
         Whether the grid is formed in tiles.
     """
@@ -92,8 +92,8 @@ def by_rule(profiles: Profiles, max_error_db: float, *, tiled: bool = False) -> 
     if reason is None:
         return None
     log.info("formation auto: %s", reason)
-    target = check_max_error_db(max_error_db)
-    return Choice("bp", bp_options(target), reason, target, "rule", ())
+    target = check_max_error_db(DEFAULT_MAX_ERROR_DB if max_error_db is None else max_error_db)
+    return Choice("bp", bp_options(None if max_error_db is None else target), reason, target, "rule", ())
 
 
 def rule_reason(method: str, *, tiled: bool = False, beams=None) -> str | None:

@@ -55,12 +55,13 @@ class Estimate:
         return math.isfinite(self.time_s)
 
 
-def bp_options(max_error_db: float) -> dict:
-    """The options auto forms bp with under the target ``max_error_db``: its kernel may take a
-    variant whose stated error against the float64 twin is at most the target less
-    :data:`MARGIN_DB` (:class:`clsas.formation.bp.Backprojector`; the exact float kernels where the
-    device has none, or none is faster). The image's ``provenance["bp"]`` names the one that ran."""
-    return {"max_error_db": max_error_db - MARGIN_DB}
+def bp_options(max_error_db: float | None) -> dict:
+    """The options auto forms bp with under the target ``max_error_db`` the caller gave: its kernel
+    may take a variant whose stated error against the float64 twin (per voxel, relative to the
+    peak) is at most the target less :data:`MARGIN_DB` (:class:`clsas.formation.bp.Backprojector`;
+    the exact float kernels where the device has none, or none is faster). None (no target given:
+    auto's default): none, bp stays exact. The image's ``provenance["bp"]`` names what ran."""
+    return {} if max_error_db is None else {"max_error_db": max_error_db - MARGIN_DB}
 
 
 def check_seconds(profiles: Profiles, grid: VoxelGrid, selection, factors: dict) -> float:

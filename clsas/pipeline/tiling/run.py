@@ -65,7 +65,7 @@ class _Tally:
     records: dict = field(default_factory=dict)  # tiles per source of bp's device records
     variants: dict = field(default_factory=dict)  # tiles per bp kernel variant
     bounds: dict = field(default_factory=dict)  # bp kernel variant -> its stated error bound
-    overlapped: int = 0  # tiles formed with the next tile's kernels beside their read back
+    overlapped: int = 0  # tiles whose kernels ran beside the previous tile's read back
 
     def add(self, device: str, seconds: float, pairs: float, units: int | None = None,
             bp: dict | None = None, overlapped: bool = False) -> None:
@@ -75,7 +75,8 @@ class _Tally:
             self.records[bp["records"]] = self.records.get(bp["records"], 0) + 1
         if bp.get("variant") is not None:
             self.variants[bp["variant"]] = self.variants.get(bp["variant"], 0) + 1
-            self.bounds[bp["variant"]] = bp.get("error_bound")
+            bound, held = bp.get("error_bound"), self.bounds.get(bp["variant"])  # the worst tile's
+            self.bounds[bp["variant"]] = bound if held is None or (bound is not None and bound > held) else held
         self.tiles[device] = self.tiles.get(device, 0) + 1
         self.seconds[device] = self.seconds.get(device, 0.0) + seconds
         self.pairs[device] = self.pairs.get(device, 0.0) + pairs

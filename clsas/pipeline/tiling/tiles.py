@@ -146,7 +146,7 @@ def tile_shape_for(grid: VoxelGrid, kind: str, *, max_memory: float | None = Non
 
 
 def form_tile(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict, selection,
-              force: bool = False) -> tuple[np.ndarray, str, float, str | None]:
+              force: bool = False) -> tuple[np.ndarray, str, float, dict | None]:
     """One tile: ``(values (nx, ny, nz) as the formation gave them, device, seconds, bp)``,
     ``bp`` what bp recorded of it (:func:`bp_record`)."""
     from ...formation import form
@@ -158,7 +158,7 @@ def form_tile(profiles: Profiles, grid: VoxelGrid, formation: str, options: dict
 
 def form_in_turn(profiles: Profiles, grids: Iterable[VoxelGrid], formation: str, options: dict, selection,
                  force: bool = False,
-                 overlap: bool = True) -> Iterator[tuple[np.ndarray, str, float, str | None, bool]]:
+                 overlap: bool = True) -> Iterator[tuple[np.ndarray, str, float, dict | None, bool]]:
     """Each grid of ``grids`` formed in turn: ``(values, device, seconds, bp, overlapped)`` (``bp``:
     :func:`bp_record`).
 
@@ -166,9 +166,10 @@ def form_in_turn(profiles: Profiles, grids: Iterable[VoxelGrid], formation: str,
     before the last tile's image is read back and handed on) does so on OpenCL, taking each grid
     only as the previous image is handed on, so that it holds at most one grid ahead of the
     caller (a shared queue of tiles stays shared); ``seconds`` is then the tile's share of the
-    run's wall time and ``overlapped`` is ``overlap`` (False for a tile that fell back to the
-    twin). Elsewhere one :func:`form_tile` after the
-    other (``overlapped`` False).
+    run's wall time and ``overlapped`` says whether the tile's kernels ran while the previous
+    tile's image was read back (with ``overlap``, for every tile of a run but the first, formed
+    on the device's resident path: not where the twin took over, nor on records made on the
+    host). Elsewhere one :func:`form_tile` after the other (``overlapped`` False).
     """
     from ...formation import FORMATIONS
 
@@ -177,12 +178,14 @@ def form_in_turn(profiles: Profiles, grids: Iterable[VoxelGrid], formation: str,
         for grid in grids:
             yield (*form_tile(profiles, grid, formation, options, selection, force), False)
         return
-    t0 = time.perf_counter()
+    t0, previous = time.perf_counter(), False  # whether the previous tile was read back on the resident path
     for image in form_tiles(profiles, grids, backend=selection, force=force, overlap=overlap, **options):
         t1 = time.perf_counter()
         seconds, t0 = t1 - t0, t1
-        overlapped = overlap and image.backend == "opencl"  # not where the twin took over
-        yield np.asarray(image.values), image.device, seconds, bp_record(image), overlapped
+        bp = bp_record(image)
+        resident = image.backend == "opencl" and (bp or {}).get("records") not in (None, "host")
+        overlapped, previous = overlap and resident and previous, resident
+        yield np.asarray(image.values), image.device, seconds, bp, overlapped
 
 
 def bp_record(image) -> dict | None:

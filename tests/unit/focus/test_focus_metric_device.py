@@ -101,3 +101,5 @@ def test_numpy_engine_computes_the_metric_on_the_host(rng):
     assert engine.n_device_metrics == 0 and m == metric_and_weight(values, "sharpness")[0]
     with pytest.raises(ValueError, match="weight"):
         engine.sums(np.zeros(ds.n_meas), ds.c_per_meas, None)
+    with pytest.raises(TypeError, match="metric_on_device"):
+        FocusEngine(ds, grid, backend="numpy", metric_on_device="False")

@@ -60,6 +60,12 @@ def test_auto_gives_bp_its_target_less_the_margin(scan):
     rule = auto.by_rule(prof, -30.0, tiled=True)
     assert rule.formation == "bp" and rule.options == {"max_error_db": -33.0}
     assert auto.bp_options(-30.0) == {"max_error_db": -33.0}
+    # no target given: auto aims at its default, and bp stays exact
+    assert auto.bp_options(None) == {}
+    default = auto.by_rule(prof, None, tiled=True)
+    assert default.options == {} and default.max_error_db == auto.DEFAULT_MAX_ERROR_DB
+    est = next(e for e in auto.estimate(prof, grid, None) if e.formation == "bp")
+    assert est.options == {}
 
 
 def test_reconstruct_gives_bp_a_target_only_where_the_caller_gave_one(scan, tmp_path, monkeypatch):
@@ -75,6 +81,8 @@ def test_reconstruct_gives_bp_a_target_only_where_the_caller_gave_one(scan, tmp_
     auto.store_calibration({"omega-k": 1e3, "ffbp": 1e3})  # auto forms by bp
     image = clsas.reconstruct(ds, grid, backend="numpy")
     assert image.provenance["formation"] == "bp" and image.provenance["formation_auto"]["max_error_db"] == -30
+    assert image.provenance["bp"]["max_error_db"] is None and "formation_options" not in image.provenance
+    image = clsas.reconstruct(ds, grid, backend="numpy", max_error_db=-30)
     assert image.provenance["bp"]["max_error_db"] == -33
     assert "exact, or a kernel variant stated within -33 dB" in image.provenance["formation_auto"]["reason"]
 

@@ -85,6 +85,12 @@ def test_replace_reads_with_fields_keeps_the_rows_unread(rng):
     assert kept.data is prof.data  # every holder of the rows gets the one host copy
 
 
+def test_with_fields_dropping_the_rows_brings_the_data_along(rng):
+    prof, rows, values = _on_device(rng)
+    alone = prof.with_fields(on_device=None)
+    assert rows.reads == 1 and alone.on_device is None and np.array_equal(alone.data, values)
+
+
 def test_pickled_profiles_carry_their_data(rng):
     prof, rows, values = _on_device(rng)
     back = pickle.loads(pickle.dumps(prof))
