@@ -35,7 +35,7 @@ from ...types.profiles import Profiles
 from .store import open_store, request_digest
 from .tiles import form_in_turn, profile_bytes, read_only, rss_bytes, tile_grid, tile_shape_for
 
-__all__ = ["TiledRequest", "form_tiled"]
+__all__ = ["TiledRequest", "TileTally", "form_tiled"]
 
 log = logging.getLogger(__name__)
 
@@ -55,8 +55,10 @@ class TiledRequest:
 
 
 @dataclass
-class _Tally:
-    """Tiles and busy seconds per device (for the throughput each device showed)."""
+class TileTally:
+    """What a tiled run's tiles report, added up: tiles and busy seconds per device (for the
+    throughput each device showed), where bp took its records, the bp kernel variants with each
+    one's worst stated bound, and how many tiles ran beside the previous one's read back."""
 
     tiles: dict = field(default_factory=dict)
     seconds: dict = field(default_factory=dict)
@@ -115,7 +117,7 @@ def form_tiled(profiles: Profiles, grid: VoxelGrid, formation: str, options: dic
         values = _image_array(grid, kind, force)
         pending = list(range(len(tiles)))
     done = len(tiles) - len(pending)
-    tally = _Tally()
+    tally = TileTally()
     t0 = time.perf_counter()
     try:
         if progress is not None:

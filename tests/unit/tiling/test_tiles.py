@@ -306,9 +306,9 @@ def test_missing_zarr_names_the_extra(scene, tmp_path, monkeypatch):
 def test_the_tally_keeps_each_variants_worst_bound():
     """A tiled image states, per bp kernel variant, the largest bound any of its tiles ran under
     (the range expansion's depends on each tile's geometry)."""
-    from clsas.pipeline.tiling.run import _Tally
+    from clsas.pipeline.tiling.run import TileTally
 
-    tally = _Tally()
+    tally = TileTally()
     for bound in (1e-4, 3e-4, 2e-4):
         tally.add("dev", 1.0, 1.0, bp={"variant": "range_expansion", "error_bound": bound, "records": "kept"})
     tally.add("dev", 1.0, 1.0, bp={"variant": "plain", "error_bound": None, "records": "kept"})
