@@ -152,6 +152,21 @@ def chirp96():
     return clsas.lfm_chirp(20e3, 30e3, 2e-3, fs, taper=0.1), fs
 
 
+def bp_kernel_case(rng, nz: int = 37):
+    """The bp kernel tests' scene: 9 x 5 x ``nz`` voxels (37: not a multiple of any width or
+    work-group, work-items in one z row and across a row's end; 32: rows aligned to every width),
+    voxels in and out of the window, upsampled profiles (2 carrier cycles per sample), a speed of
+    sound per measurement. Returns ``(grid, (prof, tau0, dtau, fc, tx, rx, c))``."""
+    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 9), np.linspace(-0.05, 0.05, 5), np.linspace(0.3, 0.7, nz))
+    n, n_lags, dtau = 12, 40, 1 / 24e3
+    tx = np.c_[rng.uniform(-0.2, 0.2, (n, 2)), np.zeros(n)]
+    rx = tx + [0.03, 0, 0]
+    c = rng.uniform(340, 346, n)
+    prof = rng.normal(size=(n, n_lags)) + 1j * rng.normal(size=(n, n_lags))
+    tau0 = 0.8 / 343 - 20 * dtau + rng.uniform(-3, 3, n) * dtau
+    return grid, (prof, tau0, dtau, 25e3, tx, rx, c)
+
+
 def small_dataset(points, amplitudes=None, nx=9, ny=7, width=0.4, height=0.3, snr_db=None, walls=(),
                   visible=None, duration_s=2e-3, fs=96e3, humidity_pct=50.0):
     w = clsas.lfm_chirp(20e3, 30e3, duration_s, fs, taper=0.1)

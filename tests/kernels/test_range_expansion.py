@@ -6,7 +6,7 @@ limit)."""
 
 import numpy as np
 import pytest
-from conftest import TOL, needs_opencl, width_or_skip
+from conftest import TOL, bp_kernel_case, needs_opencl, width_or_skip
 
 import clsas
 from clsas import cl
@@ -121,21 +121,6 @@ def test_error_bound_checks_its_inputs_and_is_zero_where_nothing_expands():
         twin.expansion_layout(grid, 8, 4)
 
 
-def _bp_case(rng, nz: int = 37):
-    """The kernel tests' scene (as test_shapes.py's): 9 x 5 x nz voxels (37: work-items in one z row
-    and across a row's end at every width; 32: rows aligned to every width, -DROWS_ALIGNED),
-    voxels in and out of the window, upsampled profiles (2 carrier cycles per sample), a speed of
-    sound per measurement."""
-    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 9), np.linspace(-0.05, 0.05, 5), np.linspace(0.3, 0.7, nz))
-    n, n_lags, dtau = 12, 40, 1 / 24e3
-    tx = np.c_[rng.uniform(-0.2, 0.2, (n, 2)), np.zeros(n)]
-    rx = tx + [0.03, 0, 0]
-    c = rng.uniform(340, 346, n)
-    prof = rng.normal(size=(n, n_lags)) + 1j * rng.normal(size=(n, n_lags))
-    tau0 = 0.8 / 343 - 20 * dtau + rng.uniform(-3, 3, n) * dtau
-    return grid, (prof, tau0, dtau, 25e3, tx, rx, c)
-
-
 @needs_opencl
 @pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
 @pytest.mark.parametrize("local", [None, 16], ids=lambda n: f"local{n}")
@@ -147,7 +132,7 @@ def test_range_expansion_equals_its_twin(rng, vec, local, nz):
     from clsas.formation.bp_opencl import BackprojectPlan
 
     width_or_skip("backproject", vec)
-    grid, args = _bp_case(rng, nz)
+    grid, args = bp_kernel_case(rng, nz)
     plan = BackprojectPlan(grid, 12, 40, vec=vec, chunk=5, shape=cl.Shape(local, EXPANSION), max_error=0.9)
     plan.expansion_limit = 0.9  # errors far above the -50 dB a plan admits, to tell the expansion apart
     exact = twin.backproject(*args, grid.points())
@@ -173,7 +158,7 @@ def test_plan_expands_only_where_the_geometrys_bound_is_within_max_error(rng):
     where none is, it runs the plain kernel (the exact twin's image) and says so."""
     from clsas.formation.bp_opencl import EXPANSION_LIMIT, BackprojectPlan
 
-    grid, args = _bp_case(rng)
+    grid, args = bp_kernel_case(rng)
     fine = args[2] / 2
     bounds = {r: twin.range_expansion_error(grid, args[4], args[5], args[6], args[3], r, fine) for r in (4, 8, 16)}
     assert bounds[4] > EXPANSION_LIMIT  # this near geometry: not even the shortest run at -50 dB

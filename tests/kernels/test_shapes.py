@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import TOL, needs_opencl, width_or_skip
+from conftest import TOL, bp_kernel_case, needs_opencl, width_or_skip
 
 import clsas
 from clsas import cl
@@ -135,19 +135,6 @@ def test_staged_records_cover_every_groups_spread(rng):
         assert bound <= 2 * np.linalg.norm(grid.bounds()[:, 1] - grid.bounds()[:, 0]) * per_m + 3
 
 
-def _bp_case(rng, shape):
-    """A grid of several work-groups (not a multiple of any), voxels in and out of the window,
-    upsampled profiles (2 carrier cycles per sample), a speed of sound per measurement."""
-    grid = clsas.VoxelGrid(np.linspace(-0.1, 0.1, 9), np.linspace(-0.05, 0.05, 5), np.linspace(0.3, 0.7, shape))
-    n, n_lags, dtau = 12, 40, 1 / 24e3
-    tx = np.c_[rng.uniform(-0.2, 0.2, (n, 2)), np.zeros(n)]
-    rx = tx + [0.03, 0, 0]
-    c = rng.uniform(340, 346, n)
-    prof = rng.normal(size=(n, n_lags)) + 1j * rng.normal(size=(n, n_lags))
-    tau0 = 0.8 / 343 - 20 * dtau + rng.uniform(-3, 3, n) * dtau
-    return grid, (prof, tau0, dtau, 25e3, tx, rx, c)
-
-
 @needs_opencl
 @pytest.mark.parametrize("vec", [4, 8, 16], ids=lambda v: f"vec{v}")
 @pytest.mark.parametrize("local", [1, 4, 16], ids=lambda n: f"local{n}")
@@ -157,7 +144,7 @@ def test_local_profiles_equal_twin(rng, vec, local):
     from clsas.formation.bp_opencl import BackprojectPlan, upsample_factor
 
     width_or_skip("backproject", vec)
-    grid, args = _bp_case(rng, 17)
+    grid, args = bp_kernel_case(rng, 17)
     plan = BackprojectPlan(grid, 12, 40, vec=vec, chunk=5, shape=cl.Shape(local, LOCAL))
     fine = args[2] / upsample_factor(args[3], args[2])
     assert plan.n_pad % (vec * local) == 0 and len(plan._staging(fine, args[6])[1]) == 3
@@ -172,7 +159,7 @@ def test_local_profiles_equal_twin(rng, vec, local):
 def test_plain_kernel_with_a_local_size_equals_twin(rng, local):
     from clsas.formation.bp_opencl import BackprojectPlan
 
-    grid, args = _bp_case(rng, 13)
+    grid, args = bp_kernel_case(rng, 13)
     got = BackprojectPlan(grid, 12, 40, chunk=5, shape=cl.Shape(local))(*args)
     want = twin.backproject(*args, grid.points())
     assert np.abs(got - want).max() < TOL["backproject"] * np.abs(want).max()
@@ -182,7 +169,7 @@ def test_plain_kernel_with_a_local_size_equals_twin(rng, local):
 def test_a_run_too_long_for_local_memory_runs_the_plain_kernel(rng, monkeypatch):
     from clsas.formation import bp_opencl
 
-    grid, args = _bp_case(rng, 13)
+    grid, args = bp_kernel_case(rng, 13)
     plan = bp_opencl.BackprojectPlan(grid, 12, 40, chunk=5, shape=cl.Shape(4, LOCAL))
     monkeypatch.setattr(bp_opencl, "staged_records", lambda *a: plan.queue.device.local_mem_size // 16)
     kern, extra = plan._staging(args[2] / bp_opencl.upsample_factor(args[3], args[2]), args[6])
@@ -207,7 +194,7 @@ def test_half_profiles_equal_twin(rng, vec, local):
     if not _has_fp16():
         pytest.skip(f"{cl.describe(cl.get_queue().device)} does not report cl_khr_fp16")
     width_or_skip("backproject", vec)
-    grid, args = _bp_case(rng, 17)
+    grid, args = bp_kernel_case(rng, 17)
     args = (args[0] * 1e6, *args[1:])
     plan = BackprojectPlan(grid, 12, 40, vec=vec, chunk=5, shape=cl.Shape(local, "half_profiles"))
     got = plan(*args)
